@@ -1,0 +1,1 @@
+"""apf_companion.perception."""

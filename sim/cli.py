@@ -1,0 +1,50 @@
+"""apf-sim: the bundled simulator's command line.
+
+Subcommands live beside what they run; each module exposes ``register(subparsers)`` that adds its parser and
+sets ``func`` (a callable taking the parsed namespace and returning an exit code):
+- ``study``   the paper's Monte Carlo study (sim/study/cli.py)
+- ``vehicle`` the simulated autopilot + vehicle + world + range sensor (sim/vehicle/cli.py)
+- ``sensor``  world and range sensor only, following an external autopilot (sim/vehicle/cli.py)
+- ``fly``     the simulator and the companion service together, one SITL-style flight (sim/fly.py)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import sys
+from collections.abc import Callable, Sequence
+from typing import cast
+
+_SUBCOMMAND_MODULES = ("sim.fly", "sim.vehicle.cli", "sim.study.cli")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="apf-sim", description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--log-level",
+        default=os.environ.get("APF_LOG_LEVEL", "WARNING"),
+        help="logging level (default: $APF_LOG_LEVEL or WARNING)",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in _SUBCOMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=str(args.log_level).upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    func = cast(Callable[[argparse.Namespace], int], args.func)
+    try:
+        return func(args)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
