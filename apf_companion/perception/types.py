@@ -191,17 +191,13 @@ class RangeScan:
         if np.any(ranges < 0.0) or np.any(np.isneginf(ranges)):
             msg = "ranges_m must be >= 0, +inf (free) or NaN (no reading)"
             raise ConfigError(msg)
-        if self.time_boot_ms is not None and (
-            not isinstance(self.time_boot_ms, int) or self.time_boot_ms < 0
-        ):
+        if self.time_boot_ms is not None and (not isinstance(self.time_boot_ms, int) or self.time_boot_ms < 0):
             msg = f"time_boot_ms must be an int >= 0 or None, got {self.time_boot_ms!r}"
             raise ConfigError(msg)
         if self.counts.total == 0 and ranges.size > 0:
             nan = int(np.count_nonzero(np.isnan(ranges)))
             inf = int(np.count_nonzero(np.isposinf(ranges)))
-            object.__setattr__(
-                self, "counts", SectorCounts(valid=ranges.size - nan - inf, free=inf, unknown=nan)
-            )
+            object.__setattr__(self, "counts", SectorCounts(valid=ranges.size - nan - inf, free=inf, unknown=nan))
         elif self.counts.total != ranges.size:
             msg = f"counts total {self.counts.total} does not match the {ranges.size} ranges"
             raise ConfigError(msg)

@@ -1,0 +1,212 @@
+"""Remembered obstacle points in local NED, with expiry, merging and clearing by observed free space.
+
+The paper's planner (and the authors' code) keeps every detected obstacle for the whole run; on a real
+vehicle, drift and moving objects make that unsafe, so points here expire after ``expiry_s`` unless seen
+again. A new point within ``merge_radius_m`` of a remembered one replaces it (newest position, newest
+time), so a static obstacle seen every cycle stays one point and stays fresh.
+
+Clearing (``clear_observed``): a beam that reports free space (+inf) or an obstacle at range ``r`` shows
+that nothing lies along it nearer than that; remembered points inside such a beam, more than ``margin_m``
+nearer than the reading and within ``vertical_window_m`` of the scan's height, are removed. Unknown and
+invalid beams (NaN) clear nothing ("unknown is not free").
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.errors import ConfigError
+from apf_companion.perception.geometry import scan_bearings_ned_rad
+from apf_companion.perception.types import FloatArray, Pose, RangeScan
+
+__all__ = ["ObstacleMemory"]
+
+_TWO_PI = 2.0 * math.pi
+
+
+def _positive(name: str, value: float) -> None:
+    if not (math.isfinite(value) and value > 0.0):
+        msg = f"ObstacleMemory {name} must be finite and > 0, got {value!r}"
+        raise ConfigError(msg)
+
+
+def _greedy_keep(close: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """First-come deduplication: keep j unless an earlier KEPT i is close to it.
+
+    ``close`` is the (K, K) "within merge radius" matrix. The sequential rule is solved by fixed-point
+    iteration on whole vectors: after pass t the first t entries are final, so it ends in at most K passes
+    (in practice 2-3, the length of the longest chain of close points).
+    """
+    k = close.shape[0]
+    earlier = np.tril(close, k=-1)  # earlier[j, i]: i < j and close
+    keep = np.ones(k, dtype=np.bool_)
+    for _ in range(k):
+        new_keep = ~np.any(earlier & keep[None, :], axis=1)
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return keep
+
+
+class ObstacleMemory:
+    """Obstacle points in local NED with expiry and merging (vectorised).
+
+    Parameters
+    ----------
+    expiry_s:
+        A point not seen for longer than this is forgotten [s], > 0.
+    merge_radius_m:
+        Points closer than this are one obstacle [m], > 0.
+    max_points:
+        Capacity; when full, the points seen longest ago are dropped first (>= 1).
+    """
+
+    __slots__ = ("_expiry_s", "_max_points", "_merge_radius_m", "_pts", "_t", "dropped_full")
+
+    def __init__(self, *, expiry_s: float = 5.0, merge_radius_m: float = 0.2, max_points: int = 2000) -> None:
+        _positive("expiry_s", expiry_s)
+        _positive("merge_radius_m", merge_radius_m)
+        if not isinstance(max_points, int) or max_points < 1:
+            msg = f"ObstacleMemory max_points must be an int >= 1, got {max_points!r}"
+            raise ConfigError(msg)
+        self._expiry_s = expiry_s
+        self._merge_radius_m = merge_radius_m
+        self._max_points = max_points
+        self._pts = np.empty((0, 3), dtype=np.float64)
+        self._t = np.empty(0, dtype=np.float64)
+        self.dropped_full = 0
+
+    def __len__(self) -> int:
+        return int(self._t.size)
+
+    @property
+    def expiry_s(self) -> float:
+        """Time after which an unseen point is forgotten [s]."""
+        return self._expiry_s
+
+    def clear(self) -> None:
+        """Forget everything."""
+        self._pts = np.empty((0, 3), dtype=np.float64)
+        self._t = np.empty(0, dtype=np.float64)
+
+    def add(self, points_ned_m: FloatArray, t_s: float) -> None:
+        """Remember ``points_ned_m`` ((K, 3) float64, local NED [m]) as seen at ``t_s`` [s].
+
+        Non-finite rows are ignored. New points closer than ``merge_radius_m`` to each other are
+        deduplicated (first kept); a new point closer than that to a remembered one replaces it.
+        """
+        pts = np.asarray(points_ned_m, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            msg = f"points_ned_m must have shape (K, 3), got {pts.shape}"
+            raise ConfigError(msg)
+        if not math.isfinite(t_s):
+            msg = f"t_s must be finite, got {t_s}"
+            raise ConfigError(msg)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if pts.shape[0] == 0:
+            return
+        r2 = self._merge_radius_m**2
+        if pts.shape[0] > 1:
+            d2_new = np.sum((pts[:, None, :] - pts[None, :, :]) ** 2, axis=-1)
+            pts = pts[_greedy_keep(d2_new < r2)]
+        if self._t.size:
+            d2 = np.sum((self._pts[:, None, :] - pts[None, :, :]) ** 2, axis=-1)  # (N, K)
+            # A remembered point seen again is replaced by the new observation.
+            stale = np.any(d2 < r2, axis=1)
+            self._pts = self._pts[~stale]
+            self._t = self._t[~stale]
+        self._pts = np.concatenate([self._pts, pts])
+        self._t = np.concatenate([self._t, np.full(pts.shape[0], float(t_s))])
+        excess = self._t.size - self._max_points
+        if excess > 0:
+            # Stable sort: among equal times the older rows (earlier in the arrays) go first.
+            order = np.argsort(self._t, kind="stable")[excess:]
+            order.sort()
+            self._pts = self._pts[order]
+            self._t = self._t[order]
+            self.dropped_full += excess
+
+    def expire(self, now_s: float) -> int:
+        """Drop points last seen more than ``expiry_s`` before ``now_s``; returns how many."""
+        keep = self._t >= now_s - self._expiry_s
+        removed = int(keep.size - np.count_nonzero(keep))
+        if removed:
+            self._pts = self._pts[keep]
+            self._t = self._t[keep]
+        return removed
+
+    def points(self, now_s: float) -> FloatArray:
+        """(N, 3) float64 copy of the remembered points still valid at ``now_s`` (expired ones removed)."""
+        self.expire(now_s)
+        return self._pts.copy()
+
+    def ages_s(self, now_s: float) -> FloatArray:
+        """(N,) time since each remembered point was last seen [s], in the order of ``points``."""
+        self.expire(now_s)
+        return np.asarray(now_s - self._t, dtype=np.float64)
+
+    def clear_observed(
+        self,
+        scan: RangeScan,
+        pose: Pose,
+        *,
+        beam_half_width_rad: float | None = None,
+        margin_m: float = 0.3,
+        vertical_window_m: float = 1.0,
+    ) -> int:
+        """Remove remembered points that ``scan`` (taken at ``pose``) sees through; returns how many.
+
+        Parameters
+        ----------
+        scan, pose:
+            The scan and the pose at its measurement time.
+        beam_half_width_rad:
+            Half the angular width of one element; default half the median spacing of the bearings
+            (0 for a one-beam scan: a single beam then clears only what lies exactly on it, i.e. nothing).
+        margin_m:
+            A point must be at least this much nearer than the reading to be cleared [m]; keeps the
+            obstacle that produced the reading.
+        vertical_window_m:
+            Only points within this height of the vehicle are in the scan's plane [m].
+        """
+        n = self._t.size
+        if n == 0 or len(scan) == 0:
+            return 0
+        bearings = np.mod(scan_bearings_ned_rad(scan, pose), _TWO_PI)
+        order = np.argsort(bearings)
+        b_sorted = bearings[order]
+        reach = scan.ranges_m[order]
+        # Free beams clear out to range_max_m; obstacles up to their range; NaN beams nothing.
+        reach = np.where(np.isposinf(reach), scan.range_max_m, reach)
+        reach = np.where(np.isnan(reach), -np.inf, reach)
+        if beam_half_width_rad is None:
+            if b_sorted.size > 1:
+                gaps = np.diff(np.concatenate([b_sorted, b_sorted[:1] + _TWO_PI]))
+                beam_half_width_rad = 0.5 * float(np.median(gaps))
+            else:
+                beam_half_width_rad = 0.0
+
+        rel = self._pts - pose.pos_ned_m
+        dist_m = np.hypot(rel[:, 0], rel[:, 1])
+        pb = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), _TWO_PI)
+        # Nearest beam by bearing: the neighbours either side of the insertion point, cyclically.
+        m = b_sorted.size
+        hi = np.searchsorted(b_sorted, pb) % m
+        lo = (hi - 1) % m
+        d_hi = np.abs(np.remainder(pb - b_sorted[hi] + math.pi, _TWO_PI) - math.pi)
+        d_lo = np.abs(np.remainder(pb - b_sorted[lo] + math.pi, _TWO_PI) - math.pi)
+        beam = np.where(d_hi <= d_lo, hi, lo)
+        ang = np.minimum(d_hi, d_lo)
+        cleared = (
+            (ang <= beam_half_width_rad + 1e-12)
+            & (dist_m < reach[beam] - margin_m)
+            & (np.abs(rel[:, 2]) <= vertical_window_m)
+        )
+        removed = int(np.count_nonzero(cleared))
+        if removed:
+            self._pts = self._pts[~cleared]
+            self._t = self._t[~cleared]
+        return removed
