@@ -1,1 +1,59 @@
-"""apf_companion.planning."""
+"""apf_companion.planning: the pure planning core (numpy only; no clocks, I/O or global state).
+
+Planners of Diab, Mohammadkarimi, Rajan, "Artificial Potential Field-Based Path Planning for Cluttered
+Environments", IEEE Aerospace 2023 (DOI 10.1109/AERO55745.2023.10115857): CAPF, BAPF, A-BAPF, CR-BAPF and
+CR-BAPF*, in 2D and 3D, batch-first::
+
+    planner = get_planner("cr-bapf*", PlannerParams())
+    decision = planner.step(position_m, target_m, obstacles_m, rng)
+    batch = planner.step_batch(positions_m, targets_m, obstacles_m, obstacle_mask, rng)
+"""
+
+from __future__ import annotations
+
+from apf_companion.planning.abapf import AbapfPlanner
+from apf_companion.planning.bapf import BapfPlanner
+from apf_companion.planning.base import Planner
+from apf_companion.planning.capf import CapfPlanner
+from apf_companion.planning.crbapf import CrBapfPlanner, CrBapfStarPlanner
+from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
+from apf_companion.planning.geometry import bacteria_offsets, bacteria_ring, bacteria_sphere
+from apf_companion.planning.params import AbapfRule, AbapfSearch, PlannerParams, RandomWalkRule
+from apf_companion.planning.potentials import (
+    agent_potential,
+    branch_obstacle_potential,
+    log_sum_exp,
+    moves_downhill,
+    obstacle_potential,
+    target_potential,
+    total_obstacle_potential,
+)
+from apf_companion.planning.registry import PLANNER_NAMES, get_planner
+
+__all__ = [
+    "PLANNER_NAMES",
+    "AbapfPlanner",
+    "AbapfRule",
+    "AbapfSearch",
+    "BapfPlanner",
+    "BatchDecision",
+    "CapfPlanner",
+    "CrBapfPlanner",
+    "CrBapfStarPlanner",
+    "Decision",
+    "DecisionReason",
+    "Planner",
+    "PlannerParams",
+    "RandomWalkRule",
+    "agent_potential",
+    "bacteria_offsets",
+    "bacteria_ring",
+    "bacteria_sphere",
+    "branch_obstacle_potential",
+    "get_planner",
+    "log_sum_exp",
+    "moves_downhill",
+    "obstacle_potential",
+    "target_potential",
+    "total_obstacle_potential",
+]

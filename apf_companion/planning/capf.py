@@ -1,0 +1,94 @@
+"""CAPF: classical artificial potential field, Khatib-style (Khatib 1985), as this project defines it.
+
+The paper (Diab et al. 2023, DOI 10.1109/AERO55745.2023.10115857) compares against a "CAPF" but gives no formula
+(its reference, Mohanta 2016, could not be located); notes.md fixes this field:
+
+    U_att = k_att d^2 / 2,   d = |r - r_t|
+    U_rep = sum_n eta (1/rho_n - 1/rho_0)^2 / 2   for rho_n < rho_0 (0 beyond), rho_n = |r - r_o^n| (FIRAS)
+
+and the agent takes a fixed step of ``step_m`` along the negative gradient. A vanishing (or undefined) gradient
+is a local minimum. The "no new best distance for 60 iterations" stuck rule is the caller's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.planning.base import Planner
+from apf_companion.planning.decision import BatchDecision, DecisionReason
+
+__all__ = ["CapfPlanner", "capf_force"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+#: The gradient "vanishes" when its norm is below this fraction of the sum of the norms of its parts.
+_VANISHING_RATIO = 1e-12
+
+
+def capf_force(
+    positions_m: FloatArray,
+    targets_m: FloatArray,
+    obstacles_m: FloatArray,
+    obstacle_mask: BoolArray,
+    *,
+    k_att: float,
+    eta: float,
+    rho_0_m: float,
+) -> tuple[FloatArray, FloatArray]:
+    """-grad(U_att + U_rep) at each agent, and the sum of the norms of its parts (for the vanishing test).
+
+    Shapes: positions/targets (A, D), obstacles (A, N, D), mask (A, N). Returns ((A, D), (A,)).
+    """
+    attraction = -k_att * (positions_m - targets_m)
+    rel = positions_m[:, None, :] - obstacles_m  # (A, N, D), from obstacle to agent
+    dist_m = np.sqrt(np.einsum("and,and->an", rel, rel))
+    active = obstacle_mask & (dist_m < rho_0_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # |F_rep,n| = eta (1/rho - 1/rho_0) / rho^2, along (r - r_o) / rho.
+        coef = np.where(active, eta * (1.0 / dist_m - 1.0 / rho_0_m) / dist_m**3, 0.0)
+    repulsion = np.einsum("an,and->ad", coef, rel)
+    scale = np.sqrt(np.einsum("ad,ad->a", attraction, attraction)) + np.sum(np.abs(coef) * dist_m, axis=1)
+    return attraction + repulsion, scale
+
+
+class CapfPlanner(Planner):
+    """CAPF (module docstring): a fixed step along -grad U; no bacteria points."""
+
+    name = "capf"
+
+    def _step_batch(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray,
+        rng: np.random.Generator | None,
+        walk_uniforms: FloatArray | None,
+    ) -> BatchDecision:
+        p = self.params
+        n_agents = positions_m.shape[0]
+        force, scale = capf_force(
+            positions_m,
+            targets_m,
+            obstacles_m,
+            obstacle_mask,
+            k_att=p.capf_k_att,
+            eta=p.capf_eta,
+            rho_0_m=p.capf_rho_0_m,
+        )
+        norm = np.sqrt(np.einsum("ad,ad->a", force, force))
+        moves = np.isfinite(norm) & np.isfinite(scale) & (norm > _VANISHING_RATIO * scale) & (norm > 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            next_points = positions_m + p.step_m * force / norm[:, None]
+        next_points[~moves] = np.nan
+        reason = np.where(moves, DecisionReason.GREEDY, DecisionReason.LOCAL_MINIMUM).astype(np.int8)
+        return BatchDecision(
+            next_points_m=next_points,
+            reason=reason,
+            chosen_index=np.full(n_agents, -1, dtype=np.int64),
+            mu_o_k=np.full(n_agents, np.nan),
+            n_passing=np.zeros(n_agents, dtype=np.int64),
+            n_safe=np.full(n_agents, -1, dtype=np.int64),
+        )

@@ -1,0 +1,153 @@
+"""Planner parameters: one frozen dataclass whose defaults are the paper's Table I values.
+
+Diab, Mohammadkarimi, Rajan, "Artificial Potential Field-Based Path Planning for Cluttered Environments",
+IEEE Aerospace 2023, DOI 10.1109/AERO55745.2023.10115857. Where the paper is silent, the project's decisions in
+``notes.md`` apply; every rule that differs between the two presets is a named field, not a hidden branch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from apf_companion.errors import ConfigError
+
+__all__ = ["AbapfRule", "AbapfSearch", "PlannerParams", "RandomWalkRule"]
+
+
+class AbapfRule(enum.Enum):
+    """How A-BAPF picks mu_o,k for a bacteria point (Eq. (14))."""
+
+    #: The exact argmin of Eq. (14). J_k(mu) is strictly decreasing in mu, so this is mu_max whenever the
+    #: agent knows an obstacle (mu_min when it knows none: J_k is then constant and the first minimum is taken).
+    EXACT = "exact"
+    #: The rule that reproduces the paper's mu_o,k figure (float64 ties in MATLAB's ``min``): the smallest
+    #: integer mu whose total repulsion is at most 2^-53 times |J_t(r_b,k)|, evaluated in logs.
+    PAPER = "paper"
+
+
+class AbapfSearch(enum.Enum):
+    """How the mu_o,k search of Eq. (14) is carried out over [mu_min, mu_max]."""
+
+    #: The integer grid mu_min, mu_min + 1, ..., mu_max (first minimum, as MATLAB's ``min``).
+    GRID = "grid"
+    #: Golden-section search on the continuous interval, finished on the integer grid.
+    GOLDEN = "golden"
+
+
+class RandomWalkRule(enum.Enum):
+    """CR-BAPF* escape move when no bacteria point passes Eq. (6)."""
+
+    #: The paper's text: q ~ U{Q}, uniform over the safe points (at least rho_l from every known obstacle);
+    #: an empty Q is a local minimum.
+    SAFE_SET = "safe-set"
+    #: The authors' code: one index drawn uniformly from all N_b points; the agent moves only if that point is
+    #: safe, otherwise the iteration passes without a move (reported as a local minimum).
+    SINGLE_DRAW = "single-draw"
+
+
+def _fail(name: str, value: object, allowed: str) -> ConfigError:
+    return ConfigError(f"PlannerParams.{name} = {value!r} is invalid; allowed: {allowed}")
+
+
+def _finite(name: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise _fail(name, value, "a finite real number")
+    return float(value)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PlannerParams:
+    """Parameters of every planner; defaults are the paper's Table I values (2D).
+
+    Attributes
+    ----------
+    alpha_t : target potential gain alpha_t of Eq. (1), > 0.
+    mu_t_per_m2 : target decay mu_t of Eq. (1) [1/m^2], > 0.
+    alpha_o : obstacle potential gain alpha_o of Eqs. (2), (12), (13), > 0.
+    mu_o_per_m2 : obstacle decay mu_o of Eqs. (2), (12) [1/m^2], > 0.
+    rho_l_m : lower (safety) radius of Eq. (12) [m], 0 <= rho_l_m < rho_u_m.
+    rho_u_m : upper radius of Eq. (12) [m]; obstacles farther away do not repel.
+    step_m : movement step, the bacteria ring/sphere radius [m], > 0.
+    n_bacteria : number of bacteria points N_b, >= 3 (2D) or >= 4 (3D).
+    mu_min, mu_max : the integer search interval [mu_min : mu_max] of Eq. (14) [1/m^2], 1 <= mu_min <= mu_max.
+    abapf_rule, abapf_search : A-BAPF rule and search method (see the enums).
+    random_walk : CR-BAPF* escape rule.
+    agent_repulsion : include the agent's own repulsion J_o(r) in J_a (Eq. (4)). False reproduces the
+        authors' code, where J_o(r) is always 0 (notes.md), so greedy moves only decrease the target distance.
+    capf_k_att : CAPF attractive gain [1/m^2-ish, potential per m^2], > 0.
+    capf_eta : CAPF FIRAS repulsion gain, >= 0.
+    capf_rho_0_m : CAPF repulsion influence distance [m], > 0.
+    dim : 2 (ring of bacteria points) or 3 (sphere).
+    """
+
+    alpha_t: float = 1e4
+    mu_t_per_m2: float = 1.0
+    alpha_o: float = 1.0
+    mu_o_per_m2: float = 1000.0
+    rho_l_m: float = 0.4
+    rho_u_m: float = 4.5
+    step_m: float = 0.4
+    n_bacteria: int = 60
+    mu_min: int = 1
+    mu_max: int = 1000
+    abapf_rule: AbapfRule = AbapfRule.EXACT
+    abapf_search: AbapfSearch = AbapfSearch.GRID
+    random_walk: RandomWalkRule = RandomWalkRule.SAFE_SET
+    agent_repulsion: bool = True
+    capf_k_att: float = 1.0
+    capf_eta: float = 100.0
+    capf_rho_0_m: float = 3.0
+    dim: int = 2
+
+    def __post_init__(self) -> None:
+        positive = ("alpha_t", "mu_t_per_m2", "alpha_o", "mu_o_per_m2", "step_m", "capf_k_att", "capf_rho_0_m")
+        for name in positive:
+            if _finite(name, getattr(self, name)) <= 0.0:
+                raise _fail(name, getattr(self, name), "a finite number > 0")
+        if _finite("capf_eta", self.capf_eta) < 0.0:
+            raise _fail("capf_eta", self.capf_eta, "a finite number >= 0")
+        rho_l = _finite("rho_l_m", self.rho_l_m)
+        rho_u = _finite("rho_u_m", self.rho_u_m)
+        if rho_l < 0.0:
+            raise _fail("rho_l_m", self.rho_l_m, "a finite number in [0, rho_u_m)")
+        if rho_u <= rho_l:
+            raise _fail("rho_u_m", self.rho_u_m, f"a finite number > rho_l_m = {self.rho_l_m!r}")
+        for name in ("n_bacteria", "mu_min", "mu_max", "dim"):
+            value: Any = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise _fail(name, value, "an int")
+        if self.dim not in (2, 3):
+            raise _fail("dim", self.dim, "2 or 3")
+        min_bacteria = 3 if self.dim == 2 else 4
+        if self.n_bacteria < min_bacteria:
+            raise _fail("n_bacteria", self.n_bacteria, f"an int >= {min_bacteria} for dim = {self.dim}")
+        if self.mu_min < 1:
+            raise _fail("mu_min", self.mu_min, "an int >= 1")
+        if self.mu_max < self.mu_min:
+            raise _fail("mu_max", self.mu_max, f"an int >= mu_min = {self.mu_min}")
+        enums: tuple[tuple[str, type[enum.Enum]], ...] = (
+            ("abapf_rule", AbapfRule),
+            ("abapf_search", AbapfSearch),
+            ("random_walk", RandomWalkRule),
+        )
+        for name, kind in enums:
+            if not isinstance(getattr(self, name), kind):
+                allowed = ", ".join(f"{kind.__name__}.{m.name}" for m in kind)
+                raise _fail(name, getattr(self, name), allowed)
+        if not isinstance(self.agent_repulsion, bool):
+            raise _fail("agent_repulsion", self.agent_repulsion, "True or False")
+
+    @classmethod
+    def paper(cls, **overrides: Any) -> PlannerParams:
+        """The paper's text: Table I values, J_a with its repulsion, random walk over the safe set."""
+        return dataclasses.replace(cls(), **overrides)
+
+    @classmethod
+    def reference(cls, **overrides: Any) -> PlannerParams:
+        """The authors' published MATLAB code (notes.md): alpha_t = 1e5, J_o(r) = 0, single-draw random walk."""
+        base = cls(alpha_t=1e5, agent_repulsion=False, random_walk=RandomWalkRule.SINGLE_DRAW)
+        return dataclasses.replace(base, **overrides)
