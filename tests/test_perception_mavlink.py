@@ -154,6 +154,7 @@ def test_unused_tail_is_not_counted() -> None:
         ({"increment": 0, "increment_f": 0.0}, "both 0"),
         ({"increment_f": math.nan}, "increment_f"),
         ({"increment_f": math.inf}, "increment_f"),
+        ({"increment_f": 361.0}, "full turn"),
         ({"increment": 5, "angle_offset": math.nan}, "angle_offset"),
         ({"increment": 5, "min_cm": 500, "max_cm": 100}, "min_distance"),
         ({"increment": 5, "max_cm": 0, "min_cm": 0}, "max_distance"),

@@ -122,7 +122,9 @@ class _Reader:
             msg = f"LaserScan CDR: {what} has {n} elements, at most {MAX_CDR_RANGES} allowed"
             raise ProtocolError(msg)
         self._need(4 * n, what)
-        values = np.frombuffer(self._body, dtype=_FLOAT32[self._order], count=n, offset=self.pos).astype(np.float64)
+        raw = np.frombuffer(self._body, dtype=_FLOAT32[self._order], count=n, offset=self.pos)
+        with np.errstate(invalid="ignore"):  # signalling NaNs in the payload stay NaN
+            values = raw.astype(np.float64)
         self.pos += 4 * n
         return values
 

@@ -195,7 +195,7 @@ def scan_from_obstacle_distance(msg: ObstacleDistanceLike, *, t_s: float, zero_i
     Raises
     ------
     ProtocolError
-        ``increment`` and ``increment_f`` both 0; ``increment_f`` or ``angle_offset`` not finite;
+        ``increment`` and ``increment_f`` both 0; ``|increment|`` > 360; ``increment_f`` or ``angle_offset`` not finite;
         ``min_distance > max_distance``; ``max_distance`` 0; an unsupported ``frame``.
     """
     increment_f = float(msg.increment_f)
@@ -209,6 +209,9 @@ def scan_from_obstacle_distance(msg: ObstacleDistanceLike, *, t_s: float, zero_i
     increment_deg = increment_f if increment_f != 0.0 else float(msg.increment)
     if increment_deg == 0.0:
         msg_text = "OBSTACLE_DISTANCE: increment and increment_f are both 0"
+        raise ProtocolError(msg_text)
+    if abs(increment_deg) > 360.0:
+        msg_text = f"OBSTACLE_DISTANCE: increment {increment_deg} deg is wider than a full turn"
         raise ProtocolError(msg_text)
     frame = int(msg.frame)
     if frame in BODY_FRAMES:

@@ -15,7 +15,7 @@ Range scan, key ``apf/sensors/<id>/ranges`` (default ``apf/sensors/range0/ranges
     }
 
 Element ``i`` lies at bearing ``angle_min_deg + i * angle_increment_deg``. Numbers must be finite JSON
-numbers (no NaN/Infinity tokens); ``angle_increment_deg`` must be non-zero when there are two or more
+numbers (no NaN/Infinity tokens); ``|angle_increment_deg|`` must be at least 1e-6 when there are two or more
 ranges; at most 4096 ranges. Unknown keys are ignored, so later minor versions can add fields. The
 encoder writes free elements as ``range_max_m + 1`` and every NaN (unknown or invalid) as ``null``.
 
@@ -55,6 +55,7 @@ SCAN_SCHEMA = "apf.range_scan/1"
 GOAL_SCHEMA = "apf.goal/1"
 MAX_JSON_RANGES = 4096
 _MAX_JSON_BYTES = 256 * 1024
+_MIN_INCREMENT_DEG = 1e-6
 
 _FRAMES = {"body_frd": ScanFrame.BODY_FRD, "local_ned": ScanFrame.LOCAL_NED}
 
@@ -179,8 +180,8 @@ def decode_scan_json(data: bytes | str, *, t_s: float, source: str = "zenoh:json
     if len(raw) > MAX_JSON_RANGES:
         msg = f"{what}: field 'ranges_m' has {len(raw)} elements, at most {MAX_JSON_RANGES} allowed"
         raise ProtocolError(msg)
-    if len(raw) > 1 and inc_deg == 0.0:
-        msg = f"{what}: field 'angle_increment_deg' must be non-zero for {len(raw)} ranges"
+    if len(raw) > 1 and abs(inc_deg) < _MIN_INCREMENT_DEG:
+        msg = f"{what}: field 'angle_increment_deg' must be at least {_MIN_INCREMENT_DEG} in size for {len(raw)} ranges"
         raise ProtocolError(msg)
     if any(v is not None and (isinstance(v, bool) or not isinstance(v, int | float)) for v in raw):
         msg = f"{what}: field 'ranges_m' may hold only numbers and null"

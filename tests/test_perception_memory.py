@@ -1,0 +1,104 @@
+"""ObstacleMemory: expiry, merging, capacity and clearing by observed free space."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from apf_companion.errors import ConfigError
+from apf_companion.perception import ObstacleMemory, Pose, RangeScan, ScanFrame
+
+
+def test_expiry() -> None:
+    mem = ObstacleMemory(expiry_s=2.0, merge_radius_m=0.1, max_points=100)
+    mem.add(np.array([[1.0, 0.0, 0.0]]), t_s=0.0)
+    mem.add(np.array([[5.0, 0.0, 0.0]]), t_s=1.5)
+    assert mem.points(2.0).shape == (2, 3)
+    pts = mem.points(2.5)
+    np.testing.assert_allclose(pts, [[5.0, 0.0, 0.0]])
+    assert mem.points(10.0).shape == (0, 3)
+
+
+def test_seen_again_is_refreshed_not_duplicated() -> None:
+    mem = ObstacleMemory(expiry_s=1.0, merge_radius_m=0.2, max_points=100)
+    mem.add(np.array([[1.0, 1.0, 0.0]]), t_s=0.0)
+    mem.add(np.array([[1.1, 1.0, 0.0]]), t_s=0.9)
+    assert len(mem) == 1
+    # Refreshed at 0.9: still there at 1.5, and at the newest position.
+    np.testing.assert_allclose(mem.points(1.5), [[1.1, 1.0, 0.0]])
+    np.testing.assert_allclose(mem.ages_s(1.5), [0.6])
+
+
+def test_merge_within_one_batch_is_first_come() -> None:
+    mem = ObstacleMemory(expiry_s=1.0, merge_radius_m=0.5, max_points=100)
+    # A chain with 0.4 m spacing: 0 and 0.8 are kept (0.8 m apart), 0.4 and 1.2 merge into them.
+    pts = np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.8, 0.0, 0.0], [1.2, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    mem.add(pts, t_s=0.0)
+    np.testing.assert_allclose(mem.points(0.0), [[0.0, 0.0, 0.0], [0.8, 0.0, 0.0], [5.0, 0.0, 0.0]])
+
+
+def test_non_finite_rows_ignored_and_shape_checked() -> None:
+    mem = ObstacleMemory()
+    mem.add(np.array([[math.nan, 0.0, 0.0], [1.0, 2.0, 3.0]]), t_s=0.0)
+    assert len(mem) == 1
+    with pytest.raises(ConfigError, match="shape"):
+        mem.add(np.zeros((2, 2)), t_s=0.0)
+
+
+def test_capacity_drops_oldest() -> None:
+    mem = ObstacleMemory(expiry_s=100.0, merge_radius_m=0.1, max_points=3)
+    for i in range(5):
+        mem.add(np.array([[float(i), 0.0, 0.0]]), t_s=float(i))
+    np.testing.assert_allclose(mem.points(5.0)[:, 0], [2.0, 3.0, 4.0])
+    assert mem.dropped_full == 2
+
+
+def test_bad_config() -> None:
+    with pytest.raises(ConfigError, match="expiry_s"):
+        ObstacleMemory(expiry_s=0.0)
+    with pytest.raises(ConfigError, match="merge_radius_m"):
+        ObstacleMemory(merge_radius_m=math.nan)
+    with pytest.raises(ConfigError, match="max_points"):
+        ObstacleMemory(max_points=0)
+
+
+def _ring_scan(ranges_m: list[float], *, range_max_m: float = 10.0) -> RangeScan:
+    n = len(ranges_m)
+    return RangeScan(
+        t_s=0.0,
+        frame=ScanFrame.BODY_FRD,
+        bearings_rad=np.deg2rad(np.arange(n) * 360.0 / n),
+        ranges_m=np.array(ranges_m),
+        range_min_m=0.1,
+        range_max_m=range_max_m,
+    )
+
+
+def test_clear_observed_free_and_obstacle_beams() -> None:
+    mem = ObstacleMemory(expiry_s=100.0, merge_radius_m=0.1, max_points=100)
+    remembered = np.array(
+        [
+            [3.0, 0.0, 0.0],  # north: beam 0 (forward) is free -> cleared
+            [0.0, 3.0, 0.0],  # east: beam 1 sees an obstacle at 5 m -> 3 m is nearer -> cleared
+            [0.0, 4.9, 0.0],  # east, within the 0.3 m margin of the reading -> kept
+            [-3.0, 0.0, 0.0],  # south: beam 2 is unknown -> kept
+            [0.0, -12.0, 0.0],  # west: free beam but beyond range_max -> kept
+            [3.0, 0.0, -5.0],  # north but 5 m above the scan plane -> kept
+        ]
+    )
+    mem.add(remembered, t_s=0.0)
+    pose = Pose(t_s=0.0, pos_ned_m=np.zeros(3), yaw_rad=0.0)
+    removed = mem.clear_observed(_ring_scan([math.inf, 5.0, math.nan, math.inf]), pose)
+    assert removed == 2
+    np.testing.assert_allclose(mem.points(0.0), remembered[2:])
+
+
+def test_clear_observed_uses_yaw() -> None:
+    mem = ObstacleMemory(expiry_s=100.0, merge_radius_m=0.1, max_points=100)
+    mem.add(np.array([[0.0, 3.0, 0.0]]), t_s=0.0)  # east
+    facing_east = Pose(t_s=0.0, pos_ned_m=np.zeros(3), yaw_rad=math.pi / 2)
+    # Only the forward beam is free; facing east, forward is east.
+    assert mem.clear_observed(_ring_scan([math.inf, math.nan, math.nan, math.nan]), facing_east) == 1
+    assert len(mem) == 0
