@@ -1,0 +1,465 @@
+"""The service configuration: one TOML file, validated at start.
+
+Every section is a frozen dataclass whose defaults are the documented defaults (docs/parts/service.md has the
+reference table; ``deploy/apf-companion.toml`` is a commented example). Loading is strict: an unknown key, a wrong
+type or a value outside its range raises ``ConfigError`` naming the key (``cycle.rate_hz``) and the allowed range;
+a likely typo gets a suggestion. Nothing here touches the network.
+
+Times are in the vehicle's time base. ``cycle.time_scale`` (default 1) is for simulated vehicles that run faster
+than real time: the service's clock runs ``time_scale`` times faster than the wall clock, so every period,
+staleness limit and timeout below keeps its meaning in vehicle seconds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from apf_companion.autopilot import Autopilot
+from apf_companion.errors import ConfigError
+
+__all__ = [
+    "PLANNER_PRESETS",
+    "AutopilotConfig",
+    "CycleConfig",
+    "GoalConfig",
+    "LinkConfig",
+    "PlannerConfig",
+    "SensorsConfig",
+    "ServiceConfig",
+    "StatusConfig",
+    "ZenohSection",
+    "config_from_mapping",
+    "load_config",
+]
+
+PLANNER_PRESETS = ("default", "paper", "reference")
+_PLANNER_NAMES = ("capf", "bapf", "a-bapf", "cr-bapf", "cr-bapf*")
+
+
+def _fail(key: str, allowed: str, value: object) -> ConfigError:
+    return ConfigError(f"{key} must be {allowed}, got {value!r}")
+
+
+def _check_range(key: str, value: float, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = False) -> None:
+    """Raise ConfigError naming ``key`` unless lo <= value <= hi (open ends as asked); NaN always fails."""
+    ok = math.isfinite(value) or (math.isinf(hi) and value == math.inf and not hi_open)
+    ok = ok and (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
+    if not ok:
+        left = "(" if lo_open else "["
+        right = ")" if hi_open else "]"
+        raise _fail(key, f"in {left}{lo}, {hi}{right}", value)
+
+
+def _check_id(key: str, value: int, lo: int = 1, hi: int = 255) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
+        raise _fail(key, f"an integer in [{lo}, {hi}]", value)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LinkConfig:
+    """``[link]``: the MAVLink link to the autopilot and the companion's identity.
+
+    Attributes:
+        connect: Autopilot endpoint, pymavlink or MAVSDK style (``udpin:127.0.0.1:14540``, ``tcp:host:5760``,
+            ``/dev/serial0:921600``).
+        autopilot_sysid: System id of the autopilot; our heartbeat uses it too (the vehicle's sysid).
+        autopilot_compid: Component id of the autopilot (1).
+        component_id: Our component id: 191 (MAV_COMP_ID_ONBOARD_COMPUTER) or e.g. 196 (OBSTACLE_AVOIDANCE).
+            Never a ground station's id (190, or anything on a GCS sysid).
+        gcs_sysids: Systems allowed to send us commands (COMMAND_INT DO_REPOSITION addressed to us).
+        heartbeat_timeout_s: No autopilot HEARTBEAT for this long -> LINK_LOST [s].
+        telemetry_rate_hz: Rate requested for LOCAL_POSITION_NED and ATTITUDE (SET_MESSAGE_INTERVAL) [Hz].
+        tlog: Path of the .tlog recording every frame in and out; "" = none.
+    """
+
+    connect: str = "udpin:127.0.0.1:14540"
+    autopilot_sysid: int = 1
+    autopilot_compid: int = 1
+    component_id: int = 191
+    gcs_sysids: tuple[int, ...] = (255,)
+    heartbeat_timeout_s: float = 3.0
+    telemetry_rate_hz: float = 20.0
+    tlog: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.connect.strip():
+            raise _fail("link.connect", "an endpoint such as 'udpin:127.0.0.1:14540'", self.connect)
+        _check_id("link.autopilot_sysid", self.autopilot_sysid)
+        _check_id("link.autopilot_compid", self.autopilot_compid)
+        _check_id("link.component_id", self.component_id)
+        if self.component_id == 190:
+            raise _fail("link.component_id", "a companion id (191-194, 195, 196 ...), not 190 (GCS)", 190)
+        for sysid in self.gcs_sysids:
+            _check_id("link.gcs_sysids[]", sysid)
+            if sysid == self.autopilot_sysid:
+                raise _fail("link.gcs_sysids[]", "different from link.autopilot_sysid", sysid)
+        _check_range("link.heartbeat_timeout_s", self.heartbeat_timeout_s, 0.5, 60.0)
+        _check_range("link.telemetry_rate_hz", self.telemetry_rate_hz, 1.0, 100.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class AutopilotConfig:
+    """``[autopilot]``: which autopilot rules to follow and how far the service may take control.
+
+    Attributes:
+        profile: "ardupilot" (GUIDED) or "px4" (OFFBOARD).
+        takeover: Switch the autopilot to GUIDED / OFFBOARD when a goal arrives. False: wait for the pilot.
+        arm: Arm the vehicle (simulated flights only; off by default).
+        takeoff_alt_m: With ``arm``: take off to this height above home before navigating [m]; 0 = no takeoff.
+        mode_timeout_s: Give up a mode switch not confirmed by HEARTBEAT.custom_mode within this [s].
+        offboard_prestream_s: PX4: stream setpoints this long before asking for OFFBOARD (PX4 wants > 1 s) [s].
+    """
+
+    profile: Autopilot = Autopilot.ARDUPILOT
+    takeover: bool = True
+    arm: bool = False
+    takeoff_alt_m: float = 0.0
+    mode_timeout_s: float = 5.0
+    offboard_prestream_s: float = 1.3
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.profile, Autopilot):
+            raise _fail("autopilot.profile", "one of 'ardupilot', 'px4'", self.profile)
+        _check_range("autopilot.takeoff_alt_m", self.takeoff_alt_m, 0.0, 500.0)
+        _check_range("autopilot.mode_timeout_s", self.mode_timeout_s, 0.5, 60.0)
+        _check_range("autopilot.offboard_prestream_s", self.offboard_prestream_s, 1.0, 10.0, lo_open=True)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PlannerConfig:
+    """``[planner]`` (+ optional ``[planner.params]``): which planner and its parameters.
+
+    Attributes:
+        name: One of capf, bapf, a-bapf, cr-bapf, cr-bapf*.
+        preset: Parameter preset: "default" (the paper's Table), "paper" or "reference" (notes.md).
+        dim: 2 (plan north/east at the goal's altitude) or 3.
+        seed: Seed of the random walk's generator (repeatable flights).
+        random_walk_budget: Consecutive cycles without a greedy move (random walk or local minimum) after
+            which the service gives up: STUCK.
+        progress_timeout_s: No new best distance to the goal (by 0.1 m) for this long -> STUCK [s].
+        params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m), validated by the planner.
+    """
+
+    name: str = "cr-bapf*"
+    preset: str = "default"
+    dim: int = 2
+    seed: int = 0
+    random_walk_budget: int = 100
+    progress_timeout_s: float = 60.0
+    params: Mapping[str, float | int | bool | str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.name not in _PLANNER_NAMES:
+            raise _fail("planner.name", f"one of {', '.join(_PLANNER_NAMES)}", self.name)
+        if self.preset not in PLANNER_PRESETS:
+            raise _fail("planner.preset", f"one of {', '.join(PLANNER_PRESETS)}", self.preset)
+        if self.dim not in (2, 3):
+            raise _fail("planner.dim", "2 or 3", self.dim)
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise _fail("planner.seed", "an integer >= 0", self.seed)
+        if not isinstance(self.random_walk_budget, int) or not 1 <= self.random_walk_budget <= 100_000:
+            raise _fail("planner.random_walk_budget", "an integer in [1, 100000]", self.random_walk_budget)
+        _check_range("planner.progress_timeout_s", self.progress_timeout_s, 1.0, 3600.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CycleConfig:
+    """``[cycle]``: the planning loop and its freshness limits.
+
+    Attributes:
+        rate_hz: Planner cycles per (vehicle) second; each fresh cycle sends one setpoint [Hz].
+        pose_max_age_s: A pose older than this is stale -> HOLDING [s].
+        ranges_max_age_s: Ranges older than this are stale -> HOLDING [s].
+        cruise_speed_m_s: Velocity feed-forward along the planned step [m/s].
+        arrival_radius_m: Within this distance of the goal -> ARRIVED (the paper's 0.7 m) [m].
+        time_scale: Vehicle seconds per wall second (simulated vehicles with a speed-up; 1 on real hardware).
+    """
+
+    rate_hz: float = 10.0
+    pose_max_age_s: float = 0.5
+    ranges_max_age_s: float = 0.5
+    cruise_speed_m_s: float = 2.0
+    arrival_radius_m: float = 0.7
+    time_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        _check_range("cycle.rate_hz", self.rate_hz, 1.0, 50.0)
+        _check_range("cycle.pose_max_age_s", self.pose_max_age_s, 0.02, 10.0)
+        _check_range("cycle.ranges_max_age_s", self.ranges_max_age_s, 0.02, 10.0)
+        _check_range("cycle.cruise_speed_m_s", self.cruise_speed_m_s, 0.0, 20.0, lo_open=True)
+        _check_range("cycle.arrival_radius_m", self.arrival_radius_m, 0.0, 100.0, lo_open=True)
+        _check_range("cycle.time_scale", self.time_scale, 0.1, 100.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class GoalConfig:
+    """``[goal]``: the goal at start (none = IDLE until one arrives over MAVLink or zenoh).
+
+    Attributes:
+        north_m, east_m, down_m: A single goal in local NED [m]; ``down_m`` omitted = keep the altitude.
+        route: A route file instead (TOML ``[[waypoint]]`` tables or CSV lines ``north,east[,down]``),
+            relative paths resolved against the config file.
+    """
+
+    north_m: float | None = None
+    east_m: float | None = None
+    down_m: float | None = None
+    route: str = ""
+
+    def __post_init__(self) -> None:
+        if (self.north_m is None) != (self.east_m is None):
+            raise _fail("goal.north_m/goal.east_m", "both set or both omitted", (self.north_m, self.east_m))
+        if self.route and self.north_m is not None:
+            raise _fail("goal.route", "omitted when goal.north_m/east_m are set (one goal source)", self.route)
+        if self.down_m is not None and self.north_m is None:
+            raise _fail("goal.down_m", "set only together with goal.north_m and goal.east_m", self.down_m)
+        for key in ("north_m", "east_m", "down_m"):
+            value = getattr(self, key)
+            if value is not None:
+                _check_range(f"goal.{key}", value, -1e6, 1e6)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SensorsConfig:
+    """``[sensors]``: where obstacle ranges come from and how long they are remembered.
+
+    Attributes:
+        mavlink: Read OBSTACLE_DISTANCE, DISTANCE_SENSOR and OBSTACLE_DISTANCE_3D from the autopilot link.
+        zenoh: Read the zenoh sensor topic (needs ``[zenoh] enabled``).
+        require_ranges: Ranges must be fresh to navigate (False: pose alone suffices; tests, no sensor).
+        memory_expiry_s: Remembered obstacle points are forgotten after this [s].
+        merge_radius_m: Points closer than this are merged into one [m].
+        max_points: Upper bound on remembered points (oldest dropped first).
+        max_range_m: Readings beyond this are ignored (clip to the planner's world) [m].
+    """
+
+    mavlink: bool = True
+    zenoh: bool = False
+    require_ranges: bool = True
+    memory_expiry_s: float = 30.0
+    merge_radius_m: float = 0.1
+    max_points: int = 5000
+    max_range_m: float = 8.0
+
+    def __post_init__(self) -> None:
+        _check_range("sensors.memory_expiry_s", self.memory_expiry_s, 0.1, 3600.0)
+        _check_range("sensors.merge_radius_m", self.merge_radius_m, 0.0, 5.0)
+        if not isinstance(self.max_points, int) or not 10 <= self.max_points <= 1_000_000:
+            raise _fail("sensors.max_points", "an integer in [10, 1000000]", self.max_points)
+        _check_range("sensors.max_range_m", self.max_range_m, 0.1, 1000.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ZenohSection:
+    """``[zenoh]``: the zenoh session (sensor topic in, goal commands in, status out).
+
+    Attributes:
+        enabled: Open a zenoh session at all.
+        mode: "peer" or "client".
+        connect: Endpoints to connect to, explicit ``tcp/HOST:PORT``.
+        listen: Endpoints to listen on, explicit ``tcp/HOST:PORT``. Multicast scouting is always off.
+        sensor_key: Key of the range topic (JSON ``apf.range_scan/1`` or ROS 2 LaserScan CDR, told apart by
+            the sample's encoding).
+        goal_key: Key of the goal command topic (JSON ``apf.goal/1``).
+        status_key: Key the status JSON is published on.
+        status_rate_hz: Status publications per second [Hz].
+    """
+
+    enabled: bool = False
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    sensor_key: str = "apf/sensors/range0/ranges"
+    goal_key: str = "apf/cmd/goal"
+    status_key: str = "apf/status"
+    status_rate_hz: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("peer", "client"):
+            raise _fail("zenoh.mode", "'peer' or 'client'", self.mode)
+        for key, endpoints in (("zenoh.connect", self.connect), ("zenoh.listen", self.listen)):
+            for ep in endpoints:
+                if not isinstance(ep, str) or not ep.startswith("tcp/") or ":" not in ep:
+                    raise _fail(f"{key}[]", "an explicit endpoint 'tcp/HOST:PORT'", ep)
+        if self.enabled and not (self.connect or self.listen):
+            raise _fail("zenoh.connect/zenoh.listen", "at least one endpoint when zenoh.enabled", [])
+        for key in ("sensor_key", "goal_key", "status_key"):
+            value = getattr(self, key)
+            if not value or value.startswith("/") or value.endswith("/"):
+                raise _fail(f"zenoh.{key}", "a key expression like 'apf/status' (no leading/trailing /)", value)
+        _check_range("zenoh.status_rate_hz", self.status_rate_hz, 0.1, 50.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class StatusConfig:
+    """``[status]``: what the service reports to the ground station.
+
+    Attributes:
+        named_value_rate_hz: NAMED_VALUE_FLOAT (goal distance, nearest obstacle) per second; 0 = off [Hz].
+        statustext: Send STATUSTEXT on every state change.
+    """
+
+    named_value_rate_hz: float = 2.0
+    statustext: bool = True
+
+    def __post_init__(self) -> None:
+        _check_range("status.named_value_rate_hz", self.named_value_rate_hz, 0.0, 50.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ServiceConfig:
+    """The whole configuration (top-level keys plus one section per table).
+
+    Attributes:
+        dry_run: Plan and log only; send nothing on any link.
+        exit_when_done: Exit when the flight ends (ARRIVED at the last waypoint, or STUCK): for scripted
+            simulated flights (``apf-sim fly``).
+        max_flight_s: With ``exit_when_done``: give up (exit, outcome timeout) after this many vehicle
+            seconds; 0 = no limit [s].
+    """
+
+    dry_run: bool = False
+    exit_when_done: bool = False
+    max_flight_s: float = 0.0
+    link: LinkConfig = field(default_factory=LinkConfig)
+    autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    cycle: CycleConfig = field(default_factory=CycleConfig)
+    goal: GoalConfig = field(default_factory=GoalConfig)
+    sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    zenoh: ZenohSection = field(default_factory=ZenohSection)
+    status: StatusConfig = field(default_factory=StatusConfig)
+    base_dir: Path = field(default_factory=Path.cwd)
+    """Directory relative paths (goal.route, link.tlog) are resolved against (the config file's)."""
+
+    def __post_init__(self) -> None:
+        _check_range("max_flight_s", self.max_flight_s, 0.0, 86400.0)
+        if self.sensors.zenoh and not self.zenoh.enabled:
+            raise _fail("sensors.zenoh", "false unless zenoh.enabled is true", True)
+
+    def resolve(self, path: str) -> Path:
+        """A path from the config, relative to ``base_dir``."""
+        p = Path(path).expanduser()
+        return p if p.is_absolute() else self.base_dir / p
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Loading: strict type checks per field, typo suggestions, then the dataclasses validate ranges.
+
+_SECTIONS: dict[str, type[Any]] = {
+    "link": LinkConfig,
+    "autopilot": AutopilotConfig,
+    "planner": PlannerConfig,
+    "cycle": CycleConfig,
+    "goal": GoalConfig,
+    "sensors": SensorsConfig,
+    "zenoh": ZenohSection,
+    "status": StatusConfig,
+}
+_TOP_LEVEL = ("dry_run", "exit_when_done", "max_flight_s")
+
+
+def _unknown_key(key: str, choices: list[str]) -> ConfigError:
+    close = difflib.get_close_matches(key.split(".")[-1], choices, n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return ConfigError(f"unknown config key {key!r}{hint} (allowed: {', '.join(sorted(choices))})")
+
+
+def _coerce(key: str, value: Any, annotation: str) -> Any:
+    """Check a TOML value against a field's annotation (a string: ``from __future__ import annotations``)."""
+    ann = annotation.replace(" ", "")
+    if ann == "bool":
+        if not isinstance(value, bool):
+            raise _fail(key, "true or false", value)
+        return value
+    if ann == "int":
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise _fail(key, "an integer", value)
+        return value
+    if ann in ("float", "float|None"):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise _fail(key, "a number", value)
+        return float(value)
+    if ann == "str":
+        if not isinstance(value, str):
+            raise _fail(key, "a string", value)
+        return value
+    if ann in ("tuple[int,...]", "tuple[str,...]"):
+        item = int if "int" in ann else str
+        if not isinstance(value, list) or not all(isinstance(v, item) and not isinstance(v, bool) for v in value):
+            raise _fail(key, f"a list of {item.__name__}", value)
+        return tuple(value)
+    if ann == "Autopilot":
+        try:
+            return Autopilot(value)
+        except ValueError as err:
+            allowed = ", ".join(repr(a.value) for a in Autopilot)
+            raise _fail(key, f"one of {allowed}", value) from err
+    if ann.startswith("Mapping["):
+        if not isinstance(value, dict):
+            raise _fail(key, "a table", value)
+        for sub_key, sub_value in value.items():
+            if isinstance(sub_value, dict | list):
+                raise _fail(f"{key}.{sub_key}", "a number, string or boolean", sub_value)
+        return dict(value)
+    msg = f"internal: no coercion for {key} ({annotation})"
+    raise AssertionError(msg)
+
+
+def _build_section(name: str, cls: type[Any], table: Any) -> Any:
+    if not isinstance(table, dict):
+        raise _fail(name, "a table", table)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in table.items():
+        if key not in fields:
+            raise _unknown_key(f"{name}.{key}", list(fields))
+        kwargs[key] = _coerce(f"{name}.{key}", value, str(fields[key].type))
+    return cls(**kwargs)
+
+
+def config_from_mapping(data: Mapping[str, Any], *, base_dir: Path | None = None) -> ServiceConfig:
+    """Build and validate a ServiceConfig from parsed TOML (a nested dict).
+
+    Raises:
+        ConfigError: naming the offending key and the allowed values.
+    """
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if key in _SECTIONS:
+            kwargs[key] = _build_section(key, _SECTIONS[key], value)
+        elif key in _TOP_LEVEL:
+            ann = "float" if key == "max_flight_s" else "bool"
+            kwargs[key] = _coerce(key, value, ann)
+        else:
+            raise _unknown_key(key, [*_SECTIONS, *_TOP_LEVEL])
+    if base_dir is not None:
+        kwargs["base_dir"] = base_dir
+    return ServiceConfig(**kwargs)
+
+
+def load_config(path: Path | str) -> ServiceConfig:
+    """Read and validate one TOML config file; relative paths inside it resolve against its directory.
+
+    Raises:
+        ConfigError: the file is missing or not TOML, or a key is unknown, mistyped or out of range.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as err:
+        msg = f"cannot read config file {p}: {err.strerror}"
+        raise ConfigError(msg) from err
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        msg = f"config file {p} is not valid TOML: {err}"
+        raise ConfigError(msg) from err
+    return config_from_mapping(data, base_dir=p.resolve().parent)

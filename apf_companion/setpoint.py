@@ -1,0 +1,110 @@
+"""Setpoints for the autopilot: SET_POSITION_TARGET_LOCAL_NED built from named type-mask constants.
+
+Every setpoint is in MAV_FRAME_LOCAL_NED (1): absolute north/east/down from the EKF origin, the one frame both
+ArduCopter (GUIDED) and PX4 (OFFBOARD) treat the same way. Navigation setpoints carry the planned point and a
+velocity feed-forward along the step (``MASK_POS_VEL`` 0x0DC0: position and velocity used; acceleration, yaw and
+yaw rate ignored). A hold is the same mask with zero velocity, so the vehicle brakes onto the point.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY
+
+__all__ = ["MAV_FRAME_LOCAL_NED", "Setpoint", "SetpointKind", "encode_setpoint", "hold", "navigate"]
+
+MAV_FRAME_LOCAL_NED = 1
+_VALID_MASKS = frozenset({MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY})
+
+
+class SetpointKind(enum.Enum):
+    """Why a setpoint was sent (logs and status only; the autopilot sees the same message)."""
+
+    NAVIGATE = "navigate"
+    """The planner's next point with velocity feed-forward."""
+    HOLD = "hold"
+    """Stay at a point with zero velocity (HOLDING, ARRIVED, STUCK, local minimum)."""
+    PRESTREAM = "prestream"
+    """Hold at the current position while taking over (PX4 wants setpoints before OFFBOARD)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Setpoint:
+    """One SET_POSITION_TARGET_LOCAL_NED's content.
+
+    Attributes:
+        pos_ned_m: Target position, local NED [m].
+        vel_ned_m_s: Velocity feed-forward, local NED [m/s].
+        type_mask: POSITION_TARGET_TYPEMASK ignore bits (one of the named constants).
+        kind: Why it is sent.
+    """
+
+    pos_ned_m: tuple[float, float, float]
+    vel_ned_m_s: tuple[float, float, float]
+    type_mask: int
+    kind: SetpointKind
+
+    def __post_init__(self) -> None:
+        # Internal invariant: a setpoint with a NaN never reaches the wire.
+        if not all(math.isfinite(v) for v in (*self.pos_ned_m, *self.vel_ned_m_s)):
+            msg = f"setpoint must be finite: {self.pos_ned_m} {self.vel_ned_m_s}"
+            raise ValueError(msg)
+        if self.type_mask not in _VALID_MASKS:
+            msg = f"type_mask {self.type_mask:#06x} is not one of the named masks"
+            raise ValueError(msg)
+
+
+def _vec3(v: npt.ArrayLike) -> tuple[float, float, float]:
+    a = np.asarray(v, dtype=np.float64).reshape(3)
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def hold(pos_ned_m: npt.ArrayLike, kind: SetpointKind = SetpointKind.HOLD) -> Setpoint:
+    """Hold at ``pos_ned_m`` (3,) with zero velocity."""
+    return Setpoint(pos_ned_m=_vec3(pos_ned_m), vel_ned_m_s=(0.0, 0.0, 0.0), type_mask=MASK_POS_VEL, kind=kind)
+
+
+def navigate(pos_ned_m: npt.ArrayLike, next_ned_m: npt.ArrayLike, *, cruise_speed_m_s: float, dim: int) -> Setpoint:
+    """Go to ``next_ned_m`` (3,) with a velocity feed-forward of ``cruise_speed_m_s`` along the planned step.
+
+    In 2D the feed-forward is horizontal (the altitude is held by the position part alone).
+    """
+    here = np.asarray(pos_ned_m, dtype=np.float64).reshape(3)
+    there = np.asarray(next_ned_m, dtype=np.float64).reshape(3)
+    step = there - here
+    if dim == 2:
+        step[2] = 0.0
+    norm = float(np.linalg.norm(step))
+    vel = step * (cruise_speed_m_s / norm) if norm > 1e-9 else np.zeros(3)
+    return Setpoint(pos_ned_m=_vec3(there), vel_ned_m_s=_vec3(vel), type_mask=MASK_POS_VEL, kind=SetpointKind.NAVIGATE)
+
+
+def encode_setpoint(mav: Any, sp: Setpoint, *, time_boot_ms: int, target_system: int, target_component: int) -> Any:
+    """The SET_POSITION_TARGET_LOCAL_NED message for ``sp`` (pymavlink ``MAVLink`` object ``mav``)."""
+    x, y, z = sp.pos_ned_m
+    vx, vy, vz = sp.vel_ned_m_s
+    return mav.set_position_target_local_ned_encode(
+        time_boot_ms & 0xFFFFFFFF,
+        target_system,
+        target_component,
+        MAV_FRAME_LOCAL_NED,
+        sp.type_mask,
+        x,
+        y,
+        z,
+        vx,
+        vy,
+        vz,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+    )

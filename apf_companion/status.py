@@ -1,0 +1,94 @@
+"""What the service reports: STATUSTEXT lines, HEARTBEAT system_status, NAMED_VALUE_FLOAT names, status JSON.
+
+The zenoh status topic (default ``apf/status``) carries one JSON object per publication, schema
+``apf.status/1``::
+
+    {"schema": "apf.status/1", "t_s": 12.3, "state": "NAVIGATING", "reason": "...",
+     "pose": {"north_m": 1.0, "east_m": 2.0, "down_m": -5.0, "yaw_deg": 45.0, "age_s": 0.04} | null,
+     "goal": {"north_m": 22.0, "east_m": 22.0, "down_m": -5.0, "leg": 0, "legs": 1, "source": "cli"} | null,
+     "distance_to_goal_m": 9.1 | null, "nearest_obstacle_m": 1.7 | null, "n_obstacles": 31,
+     "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null, "decision": "GREEDY" | null,
+     "autopilot": {"mode_ok": true, "armed": true, "link_alive": true}, "counters": {...}}
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from apf_companion.navigator import State
+
+__all__ = [
+    "NVF_GOAL_DISTANCE",
+    "NVF_NEAREST_OBSTACLE",
+    "STATUS_SCHEMA",
+    "encode_status_json",
+    "severity_for",
+    "statustext_for",
+    "system_status_for",
+]
+
+STATUS_SCHEMA = "apf.status/1"
+NVF_GOAL_DISTANCE = "APF_DGOAL"  # NAMED_VALUE_FLOAT names: at most 10 characters
+NVF_NEAREST_OBSTACLE = "APF_DOBS"
+
+# MAV_SEVERITY and MAV_STATE values (common.xml).
+_SEV_CRITICAL = 2
+_SEV_WARNING = 4
+_SEV_NOTICE = 5
+_SEV_INFO = 6
+_MAV_STATE_STANDBY = 3
+_MAV_STATE_ACTIVE = 4
+_MAV_STATE_CRITICAL = 5
+
+STATUSTEXT_MAX = 50  # characters in one STATUSTEXT (no chunking needed at that length)
+
+
+def severity_for(state: State) -> int:
+    """MAV_SEVERITY of the STATUSTEXT announcing ``state``."""
+    if state in (State.HOLDING, State.STUCK):
+        return _SEV_WARNING
+    if state is State.LINK_LOST:
+        return _SEV_CRITICAL
+    if state is State.ARRIVED:
+        return _SEV_NOTICE
+    return _SEV_INFO
+
+
+def system_status_for(state: State, *, healthy_inputs: bool) -> int:
+    """HEARTBEAT.system_status: ACTIVE when in control with fresh inputs, CRITICAL when it had to hold or give
+    up, STANDBY when idle (nothing to do)."""
+    if state in (State.HOLDING, State.STUCK, State.LINK_LOST):
+        return _MAV_STATE_CRITICAL
+    if state in (State.NAVIGATING, State.ARRIVED):
+        return _MAV_STATE_ACTIVE if healthy_inputs else _MAV_STATE_CRITICAL
+    return _MAV_STATE_STANDBY
+
+
+def statustext_for(state: State, reason: str) -> str:
+    """``"APF <STATE>: <reason>"`` cut to the 50 characters one STATUSTEXT holds."""
+    text = f"APF {state.value}: {reason}"
+    return text[:STATUSTEXT_MAX]
+
+
+def _num(value: float | None, digits: int = 3) -> float | None:
+    if value is None or not math.isfinite(value):
+        return None
+    return round(float(value), digits)
+
+
+def encode_status_json(status: dict[str, Any]) -> bytes:
+    """One status record as compact JSON (non-finite numbers become null)."""
+
+    def clean(v: Any) -> Any:
+        if isinstance(v, float):
+            return _num(v, 4)
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list | tuple):
+            return [clean(x) for x in v]
+        return v
+
+    obj = {"schema": STATUS_SCHEMA, **clean(status)}
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()

@@ -1,0 +1,115 @@
+"""The service config: defaults, strict TOML loading, errors that name the key and the range."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from apf_companion.autopilot import Autopilot
+from apf_companion.config import ServiceConfig, config_from_mapping, load_config
+from apf_companion.errors import ConfigError
+from apf_companion.service import build_planner, initial_route
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_defaults_are_documented_values() -> None:
+    cfg = ServiceConfig()
+    assert cfg.cycle.rate_hz == 10.0
+    assert cfg.cycle.pose_max_age_s == 0.5 and cfg.cycle.ranges_max_age_s == 0.5
+    assert cfg.link.component_id == 191
+    assert cfg.link.heartbeat_timeout_s == 3.0
+    assert cfg.autopilot.profile is Autopilot.ARDUPILOT
+    assert cfg.autopilot.arm is False and cfg.autopilot.takeoff_alt_m == 0.0
+    assert cfg.dry_run is False
+    assert cfg.planner.name == "cr-bapf*"
+
+
+def test_deploy_example_loads_and_builds_its_planner() -> None:
+    cfg = load_config(REPO / "deploy" / "apf-companion.toml")
+    planner = build_planner(cfg)
+    assert planner is not None
+    # The example's values are the defaults it documents (the file is a commented copy of them).
+    assert cfg.cycle == ServiceConfig().cycle
+
+
+@pytest.mark.parametrize(
+    ("table", "match"),
+    [
+        ({"cycle": {"rate_hz": 80.0}}, r"cycle\.rate_hz must be in \[1\.0, 50\.0\]"),
+        ({"cycle": {"rate_hz": math.nan}}, r"cycle\.rate_hz"),
+        ({"cycle": {"pose_max_age_s": 0.0}}, r"cycle\.pose_max_age_s"),
+        ({"link": {"component_id": 190}}, r"link\.component_id"),
+        ({"link": {"component_id": 300}}, r"link\.component_id must be an integer in \[1, 255\]"),
+        ({"link": {"gcs_sysids": [1]}}, r"link\.gcs_sysids"),
+        ({"autopilot": {"profile": "inav"}}, r"autopilot\.profile must be one of 'ardupilot', 'px4'"),
+        ({"autopilot": {"offboard_prestream_s": 0.5}}, r"autopilot\.offboard_prestream_s"),
+        ({"planner": {"name": "apf"}}, r"planner\.name must be one of"),
+        ({"planner": {"dim": 4}}, r"planner\.dim must be 2 or 3"),
+        ({"zenoh": {"enabled": True}}, r"zenoh\.connect/zenoh\.listen"),
+        ({"zenoh": {"connect": ["udp/127.0.0.1:7447"]}}, r"zenoh\.connect\[\] must be an explicit"),
+        ({"sensors": {"zenoh": True}}, r"sensors\.zenoh"),
+        ({"goal": {"north_m": 1.0}}, r"goal\.north_m/goal\.east_m"),
+        ({"cycle": {"rate_hz": "fast"}}, r"cycle\.rate_hz must be a number"),
+        ({"dry_run": "yes"}, r"dry_run must be true or false"),
+    ],
+)
+def test_bad_values_name_the_key(table: dict[str, object], match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        config_from_mapping(table)
+
+
+def test_typo_gets_a_suggestion() -> None:
+    with pytest.raises(ConfigError, match=r"unknown config key 'cycle\.rate_hzz'; did you mean 'rate_hz'"):
+        config_from_mapping({"cycle": {"rate_hzz": 10}})
+    with pytest.raises(ConfigError, match=r"unknown config key 'cylce'; did you mean 'cycle'"):
+        config_from_mapping({"cylce": {}})
+
+
+def test_ints_become_floats_and_lists_tuples() -> None:
+    cfg = config_from_mapping({"cycle": {"rate_hz": 20}, "link": {"gcs_sysids": [255, 250]}})
+    assert cfg.cycle.rate_hz == 20.0 and isinstance(cfg.cycle.rate_hz, float)
+    assert cfg.link.gcs_sysids == (255, 250)
+
+
+def test_planner_params_overrides_and_errors() -> None:
+    cfg = config_from_mapping(
+        {"planner": {"name": "a-bapf", "dim": 3, "params": {"step_m": 0.3, "abapf_rule": "paper", "mu_max": 500}}}
+    )
+    planner = build_planner(cfg)
+    assert planner.params.step_m == 0.3 and planner.params.dim == 3
+    assert planner.params.abapf_rule.value == "paper"
+    with pytest.raises(ConfigError, match=r"planner\.params\.step"):
+        build_planner(config_from_mapping({"planner": {"params": {"step": 0.3}}}))
+    with pytest.raises(ConfigError, match=r"planner\.params\.random_walk must be one of"):
+        build_planner(config_from_mapping({"planner": {"params": {"random_walk": "drunk"}}}))
+    with pytest.raises(ConfigError, match=r"rho_u_m"):
+        build_planner(config_from_mapping({"planner": {"params": {"rho_u_m": 0.1}}}))
+
+
+def test_load_config_file_errors(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"cannot read config file"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[cycle\nrate_hz = 1\n")
+    with pytest.raises(ConfigError, match=r"not valid TOML"):
+        load_config(bad)
+
+
+def test_route_file_resolves_against_config_dir(tmp_path: Path) -> None:
+    (tmp_path / "route.csv").write_text("north,east,down\n1,2,-3\n4,5\n")
+    cfgfile = tmp_path / "c.toml"
+    cfgfile.write_text('[goal]\nroute = "route.csv"\n')
+    cfg = load_config(cfgfile)
+    route = initial_route(cfg)
+    assert route is not None and len(route) == 2
+    assert route.waypoints_ned_m[0].tolist() == [1.0, 2.0, -3.0]
+    assert math.isnan(route.waypoints_ned_m[1, 2])
+
+
+def test_example_toml_is_valid_toml_with_every_section() -> None:
+    data = tomllib.loads((REPO / "deploy" / "apf-companion.toml").read_text())
+    assert {"link", "autopilot", "planner", "cycle", "sensors", "zenoh", "status"} <= set(data)

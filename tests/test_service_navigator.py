@@ -1,0 +1,216 @@
+"""The pure decision core driven by a fake clock: states, freshness, holds, silence."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from apf_companion.autopilot import MASK_POS_VEL
+from apf_companion.config import ServiceConfig, config_from_mapping
+from apf_companion.goal import Route
+from apf_companion.navigator import Navigator, State
+from apf_companion.perception import ObstacleMemory, Pose
+from apf_companion.service import build_planner
+from apf_companion.setpoint import SetpointKind
+
+
+def make(cfg: ServiceConfig | None = None) -> Navigator:
+    cfg = cfg or ServiceConfig()
+    return Navigator(
+        config=cfg,
+        planner=build_planner(cfg),
+        memory=ObstacleMemory(expiry_s=30.0, merge_radius_m=0.1),
+        rng=np.random.default_rng(1),
+        now_s=0.0,
+    )
+
+
+def feed(nav: Navigator, t: float, pos: tuple[float, float, float], *, ranges: bool = True) -> None:
+    nav.autopilot_heartbeat(t, mode_ok=True)
+    nav.update_pose(Pose(t_s=t, pos_ned_m=np.array(pos), yaw_rad=0.0))
+    if ranges:
+        nav.update_ranges(np.zeros((0, 3)), t)
+
+
+def fly(nav: Navigator, t0: float, pos: np.ndarray, n: int, dt: float = 0.1) -> tuple[float, np.ndarray]:
+    """Let the vehicle jump to each commanded position (a perfect tracker)."""
+    t = t0
+    for _ in range(n):
+        t += dt
+        feed(nav, t, (pos[0], pos[1], pos[2]))
+        out = nav.cycle(t)
+        if out.setpoint is not None:
+            pos = np.array(out.setpoint.pos_ned_m)
+        if nav.state is not State.NAVIGATING:
+            break
+    return t, pos
+
+
+def test_idle_without_goal_sends_nothing() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    out = nav.cycle(0.1)
+    assert out.state is State.IDLE and out.setpoint is None
+
+
+def test_flies_to_goal_and_arrives_with_holds() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    assert nav.set_route(Route.point(5.0, 3.0, None, source="test"), 0.1)
+    t, pos = fly(nav, 0.1, np.array([0.0, 0.0, -5.0]), 200)
+    assert nav.state is State.ARRIVED
+    assert np.hypot(pos[0] - 5.0, pos[1] - 3.0) <= 0.7
+    assert pos[2] == -5.0  # NaN down = keep the altitude
+    feed(nav, t + 0.1, tuple(pos))
+    out = nav.cycle(t + 0.1)
+    assert out.setpoint is not None and out.setpoint.kind is SetpointKind.HOLD
+    assert out.setpoint.vel_ned_m_s == (0.0, 0.0, 0.0) and out.setpoint.type_mask == MASK_POS_VEL
+
+
+def test_navigate_setpoint_is_one_step_with_feed_forward() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    out = nav.cycle(0.1)
+    sp = out.setpoint
+    assert sp is not None and sp.kind is SetpointKind.NAVIGATE and out.decision == "GREEDY"
+    assert math.isclose(math.dist(sp.pos_ned_m[:2], (0, 0)), 0.4, rel_tol=1e-9)
+    assert math.isclose(math.hypot(*sp.vel_ned_m_s[:2]), 2.0, rel_tol=1e-9)
+    assert sp.vel_ned_m_s[2] == 0.0
+
+
+def test_not_engaged_prestreams_hold_at_current_position() -> None:
+    nav = make()
+    nav.autopilot_heartbeat(0.1, mode_ok=False)
+    nav.update_pose(Pose(t_s=0.1, pos_ned_m=np.array([1.0, 2.0, -3.0]), yaw_rad=0.0))
+    nav.update_ranges(np.zeros((0, 3)), 0.1)
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    out = nav.cycle(0.1)
+    assert out.setpoint is not None and out.setpoint.kind is SetpointKind.PRESTREAM
+    assert out.setpoint.pos_ned_m == (1.0, 2.0, -3.0)
+    nav.autopilot_heartbeat(0.15, mode_ok=True)
+    assert nav.engaged
+    assert nav.cycle(0.2).setpoint.kind is SetpointKind.NAVIGATE  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("what", ["pose", "ranges"])
+def test_stale_input_holds_within_one_cycle(what: str) -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    t, pos = fly(nav, 0.1, np.array([0.0, 0.0, -5.0]), 5)
+    # Freeze one input; the other (and the heartbeat) keep coming.
+    last_fresh = t
+    for _ in range(10):
+        t += 0.1
+        nav.autopilot_heartbeat(t, mode_ok=True)
+        if what == "pose":
+            nav.update_ranges(np.zeros((0, 3)), t)
+        else:
+            nav.update_pose(Pose(t_s=t, pos_ned_m=pos, yaw_rad=0.0))
+        out = nav.cycle(t)
+        if t - last_fresh > 0.5:  # the navigator rule: age > limit is stale
+            break
+        assert out.state is State.NAVIGATING
+    assert out.state is State.HOLDING  # the first cycle past the limit
+    assert out.setpoint is not None and out.setpoint.kind is SetpointKind.HOLD
+    assert out.changes[0].new is State.HOLDING and what in out.changes[0].reason
+    t += 0.1
+    nav.autopilot_heartbeat(t, mode_ok=True)
+    if what == "ranges":
+        nav.update_pose(Pose(t_s=t, pos_ned_m=pos, yaw_rad=0.0))
+    out2 = nav.cycle(t)
+    if what == "pose":
+        assert out2.setpoint is None  # stale pose: one hold, then silence
+    else:
+        assert out2.setpoint is not None and out2.setpoint.pos_ned_m == out.setpoint.pos_ned_m
+    # Fresh again -> navigating.
+    t += 0.1
+    feed(nav, t, tuple(pos))
+    assert nav.cycle(t).state is State.NAVIGATING
+
+
+def test_frozen_pose_timestamp_is_refused() -> None:
+    nav = make()
+    assert nav.update_pose(Pose(t_s=1.0, pos_ned_m=np.zeros(3), yaw_rad=0.0))
+    assert not nav.update_pose(Pose(t_s=1.0, pos_ned_m=np.ones(3), yaw_rad=0.0))
+    assert nav.counters.rejected_poses == 1
+
+
+def test_heartbeat_loss_goes_silent_and_needs_new_goal() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    assert nav.cycle(0.1).setpoint is not None
+    t = 0.1
+    for _ in range(40):  # pose and ranges keep coming, the heartbeat does not
+        t += 0.1
+        nav.update_pose(Pose(t_s=t, pos_ned_m=np.zeros(3), yaw_rad=0.0))
+        nav.update_ranges(np.zeros((0, 3)), t)
+        out = nav.cycle(t)
+        if t - 0.1 > 3.0:
+            assert out.state is State.LINK_LOST and out.setpoint is None
+        else:
+            assert out.state is State.NAVIGATING and out.setpoint is not None
+    assert not nav.set_route(Route.point(1.0, 1.0, None, source="test"), t)
+    t += 0.1
+    feed(nav, t, (0, 0, -5))
+    out = nav.cycle(t)
+    assert out.state is State.IDLE and out.setpoint is None  # link back: no motion without a new goal
+    assert nav.set_route(Route.point(1.0, 1.0, None, source="test"), t)
+
+
+def test_pilot_override_drops_goal() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    nav.cycle(0.1)
+    nav.autopilot_heartbeat(0.2, mode_ok=False)
+    assert nav.state is State.IDLE and nav.route is None
+    assert nav.cycle(0.2).setpoint is None
+
+
+def test_local_minimum_beyond_budget_is_stuck() -> None:
+    # A ring of points 0.7 m around the agent: every CR-BAPF bacteria point is within rho_l of one.
+    cfg = config_from_mapping({"planner": {"name": "cr-bapf", "random_walk_budget": 5}})
+    nav = make(cfg)
+    feed(nav, 0.1, (0, 0, -5))
+    ang = np.linspace(0.0, 2.0 * np.pi, 40, endpoint=False)
+    wall = np.stack([0.7 * np.cos(ang), 0.7 * np.sin(ang), np.full(40, -5.0)], axis=1)
+    nav.update_ranges(wall, 0.1)
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    states = []
+    t = 0.1
+    for _ in range(10):
+        feed(nav, t, (0, 0, -5))
+        out = nav.cycle(t)
+        states.append(out.state)
+        assert out.setpoint is not None and out.setpoint.kind is SetpointKind.HOLD
+        t += 0.1
+    assert State.STUCK in states
+    assert states.index(State.STUCK) == 5  # budget 5: the 6th non-greedy cycle gives up
+    assert nav.set_route(Route.point(-5.0, 0.0, -5.0, source="test"), t)
+    assert nav.state is State.NAVIGATING
+
+
+def test_route_legs_in_order() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route(waypoints_ned_m=np.array([[2.0, 0.0, -5.0], [2.0, 2.0, -6.0]]), source="t"), 0.1)
+    _t, pos = fly(nav, 0.1, np.array([0.0, 0.0, -5.0]), 100)
+    assert nav.state is State.ARRIVED and nav.leg_index == 1
+    assert np.hypot(pos[0] - 2.0, pos[1] - 2.0) <= 0.7 and pos[2] == -6.0
+
+
+def test_goal_replaced_mid_flight() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="a"), 0.1)
+    t, pos = fly(nav, 0.1, np.array([0.0, 0.0, -5.0]), 5)
+    nav.set_route(Route.point(pos[0], 10.0, -5.0, source="b"), t)
+    t += 0.1
+    feed(nav, t, tuple(pos))
+    sp = nav.cycle(t).setpoint
+    assert sp is not None and sp.pos_ned_m[1] > pos[1] + 0.3  # now heading east
