@@ -1,0 +1,478 @@
+"""Lockstep batched Monte Carlo engine for the paper's study.
+
+Thousands of trials advance together as one array program: positions are ``(A, D)``, obstacle fields are padded
+to ``(A, N_max, D)`` with masks, the planner decides for every active trial in one ``step_batch`` call, and
+finished trials leave the active set (its arrays are compacted in place).
+
+One iteration of a trial, in the authors' order (notes.md; github M-DIAB/APF ``Bacteria_Run.m``):
+
+1. count the iteration (M_s counts iterations, including ones without a move);
+2. collision: closer than ``collision_radius_m`` to any obstacle -> COLLISION;
+3. detection: obstacles within ``sensor_range_m`` become known (``DetectionRule``), and the minimum distance
+   of every obstacle to the visited positions is updated (for S, Eq. (16));
+4. goal: within ``goal_radius_m`` of the target -> SUCCESS (this is the "one final extra iteration after
+   entering the goal circle": the move that would follow cannot change any metric, so it is not computed);
+5. stuck rules: CAPF without a new best target distance for ``capf_patience`` iterations -> STUCK;
+6. plan: ``planner.step_batch`` on the known obstacles. A LOCAL_MINIMUM ends BAPF, CR-BAPF and A-BAPF
+   (notes.md, decision 3) and CAPF (vanishing gradient); for CR-BAPF* it ends the trial only under the
+   SAFE_SET random walk (an empty safe set is a fixed point), while under SINGLE_DRAW it is a no-move iteration;
+7. move: next point plus N(0, noise_std_m^2) per axis; no move, no noise.
+
+A trial still running after ``max_iterations`` is a TIMEOUT.
+
+Determinism: trials are split into fixed chunks of ``config.chunk_trials``. The generators of chunk ``c`` of
+density [N_l, N_u] come from ``SeedSequence(seed, spawn_key=(N_l, N_u, c))`` (two children: worlds, motion), so a
+chunk's result depends only on (config, planner, density, chunk, seed), never on the worker that ran it or on
+which other chunks ran. Worlds and noise streams do not depend on the planner: every planner and every mu_o of
+the sweep sees the same obstacle fields (common random numbers).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.planning import BatchDecision, DecisionReason, RandomWalkRule, get_planner
+from sim.study import _worker
+from sim.study.config import Density, DetectionRule, StudyConfig
+from sim.study.metrics import Outcome, TrialRecords, safety_per_trial
+from sim.study.worlds import WorldBatch, draw_worlds
+
+log = logging.getLogger(__name__)
+
+_RUNNING = -1
+_T = TypeVar("_T")
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+class BatchPlanner(Protocol):
+    """What the engine needs of a planner (``apf_companion.planning.Planner`` satisfies it)."""
+
+    def step_batch(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray,
+        rng: np.random.Generator | None = None,
+    ) -> BatchDecision: ...
+
+
+_STOPS_AT_LOCAL_MINIMUM = frozenset({"capf", "bapf", "a-bapf", "cr-bapf"})
+"""Planners whose trial ends at the first LOCAL_MINIMUM (notes.md, decision 3; CAPF: vanishing gradient)."""
+
+
+def stops_at_local_minimum(planner_name: str, config: StudyConfig) -> bool:
+    """Whether a LOCAL_MINIMUM decision ends a trial of ``planner_name`` (see module docstring, step 6)."""
+    if planner_name in _STOPS_AT_LOCAL_MINIMUM:
+        return True
+    return config.planner_params.random_walk == RandomWalkRule.SAFE_SET
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Trace:
+    """Per-iteration history of a small batch (for figures). Rows of finished trials are NaN."""
+
+    positions_m: FloatArray
+    """(T, A, D) position at the start of each iteration [m]."""
+    reason: npt.NDArray[np.int8]
+    """(T, A) DecisionReason code of each iteration (-1: no decision, e.g. the trial ended there)."""
+    mu_o_k: FloatArray
+    """(T, A) A-BAPF's mu_o,k of the chosen point (NaN for other planners or no move)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SimulationResult:
+    records: TrialRecords
+    trace: Trace | None
+    detected: BoolArray
+    """(A, N_max) obstacles detected during each run."""
+
+
+def simulate(
+    config: StudyConfig,
+    planner_name: str,
+    worlds: WorldBatch,
+    rng: np.random.Generator,
+    *,
+    record: bool = False,
+    planner: BatchPlanner | None = None,
+) -> SimulationResult:
+    """Run A trials of ``planner_name`` in lockstep on the given obstacle fields.
+
+    Parameters
+    ----------
+    config : study rules.
+    planner_name : one of ``apf_companion.planning.PLANNER_NAMES``.
+    worlds : (A, N_max, D) obstacle fields with masks.
+    rng : motion generator (random walk draws inside the planner, position noise here).
+    record : keep the per-iteration ``Trace`` (memory O(max_iterations * A); for small batches only).
+    planner : use this planner object instead of ``get_planner(planner_name, config.planner_params)``
+        (instrumented planners in tests and benchmarks; ``planner_name`` still selects the stop rules).
+
+    Returns
+    -------
+    SimulationResult with per-trial records (``time_ms`` is zero here; ``run_chunk`` fills it in).
+    """
+    if planner is None:
+        planner = get_planner(planner_name, config.planner_params)
+    stop_at_minimum = stops_at_local_minimum(planner_name, config)
+    is_capf = planner_name == "capf"
+    cumulative = config.detection == DetectionRule.CUMULATIVE
+
+    raw = np.asarray(worlds.obstacles_m, dtype=np.float64)
+    n_trials, n_max, dim = raw.shape
+    exists = np.asarray(worlds.mask, dtype=bool)
+    # Padding rows sit at infinity, so distances to them are +inf and never detected or collided with.
+    padded = np.where(exists[..., None], raw, np.inf)
+    start = np.asarray(config.start_m, dtype=np.float64)
+    target = np.asarray(config.target_m, dtype=np.float64)
+
+    # Per-trial outputs (indexed by trial id).
+    outcome = np.full(n_trials, _RUNNING, dtype=np.int8)
+    iterations = np.zeros(n_trials, dtype=np.int32)
+    detected_out = np.zeros((n_trials, n_max), dtype=bool)
+    min_dist_out = np.full((n_trials, n_max), np.inf)
+
+    # Active-set state (compacted when trials finish).
+    ids = np.arange(n_trials)
+    pos = np.broadcast_to(start, (n_trials, dim)).copy()
+    obs = padded.copy()
+    obs_raw = raw.copy()
+    ever = np.zeros((n_trials, n_max), dtype=bool)
+    min_dist = np.full((n_trials, n_max), np.inf)
+    best_goal_dist = np.full(n_trials, np.inf)
+    since_best = np.zeros(n_trials, dtype=np.int32)
+    targets = np.broadcast_to(target, (n_trials, dim))
+
+    trace_pos: list[FloatArray] = []
+    trace_reason: list[npt.NDArray[np.int8]] = []
+    trace_mu: list[FloatArray] = []
+
+    for it in range(1, config.max_iterations + 1):
+        if ids.size == 0:
+            break
+        a = ids.size
+        iterations[ids] = it
+        if record:
+            frame = np.full((n_trials, dim), np.nan)
+            frame[ids] = pos
+            trace_pos.append(frame)
+            trace_reason.append(np.full(n_trials, -1, dtype=np.int8))
+            trace_mu.append(np.full(n_trials, np.nan))
+
+        diff = obs - pos[:, None, :]
+        dist = np.sqrt(np.einsum("and,and->an", diff, diff))
+        collided = (dist < config.collision_radius_m).any(axis=1)
+        in_range = dist <= config.sensor_range_m
+        ever |= in_range
+        np.minimum(min_dist, dist, out=min_dist)
+        goal_dist = np.sqrt(np.einsum("ad,ad->a", pos - target, pos - target))
+        reached = ~collided & (goal_dist <= config.goal_radius_m)
+
+        finished = np.full(a, _RUNNING, dtype=np.int8)
+        finished[collided] = Outcome.COLLISION
+        finished[reached] = Outcome.SUCCESS
+        if is_capf:
+            improved = goal_dist < best_goal_dist
+            best_goal_dist = np.where(improved, goal_dist, best_goal_dist)
+            since_best = np.where(improved, 0, since_best + 1).astype(np.int32)
+            finished[(finished == _RUNNING) & (since_best >= config.capf_patience)] = Outcome.STUCK
+
+        planning = finished == _RUNNING
+        if planning.any():
+            known = ever if cumulative else in_range
+            sel = np.flatnonzero(planning)
+            obs_k, mask_k = _compact_known(obs_raw[sel], known[sel])
+            bd = planner.step_batch(pos[sel], targets[: sel.size], obs_k, mask_k, rng)
+            reason = np.asarray(bd.reason)
+            if record:
+                trace_reason[-1][ids[sel]] = reason
+                trace_mu[-1][ids[sel]] = np.asarray(bd.mu_o_k, dtype=np.float64)
+            if stop_at_minimum:
+                finished[sel[reason == DecisionReason.LOCAL_MINIMUM]] = Outcome.STUCK
+            next_pts = np.asarray(bd.next_points_m, dtype=np.float64)
+            moves = ~np.isnan(next_pts[:, 0]) & (finished[sel] == _RUNNING)
+            if moves.any():
+                movers = sel[moves]
+                noise = rng.normal(0.0, config.noise_std_m, size=(movers.size, dim))
+                pos[movers] = next_pts[moves] + noise
+
+        done = finished != _RUNNING
+        if done.any():
+            done_ids = ids[done]
+            outcome[done_ids] = finished[done]
+            detected_out[done_ids] = ever[done]
+            min_dist_out[done_ids] = min_dist[done]
+            keep = ~done
+            ids = ids[keep]
+            pos = pos[keep]
+            obs = obs[keep]
+            obs_raw = obs_raw[keep]
+            ever = ever[keep]
+            min_dist = min_dist[keep]
+            best_goal_dist = best_goal_dist[keep]
+            since_best = since_best[keep]
+
+    if ids.size:
+        outcome[ids] = Outcome.TIMEOUT
+        detected_out[ids] = ever
+        min_dist_out[ids] = min_dist
+
+    records = TrialRecords(
+        outcome=outcome,
+        iterations=iterations,
+        safety_m=safety_per_trial(min_dist_out, detected_out),
+        n_obstacles=exists.sum(axis=1).astype(np.int32),
+        n_detected=detected_out.sum(axis=1).astype(np.int32),
+        time_ms=np.zeros(n_trials),
+    )
+    trace = None
+    if record:
+        trace = Trace(
+            positions_m=np.stack(trace_pos) if trace_pos else np.zeros((0, n_trials, dim)),
+            reason=np.stack(trace_reason) if trace_reason else np.zeros((0, n_trials), np.int8),
+            mu_o_k=np.stack(trace_mu) if trace_mu else np.zeros((0, n_trials)),
+        )
+    return SimulationResult(records=records, trace=trace, detected=detected_out)
+
+
+def _compact_known(obstacles_m: FloatArray, known: BoolArray) -> tuple[FloatArray, BoolArray]:
+    """Gather each row's known obstacles to the front: (a, N, D), (a, N) -> (a, K, D), (a, K), K = max count.
+
+    The planner then works on K columns instead of N_max (most obstacles are unknown or out of range);
+    the set each trial knows is unchanged.
+    """
+    counts = known.sum(axis=1)
+    k_max = int(counts.max()) if counts.size else 0
+    a, _, dim = obstacles_m.shape
+    out = np.zeros((a, k_max, dim))
+    mask = np.arange(k_max)[None, :] < counts[:, None]
+    if k_max:
+        rows, cols = np.nonzero(known)
+        starts = np.cumsum(counts) - counts
+        rank = np.arange(rows.size) - starts[rows]
+        out[rows, rank] = obstacles_m[rows, cols]
+    return out, mask
+
+
+# --------------------------------------------------------------------------------------------- chunks
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ChunkTask:
+    """One fixed, seeded chunk of trials: everything a worker needs (picklable)."""
+
+    config: StudyConfig
+    planner_name: str
+    density: Density
+    chunk_index: int
+    n_trials: int
+    seed: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ChunkResult:
+    task: ChunkTask
+    records: TrialRecords
+    wall_s: float
+
+
+def chunk_generators(seed: int, density: Density, chunk_index: int) -> tuple[np.random.Generator, ...]:
+    """(worlds, motion) generators of one chunk; independent of planner, worker and other chunks."""
+    seq = np.random.SeedSequence(seed, spawn_key=(density.n_low, density.n_high, chunk_index))
+    return tuple(np.random.default_rng(child) for child in seq.spawn(2))
+
+
+def chunk_worlds(task: ChunkTask) -> WorldBatch:
+    world_rng, _ = chunk_generators(task.seed, task.density, task.chunk_index)
+    cfg = task.config
+    return draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim)
+
+
+def run_chunk(task: ChunkTask) -> ChunkResult:
+    """Run one chunk (top-level so process pools can pickle it)."""
+    t0 = time.perf_counter()
+    world_rng, motion_rng = chunk_generators(task.seed, task.density, task.chunk_index)
+    cfg = task.config
+    worlds = draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim)
+    result = simulate(cfg, task.planner_name, worlds, motion_rng)
+    wall_s = time.perf_counter() - t0
+    rec = result.records
+    per_trial_ms = np.full(task.n_trials, 1e3 * wall_s / max(task.n_trials, 1))
+    records = TrialRecords(
+        outcome=rec.outcome,
+        iterations=rec.iterations,
+        safety_m=rec.safety_m,
+        n_obstacles=rec.n_obstacles,
+        n_detected=rec.n_detected,
+        time_ms=per_trial_ms,
+    )
+    return ChunkResult(task=task, records=records, wall_s=wall_s)
+
+
+def make_tasks(
+    config: StudyConfig,
+    planners: Sequence[str],
+    densities: Sequence[Density],
+    trials: int,
+    seed: int,
+) -> list[ChunkTask]:
+    """Split ``trials`` per (planner, density) into fixed chunks of ``config.chunk_trials``."""
+    tasks: list[ChunkTask] = []
+    for planner_name in planners:
+        for density in densities:
+            for c, start in enumerate(range(0, trials, config.chunk_trials)):
+                n = min(config.chunk_trials, trials - start)
+                tasks.append(
+                    ChunkTask(
+                        config=config,
+                        planner_name=planner_name,
+                        density=density,
+                        chunk_index=c,
+                        n_trials=n,
+                        seed=seed,
+                    )
+                )
+    return tasks
+
+
+# ------------------------------------------------------------------------------------------ executors
+
+
+class SerialExecutor(Executor):
+    """Runs each task at submit time in the calling thread (``--workers 1``, tests, debugging)."""
+
+    def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]:
+        future: Future[_T] = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as err:  # delivered through the future, like other executors
+            future.set_exception(err)
+        return future
+
+
+@contextlib.contextmanager
+def _single_thread_blas_env() -> Iterator[None]:
+    """Spawned workers inherit the environment at creation time: limit BLAS threads while they start."""
+    saved = {name: os.environ.get(name) for name in _worker._SINGLE_THREAD_ENV}
+    _worker.init()
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def default_executor(workers: int | None = None) -> Executor:
+    """``SerialExecutor`` for one worker, else a spawn-based ``ProcessPoolExecutor`` (default: all cores)."""
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    if n <= 1:
+        return SerialExecutor()
+    return ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("spawn"), initializer=_worker.init)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CellResult:
+    """All trials of one (planner, density) cell, in chunk order."""
+
+    planner_name: str
+    density: Density
+    records: TrialRecords
+    wall_s: float
+    """Sum of the chunks' wall-clock times [s] (CPU-side cost, summed over workers)."""
+
+
+ProgressFn = Callable[[int, int], None]
+"""Called as ``progress(trials_done, trials_total)`` after each chunk."""
+
+
+def run_tasks(
+    tasks: Sequence[ChunkTask],
+    executor: Executor | None = None,
+    *,
+    workers: int | None = None,
+    progress: ProgressFn | None = None,
+) -> list[ChunkResult]:
+    """Run chunks on ``executor`` (default: ``default_executor(workers)``, shut down afterwards).
+
+    Results come back in task order, whatever order the workers finish in.
+    """
+    own = executor is None
+    ex = default_executor(workers) if executor is None else executor
+    total = sum(t.n_trials for t in tasks)
+    done = 0
+    results: list[ChunkResult | None] = [None] * len(tasks)
+    try:
+        # Largest chunks first keeps both workers busy until the end.
+        order = sorted(range(len(tasks)), key=lambda i: -tasks[i].n_trials)
+        with _single_thread_blas_env():
+            futures = {ex.submit(run_chunk, tasks[i]): i for i in order}
+        pending = set(futures)
+        if progress is not None:
+            progress(0, total)
+        while pending:
+            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                i = futures[fut]
+                results[i] = fut.result()
+                done += tasks[i].n_trials
+            if progress is not None:
+                progress(done, total)
+    finally:
+        if own:
+            ex.shutdown(wait=True, cancel_futures=True)
+    return [r for r in results if r is not None]
+
+
+def collect_cells(results: Sequence[ChunkResult]) -> list[CellResult]:
+    """Group chunk results into (planner, density) cells, chunks in index order, cells in first-seen order."""
+    groups: dict[tuple[str, Density], list[ChunkResult]] = {}
+    for r in results:
+        groups.setdefault((r.task.planner_name, r.task.density), []).append(r)
+    cells = []
+    for (name, density), parts in groups.items():
+        parts.sort(key=lambda r: r.task.chunk_index)
+        cells.append(
+            CellResult(
+                planner_name=name,
+                density=density,
+                records=TrialRecords.concat([p.records for p in parts]),
+                wall_s=sum(p.wall_s for p in parts),
+            )
+        )
+    return cells
+
+
+def run_study(
+    config: StudyConfig,
+    planners: Sequence[str],
+    densities: Sequence[Density],
+    trials: int,
+    seed: int,
+    executor: Executor | None = None,
+    *,
+    workers: int | None = None,
+    progress: ProgressFn | None = None,
+) -> list[CellResult]:
+    """The study: ``trials`` per (planner, density), as fixed seeded chunks on ``executor``.
+
+    Returns one ``CellResult`` per (planner, density), planners outer, densities inner.
+    """
+    tasks = make_tasks(config, planners, densities, trials, seed)
+    return collect_cells(run_tasks(tasks, executor, workers=workers, progress=progress))
