@@ -1,0 +1,225 @@
+"""apf-companion: the obstacle-avoiding path-planning service for a MAVLink drone's companion computer.
+
+Commands:
+  run           run the service (``apf-companion run --config /etc/apf-companion/apf-companion.toml``)
+  check-config  validate a config file and print the effective settings; exit 2 on an error
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import json
+import logging
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from apf_companion import __version__
+from apf_companion.config import ServiceConfig, load_config
+from apf_companion.errors import ApfCompanionError, ConfigError
+from apf_companion.goal import Route, load_route, parse_goal_text
+
+__all__ = ["build_parser", "main"]
+
+log = logging.getLogger(__name__)
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_CONFIG = 2
+EXIT_STUCK = 3
+
+
+class _JsonFormatter(logging.Formatter):
+    """One JSON object per line: time, level, logger, event and the record's ``extra`` fields."""
+
+    _SKIP = frozenset(vars(logging.makeLogRecord({})).keys()) | {"message", "asctime"}
+
+    def format(self, record: logging.LogRecord) -> str:
+        obj: dict[str, Any] = {
+            "t": round(record.created, 6),
+            "level": record.levelname,
+            "logger": record.name,
+            "event": record.getMessage(),
+        }
+        for key, value in vars(record).items():
+            if key not in self._SKIP:
+                obj[key] = value
+        if record.exc_info:
+            obj["exc"] = self.formatException(record.exc_info)
+        return json.dumps(obj, default=str)
+
+
+class _TextFormatter(logging.Formatter):
+    """``time level logger: event key=value ...`` (the ``extra`` fields appended)."""
+
+    _SKIP = _JsonFormatter._SKIP
+
+    def format(self, record: logging.LogRecord) -> str:
+        base = super().format(record)
+        extras = " ".join(f"{k}={v}" for k, v in vars(record).items() if k not in self._SKIP)
+        return f"{base} {extras}" if extras else base
+
+
+def _setup_logging(level: str, fmt: str) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    if fmt == "json":
+        handler.setFormatter(_JsonFormatter())
+    else:
+        handler.setFormatter(_TextFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="apf-companion",
+        description=__doc__.splitlines()[0] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument(
+        "--log-level",
+        default=os.environ.get("APF_LOG_LEVEL", "INFO"),
+        help="DEBUG, INFO, WARNING, ERROR (default: $APF_LOG_LEVEL or INFO)",
+    )
+    parser.add_argument(
+        "--log-format",
+        choices=("text", "json"),
+        default=os.environ.get("APF_LOG_FORMAT", "text"),
+        help="log lines as text or one JSON object per line (default: $APF_LOG_FORMAT or text)",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="run the service", description=_cmd_run.__doc__)
+    run.add_argument("--config", type=Path, help="TOML config file (default: built-in defaults)")
+    run.add_argument("--connect", metavar="ENDPOINT", help="override link.connect (e.g. udpin:127.0.0.1:14540)")
+    run.add_argument("--planner", help="override planner.name (capf, bapf, a-bapf, cr-bapf, cr-bapf*)")
+    run.add_argument("--goal", metavar="N,E[,D]", help="goal in local NED metres (overrides [goal])")
+    run.add_argument("--route", type=Path, metavar="FILE", help="route file (overrides [goal])")
+    run.add_argument("--dry-run", action="store_true", help="plan and log, send nothing")
+    run.add_argument("--tlog", metavar="PATH", help="override link.tlog")
+    run.add_argument("--result-json", type=Path, metavar="PATH", help="write the outcome (ServiceResult) here on exit")
+    run.set_defaults(func=_cmd_run)
+
+    check = sub.add_parser("check-config", help="validate a config file", description=_cmd_check.__doc__)
+    check.add_argument("config", type=Path, help="TOML config file")
+    check.set_defaults(func=_cmd_check)
+    return parser
+
+
+def _effective_config(args: argparse.Namespace) -> tuple[ServiceConfig, Route | None]:
+    cfg = load_config(args.config) if args.config is not None else ServiceConfig()
+    link = cfg.link
+    if args.connect:
+        link = dataclasses.replace(link, connect=args.connect)
+    if args.tlog:
+        link = dataclasses.replace(link, tlog=str(Path(args.tlog).resolve()))
+    planner = dataclasses.replace(cfg.planner, name=args.planner) if args.planner else cfg.planner
+    cfg = dataclasses.replace(cfg, link=link, planner=planner, dry_run=cfg.dry_run or args.dry_run)
+    route: Route | None = None
+    if args.goal and args.route:
+        msg = "--goal and --route exclude each other"
+        raise ConfigError(msg)
+    if args.goal:
+        route = parse_goal_text(args.goal, source="cli")
+    elif args.route:
+        route = load_route(args.route, source="cli:route")
+    return cfg, route
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    """Run the service: connect to the autopilot, fly goals around obstacles, report status.
+
+    Exit codes: 0 = stopped or arrived, 1 = error, 2 = configuration error, 3 = stuck / timeout / link lost
+    (only with exit_when_done).
+    """
+    from apf_companion.service import CompanionService, build_planner
+
+    try:
+        cfg, route = _effective_config(args)
+        build_planner(cfg)  # validate planner parameters before opening anything
+    except ConfigError as err:
+        print(f"apf-companion: config error: {err}", file=sys.stderr)
+        return EXIT_CONFIG
+
+    async def main() -> int:
+        try:
+            svc = await CompanionService.open(cfg, route=route, result_path=args.result_json)
+        except ApfCompanionError as err:
+            log.error("service.open_failed", extra={"error": str(err)})
+            print(f"apf-companion: {err}", file=sys.stderr)
+            return EXIT_ERROR
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, svc.stop)
+        log.info(
+            "service.start",
+            extra={
+                "connect": cfg.link.connect,
+                "planner": cfg.planner.name,
+                "profile": cfg.autopilot.profile.value,
+                "rate_hz": cfg.cycle.rate_hz,
+                "dry_run": cfg.dry_run,
+            },
+        )
+        result = await svc.run()
+        log.info("service.end", extra={"outcome": result.outcome, "steps": result.steps})
+        if result.outcome == "error":
+            return EXIT_ERROR
+        return EXIT_OK if result.outcome in ("arrived", "stopped") else EXIT_STUCK
+
+    return asyncio.run(main())
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    """Validate a config file (keys, types, ranges, planner parameters, route file); print the effective
+    configuration as JSON. Exit 0 if valid, 2 with the offending key otherwise."""
+    from apf_companion.service import build_planner, initial_route
+
+    try:
+        cfg = load_config(args.config)
+        build_planner(cfg)
+        route = initial_route(cfg)
+    except ConfigError as err:
+        print(f"{args.config}: {err}", file=sys.stderr)
+        return EXIT_CONFIG
+
+    def plain(value: Any) -> Any:
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, tuple | list):
+            return [plain(v) for v in value]
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, Path):
+            return str(value)
+        if hasattr(value, "value"):
+            return value.value
+        return value
+
+    out = plain(cfg)
+    out["route_waypoints_ned_m"] = None if route is None else route.to_json_list()
+    print(json.dumps(out, indent=2))
+    print(f"{args.config}: OK", file=sys.stderr)
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``apf-companion`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.log_level, args.log_format)
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
