@@ -1,0 +1,407 @@
+"""Zenoh link: an asyncio-friendly wrapper around an eclipse-zenoh session.
+
+zenoh-python has no asyncio API: subscriber callbacks run on zenoh-owned threads. Each subscription here
+keeps a small buffer behind a lock, filled on the zenoh thread, and wakes the event loop with
+``loop.call_soon_threadsafe`` at most once per batch, so a stalled loop never accumulates callbacks. The
+buffer's overflow policy is chosen per subscription:
+
+- ``Overflow.LATEST_PER_KEY`` (sensors): one sample per key, a newer one overwrites the older
+  (counted in ``overwritten``); at most ``max_keys`` keys, the least recently updated key is dropped.
+- ``Overflow.FIFO`` (commands): samples in arrival order, at most ``capacity``; when full the OLDEST is
+  dropped (counted in ``dropped``), because a newer command (e.g. a goal) supersedes older ones.
+
+Publishing is a non-blocking ``put`` from the loop (publishers use CongestionControl.DROP, so a slow
+network never blocks the cycle). Opening and closing the session run in a worker thread.
+
+Every session disables multicast scouting and uses only the explicit ``tcp/HOST:PORT`` endpoints given
+in ``ZenohConfig``; wildcard hosts (0.0.0.0, ::) are rejected.
+
+Example::
+
+    cfg = ZenohConfig(mode="peer", listen=("tcp/127.0.0.1:7447",))
+    async with await ZenohLink.open(cfg) as link:
+        sensors = await link.subscribe("apf/sensors/*/ranges", overflow=Overflow.LATEST_PER_KEY)
+        sample = await sensors.recv(timeout=1.0)
+        link.publish("apf/status", b"{...}", encoding="application/json")
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import enum
+import ipaddress
+import json
+import logging
+import re
+import threading
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Self
+
+import zenoh
+
+from apf_companion.errors import ConfigError, LinkError, LinkTimeout
+
+__all__ = [
+    "DEFAULT_GOAL_KEY",
+    "DEFAULT_SENSOR_KEY",
+    "DEFAULT_STATUS_KEY",
+    "Overflow",
+    "SubscriptionStats",
+    "ZenohConfig",
+    "ZenohLink",
+    "ZenohSample",
+    "ZenohSubscription",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SENSOR_KEY = "apf/sensors/range0/ranges"
+DEFAULT_GOAL_KEY = "apf/cmd/goal"
+DEFAULT_STATUS_KEY = "apf/status"
+
+_MODES = ("peer", "client", "router")
+_ENDPOINT_RE = re.compile(r"^tcp/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.\-]+):(?P<port>[0-9]{1,5})$")
+
+
+def _check_endpoint(endpoint: str, *, name: str, allow_port_zero: bool) -> None:
+    m = _ENDPOINT_RE.match(endpoint) if isinstance(endpoint, str) else None
+    if m is None:
+        msg = f"zenoh {name} endpoint {endpoint!r} must be explicit 'tcp/HOST:PORT' (e.g. 'tcp/127.0.0.1:7447')"
+        raise ConfigError(msg)
+    host = m.group("host").strip("[]")
+    try:
+        wildcard = ipaddress.ip_address(host).is_unspecified
+    except ValueError:
+        wildcard = False
+    if wildcard:
+        msg = f"zenoh {name} endpoint {endpoint!r}: wildcard host; name a specific interface address"
+        raise ConfigError(msg)
+    port = int(m.group("port"))
+    low = 0 if allow_port_zero else 1
+    if not low <= port <= 65535:
+        msg = f"zenoh {name} endpoint {endpoint!r}: port must be in {low}..65535"
+        raise ConfigError(msg)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ZenohConfig:
+    """Validated zenoh session settings. Multicast scouting is always disabled.
+
+    Attributes:
+        mode: ``"peer"`` (default), ``"client"`` (needs a router in ``connect``), or ``"router"`` (a
+            self-contained router for a companion without zenohd, and for tests).
+        connect: Endpoints to connect to, each ``tcp/HOST:PORT`` with port 1..65535.
+        listen: Endpoints to listen on, each ``tcp/HOST:PORT`` with port 0..65535.
+    """
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.mode not in _MODES:
+            msg = f"zenoh mode must be one of {', '.join(_MODES)}, got {self.mode!r}"
+            raise ConfigError(msg)
+        for name in ("connect", "listen"):
+            value = getattr(self, name)
+            if isinstance(value, str) or not isinstance(value, tuple | list):
+                msg = f"zenoh {name} must be a list of 'tcp/HOST:PORT' strings, got {value!r}"
+                raise ConfigError(msg)
+            object.__setattr__(self, name, tuple(value))
+        for ep in self.connect:
+            _check_endpoint(ep, name="connect", allow_port_zero=False)
+        for ep in self.listen:
+            _check_endpoint(ep, name="listen", allow_port_zero=True)
+        if self.mode == "client" and not self.connect:
+            msg = "zenoh mode 'client' needs at least one connect endpoint (the router)"
+            raise ConfigError(msg)
+        if not self.connect and not self.listen:
+            msg = "zenoh needs at least one connect or listen endpoint (multicast scouting is disabled)"
+            raise ConfigError(msg)
+
+    def to_zenoh(self) -> zenoh.Config:
+        """The equivalent ``zenoh.Config``."""
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps(self.mode))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        return conf
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ZenohSample:
+    """One received sample, copied out of zenoh on its thread.
+
+    Attributes:
+        key_expr: The key the sample was published on.
+        payload: The payload bytes.
+        encoding: The zenoh encoding string (e.g. ``"application/json"``, ``"zenoh/bytes"``).
+        t_s: ``time.monotonic()`` when the zenoh callback ran [s].
+    """
+
+    key_expr: str
+    payload: bytes
+    encoding: str
+    t_s: float
+
+
+class Overflow(enum.Enum):
+    """What a subscription's buffer does when the event loop does not keep up."""
+
+    LATEST_PER_KEY = "latest_per_key"
+    FIFO = "fifo"
+
+
+@dataclass(slots=True)
+class SubscriptionStats:
+    """Counters of one subscription (read from the event loop)."""
+
+    received: int = 0
+    overwritten: int = 0
+    dropped: int = 0
+
+
+class ZenohSubscription:
+    """A bounded, thread-safe buffer between a zenoh subscriber callback and asyncio.
+
+    Create through ``ZenohLink.subscribe``. Consume with ``await recv(timeout=...)``, ``try_recv()`` or
+    ``async for sample in sub``.
+    """
+
+    def __init__(self, key_expr: str, loop: asyncio.AbstractEventLoop, *, overflow: Overflow, capacity: int) -> None:
+        if not isinstance(capacity, int) or capacity < 1:
+            msg = f"subscription capacity must be an int >= 1, got {capacity!r}"
+            raise ConfigError(msg)
+        self.key_expr = key_expr
+        self.overflow = overflow
+        self.capacity = capacity
+        self.stats = SubscriptionStats()
+        self._loop = loop
+        self._lock = threading.Lock()
+        self._latest: collections.OrderedDict[str, ZenohSample] = collections.OrderedDict()
+        self._fifo: collections.deque[ZenohSample] = collections.deque()
+        self._wake_scheduled = False
+        self._event = asyncio.Event()
+        self._closed = False
+        self._subscriber: zenoh.Subscriber[None] | None = None
+
+    # --- zenoh thread ---------------------------------------------------------------------------------
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            item = ZenohSample(
+                key_expr=str(sample.key_expr),
+                payload=sample.payload.to_bytes(),
+                encoding=str(sample.encoding),
+                t_s=time.monotonic(),
+            )
+        except Exception:  # never let an exception escape into zenoh's thread
+            log.exception("zenoh.sample_copy_failed", extra={"key_expr": self.key_expr})
+            return
+        with self._lock:
+            if self._closed:
+                return
+            self.stats.received += 1
+            if self.overflow is Overflow.LATEST_PER_KEY:
+                if item.key_expr in self._latest:
+                    self.stats.overwritten += 1
+                    self._latest.move_to_end(item.key_expr)
+                self._latest[item.key_expr] = item
+                if len(self._latest) > self.capacity:
+                    self._latest.popitem(last=False)
+                    self.stats.dropped += 1
+            else:
+                if len(self._fifo) >= self.capacity:
+                    self._fifo.popleft()
+                    self.stats.dropped += 1
+                self._fifo.append(item)
+            schedule = not self._wake_scheduled
+            self._wake_scheduled = True
+        if schedule:
+            # RuntimeError: the loop is closed, nobody is listening any more.
+            with contextlib.suppress(RuntimeError):
+                self._loop.call_soon_threadsafe(self._wake)
+
+    # --- event loop -----------------------------------------------------------------------------------
+    def _wake(self) -> None:
+        with self._lock:
+            self._wake_scheduled = False
+        self._event.set()
+
+    def _pop(self) -> ZenohSample | None:
+        """Next buffered sample or None; clears the wake event when empty (caller holds no lock)."""
+        with self._lock:
+            if self._latest:
+                return self._latest.popitem(last=False)[1]
+            if self._fifo:
+                return self._fifo.popleft()
+            self._event.clear()
+            return None
+
+    def try_recv(self) -> ZenohSample | None:
+        """The next buffered sample without waiting, or None."""
+        return self._pop()
+
+    def pending(self) -> int:
+        """Number of buffered samples."""
+        with self._lock:
+            return len(self._latest) + len(self._fifo)
+
+    async def recv(self, timeout: float) -> ZenohSample:
+        """Wait up to ``timeout`` seconds for the next sample.
+
+        Raises LinkTimeout on the deadline and LinkError once the subscription is closed and drained.
+        """
+        deadline = self._loop.time() + timeout
+        while True:
+            item = self._pop()
+            if item is not None:
+                return item
+            if self._closed:
+                msg = f"zenoh subscription {self.key_expr!r} is closed"
+                raise LinkError(msg)
+            remaining = deadline - self._loop.time()
+            if remaining <= 0.0:
+                msg = f"no zenoh sample on {self.key_expr!r} within {timeout} s"
+                raise LinkTimeout(msg)
+            try:
+                async with asyncio.timeout(remaining):
+                    await self._event.wait()
+            except TimeoutError:
+                continue  # the loop top re-checks the buffer, then raises LinkTimeout
+
+    async def __aiter__(self) -> AsyncIterator[ZenohSample]:
+        """Yield samples until the subscription is closed."""
+        while True:
+            item = self._pop()
+            if item is not None:
+                yield item
+                continue
+            if self._closed:
+                return
+            await self._event.wait()
+
+    def _close(self) -> None:
+        with self._lock:
+            self._closed = True
+        self._event.set()
+
+
+class ZenohLink:
+    """An open zenoh session used from asyncio. Create with ``await ZenohLink.open(cfg)``."""
+
+    def __init__(self, session: zenoh.Session, cfg: ZenohConfig, loop: asyncio.AbstractEventLoop) -> None:
+        self._session = session
+        self.config = cfg
+        self._loop = loop
+        self._subscriptions: list[ZenohSubscription] = []
+        self._publishers: dict[tuple[str, str], zenoh.Publisher] = {}
+        self._closed = False
+        self.published = 0
+        self.publish_errors = 0
+
+    @classmethod
+    async def open(cls, cfg: ZenohConfig, *, timeout: float = 10.0) -> Self:
+        """Open a session with ``cfg`` in a worker thread. Raises LinkError if zenoh refuses it
+        (e.g. a listen port in use, or no router reachable in client mode), LinkTimeout after ``timeout``."""
+        loop = asyncio.get_running_loop()
+        conf = cfg.to_zenoh()
+        try:
+            async with asyncio.timeout(timeout):
+                session = await asyncio.to_thread(zenoh.open, conf)
+        except TimeoutError as err:
+            msg = f"zenoh session did not open within {timeout} s ({cfg})"
+            raise LinkTimeout(msg) from err
+        except zenoh.ZError as err:
+            msg = f"zenoh session failed to open ({cfg}): {err}"
+            raise LinkError(msg) from err
+        log.info("zenoh.open", extra={"mode": cfg.mode, "connect": cfg.connect, "listen": cfg.listen})
+        return cls(session, cfg, loop)
+
+    @property
+    def is_closed(self) -> bool:
+        """True after ``aclose``."""
+        return self._closed
+
+    async def subscribe(
+        self, key_expr: str, *, overflow: Overflow = Overflow.LATEST_PER_KEY, capacity: int = 16
+    ) -> ZenohSubscription:
+        """Declare a subscriber on ``key_expr`` (wildcards allowed) with the given overflow policy.
+
+        ``capacity`` is the number of keys kept (LATEST_PER_KEY) or of samples (FIFO).
+        """
+        self._check_open()
+        sub = ZenohSubscription(key_expr, self._loop, overflow=overflow, capacity=capacity)
+        try:
+            sub._subscriber = await asyncio.to_thread(self._session.declare_subscriber, key_expr, sub._on_sample)
+        except zenoh.ZError as err:
+            msg = f"zenoh subscriber on {key_expr!r} failed: {err}"
+            raise LinkError(msg) from err
+        self._subscriptions.append(sub)
+        return sub
+
+    def publish(self, key_expr: str, payload: bytes | str, *, encoding: str = "application/json") -> None:
+        """Put ``payload`` on ``key_expr`` without blocking (dropped under congestion).
+
+        Raises LinkError when the link is closed or zenoh rejects the key or payload.
+        """
+        self._check_open()
+        try:
+            pub = self._publishers.get((key_expr, encoding))
+            if pub is None:
+                pub = self._session.declare_publisher(
+                    key_expr,
+                    encoding=encoding,
+                    congestion_control=zenoh.CongestionControl.DROP,
+                    express=True,
+                )
+                self._publishers[(key_expr, encoding)] = pub
+            pub.put(payload)
+        except zenoh.ZError as err:
+            self.publish_errors += 1
+            msg = f"zenoh publish on {key_expr!r} failed: {err}"
+            raise LinkError(msg) from err
+        self.published += 1
+
+    def _check_open(self) -> None:
+        if self._closed:
+            msg = "zenoh link is closed"
+            raise LinkError(msg)
+
+    def _close_blocking(self) -> None:
+        # zenoh's stubs leave these unannotated (they return None).
+        for sub in self._subscriptions:
+            if sub._subscriber is not None:
+                sub._subscriber.undeclare()  # type: ignore[no-untyped-call]
+        for pub in self._publishers.values():
+            pub.undeclare()  # type: ignore[no-untyped-call]
+        self._session.close()  # type: ignore[no-untyped-call]
+
+    async def aclose(self, *, timeout: float = 5.0) -> None:
+        """Stop every subscription and close the session in a worker thread (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for sub in self._subscriptions:
+            sub._close()
+        try:
+            async with asyncio.timeout(timeout):
+                await asyncio.to_thread(self._close_blocking)
+        except TimeoutError:
+            log.warning("zenoh.close_timeout", extra={"timeout_s": timeout})
+        except zenoh.ZError as err:
+            log.warning("zenoh.close_failed", extra={"error": str(err)})
+        log.info("zenoh.close", extra={"published": self.published})
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.aclose()

@@ -1,0 +1,269 @@
+"""ZenohLink over real zenoh sessions on loopback (free ports, multicast scouting off)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import socket
+from collections.abc import AsyncIterator
+
+import numpy as np
+import pytest
+
+from apf_companion.errors import ConfigError, LinkError, LinkTimeout
+from apf_companion.links.zenoh import (
+    DEFAULT_GOAL_KEY,
+    DEFAULT_SENSOR_KEY,
+    Overflow,
+    ZenohConfig,
+    ZenohLink,
+    ZenohSample,
+    ZenohSubscription,
+)
+from apf_companion.perception import (
+    GoalCommand,
+    RangeScan,
+    ScanFrame,
+    decode_goal_json,
+    decode_scan_payload,
+    encode_goal_json,
+    encode_laserscan_cdr,
+    encode_scan_json,
+)
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"mode": "router", "listen": ("tcp/127.0.0.1:7447",), "connect": ()}, None),
+        ({"mode": "mesh", "listen": ("tcp/127.0.0.1:7447",)}, "mode"),
+        ({"listen": ("udp/127.0.0.1:7447",)}, "tcp/HOST:PORT"),
+        ({"listen": ("tcp/0.0.0.0:7447",)}, "wildcard"),
+        ({"connect": ("tcp/[::]:7447",)}, "wildcard"),
+        ({"connect": ("tcp/127.0.0.1:0",)}, "port"),
+        ({"listen": ("tcp/127.0.0.1:70000",)}, "port"),
+        ({"listen": ("tcp/127.0.0.1",)}, "tcp/HOST:PORT"),
+        ({"listen": "tcp/127.0.0.1:7447"}, "list"),
+        ({"mode": "client", "listen": ("tcp/127.0.0.1:7447",)}, "client"),
+        ({"mode": "peer"}, "at least one"),
+    ],
+)
+def test_config_validation(kwargs: dict[str, object], match: str | None) -> None:
+    if match is None:
+        ZenohConfig(**kwargs)  # type: ignore[arg-type]
+        return
+    with pytest.raises(ConfigError, match=match):
+        ZenohConfig(**kwargs)  # type: ignore[arg-type]
+
+
+def test_config_always_disables_multicast() -> None:
+    cfg = ZenohConfig(mode="peer", listen=["tcp/127.0.0.1:7447"], connect=["tcp/localhost:7448"])  # type: ignore[arg-type]
+    assert cfg.listen == ("tcp/127.0.0.1:7447",)
+    conf = cfg.to_zenoh()
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/localhost:7448"]
+    assert json.loads(conf.get_json("mode")) == "peer"
+
+
+@pytest.fixture
+async def pair() -> AsyncIterator[tuple[ZenohLink, ZenohLink]]:
+    """Two peers: ``a`` listens, ``b`` connects to it."""
+    port = free_port()
+    a = await ZenohLink.open(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",)))
+    b = await ZenohLink.open(ZenohConfig(mode="peer", connect=(f"tcp/127.0.0.1:{port}",)))
+    try:
+        yield a, b
+    finally:
+        await b.aclose()
+        await a.aclose()
+
+
+async def _publish_until_received(
+    pub: ZenohLink, sub: ZenohSubscription, key: str, payload: bytes, encoding: str
+) -> ZenohSample:
+    """Publish every 20 ms until the subscriber sees a sample (the peers may still be connecting)."""
+    for _ in range(250):
+        pub.publish(key, payload, encoding=encoding)
+        try:
+            return await sub.recv(timeout=0.02)
+        except LinkTimeout:
+            continue
+    msg = "no sample within 5 s"
+    raise AssertionError(msg)
+
+
+async def test_pub_sub_round_trip(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    sub = await a.subscribe("apf/test/**")
+    sample = await _publish_until_received(b, sub, "apf/test/x", b"hello", "text/plain")
+    assert sample.key_expr == "apf/test/x"
+    assert sample.payload == b"hello"
+    assert sample.encoding.startswith("text/plain")
+    assert sample.t_s > 0.0
+    assert b.published >= 1
+
+
+async def test_recv_timeout(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, _ = pair
+    sub = await a.subscribe("apf/nothing/here")
+    with pytest.raises(LinkTimeout):
+        await sub.recv(timeout=0.05)
+    assert sub.try_recv() is None
+
+
+async def _wait_received(sub: ZenohSubscription, count: int) -> None:
+    for _ in range(500):
+        if sub.stats.received >= count:
+            return
+        await asyncio.sleep(0.01)
+    msg = f"only {sub.stats.received} of {count} samples arrived"
+    raise AssertionError(msg)
+
+
+async def test_latest_wins_per_key(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    sub = await a.subscribe("apf/sensors/*/ranges", overflow=Overflow.LATEST_PER_KEY, capacity=4)
+    await _publish_until_received(b, sub, "apf/sensors/warmup/ranges", b"w", "text/plain")
+    base = sub.stats.received
+    for i in range(50):
+        b.publish("apf/sensors/left/ranges", f"L{i}".encode(), encoding="text/plain")
+        b.publish("apf/sensors/right/ranges", f"R{i}".encode(), encoding="text/plain")
+    await _wait_received(sub, base + 100)
+    # Without consuming, only the newest sample of each key is kept.
+    assert sub.pending() == 2
+    assert sub.stats.overwritten == 98
+    got = {s.key_expr: s.payload for s in (await sub.recv(timeout=1.0), await sub.recv(timeout=1.0))}
+    assert got == {"apf/sensors/left/ranges": b"L49", "apf/sensors/right/ranges": b"R49"}
+    assert sub.try_recv() is None
+
+
+async def test_latest_wins_key_bound(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    sub = await a.subscribe("apf/k/*", overflow=Overflow.LATEST_PER_KEY, capacity=3)
+    await _publish_until_received(b, sub, "apf/k/warmup", b"w", "text/plain")
+    base = sub.stats.received
+    for i in range(6):
+        b.publish(f"apf/k/{i}", b"x", encoding="text/plain")
+    await _wait_received(sub, base + 6)
+    assert sub.pending() == 3
+    assert sub.stats.dropped == 3
+    keys = [sub.try_recv() for _ in range(3)]
+    assert [k.key_expr for k in keys if k is not None] == ["apf/k/3", "apf/k/4", "apf/k/5"]
+
+
+async def test_fifo_keeps_order_and_drops_oldest(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    sub = await a.subscribe(DEFAULT_GOAL_KEY, overflow=Overflow.FIFO, capacity=5)
+    await _publish_until_received(b, sub, DEFAULT_GOAL_KEY, b"warmup", "application/json")
+    base = sub.stats.received
+    for i in range(20):
+        b.publish(DEFAULT_GOAL_KEY, str(i).encode(), encoding="application/json")
+    await _wait_received(sub, base + 20)
+    assert sub.stats.dropped == 15
+    out = [(await sub.recv(timeout=1.0)).payload for _ in range(5)]
+    assert out == [b"15", b"16", b"17", b"18", b"19"]
+
+
+async def test_sensor_json_and_cdr_and_goal_end_to_end(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    scan = RangeScan(
+        t_s=0.0,
+        frame=ScanFrame.BODY_FRD,
+        bearings_rad=np.deg2rad(np.arange(-90.0, 91.0, 5.0)),
+        ranges_m=np.where(np.arange(37) % 3 == 0, math.inf, 4.0),
+        range_min_m=0.2,
+        range_max_m=10.0,
+        time_boot_ms=77,
+    )
+    sensors = await a.subscribe(DEFAULT_SENSOR_KEY)
+    s_json = await _publish_until_received(b, sensors, DEFAULT_SENSOR_KEY, encode_scan_json(scan), "application/json")
+    got = decode_scan_payload(s_json.payload, s_json.encoding, t_s=s_json.t_s)
+    np.testing.assert_array_equal(got.ranges_m, scan.ranges_m)
+    assert got.time_boot_ms == 77
+    s_cdr = await _publish_until_received(b, sensors, DEFAULT_SENSOR_KEY, encode_laserscan_cdr(scan), "application/cdr")
+    got = decode_scan_payload(s_cdr.payload, s_cdr.encoding, t_s=s_cdr.t_s)
+    np.testing.assert_array_equal(got.ranges_m, scan.ranges_m)
+    np.testing.assert_allclose(got.bearings_rad, scan.bearings_rad, atol=1e-6)
+
+    goals = await a.subscribe(DEFAULT_GOAL_KEY, overflow=Overflow.FIFO)
+    goal = GoalCommand(pos_ned_m=np.array([22.0, 22.0, -5.0]))
+    s_goal = await _publish_until_received(b, goals, DEFAULT_GOAL_KEY, encode_goal_json(goal), "application/json")
+    assert decode_goal_json(s_goal.payload) == goal
+
+
+async def test_close_behaviour(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    sub = await a.subscribe("apf/close/test")
+    consumer = asyncio.create_task(sub.recv(timeout=30.0))
+    await asyncio.sleep(0.05)
+    await a.aclose()
+    with pytest.raises(LinkError, match="closed"):
+        await consumer
+    assert a.is_closed
+    await a.aclose()  # idempotent
+    with pytest.raises(LinkError, match="closed"):
+        a.publish("apf/x", b"x")
+    with pytest.raises(LinkError, match="closed"):
+        await a.subscribe("apf/x")
+    # The other side keeps working after its peer went away.
+    b.publish("apf/close/test", b"still fine")
+
+
+async def test_async_iteration_ends_on_close(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    sub = await a.subscribe("apf/iter", overflow=Overflow.FIFO)
+    first = await _publish_until_received(b, sub, "apf/iter", b"0", "text/plain")
+    assert first.payload == b"0"
+
+    async def collect() -> list[bytes]:
+        return [s.payload async for s in sub]
+
+    task = asyncio.create_task(collect())
+    before = sub.stats.received
+    b.publish("apf/iter", b"1", encoding="text/plain")
+    await _wait_received(sub, before + 1)
+    await asyncio.sleep(0.05)
+    await a.aclose()
+    items = await asyncio.wait_for(task, timeout=5.0)
+    assert b"1" in items
+
+
+async def test_client_mode_through_router() -> None:
+    port = free_port()
+    router = await ZenohLink.open(ZenohConfig(mode="router", listen=(f"tcp/127.0.0.1:{port}",)))
+    c1 = await ZenohLink.open(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+    c2 = await ZenohLink.open(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+    try:
+        sub = await c1.subscribe("apf/status")
+        sample = await _publish_until_received(c2, sub, "apf/status", b'{"state":"IDLE"}', "application/json")
+        assert json.loads(sample.payload) == {"state": "IDLE"}
+    finally:
+        await c2.aclose()
+        await c1.aclose()
+        await router.aclose()
+
+
+async def test_listen_port_in_use_is_a_link_error() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        with pytest.raises(LinkError):
+            link = await ZenohLink.open(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",)), timeout=5.0)
+            await link.aclose()
+
+
+async def test_bad_key_is_a_link_error(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, _ = pair
+    with pytest.raises(LinkError):
+        await a.subscribe("apf//bad")
+    with pytest.raises(LinkError):
+        a.publish("apf//bad", b"x")
+    assert a.publish_errors == 1
