@@ -1,0 +1,344 @@
+"""The obstacle world: vertical cylinders (point obstacles with a radius) and walls, in local NED north/east metres.
+
+World coordinates are local NED north/east relative to the vehicle's EKF origin, which the simulator also uses
+as home. Cylinders stand on the ground and reach up to ``height_m`` above it (``inf`` = any altitude); a radius of
+0 is the paper's point obstacle. Walls are line segments with a thickness (a capsule around the segment) and a
+height; polygons are stored as their closed chain of wall segments.
+
+All queries are vectorised over obstacles (and over sectors for the range windows); no per-obstacle Python loops.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.errors import ConfigError
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["FloatArray", "World"]
+
+
+def _as_array(values: object, shape_tail: tuple[int, ...], name: str) -> FloatArray:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.size == 0:
+        return np.zeros((0, *shape_tail), dtype=np.float64)
+    if arr.shape[1:] != shape_tail:
+        msg = f"{name}: expected shape (N, {', '.join(map(str, shape_tail))}), got {arr.shape}"
+        raise ConfigError(msg)
+    return arr
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class World:
+    """Static obstacles in local NED north/east metres.
+
+    Attributes:
+        circles_ne_m: (N, 2) cylinder centres [m].
+        circle_radii_m: (N,) cylinder radii [m] (0 = point obstacle).
+        circle_heights_m: (N,) cylinder top above ground [m] (inf = unbounded).
+        walls_ne_m: (M, 2, 2) wall segments, ``[[n0, e0], [n1, e1]]`` [m].
+        wall_thickness_m: (M,) full wall thickness [m].
+        wall_heights_m: (M,) wall top above ground [m] (inf = unbounded).
+        name: a label for logs and results.
+        start_ne_m / goal_ne_m: optional suggested start and goal (the paper's (3, 3) and (22, 22)).
+    """
+
+    circles_ne_m: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    circle_radii_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    circle_heights_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    walls_ne_m: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    wall_thickness_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    wall_heights_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    name: str = "empty"
+    start_ne_m: tuple[float, float] | None = None
+    goal_ne_m: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        circles = _as_array(self.circles_ne_m, (2,), "circles_ne_m")
+        n = circles.shape[0]
+        radii = np.broadcast_to(np.asarray(self.circle_radii_m, dtype=np.float64), (n,)).copy()
+        heights = np.broadcast_to(np.asarray(self.circle_heights_m, dtype=np.float64), (n,)).copy()
+        walls = _as_array(self.walls_ne_m, (2, 2), "walls_ne_m")
+        m = walls.shape[0]
+        thick = np.broadcast_to(np.asarray(self.wall_thickness_m, dtype=np.float64), (m,)).copy()
+        wall_h = np.broadcast_to(np.asarray(self.wall_heights_m, dtype=np.float64), (m,)).copy()
+        if not np.all(np.isfinite(circles)) or not np.all(np.isfinite(walls)):
+            raise ConfigError("world: obstacle coordinates must be finite")
+        if np.any(~(radii >= 0)) or np.any(~np.isfinite(radii)):
+            raise ConfigError("world: circle_radii_m must be finite and >= 0")
+        if np.any(~(thick >= 0)) or np.any(~np.isfinite(thick)):
+            raise ConfigError("world: wall_thickness_m must be finite and >= 0")
+        if np.any(~(heights > 0)) or np.any(~(wall_h > 0)):
+            raise ConfigError("world: heights must be > 0 (inf = unbounded)")
+        for name, arr in (
+            ("circles_ne_m", circles),
+            ("circle_radii_m", radii),
+            ("circle_heights_m", heights),
+            ("walls_ne_m", walls),
+            ("wall_thickness_m", thick),
+            ("wall_heights_m", wall_h),
+        ):
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    # ------------------------------------------------------------------------------------------- builders
+    @classmethod
+    def empty(cls, name: str = "empty") -> World:
+        return cls(name=name)
+
+    @classmethod
+    def from_obstacles(
+        cls,
+        circles_ne_m: npt.ArrayLike = (),
+        radii_m: npt.ArrayLike | float = 0.0,
+        *,
+        heights_m: npt.ArrayLike | float = math.inf,
+        walls_ne_m: npt.ArrayLike = (),
+        wall_thickness_m: npt.ArrayLike | float = 0.0,
+        wall_heights_m: npt.ArrayLike | float = math.inf,
+        name: str = "world",
+        start_ne_m: tuple[float, float] | None = None,
+        goal_ne_m: tuple[float, float] | None = None,
+    ) -> World:
+        """A world from plain sequences; scalars broadcast over obstacles."""
+        return cls(
+            circles_ne_m=np.asarray(circles_ne_m, dtype=np.float64),
+            circle_radii_m=np.asarray(radii_m, dtype=np.float64),
+            circle_heights_m=np.asarray(heights_m, dtype=np.float64),
+            walls_ne_m=np.asarray(walls_ne_m, dtype=np.float64),
+            wall_thickness_m=np.asarray(wall_thickness_m, dtype=np.float64),
+            wall_heights_m=np.asarray(wall_heights_m, dtype=np.float64),
+            name=name,
+            start_ne_m=start_ne_m,
+            goal_ne_m=goal_ne_m,
+        )
+
+    def merged(self, other: World, name: str | None = None) -> World:
+        """This world plus ``other``'s obstacles (start/goal from self, else other)."""
+        return World(
+            circles_ne_m=np.concatenate([self.circles_ne_m, other.circles_ne_m]),
+            circle_radii_m=np.concatenate([self.circle_radii_m, other.circle_radii_m]),
+            circle_heights_m=np.concatenate([self.circle_heights_m, other.circle_heights_m]),
+            walls_ne_m=np.concatenate([self.walls_ne_m, other.walls_ne_m]),
+            wall_thickness_m=np.concatenate([self.wall_thickness_m, other.wall_thickness_m]),
+            wall_heights_m=np.concatenate([self.wall_heights_m, other.wall_heights_m]),
+            name=name or self.name,
+            start_ne_m=self.start_ne_m or other.start_ne_m,
+            goal_ne_m=self.goal_ne_m or other.goal_ne_m,
+        )
+
+    @staticmethod
+    def polygon_segments(points_ne_m: Sequence[Sequence[float]], *, closed: bool = True) -> FloatArray:
+        """The (K, 2, 2) wall segments of a polyline (closed: last point joins the first)."""
+        pts = np.asarray(points_ne_m, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 2:
+            msg = f"polygon: points_ne_m must be a list of >= 2 [north, east] pairs, got shape {pts.shape}"
+            raise ConfigError(msg)
+        ends = np.roll(pts, -1, axis=0) if closed else pts[1:]
+        starts = pts if closed else pts[:-1]
+        return np.stack([starts, ends], axis=1)
+
+    # ------------------------------------------------------------------------------------------- queries
+    @property
+    def n_circles(self) -> int:
+        return int(self.circles_ne_m.shape[0])
+
+    @property
+    def n_walls(self) -> int:
+        return int(self.walls_ne_m.shape[0])
+
+    @property
+    def n_obstacles(self) -> int:
+        """Obstacle ids: circles 0..N-1, then walls N..N+M-1."""
+        return self.n_circles + self.n_walls
+
+    def surface_distances_m(self, pos_ne_m: npt.ArrayLike, alt_m: float = 0.0) -> FloatArray:
+        """Distance from one point to each obstacle's surface [m] (circles then walls; negative inside).
+
+        Obstacles whose top is below ``alt_m`` (height above ground) are out of reach: +inf.
+        """
+        p = np.asarray(pos_ne_m, dtype=np.float64).reshape(2)
+        d_c = np.hypot(*(self.circles_ne_m - p).T) - self.circle_radii_m
+        d_c = np.where(self.circle_heights_m >= alt_m, d_c, np.inf)
+        d_w = _point_segment_distance(p, self.walls_ne_m) - 0.5 * self.wall_thickness_m
+        d_w = np.where(self.wall_heights_m >= alt_m, d_w, np.inf)
+        return np.concatenate([d_c, d_w])
+
+    def clearance_m(self, pos_ne_m: npt.ArrayLike, alt_m: float = 0.0) -> float:
+        """Distance from a point to the nearest obstacle surface [m] (inf in an empty world)."""
+        d = self.surface_distances_m(pos_ne_m, alt_m)
+        return float(d.min()) if d.size else math.inf
+
+    def nearest_obstacle(self, pos_ne_m: npt.ArrayLike, alt_m: float = 0.0) -> tuple[int, float]:
+        """(obstacle id, surface distance [m]) of the nearest obstacle; (-1, inf) when there is none."""
+        d = self.surface_distances_m(pos_ne_m, alt_m)
+        if d.size == 0 or not np.isfinite(d.min()):
+            return -1, math.inf
+        i = int(np.argmin(d))
+        return i, float(d[i])
+
+    def nearest_points_ne_m(self, pos_ne_m: npt.ArrayLike, alt_m: float = 0.0) -> tuple[FloatArray, FloatArray]:
+        """Per obstacle: the nearest surface point (K, 2) and its distance (K,) [m]; unreachable ones get inf."""
+        p = np.asarray(pos_ne_m, dtype=np.float64).reshape(2)
+        rel = self.circles_ne_m - p
+        dist_c = np.hypot(rel[:, 0], rel[:, 1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            unit = np.where(dist_c[:, None] > 0, rel / dist_c[:, None], 0.0)
+        pts_c = self.circles_ne_m - unit * self.circle_radii_m[:, None]
+        d_c = np.where(self.circle_heights_m >= alt_m, np.maximum(dist_c - self.circle_radii_m, 0.0), np.inf)
+        foot = _closest_point_on_segments(p, self.walls_ne_m)
+        rel_w = foot - p
+        dist_w = np.hypot(rel_w[:, 0], rel_w[:, 1])
+        half = 0.5 * self.wall_thickness_m
+        with np.errstate(invalid="ignore", divide="ignore"):
+            unit_w = np.where(dist_w[:, None] > 0, rel_w / dist_w[:, None], 0.0)
+        pts_w = foot - unit_w * half[:, None]
+        d_w = np.where(self.wall_heights_m >= alt_m, np.maximum(dist_w - half, 0.0), np.inf)
+        return np.concatenate([pts_c, pts_w]), np.concatenate([d_c, d_w])
+
+    def window_ranges_m(
+        self,
+        pos_ne_m: npt.ArrayLike,
+        centres_rad: npt.ArrayLike,
+        half_width_rad: float,
+        *,
+        alt_m: float = 0.0,
+    ) -> FloatArray:
+        """Exact range to the nearest obstacle surface inside each angular window, seen from ``pos_ne_m``.
+
+        Args:
+            pos_ne_m: the sensor position (north, east) [m].
+            centres_rad: (S,) window centre bearings, clockwise from north [rad].
+            half_width_rad: half the window width [rad] (< pi/2).
+            alt_m: the sensor's height above ground [m]; obstacles whose top is lower are not seen.
+
+        Returns:
+            (S,) the minimum distance over every ray in each window to any obstacle surface [m]; inf if none.
+            A sensor inside an obstacle reads 0 in every window.
+        """
+        p = np.asarray(pos_ne_m, dtype=np.float64).reshape(2)
+        c = np.asarray(centres_rad, dtype=np.float64).reshape(-1)
+        out = np.full(c.shape, np.inf)
+        if self.n_circles:
+            out = np.minimum(out, self._circle_windows(p, c, half_width_rad, alt_m))
+        if self.n_walls:
+            out = np.minimum(out, self._wall_windows(p, c, half_width_rad, alt_m))
+        return out
+
+    def _circle_windows(self, p: FloatArray, c: FloatArray, h: float, alt_m: float) -> FloatArray:
+        rel = self.circles_ne_m - p
+        d = np.hypot(rel[:, 0], rel[:, 1])
+        r = self.circle_radii_m
+        visible = self.circle_heights_m >= alt_m
+        beta = np.arctan2(rel[:, 1], rel[:, 0])  # bearing clockwise from north
+        phi = _wrap_pi(beta[None, :] - c[:, None])  # (S, N)
+        delta = np.maximum(np.abs(phi) - h, 0.0)  # angle from the window to the centre bearing
+        with np.errstate(invalid="ignore", divide="ignore"):
+            alpha = np.arcsin(np.clip(np.where(d > 0, r / d, 1.0), 0.0, 1.0))
+            perp = d[None, :] * np.sin(delta)
+            chord = np.sqrt(np.maximum(r[None, :] ** 2 - perp**2, 0.0))
+            rng = d[None, :] * np.cos(delta) - chord
+        hit = (delta <= alpha[None, :]) & visible[None, :]
+        rng = np.where(hit, np.maximum(rng, 0.0), np.inf)
+        inside = (d <= r) & visible
+        rng = np.where(inside[None, :], 0.0, rng)
+        return np.asarray(rng.min(axis=1), dtype=np.float64)
+
+    def _wall_windows(self, p: FloatArray, c: FloatArray, h: float, alt_m: float) -> FloatArray:
+        # The points of a segment seen inside a convex angular window form one sub-segment; the distance to
+        # the sensor is convex along it, so its minimum is at the perpendicular foot (if seen) or at an end of
+        # the sub-segment: a segment end point (if seen) or a crossing with a window edge ray.
+        a = self.walls_ne_m[:, 0, :] - p  # (M, 2)
+        b = self.walls_ne_m[:, 1, :] - p
+        visible = self.wall_heights_m >= alt_m
+        half = 0.5 * self.wall_thickness_m
+        cand = np.full((c.size, a.shape[0]), np.inf)
+
+        def seen(pt: FloatArray) -> npt.NDArray[np.bool_]:
+            bearing = np.arctan2(pt[:, 1], pt[:, 0])
+            return np.abs(_wrap_pi(bearing[None, :] - c[:, None])) <= h  # (S, M)
+
+        for pt in (a, b, _closest_point_on_segments(np.zeros(2), self.walls_ne_m) - p):
+            dist = np.hypot(pt[:, 0], pt[:, 1])
+            cand = np.minimum(cand, np.where(seen(pt), dist[None, :], np.inf))
+        for edge in (c - h, c + h):
+            cand = np.minimum(cand, _ray_segment_range(edge, a, b))
+        cand = np.where(visible[None, :], np.maximum(cand - half[None, :], 0.0), np.inf)
+        return np.asarray(cand.min(axis=1), dtype=np.float64)
+
+    def ray_cast_m(self, pos_ne_m: npt.ArrayLike, bearings_rad: npt.ArrayLike, *, alt_m: float = 0.0) -> FloatArray:
+        """Range along single rays (bearing clockwise from north) to the first obstacle surface [m]; inf if none.
+
+        Walls are hit at their centre line (thickness ignored here); circles at their surface.
+        """
+        p = np.asarray(pos_ne_m, dtype=np.float64).reshape(2)
+        th = np.asarray(bearings_rad, dtype=np.float64).reshape(-1)
+        out = np.full(th.shape, np.inf)
+        if self.n_circles:
+            rel = self.circles_ne_m - p
+            u = np.stack([np.cos(th), np.sin(th)], axis=1)  # (S, 2)
+            proj = u @ rel.T  # (S, N)
+            d2 = np.sum(rel**2, axis=1)
+            disc = proj**2 - (d2 - self.circle_radii_m**2)[None, :]
+            with np.errstate(invalid="ignore"):
+                t = proj - np.sqrt(disc)
+            ok = (disc >= 0) & (proj + np.sqrt(np.maximum(disc, 0)) >= 0) & (self.circle_heights_m >= alt_m)[None, :]
+            out = np.minimum(out, np.where(ok, np.maximum(t, 0.0), np.inf).min(axis=1))
+        if self.n_walls:
+            a = self.walls_ne_m[:, 0, :] - p
+            b = self.walls_ne_m[:, 1, :] - p
+            rng = np.where((self.wall_heights_m >= alt_m)[None, :], _ray_segment_range(th, a, b), np.inf)
+            out = np.minimum(out, rng.min(axis=1))
+        return out
+
+    def describe(self) -> dict[str, object]:
+        """A JSON-ready description (for results and plots)."""
+        return {
+            "name": self.name,
+            "circles_ne_m": self.circles_ne_m.tolist(),
+            "circle_radii_m": self.circle_radii_m.tolist(),
+            "circle_heights_m": [h if math.isfinite(h) else None for h in self.circle_heights_m.tolist()],
+            "walls_ne_m": self.walls_ne_m.tolist(),
+            "wall_thickness_m": self.wall_thickness_m.tolist(),
+            "wall_heights_m": [h if math.isfinite(h) else None for h in self.wall_heights_m.tolist()],
+            "start_ne_m": list(self.start_ne_m) if self.start_ne_m else None,
+            "goal_ne_m": list(self.goal_ne_m) if self.goal_ne_m else None,
+        }
+
+
+def _wrap_pi(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    return np.asarray((a + np.pi) % (2 * np.pi) - np.pi, dtype=np.float64)
+
+
+def _closest_point_on_segments(p: FloatArray, segs: FloatArray) -> FloatArray:
+    a = segs[:, 0, :]
+    ab = segs[:, 1, :] - a
+    denom = np.sum(ab**2, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(denom > 0, np.sum((p - a) * ab, axis=1) / denom, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    return np.asarray(a + t[:, None] * ab, dtype=np.float64)
+
+
+def _point_segment_distance(p: FloatArray, segs: FloatArray) -> FloatArray:
+    foot = _closest_point_on_segments(p, segs)
+    return np.asarray(np.hypot(foot[:, 0] - p[0], foot[:, 1] - p[1]), dtype=np.float64)
+
+
+def _ray_segment_range(bearings_rad: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """(S, M) distance along rays from the origin to segments a->b (relative coordinates); inf on a miss."""
+    u = np.stack([np.cos(bearings_rad), np.sin(bearings_rad)], axis=1)  # (S, 2)
+    e = b - a  # (M, 2)
+    # Solve t*u = a + s*e  ->  t*u - s*e = a (2x2 per pair) by Cramer's rule.
+    det = -u[:, 0:1] * e[None, :, 1] + u[:, 1:2] * e[None, :, 0]  # (S, M)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-a[None, :, 0] * e[None, :, 1] + a[None, :, 1] * e[None, :, 0]) / det
+        s = (u[:, 0:1] * a[None, :, 1] - u[:, 1:2] * a[None, :, 0]) / det
+    ok = (np.abs(det) > 1e-12) & (t >= 0) & (s >= 0) & (s <= 1)
+    return np.asarray(np.where(ok, t, np.inf), dtype=np.float64)
