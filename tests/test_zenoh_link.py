@@ -267,3 +267,36 @@ async def test_bad_key_is_a_link_error(pair: tuple[ZenohLink, ZenohLink]) -> Non
     with pytest.raises(LinkError):
         a.publish("apf//bad", b"x")
     assert a.publish_errors == 1
+
+
+async def test_link_samples_merges_subscriptions(pair: tuple[ZenohLink, ZenohLink]) -> None:
+    a, b = pair
+    sensors = await a.subscribe(DEFAULT_SENSOR_KEY)
+    goals = await a.subscribe(DEFAULT_GOAL_KEY, overflow=Overflow.FIFO)
+    await _publish_until_received(b, sensors, DEFAULT_SENSOR_KEY, b"warm", "application/json")
+    await _publish_until_received(b, goals, DEFAULT_GOAL_KEY, b"warm", "application/json")
+    while sensors.try_recv() or goals.try_recv():
+        pass
+
+    async def collect(n: int) -> list[tuple[str, bytes]]:
+        out: list[tuple[str, bytes]] = []
+        async for s in a.samples():
+            out.append((s.key_expr, s.payload))
+            if len(out) == n:
+                break
+        return out
+
+    task = asyncio.create_task(collect(3))
+    await asyncio.sleep(0.02)
+    b.publish(DEFAULT_GOAL_KEY, b"g1")
+    b.publish(DEFAULT_GOAL_KEY, b"g2")
+    b.publish(DEFAULT_SENSOR_KEY, b"s1")
+    got = await asyncio.wait_for(task, timeout=5.0)
+    assert sorted(got) == [(DEFAULT_GOAL_KEY, b"g1"), (DEFAULT_GOAL_KEY, b"g2"), (DEFAULT_SENSOR_KEY, b"s1")]
+    # FIFO order within the goal subscription is kept.
+    assert [p for k, p in got if k == DEFAULT_GOAL_KEY] == [b"g1", b"g2"]
+
+    ended = asyncio.create_task(collect(100))
+    await asyncio.sleep(0.02)
+    await a.aclose()
+    assert await asyncio.wait_for(ended, timeout=5.0) == []

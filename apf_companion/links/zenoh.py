@@ -190,6 +190,8 @@ class ZenohSubscription:
         self._event = asyncio.Event()
         self._closed = False
         self._subscriber: zenoh.Subscriber[None] | None = None
+        # Set on every wake too, so ZenohLink.samples() can wait on all subscriptions at once.
+        self._link_event: asyncio.Event | None = None
 
     # --- zenoh thread ---------------------------------------------------------------------------------
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -232,6 +234,8 @@ class ZenohSubscription:
         with self._lock:
             self._wake_scheduled = False
         self._event.set()
+        if self._link_event is not None:
+            self._link_event.set()
 
     def _pop(self) -> ZenohSample | None:
         """Next buffered sample or None; clears the wake event when empty (caller holds no lock)."""
@@ -302,6 +306,8 @@ class ZenohLink:
         self._subscriptions: list[ZenohSubscription] = []
         self._publishers: dict[tuple[str, str], zenoh.Publisher] = {}
         self._closed = False
+        self._any_sample = asyncio.Event()
+        self._rr = 0
         self.published = 0
         self.publish_errors = 0
 
@@ -337,6 +343,7 @@ class ZenohLink:
         """
         self._check_open()
         sub = ZenohSubscription(key_expr, self._loop, overflow=overflow, capacity=capacity)
+        sub._link_event = self._any_sample
         try:
             sub._subscriber = await asyncio.to_thread(self._session.declare_subscriber, key_expr, sub._on_sample)
         except zenoh.ZError as err:
@@ -344,6 +351,31 @@ class ZenohLink:
             raise LinkError(msg) from err
         self._subscriptions.append(sub)
         return sub
+
+    async def samples(self) -> AsyncIterator[ZenohSample]:
+        """Yield samples from every subscription of this link, round-robin, until the link is closed.
+
+        Each subscription keeps its own overflow policy; this only merges them for one consumer task.
+        """
+        while True:
+            subs = self._subscriptions
+            item = None
+            for i in range(len(subs)):
+                sub = subs[(self._rr + i) % len(subs)]
+                item = sub.try_recv()
+                if item is not None:
+                    self._rr = (self._rr + i + 1) % len(subs)
+                    break
+            if item is not None:
+                yield item
+                continue
+            if self._closed:
+                return
+            self._any_sample.clear()
+            # A sample may have landed between the scan above and the clear: look again before waiting.
+            if any(sub.pending() for sub in subs):
+                continue
+            await self._any_sample.wait()
 
     def publish(self, key_expr: str, payload: bytes | str, *, encoding: str = "application/json") -> None:
         """Put ``payload`` on ``key_expr`` without blocking (dropped under congestion).
@@ -389,6 +421,7 @@ class ZenohLink:
         self._closed = True
         for sub in self._subscriptions:
             sub._close()
+        self._any_sample.set()
         try:
             async with asyncio.timeout(timeout):
                 await asyncio.to_thread(self._close_blocking)
