@@ -1,0 +1,103 @@
+"""PlannerParams: paper defaults, presets, and a ConfigError naming the field for every invalid value."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import pytest
+
+from apf_companion.errors import ConfigError
+from apf_companion.planning import (
+    PLANNER_NAMES,
+    AbapfRule,
+    AbapfSearch,
+    PlannerParams,
+    RandomWalkRule,
+    get_planner,
+)
+
+
+def test_defaults_are_the_paper_table() -> None:
+    p = PlannerParams()
+    assert (p.alpha_t, p.mu_t_per_m2, p.alpha_o, p.mu_o_per_m2) == (1e4, 1.0, 1.0, 1000.0)
+    assert (p.rho_l_m, p.rho_u_m, p.step_m, p.n_bacteria) == (0.4, 4.5, 0.4, 60)
+    assert (p.mu_min, p.mu_max) == (1, 1000)
+    assert p.abapf_rule is AbapfRule.EXACT and p.abapf_search is AbapfSearch.GRID
+    assert p.random_walk is RandomWalkRule.SAFE_SET and p.agent_repulsion is True
+    assert (p.capf_k_att, p.capf_eta, p.capf_rho_0_m, p.dim) == (1.0, 100.0, 3.0, 2)
+
+
+def test_presets() -> None:
+    assert PlannerParams.paper() == PlannerParams()
+    ref = PlannerParams.reference()
+    assert ref.alpha_t == 1e5
+    assert ref.agent_repulsion is False
+    assert ref.random_walk is RandomWalkRule.SINGLE_DRAW
+    assert PlannerParams.reference(dim=3).dim == 3
+    assert dataclasses.replace(ref, mu_o_per_m2=500.0).mu_o_per_m2 == 500.0
+
+
+def test_frozen() -> None:
+    p = PlannerParams()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        p.step_m = 1.0  # type: ignore[misc]
+
+
+BAD: list[tuple[str, dict[str, Any]]] = [
+    ("rho_l_m", {"rho_l_m": -0.1}),
+    ("rho_l_m", {"rho_l_m": float("nan")}),
+    ("rho_u_m", {"rho_u_m": float("nan")}),
+    ("rho_u_m", {"rho_l_m": 5.0}),
+    ("rho_u_m", {"rho_u_m": 0.4}),
+    ("rho_u_m", {"rho_u_m": -1.0}),
+    ("n_bacteria", {"n_bacteria": 2}),
+    ("n_bacteria", {"n_bacteria": 3, "dim": 3}),
+    ("n_bacteria", {"n_bacteria": 60.0}),
+    ("step_m", {"step_m": 0.0}),
+    ("step_m", {"step_m": -0.4}),
+    ("step_m", {"step_m": float("inf")}),
+    ("mu_max", {"mu_min": 5, "mu_max": 4}),
+    ("mu_min", {"mu_min": 0}),
+    ("dim", {"dim": 4}),
+    ("dim", {"dim": 1}),
+    ("alpha_t", {"alpha_t": float("nan")}),
+    ("alpha_t", {"alpha_t": 0.0}),
+    ("alpha_o", {"alpha_o": -1.0}),
+    ("mu_t_per_m2", {"mu_t_per_m2": 0.0}),
+    ("mu_o_per_m2", {"mu_o_per_m2": float("inf")}),
+    ("capf_k_att", {"capf_k_att": -1.0}),
+    ("capf_eta", {"capf_eta": -1.0}),
+    ("capf_rho_0_m", {"capf_rho_0_m": 0.0}),
+    ("abapf_rule", {"abapf_rule": "exact"}),
+    ("abapf_search", {"abapf_search": "grid"}),
+    ("random_walk", {"random_walk": None}),
+    ("agent_repulsion", {"agent_repulsion": 1}),
+]
+
+
+@pytest.mark.parametrize(("field", "kwargs"), BAD, ids=[f"{f}-{k}" for f, k in BAD])
+def test_invalid_values_name_the_field(field: str, kwargs: dict[str, Any]) -> None:
+    with pytest.raises(ConfigError, match=rf"PlannerParams\.{field} .*allowed"):
+        PlannerParams(**kwargs)
+
+
+def test_config_error_is_a_value_error() -> None:
+    with pytest.raises(ValueError, match="step_m"):
+        dataclasses.replace(PlannerParams(), step_m=-1.0)
+
+
+def test_rho_l_zero_is_allowed() -> None:
+    assert PlannerParams(rho_l_m=0.0).rho_l_m == 0.0
+
+
+def test_unknown_planner_lists_the_names() -> None:
+    with pytest.raises(ConfigError, match="capf, bapf, a-bapf, cr-bapf, cr-bapf\\*"):
+        get_planner("dwa")
+
+
+@pytest.mark.parametrize("name", PLANNER_NAMES)
+def test_every_name_builds(name: str) -> None:
+    planner = get_planner(name, PlannerParams(dim=3, n_bacteria=30))
+    assert planner.name == name
+    assert planner.bacteria_offsets_m.shape == (30, 3)
