@@ -1,0 +1,240 @@
+"""``apf-sim study``: the paper's Monte Carlo study (Diab et al., IEEE Aerospace 2023, Table II).
+
+Runs every (planner, density) cell as fixed seeded chunks of lockstep trials on all cores, prints a markdown
+table beside the paper's values, and optionally writes JSON, per-trial CSV and figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
+
+from apf_companion.errors import ConfigError
+from apf_companion.planning import PLANNER_NAMES
+from sim.study.config import (
+    DEFAULT_DENSITIES,
+    PRESET_NAMES,
+    Density,
+    StudyConfig,
+    check_planner_names,
+    mu_sweep_grid,
+)
+
+if TYPE_CHECKING:
+    from sim.study.engine import CellResult
+
+MU_SWEEP_PLANNERS = ("bapf", "cr-bapf*")
+
+
+class ProgressBar:
+    """A small progress bar on a text stream: redrawn in place on a terminal, every 10 % otherwise."""
+
+    def __init__(self, stream: TextIO, label: str = "study", width: int = 30) -> None:
+        self._stream = stream
+        self._label = label
+        self._width = width
+        self._t0 = time.monotonic()
+        self._tty = stream.isatty()
+        self._last_decile = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        frac = done / total if total else 1.0
+        if not self._tty:
+            decile = int(frac * 10)
+            if decile == self._last_decile:
+                return
+            self._last_decile = decile
+        filled = round(frac * self._width)
+        elapsed = time.monotonic() - self._t0
+        text = (
+            f"{self._label} [{'#' * filled}{'.' * (self._width - filled)}] "
+            f"{done}/{total} trials {100 * frac:5.1f}% {elapsed:6.1f} s"
+        )
+        if self._tty:
+            self._stream.write("\r" + text + ("\n" if done >= total else ""))
+        else:
+            self._stream.write(text + "\n")
+        self._stream.flush()
+
+
+def _planners(text: str) -> tuple[str, ...]:
+    return check_planner_names(tuple(p.strip() for p in text.split(",") if p.strip()))
+
+
+def _densities(text: str) -> tuple[Density, ...]:
+    return tuple(Density.parse(p) for p in text.split(",") if p.strip())
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add ``study`` to ``apf-sim``."""
+    p = subparsers.add_parser("study", help="the paper's Monte Carlo study", description=__doc__)
+    p.add_argument(
+        "--preset",
+        choices=PRESET_NAMES,
+        default="reference",
+        help="reference = the authors' code (default), paper = the paper's text",
+    )
+    p.add_argument("--trials", type=int, default=4000, help="trials per planner and density (default 4000)")
+    p.add_argument(
+        "--densities",
+        default=",".join(d.label for d in DEFAULT_DENSITIES),
+        help="obstacle-count ranges N_l-N_u, comma separated (default 20-45,45-70,70-95)",
+    )
+    p.add_argument(
+        "--planners",
+        default=",".join(PLANNER_NAMES),
+        help=f"comma-separated planners (default all: {','.join(PLANNER_NAMES)})",
+    )
+    p.add_argument("--seed", type=int, default=0, help="root seed (default 0)")
+    p.add_argument(
+        "--workers", type=int, default=None, help="worker processes (default: all cores; 1 = run in this process)"
+    )
+    p.add_argument(
+        "--chunk-trials",
+        type=int,
+        default=None,
+        help="trials per seeded chunk (default 500; part of the random-stream layout)",
+    )
+    p.add_argument(
+        "--mu-sweep",
+        action="store_true",
+        help="also run BAPF and CR-BAPF* over mu_o = 1000 k / 12, k = 0..12 (1 for k = 0)",
+    )
+    p.add_argument(
+        "--mu-trials", type=int, default=1000, help="trials per planner, density and mu_o of the sweep (default 1000)"
+    )
+    p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write the summary as JSON")
+    p.add_argument("--csv", type=Path, default=None, metavar="PATH", help="write per-trial records as CSV")
+    p.add_argument("--plots", type=Path, default=None, metavar="DIR", help="write the figures (PNG) here")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the study from parsed arguments; returns the exit code."""
+    try:
+        return _run(args)
+    except ConfigError as err:
+        print(f"apf-sim study: {err}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    from sim.study.engine import collect_cells, make_tasks, run_tasks
+    from sim.study.report import markdown_table, study_json, write_csv, write_json
+
+    config = StudyConfig.from_preset(args.preset)
+    if args.chunk_trials is not None:
+        import dataclasses
+
+        config = dataclasses.replace(config, chunk_trials=args.chunk_trials)
+    planners = _planners(args.planners)
+    densities = _densities(args.densities)
+    if args.trials < 1 or args.mu_trials < 1:
+        raise ConfigError(f"--trials/--mu-trials: need >= 1, got {args.trials}/{args.mu_trials}")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers: need >= 1, got {args.workers}")
+    workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
+
+    tasks = make_tasks(config, planners, densities, args.trials, args.seed)
+    sweep_spans: list[tuple[float, int, int]] = []
+    all_tasks = list(tasks)
+    if args.mu_sweep:
+        for mu in mu_sweep_grid():
+            sweep = make_tasks(config.with_mu_o(mu), MU_SWEEP_PLANNERS, densities, args.mu_trials, args.seed)
+            sweep_spans.append((mu, len(all_tasks), len(all_tasks) + len(sweep)))
+            all_tasks.extend(sweep)
+
+    progress = None if args.no_progress else ProgressBar(sys.stderr)
+    t0 = time.perf_counter()
+    results = run_tasks(all_tasks, workers=workers, progress=progress)
+    wall_s = time.perf_counter() - t0
+
+    cells = collect_cells(results[: len(tasks)])
+    sweep_cells = [(mu, collect_cells(results[a:b])) for mu, a, b in sweep_spans]
+
+    n_trials = sum(t.n_trials for t in all_tasks)
+    print(f"## apf-sim study: preset {config.preset}, seed {args.seed}, {args.trials} trials per cell\n")
+    print(markdown_table(cells))
+    if sweep_cells:
+        print(f"\n### R_s versus mu_o ({args.mu_trials} trials per point)\n")
+        print(_sweep_table(sweep_cells))
+    print(
+        f"\n{n_trials} trials in {wall_s:.1f} s wall clock with {workers} worker(s) "
+        f"({n_trials / wall_s:.0f} trials/s). M_s and S over successful trials; T_a = chunk wall time / "
+        "chunk trials (amortised, lockstep)."
+    )
+
+    if args.json is not None:
+        doc = study_json(
+            config,
+            cells,
+            seed=args.seed,
+            trials=args.trials,
+            wall_s=wall_s,
+            workers=workers,
+            mu_sweep=sweep_cells,
+        )
+        write_json(args.json, doc)
+    if args.csv is not None:
+        write_csv(args.csv, cells)
+    if args.plots is not None:
+        _write_plots(args.plots, config, cells, sweep_cells, densities, args.seed)
+    return 0
+
+
+def _sweep_table(sweep_cells: list[tuple[float, list[CellResult]]]) -> str:
+    from sim.study.metrics import summarize
+
+    keys: list[tuple[str, str]] = []
+    for _, cells in sweep_cells:
+        for c in cells:
+            key = (c.planner_name, c.density.label)
+            if key not in keys:
+                keys.append(key)
+    head = "| mu_o | " + " | ".join(f"{n} N {d}" for n, d in keys) + " |"
+    lines = [head, "|" + "---|" * (len(keys) + 1)]
+    for mu, cells in sweep_cells:
+        by_key = {(c.planner_name, c.density.label): summarize(c.records).R_s for c in cells}
+        lines.append(f"| {mu:.2f} | " + " | ".join(f"{by_key.get(k, float('nan')):.3f}" for k in keys) + " |")
+    return "\n".join(lines)
+
+
+def _write_plots(
+    out_dir: Path,
+    config: StudyConfig,
+    cells: list[CellResult],
+    sweep_cells: list[tuple[float, list[CellResult]]],
+    densities: tuple[Density, ...],
+    seed: int,
+) -> None:
+    from sim.study import plots
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    density = densities[len(densities) // 2]
+    written: list[str] = []
+    runs = plots.example_runs(config, "cr-bapf*", density, seed)
+    if plots.plot_trajectories(out_dir / "trajectories.png", runs):
+        written.append("trajectories.png")
+    else:
+        print(
+            "plots: no pair of successful/unsuccessful CR-BAPF* runs found; trajectories.png skipped", file=sys.stderr
+        )
+    abapf = plots.example_runs(plots.abapf_paper_rule_config(config), "a-bapf", density, seed)
+    if plots.plot_abapf_mu(out_dir / "abapf_mu.png", abapf):
+        written.append("abapf_mu.png")
+    else:
+        print("plots: no successful A-BAPF run found; abapf_mu.png skipped", file=sys.stderr)
+    if cells:
+        plots.plot_rs_per_planner(out_dir / "rs_per_planner.png", cells)
+        written.append("rs_per_planner.png")
+    if sweep_cells:
+        plots.plot_mu_sweep(out_dir / "rs_vs_mu.png", sweep_cells)
+        written.append("rs_vs_mu.png")
+    else:
+        print("plots: rs_vs_mu.png needs --mu-sweep; skipped", file=sys.stderr)
+    print(f"\nfigures in {out_dir}: {', '.join(written)}")
