@@ -243,9 +243,9 @@ class SensorsConfig:
     mavlink: bool = True
     zenoh: bool = False
     require_ranges: bool = True
-    memory_expiry_s: float = 30.0
-    merge_radius_m: float = 0.1
-    max_points: int = 5000
+    memory_expiry_s: float = 10.0
+    merge_radius_m: float = 0.2
+    max_points: int = 2000
     max_range_m: float = 8.0
 
     def __post_init__(self) -> None:

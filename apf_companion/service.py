@@ -421,6 +421,8 @@ class CompanionService:
             try:
                 if src == ap:
                     self._on_autopilot(msg)
+                    if self._new_pose.is_set():
+                        await asyncio.sleep(0)  # let the cycle run before more input is processed
                 elif msg.get_type() in ("COMMAND_INT", "COMMAND_LONG") and self._for_us(msg):
                     self._on_command(msg)
                 else:
@@ -614,12 +616,15 @@ class CompanionService:
 
     # ---------------------------------------------------------------------------------------------- cycle
     async def _cycle_loop(self) -> None:
+        """Pose-triggered cycles, at most one per ``min_gap``; a timer cycle when no pose triggered one for
+        1.25 periods (a frozen or lost pose is still noticed within one period of its limit)."""
         period = 1.0 / self.config.cycle.rate_hz
-        min_gap = 0.8 * period  # pose-triggered cycles no closer than this (jitter margin)
-        last = self.clock.now()
+        min_gap = 0.8 * period  # jitter margin: a pose stream at the cycle rate triggers every cycle
+        last_cycle = self.clock.now()
+        last_triggered = -math.inf
         while True:
-            now = self.clock.now()
-            timeout = self.clock.to_wall(last + period - now)
+            deadline = last_cycle + 1.25 * period
+            timeout = self.clock.to_wall(deadline - self.clock.now())
             triggered = False
             if timeout > 0:
                 with contextlib.suppress(TimeoutError):
@@ -627,13 +632,16 @@ class CompanionService:
                         await self._new_pose.wait()
                         triggered = True
             now = self.clock.now()
-            if triggered and now - last < min_gap:
-                await self.clock.sleep(last + min_gap - now)
-                now = self.clock.now()
+            trigger = self._trigger_rx_wall
             self._new_pose.clear()
-            trigger = self._trigger_rx_wall if triggered else None
             self._trigger_rx_wall = None
-            last = now
+            if triggered:
+                if now - last_triggered < min_gap:
+                    continue  # a faster pose stream than the cycle rate: skip this one
+                last_triggered = now
+            else:
+                trigger = None
+            last_cycle = now
             self._run_cycle(now, trigger)
 
     def _run_cycle(self, now: float, trigger_wall: float | None) -> CycleOutput:
