@@ -1,0 +1,276 @@
+"""``apf-sim vehicle`` (the simulated autopilot + vehicle + world + sensor) and ``apf-sim sensor`` (world and
+sensor following an external autopilot)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from apf_companion.errors import ApfCompanionError
+from sim.vehicle.engine import HomeConfig, SpawnConfig
+from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
+from sim.vehicle.sensor_only import SensorOnlyConfig, SensorSimulator
+from sim.vehicle.simulator import SimConfig, Simulator, ZenohOutput
+from sim.world import World, load_world, paper_field, parse_field_spec
+
+log = logging.getLogger(__name__)
+
+__all__ = ["register"]
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add ``vehicle`` and ``sensor`` to ``apf-sim``."""
+    v = subparsers.add_parser(
+        "vehicle",
+        help="simulated ArduCopter/PX4 vehicle with a world and a range sensor, over MAVLink",
+        description="A pure-Python MAVLink vehicle simulator (sysid 1, compid 1). Connect a ground station or "
+        "a companion to any --link. Writes --result-json on exit (also SIGINT/SIGTERM) and on a crash.",
+    )
+    v.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
+    _world_args(v)
+    v.add_argument(
+        "--link",
+        action="append",
+        metavar="ENDPOINT",
+        help="MAVLink endpoint, repeatable (udpout:HOST:PORT, udpin:, tcpin:, tcp:); default udpout:127.0.0.1:14550",
+    )
+    v.add_argument("--speedup", type=float, default=1.0, help="simulated s per wall s (inf = max); default 1")
+    v.add_argument("--seed", type=int, default=0, help="seed for noise (and for --paper-field unless --field-seed)")
+    v.add_argument("--tlog", type=Path, help="record every frame in and out (.tlog)")
+    v.add_argument("--result-json", type=Path, help="write the flight result here on exit and on a crash")
+    v.add_argument("--duration", type=float, help="stop after this many simulated seconds")
+    v.add_argument("--exit-on-crash", action="store_true", help="stop when the vehicle crashes")
+    v.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="parameter override")
+    v.add_argument("--airborne", action="store_true", help="start flying (armed, hovering) instead of landed")
+    v.add_argument("--alt", type=float, default=5.0, help="hover height for --airborne [m]")
+    v.add_argument("--start", type=_pair, metavar="N,E", help="start north,east [m] (default: world start)")
+    v.add_argument("--yaw", type=float, default=0.0, help="start heading [deg]")
+    v.add_argument("--mode", help="start mode (GUIDED, LOITER, OFFBOARD, AUTO.LOITER, ...)")
+    v.add_argument("--home", type=_triple, metavar="LAT,LON,ALT", help="home lat, lon [deg], alt AMSL [m]")
+    v.add_argument("--physics-rate", type=float, default=100.0, help="physics steps per simulated s")
+    _sensor_args(v)
+    v.set_defaults(func=run_vehicle)
+
+    s = subparsers.add_parser(
+        "sensor",
+        help="world + range sensor following an external autopilot's position",
+        description="Follows an external autopilot (e.g. SITL) over MAVLink and publishes simulated ranges from "
+        "a world to a companion over MAVLink (--output) and/or zenoh.",
+    )
+    s.add_argument("--autopilot", required=True, metavar="ENDPOINT", help="the autopilot (e.g. tcp:127.0.0.1:5760)")
+    _world_args(s)
+    s.add_argument("--output", action="append", default=[], metavar="ENDPOINT", help="MAVLink output, repeatable")
+    s.add_argument("--to-autopilot", action="store_true", help="also send the sensor messages to the autopilot")
+    s.add_argument("--sysid", type=int, default=1, help="our MAVLink system id on outputs (default 1)")
+    s.add_argument("--compid", type=int, default=1, help="our MAVLink component id on outputs (default 1)")
+    s.add_argument("--rate", type=float, default=10.0, help="sensor rate [Hz]")
+    s.add_argument("--range", type=float, default=8.0, help="max range [m]")
+    s.add_argument("--min-range", type=float, default=0.2, help="min range [m]")
+    s.add_argument("--noise", type=float, default=0.0, help="range noise SD [m]")
+    s.add_argument("--dropout", type=float, default=0.0, help="probability a reading is lost")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--tlog", type=Path, help="record the autopilot link (.tlog)")
+    s.add_argument("--result-json", type=Path, help="write clearance/collision result on exit")
+    s.add_argument("--duration", type=float, help="stop after this many wall seconds")
+    _sensor_args(s)
+    s.set_defaults(func=run_sensor)
+
+
+def _world_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--world", help="world TOML file, or a bundled example: forest, corridor, u-trap, wall")
+    g.add_argument("--paper-field", metavar="PRESET:N", help="the paper's random field, e.g. reference:40, paper:mid")
+    p.add_argument("--field-seed", type=int, help="seed of --paper-field (default: --seed)")
+    p.add_argument("--field-radius", type=float, default=0.0, help="obstacle radius of --paper-field [m]")
+
+
+def _sensor_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--sensor-msg",
+        default="obstacle_distance",
+        help=f"comma list of {','.join(sorted(SENSOR_MESSAGES))} (default obstacle_distance); 'none' = off",
+    )
+    p.add_argument("--sectors", type=int, default=72, help="OBSTACLE_DISTANCE sectors used (<= 72)")
+    p.add_argument("--increment", type=float, default=5.0, help="sector width [deg]")
+    p.add_argument("--angle-offset", type=float, default=0.0, help="body bearing of sector 0 [deg]")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="tcp/HOST:PORT")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="tcp/HOST:PORT")
+    p.add_argument("--zenoh-mode", default="peer", choices=("peer", "client", "router"))
+    p.add_argument("--zenoh-key", default="apf/sensors/range0/ranges")
+    p.add_argument("--zenoh-encoding", default="json", choices=("json", "cdr"))
+
+
+def _pair(text: str) -> tuple[float, float]:
+    a, b = (float(x) for x in text.split(","))
+    return a, b
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    a, b, c = (float(x) for x in text.split(","))
+    return a, b, c
+
+
+def _world(args: argparse.Namespace) -> World:
+    if args.world:
+        return load_world(args.world)
+    if args.paper_field:
+        preset, count = parse_field_spec(args.paper_field)
+        seed = args.field_seed if args.field_seed is not None else args.seed
+        return paper_field(preset, count, np.random.default_rng(seed), radius_m=args.field_radius)
+    return World.empty()
+
+
+def _sensor_cfg(args: argparse.Namespace, links: tuple[int, ...] | None = None) -> RangeSensorConfig:
+    kinds = frozenset() if args.sensor_msg == "none" else frozenset(k.strip() for k in args.sensor_msg.split(","))
+    return RangeSensorConfig(
+        sectors=args.sectors,
+        increment_deg=args.increment,
+        angle_offset_deg=args.angle_offset,
+        messages=kinds,
+        links=links,
+    )
+
+
+def _zenoh(args: argparse.Namespace) -> ZenohOutput | None:
+    if not args.zenoh_connect and not args.zenoh_listen:
+        return None
+    return ZenohOutput(
+        connect=tuple(args.zenoh_connect),
+        listen=tuple(args.zenoh_listen),
+        mode=args.zenoh_mode,
+        key=args.zenoh_key,
+        encoding=args.zenoh_encoding,
+    )
+
+
+def _params(items: list[str]) -> dict[str, float]:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep:
+            msg = f"--param must be NAME=VALUE, got {item!r}"
+            raise ApfCompanionError(msg)
+        out[name.strip().upper()] = float(value)
+    return out
+
+
+def _install_signals(stop: asyncio.Event) -> None:
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+
+
+async def _vehicle_main(args: argparse.Namespace) -> int:
+    home = HomeConfig()
+    if args.home is not None:
+        home = HomeConfig(lat_deg=args.home[0], lon_deg=args.home[1], alt_amsl_m=args.home[2])
+    cfg = SimConfig(
+        links=args.link or ["udpout:127.0.0.1:14550"],
+        profile=args.profile,
+        world=_world(args),
+        speedup=math.inf if math.isinf(args.speedup) else args.speedup,
+        seed=args.seed,
+        spawn=SpawnConfig(
+            pos_ne_m=args.start, yaw_deg=args.yaw, airborne=args.airborne, alt_m=args.alt, mode=args.mode
+        ),
+        params=_params(args.param),
+        sensor=_sensor_cfg(args),
+        home=home,
+        physics_rate_hz=args.physics_rate,
+        tlog_path=args.tlog,
+        zenoh=_zenoh(args),
+        result_json=args.result_json,
+    )
+    stop = asyncio.Event()
+    _install_signals(stop)
+    sim = await Simulator.start(cfg)
+    print(
+        f"apf-sim vehicle ready: profile={args.profile} world={cfg.world.name} links={list(cfg.links)}",
+        flush=True,
+    )
+    try:
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(0.05):
+                    await stop.wait()
+            if args.duration is not None and sim.t_s >= args.duration:
+                break
+            if args.exit_on_crash and sim.vehicle.crashed:
+                break
+            if sim.error is not None:
+                log.error("simulator failed: %s", sim.error)
+                return 1
+    finally:
+        await sim.aclose()
+    res = sim.result()
+    print(
+        f"apf-sim vehicle done: sim_time_s={res['sim_time_s']:.1f} collided={res['collided']} "
+        f"path_length_m={res['path_length_m']:.2f} min_clearance_m={res['min_clearance_m']}",
+        flush=True,
+    )
+    return 0
+
+
+async def _sensor_main(args: argparse.Namespace) -> int:
+    cfg = SensorOnlyConfig(
+        autopilot=args.autopilot,
+        outputs=tuple(args.output),
+        also_to_autopilot=args.to_autopilot,
+        world=_world(args),
+        sensor=_sensor_cfg(args),
+        source_system=args.sysid,
+        source_component=args.compid,
+        rate_hz=args.rate,
+        min_range_m=args.min_range,
+        max_range_m=args.range,
+        noise_sd_m=args.noise,
+        dropout_prob=args.dropout,
+        seed=args.seed,
+        zenoh=_zenoh(args),
+        tlog_path=args.tlog,
+        result_json=args.result_json,
+    )
+    stop = asyncio.Event()
+    _install_signals(stop)
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    sim = await SensorSimulator.start(cfg)
+    print(f"apf-sim sensor ready: autopilot={args.autopilot} world={cfg.world.name}", flush=True)
+    try:
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(0.1):
+                    await stop.wait()
+            if args.duration is not None and loop.time() - t0 >= args.duration:
+                break
+            if sim.error is not None:
+                return 1
+    finally:
+        await sim.aclose()
+    print(f"apf-sim sensor done: scans={sim.scans} min_clearance_m={sim.result()['min_clearance_m']}", flush=True)
+    return 0
+
+
+def run_vehicle(args: argparse.Namespace) -> int:
+    try:
+        return asyncio.run(_vehicle_main(args))
+    except ApfCompanionError as err:
+        print(f"apf-sim vehicle: {err}", file=sys.stderr)
+        return 2
+
+
+def run_sensor(args: argparse.Namespace) -> int:
+    try:
+        return asyncio.run(_sensor_main(args))
+    except ApfCompanionError as err:
+        print(f"apf-sim sensor: {err}", file=sys.stderr)
+        return 2
