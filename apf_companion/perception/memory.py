@@ -33,6 +33,20 @@ def _positive(name: str, value: float) -> None:
         raise ConfigError(msg)
 
 
+def _sq_dists(a: FloatArray, b: FloatArray) -> FloatArray:
+    """(N, K) squared distances between (N, 3) and (K, 3) points.
+
+    Axis by axis: several times faster than one (N, K, 3) temporary, and exact (no |a|^2 - 2ab + |b|^2
+    cancellation).
+    """
+    d = a[:, None, 0] - b[None, :, 0]
+    out = d * d
+    for axis in (1, 2):
+        d = a[:, None, axis] - b[None, :, axis]
+        out += d * d
+    return np.asarray(out, dtype=np.float64)
+
+
 def _greedy_keep(close: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
     """First-come deduplication: keep j unless an earlier KEPT i is close to it.
 
@@ -110,14 +124,23 @@ class ObstacleMemory:
             return
         r2 = self._merge_radius_m**2
         if pts.shape[0] > 1:
-            d2_new = np.sum((pts[:, None, :] - pts[None, :, :]) ** 2, axis=-1)
-            pts = pts[_greedy_keep(d2_new < r2)]
+            pts = pts[_greedy_keep(_sq_dists(pts, pts) < r2)]
         if self._t.size:
-            d2 = np.sum((self._pts[:, None, :] - pts[None, :, :]) ** 2, axis=-1)  # (N, K)
-            # A remembered point seen again is replaced by the new observation.
-            stale = np.any(d2 < r2, axis=1)
-            self._pts = self._pts[~stale]
-            self._t = self._t[~stale]
+            # Only remembered points inside the new batch's bounding box (grown by the radius) can merge.
+            near = np.all(
+                (self._pts >= pts.min(axis=0) - self._merge_radius_m)
+                & (self._pts <= pts.max(axis=0) + self._merge_radius_m),
+                axis=1,
+            )
+            idx = np.flatnonzero(near)
+            if idx.size:
+                # A remembered point seen again is replaced by the new observation.
+                stale_idx = idx[np.any(_sq_dists(self._pts[idx], pts) < r2, axis=1)]
+                if stale_idx.size:
+                    keep = np.ones(self._t.size, dtype=np.bool_)
+                    keep[stale_idx] = False
+                    self._pts = self._pts[keep]
+                    self._t = self._t[keep]
         self._pts = np.concatenate([self._pts, pts])
         self._t = np.concatenate([self._t, np.full(pts.shape[0], float(t_s))])
         excess = self._t.size - self._max_points
