@@ -7,6 +7,7 @@ table beside the paper's values, and optionally writes JSON, per-trial CSV and f
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -14,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning import PLANNER_NAMES
+from apf_companion.planning import PLANNER_NAMES, AbapfRule
 from sim.study.config import (
     DEFAULT_DENSITIES,
     PRESET_NAMES,
@@ -100,6 +101,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="trials per seeded chunk (default 500; part of the random-stream layout)",
     )
     p.add_argument(
+        "--abapf-rule",
+        choices=[r.value for r in AbapfRule],
+        default=None,
+        help="A-BAPF mu_o,k rule: exact (default: always mu_max, so A-BAPF equals BAPF at mu_o = mu_max) or "
+        "paper (the float64-tie rule that reproduces the paper's mu_o,k figure)",
+    )
+    p.add_argument(
         "--mu-sweep",
         action="store_true",
         help="also run BAPF and CR-BAPF* over mu_o = 1000 k / 12, k = 0..12 (1 for k = 0)",
@@ -129,9 +137,10 @@ def _run(args: argparse.Namespace) -> int:
 
     config = StudyConfig.from_preset(args.preset)
     if args.chunk_trials is not None:
-        import dataclasses
-
         config = dataclasses.replace(config, chunk_trials=args.chunk_trials)
+    if args.abapf_rule is not None:
+        params = dataclasses.replace(config.planner_params, abapf_rule=AbapfRule(args.abapf_rule))
+        config = dataclasses.replace(config, planner_params=params)
     planners = _planners(args.planners)
     densities = _densities(args.densities)
     if args.trials < 1 or args.mu_trials < 1:
