@@ -148,3 +148,21 @@ def test_mu_sweep_grid() -> None:
     assert grid[0] == 1.0
     assert grid[5] == pytest.approx(416.6667, abs=1e-3)  # the paper's crossover point
     assert grid[-1] == 1000.0
+
+
+def test_integer_sampling_lattice_and_duplicates_masked() -> None:
+    from sim.study.config import ObstacleSampling
+
+    rng = np.random.default_rng(2)
+    w = draw_worlds(rng, 300, Density(n_low=70, n_high=95), (5.0, 20.0), 2, ObstacleSampling.INTEGER)
+    pts = w.obstacles_m
+    assert np.array_equal(pts, np.round(pts))
+    assert pts.min() == 5.0
+    assert pts.max() == 20.0
+    # 70-95 draws on a 16 x 16 lattice repeat points; every trial keeps each point once.
+    assert w.counts.max() <= 95
+    assert w.counts.mean() < 82.5
+    for a in range(300):
+        real = pts[a][w.mask[a]]
+        assert np.unique(real, axis=0).shape[0] == real.shape[0]
+        assert np.unique(pts[a][: int(w.mask[a].nonzero()[0].max()) + 1], axis=0).shape[0] == real.shape[0]

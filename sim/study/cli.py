@@ -20,6 +20,7 @@ from sim.study.config import (
     DEFAULT_DENSITIES,
     PRESET_NAMES,
     Density,
+    ObstacleSampling,
     StudyConfig,
     check_planner_names,
     mu_sweep_grid,
@@ -101,6 +102,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="trials per seeded chunk (default 500; part of the random-stream layout)",
     )
     p.add_argument(
+        "--obstacles",
+        choices=[s.value for s in ObstacleSampling],
+        default=None,
+        help="obstacle coordinates: continuous (default, both presets) or integer (the authors' README example "
+        "randi([5 20], [N, 2]); repeated points count once)",
+    )
+    p.add_argument(
         "--abapf-rule",
         choices=[r.value for r in AbapfRule],
         default=None,
@@ -138,6 +146,8 @@ def _run(args: argparse.Namespace) -> int:
     config = StudyConfig.from_preset(args.preset)
     if args.chunk_trials is not None:
         config = dataclasses.replace(config, chunk_trials=args.chunk_trials)
+    if args.obstacles is not None:
+        config = dataclasses.replace(config, obstacle_sampling=ObstacleSampling(args.obstacles))
     if args.abapf_rule is not None:
         params = dataclasses.replace(config.planner_params, abapf_rule=AbapfRule(args.abapf_rule))
         config = dataclasses.replace(config, planner_params=params)
@@ -167,7 +177,8 @@ def _run(args: argparse.Namespace) -> int:
     sweep_cells = [(mu, collect_cells(results[a:b])) for mu, a, b in sweep_spans]
 
     n_trials = sum(t.n_trials for t in all_tasks)
-    print(f"## apf-sim study: preset {config.preset}, seed {args.seed}, {args.trials} trials per cell\n")
+    variant = "" if config.obstacle_sampling is ObstacleSampling.CONTINUOUS else ", integer obstacle coordinates"
+    print(f"## apf-sim study: preset {config.preset}{variant}, seed {args.seed}, {args.trials} trials per cell\n")
     print(markdown_table(cells))
     if sweep_cells:
         print(f"\n### R_s versus mu_o ({args.mu_trials} trials per point)\n")

@@ -33,6 +33,16 @@ class DetectionRule(enum.Enum):
     """Only the obstacles within sensor range at the current position (the paper's text)."""
 
 
+class ObstacleSampling(enum.Enum):
+    """How obstacle coordinates are drawn inside ``obstacle_box_m``."""
+
+    CONTINUOUS = "continuous"
+    """Uniform continuous on every axis (notes.md: both presets)."""
+    INTEGER = "integer"
+    """Uniform over the integer coordinates of the box, like the authors' README example
+    ``Bacteria_Run(randi([5 20], [50, 2]))``; repeated points count once (their detection merges duplicates)."""
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Density:
     """Obstacle count N ~ discrete U[n_low, n_high], inclusive, redrawn per trial (notes.md, decision 5)."""
@@ -96,6 +106,7 @@ class StudyConfig:
     obstacle_box_m: tuple[float, float]
     """Obstacles are uniform continuous in [low, high] on every axis [m]."""
     detection: DetectionRule
+    obstacle_sampling: ObstacleSampling = ObstacleSampling.CONTINUOUS
     start_m: tuple[float, ...] = (3.0, 3.0)
     target_m: tuple[float, ...] = (22.0, 22.0)
     sensor_range_m: float = 8.0

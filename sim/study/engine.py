@@ -299,7 +299,7 @@ def chunk_generators(seed: int, density: Density, chunk_index: int) -> tuple[np.
 def chunk_worlds(task: ChunkTask) -> WorldBatch:
     world_rng, _ = chunk_generators(task.seed, task.density, task.chunk_index)
     cfg = task.config
-    return draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim)
+    return draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim, cfg.obstacle_sampling)
 
 
 def run_chunk(task: ChunkTask) -> ChunkResult:
@@ -307,7 +307,7 @@ def run_chunk(task: ChunkTask) -> ChunkResult:
     t0 = time.perf_counter()
     world_rng, motion_rng = chunk_generators(task.seed, task.density, task.chunk_index)
     cfg = task.config
-    worlds = draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim)
+    worlds = draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim, cfg.obstacle_sampling)
     result = simulate(cfg, task.planner_name, worlds, motion_rng)
     wall_s = time.perf_counter() - t0
     rec = result.records

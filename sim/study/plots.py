@@ -52,7 +52,7 @@ def example_runs(
 ) -> ExampleRuns:
     """Record ``n_trials`` trials of the first chunk's streams (same seeds as the study's chunk 0)."""
     world_rng, motion_rng = chunk_generators(seed, density, 0)
-    worlds = draw_worlds(world_rng, n_trials, density, config.obstacle_box_m, config.dim)
+    worlds = draw_worlds(world_rng, n_trials, density, config.obstacle_box_m, config.dim, config.obstacle_sampling)
     result = simulate(config, planner_name, worlds, motion_rng, record=True)
     assert result.trace is not None
     return ExampleRuns(

@@ -81,6 +81,7 @@ def study_json(
         "wall_s": wall_s,
         "rules": {
             "obstacle_box_m": list(config.obstacle_box_m),
+            "obstacle_sampling": config.obstacle_sampling.value,
             "detection": config.detection.value,
             "agent_repulsion": params.agent_repulsion,
             "random_walk": params.random_walk.value,

@@ -8,12 +8,13 @@ counts of other trials.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
-from sim.study.config import Density
+from sim.study.config import Density, ObstacleSampling
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -38,6 +39,7 @@ def draw_worlds(
     density: Density,
     box_m: tuple[float, float],
     dim: int = 2,
+    sampling: ObstacleSampling = ObstacleSampling.CONTINUOUS,
 ) -> WorldBatch:
     """Draw ``n_trials`` obstacle fields.
 
@@ -48,9 +50,18 @@ def draw_worlds(
     density : obstacle-count range [N_l, N_u].
     box_m : (low, high) of the uniform box on every axis [m].
     dim : D, 2 or 3.
+    sampling : continuous coordinates, or integer ones with repeated points dropped (masked out).
     """
     counts = rng.integers(density.n_low, density.n_high, endpoint=True, size=n_trials)
     low, high = box_m
-    points = rng.uniform(low, high, size=(n_trials, density.n_high, dim))
     mask = np.arange(density.n_high)[None, :] < counts[:, None]
-    return WorldBatch(obstacles_m=points, mask=mask)
+    if sampling is ObstacleSampling.CONTINUOUS:
+        points = rng.uniform(low, high, size=(n_trials, density.n_high, dim))
+        return WorldBatch(obstacles_m=points, mask=mask)
+    lattice = rng.integers(math.ceil(low), math.floor(high), endpoint=True, size=(n_trials, density.n_high, dim))
+    points = lattice.astype(np.float64)
+    # A point equal to an earlier real point of the same trial is a duplicate: mask it out.
+    same = np.all(points[:, :, None, :] == points[:, None, :, :], axis=-1)  # (A, N, N)
+    earlier = np.tril(np.ones((density.n_high, density.n_high), dtype=bool), k=-1)
+    duplicate = np.any(same & earlier[None] & mask[:, None, :], axis=2)
+    return WorldBatch(obstacles_m=points, mask=mask & ~duplicate)
