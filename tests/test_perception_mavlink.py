@@ -92,6 +92,10 @@ def test_fewer_elements_when_360_over_increment_is_small() -> None:
     assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=7.2), t_s=0)) == 50
     # A small increment never reads more than the 72 elements the message has.
     assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=2.0), t_s=0)) == 72
+    # A subnormal increment (360 / inc overflows to inf) still reads 72.
+    tiny = obstacle_distance([100] * 72, increment=5)
+    tiny.increment_f = 1e-320
+    assert len(scan_from_obstacle_distance(tiny, t_s=0)) == 72
 
 
 def test_angle_offset_shifts_every_element() -> None:

@@ -225,7 +225,8 @@ def scan_from_obstacle_distance(msg: ObstacleDistanceLike, *, t_s: float, zero_i
     _check_limits_cm(min_cm, max_cm, "OBSTACLE_DISTANCE")
 
     # The epsilon keeps 360/7.2 = 50 and the like from flooring to one less through float error.
-    n = min(MAX_OBSTACLE_DISTANCE_ELEMENTS, math.floor(360.0 / abs(increment_deg) + 1e-6))
+    ratio = 360.0 / abs(increment_deg)  # may be inf for a subnormal increment
+    n = MAX_OBSTACLE_DISTANCE_ELEMENTS if ratio >= MAX_OBSTACLE_DISTANCE_ELEMENTS else math.floor(ratio + 1e-6)
     distances_cm = np.asarray(msg.distances, dtype=np.int64)[:n]
     if distances_cm.size < n:
         msg_text = f"OBSTACLE_DISTANCE: {distances_cm.size} distances, expected at least {n}"
