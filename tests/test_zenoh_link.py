@@ -300,3 +300,34 @@ async def test_link_samples_merges_subscriptions(pair: tuple[ZenohLink, ZenohLin
     await asyncio.sleep(0.02)
     await a.aclose()
     assert await asyncio.wait_for(ended, timeout=5.0) == []
+
+
+async def test_peer_connects_to_a_late_listener() -> None:
+    # The service may start before the sensor bridge: a peer keeps retrying its connect endpoint.
+    port = free_port()
+    early = await ZenohLink.open(ZenohConfig(mode="peer", connect=(f"tcp/127.0.0.1:{port}",)))
+    late: ZenohLink | None = None
+    try:
+        sub = await early.subscribe(DEFAULT_SENSOR_KEY)
+        await asyncio.sleep(0.3)
+        late = await ZenohLink.open(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",)))
+        for _ in range(1000):  # up to ~20 s
+            late.publish(DEFAULT_SENSOR_KEY, b"late")
+            try:
+                sample = await sub.recv(timeout=0.02)
+                break
+            except LinkTimeout:
+                continue
+        else:
+            pytest.fail("the early peer never connected to the late listener")
+        assert sample.payload == b"late"
+    finally:
+        if late is not None:
+            await late.aclose()
+        await early.aclose()
+
+
+async def test_client_without_router_fails_at_open() -> None:
+    port = free_port()
+    with pytest.raises(LinkError, match="failed to open"):
+        await ZenohLink.open(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)), timeout=10.0)
