@@ -195,8 +195,10 @@ def simulate(
         if planning.any():
             known = ever if cumulative else in_range
             sel = np.flatnonzero(planning)
-            obs_k, mask_k = _compact_known(obs_raw[sel], known[sel])
-            bd = planner.step_batch(pos[sel], targets[: sel.size], obs_k, mask_k, rng)
+            if sel.size == a:  # the usual case: no gather copies
+                bd = planner.step_batch(pos, targets[:a], obs_raw, known, rng)
+            else:
+                bd = planner.step_batch(pos[sel], targets[: sel.size], obs_raw[sel], known[sel], rng)
             reason = np.asarray(bd.reason)
             if record:
                 trace_reason[-1][ids[sel]] = reason
@@ -247,25 +249,6 @@ def simulate(
             mu_o_k=np.stack(trace_mu) if trace_mu else np.zeros((0, n_trials)),
         )
     return SimulationResult(records=records, trace=trace, detected=detected_out)
-
-
-def _compact_known(obstacles_m: FloatArray, known: BoolArray) -> tuple[FloatArray, BoolArray]:
-    """Gather each row's known obstacles to the front: (a, N, D), (a, N) -> (a, K, D), (a, K), K = max count.
-
-    The planner then works on K columns instead of N_max (most obstacles are unknown or out of range);
-    the set each trial knows is unchanged.
-    """
-    counts = known.sum(axis=1)
-    k_max = int(counts.max()) if counts.size else 0
-    a, _, dim = obstacles_m.shape
-    out = np.zeros((a, k_max, dim))
-    mask = np.arange(k_max)[None, :] < counts[:, None]
-    if k_max:
-        rows, cols = np.nonzero(known)
-        starts = np.cumsum(counts) - counts
-        rank = np.arange(rows.size) - starts[rows]
-        out[rows, rank] = obstacles_m[rows, cols]
-    return out, mask
 
 
 # --------------------------------------------------------------------------------------------- chunks
