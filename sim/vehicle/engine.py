@@ -282,7 +282,7 @@ class VehicleEngine:
         self.target = ControlTarget()
         self._hold_pos: FloatArray = self.state.pos_ned_m.copy()
         self._sp: _Setpoint | None = None
-        self._sp_times: list[float] = []  # PX4: recent setpoint arrival times (proof of life)
+        self._sp_times: list[float] = []  # recent setpoint arrival times (PX4's proof of life)
         self._takeoff_alt: float | None = None
         self._rtl_phase = 0
         self._rtl_alt = 0.0
@@ -421,6 +421,11 @@ class VehicleEngine:
                 command, result, 0, 0, target_system=msg.get_srcSystem(), target_component=msg.get_srcComponent()
             ),
         )
+
+    @property
+    def last_setpoint_t_s(self) -> float | None:
+        """Simulated time of the last SET_POSITION_TARGET_* addressed to us (PX4 proof of life), or None."""
+        return self._sp_times[-1] if self._sp_times else None
 
     @property
     def time_boot_ms(self) -> int:
@@ -609,7 +614,7 @@ class VehicleEngine:
         stream.next_t = self.t_s
         return int(mavlink.MAV_RESULT_ACCEPTED)
 
-    def _cmd_get_interval(self, msg: Any, link: int, p: tuple[float, ...], frame: int | None) -> int:
+    def _cmd_get_interval(self, msg: Any, link: int, p: tuple[float, ...], frame: int | None) -> int | None:
         msg_id = round(p[0])
         name = _STREAM_IDS.get(msg_id)
         if name is None:
@@ -617,8 +622,9 @@ class VehicleEngine:
         else:
             iv = self._streams[link][name].interval_s
             interval = round(iv * 1e6) if iv > 0 else -1
+        self._ack(link, msg, msg.command, mavlink.MAV_RESULT_ACCEPTED)
         self._emit(link, self.mav.message_interval_encode(msg_id, interval))
-        return int(mavlink.MAV_RESULT_ACCEPTED)
+        return None
 
     def _cmd_request_message(self, msg: Any, link: int, p: tuple[float, ...], frame: int | None) -> int | None:
         name = _STREAM_IDS.get(round(p[0]))
@@ -678,7 +684,7 @@ class VehicleEngine:
             return  # ArduPilot and PX4 stay silent about unknown parameters
         err = self.params.set(name, float(msg.param_value))
         if err is not None:
-            self.statustext(mavlink.MAV_SEVERITY_WARNING, f"Param set refused: {err}"[:50])
+            self.statustext(mavlink.MAV_SEVERITY_WARNING, err[:50])
         self._emit(None, self._param_value(name))
 
     def _on_mission_request_list(self, msg: Any, link: int) -> None:
@@ -715,10 +721,9 @@ class VehicleEngine:
         self._apply_setpoint(msg, mavlink.MAV_FRAME_LOCAL_NED, np.array([n, e, down], dtype=np.float64))
 
     def _setpoint_received(self) -> None:
-        if self.px4:
-            self._sp_times.append(self.t_s)
-            if len(self._sp_times) > 200:
-                del self._sp_times[:100]
+        self._sp_times.append(self.t_s)
+        if len(self._sp_times) > 200:
+            del self._sp_times[:100]
 
     def _apply_setpoint(self, msg: Any, frame: int, pos_in: FloatArray) -> None:
         mask = int(msg.type_mask)

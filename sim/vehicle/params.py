@@ -161,7 +161,7 @@ class ParamTable:
         if spec is None:
             return f"unknown parameter {name!r}"
         if not math.isfinite(value) or not spec.lo <= value <= spec.hi:
-            return f"{name} must be in [{spec.lo:g}, {spec.hi:g}], got {value:g}"
+            return f"{name} {value:g} not in [{spec.lo:g}, {spec.hi:g}]"
         self._values[name] = float(value)
         return None
 

@@ -1,0 +1,123 @@
+"""Helpers for tests that fly the simulator over real loopback sockets (used by tests/test_sim_*.py; others may
+use them too).
+
+    async with simulator_with_client(profile="px4", spawn=SpawnConfig(airborne=True)) as (sim, gcs):
+        ack = await command_long(gcs, MAV_CMD_COMPONENT_ARM_DISARM, 1)
+
+The client is a ``MavlinkLink`` (pymavlink's parser and encoder) listening on ``udpin:127.0.0.1:<free port>``
+as system 255 / component 190 (a ground station); the simulator sends to it with ``udpout`` and the client
+replies to the peer it heard from.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import math
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+from apf_companion.links import MavlinkLink
+from sim.vehicle.simulator import SimConfig, Simulator
+
+__all__ = [
+    "angle_close",
+    "command_int",
+    "command_long",
+    "drain",
+    "simulator_with_client",
+    "wait_for",
+    "wait_sim_time",
+]
+
+
+@contextlib.asynccontextmanager
+async def simulator_with_client(
+    *, source_system: int = 255, source_component: int = 190, speedup: float = 10.0, **cfg: Any
+) -> AsyncIterator[tuple[Simulator, MavlinkLink]]:
+    """A Simulator (``SimConfig(**cfg)``; its first link goes to the client) and a connected client link.
+
+    Waits for the first HEARTBEAT, so the client can send at once.
+    """
+    client = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=source_system, source_component=source_component)
+    try:
+        assert client.local_address is not None
+        links = [f"udpout:127.0.0.1:{client.local_address[1]}", *cfg.pop("links", ())]
+        sim = await Simulator.start(SimConfig(links=links, speedup=speedup, **cfg))
+        try:
+            await client.recv_match(type="HEARTBEAT", timeout=5.0)
+            yield sim, client
+        finally:
+            await sim.aclose()
+    finally:
+        await client.aclose()
+
+
+async def command_long(
+    link: MavlinkLink,
+    command: int,
+    *params: float,
+    target: tuple[int, int] = (1, 1),
+    timeout: float = 3.0,
+    texts: list[str] | None = None,
+) -> Any:
+    """Send COMMAND_LONG and return its COMMAND_ACK; STATUSTEXTs seen meanwhile go to ``texts``."""
+    p = [float(x) for x in params] + [0.0] * (7 - len(params))
+    link.send(link.mav.command_long_encode(target[0], target[1], command, 0, *p))
+    return await _ack(link, command, timeout, texts)
+
+
+async def _ack(link: MavlinkLink, command: int, timeout: float, texts: list[str] | None) -> Any:
+    def keep(msg: Any) -> bool:
+        if msg.get_type() == "STATUSTEXT":
+            if texts is not None:
+                texts.append(msg.text)
+            return False
+        return bool(msg.get_type() == "COMMAND_ACK" and msg.command == command)
+
+    return await link.recv_match(condition=keep, timeout=timeout)
+
+
+async def command_int(
+    link: MavlinkLink,
+    command: int,
+    *,
+    frame: int = 0,
+    params: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+    x: int = 0,
+    y: int = 0,
+    z: float = 0.0,
+    target: tuple[int, int] = (1, 1),
+    timeout: float = 3.0,
+    texts: list[str] | None = None,
+) -> Any:
+    """Send COMMAND_INT and return its COMMAND_ACK; STATUSTEXTs seen meanwhile go to ``texts``."""
+    link.send(link.mav.command_int_encode(target[0], target[1], frame, command, 0, 0, *params, x, y, z))
+    return await _ack(link, command, timeout, texts)
+
+
+async def wait_for(sim: Simulator, predicate: Callable[[Simulator], bool], *, timeout_s: float = 10.0) -> None:
+    """Wait (wall clock, polling) until ``predicate(sim)``; AssertionError with the vehicle state if it never is."""
+    if not await sim.wait_until(predicate, timeout_s=timeout_s):
+        state = dataclasses.asdict(sim.vehicle) if dataclasses.is_dataclass(sim.vehicle) else sim.vehicle
+        msg = f"condition not met within {timeout_s} s wall; vehicle {state}"
+        raise AssertionError(msg)
+
+
+async def wait_sim_time(sim: Simulator, t_s: float, *, timeout_s: float = 10.0) -> None:
+    """Wait until the simulated clock reaches ``t_s``."""
+    await wait_for(sim, lambda s: s.t_s >= t_s - 1e-9, timeout_s=timeout_s)
+
+
+async def drain(link: MavlinkLink) -> list[Any]:
+    """Everything queued on ``link`` now."""
+    out = []
+    while (msg := link.recv_nowait()) is not None:
+        out.append(msg)
+    await asyncio.sleep(0)
+    return out
+
+
+def angle_close(a: float, b: float, tol: float) -> bool:
+    return abs((a - b + math.pi) % (2 * math.pi) - math.pi) <= tol
