@@ -96,6 +96,13 @@ def main() -> None:
             rows.append((f"{name}.clear_observed(72)", _time(clear, rep)))
             rows.append((f"{name}.points", _time(partial(mem.points, 2.0), rep)))
 
+    # A 360-beam lidar seeing a wall arc at 10 m every cycle (8.7 cm between points): steady-state re-add.
+    b = np.linspace(-math.pi / 2, math.pi / 2, 360)
+    arc = np.column_stack([10.0 * np.cos(b), 10.0 * np.sin(b), np.full(360, -5.0)])
+    mem = ObstacleMemory(expiry_s=1e9, merge_radius_m=0.2, max_points=2000)
+    mem.add(arc, t_s=0.0)
+    rows.append(("ObstacleMemory.add(360 arc, steady)", _time(partial(mem.add, arc + 0.01, 1.0), rep)))
+
     width = max(len(name) for name, _ in rows)
     print(f"{'operation':<{width}}  {'p50 us':>9}  {'p99 us':>9}")
     for name, (p50, p99) in rows:

@@ -31,12 +31,34 @@ def test_seen_again_is_refreshed_not_duplicated() -> None:
     np.testing.assert_allclose(mem.ages_s(1.5), [0.6])
 
 
-def test_merge_within_one_batch_is_first_come() -> None:
+def test_merge_within_one_batch_first_per_cell() -> None:
     mem = ObstacleMemory(expiry_s=1.0, merge_radius_m=0.5, max_points=100)
-    # A chain with 0.4 m spacing: 0 and 0.8 are kept (0.8 m apart), 0.4 and 1.2 merge into them.
-    pts = np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.8, 0.0, 0.0], [1.2, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    # Cells have edge 0.5 / sqrt(3) = 0.289 m: 0.01, 0.1 and 0.2 share the first cell, 0.3 is in the next.
+    pts = np.array([[0.1, 0.0, 0.0], [0.01, 0.0, 0.0], [0.2, 0.0, 0.0], [0.3, 0.0, 0.0], [5.0, 0.0, 0.0]])
     mem.add(pts, t_s=0.0)
-    np.testing.assert_allclose(mem.points(0.0), [[0.0, 0.0, 0.0], [0.8, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    np.testing.assert_allclose(mem.points(0.0), [[0.1, 0.0, 0.0], [0.3, 0.0, 0.0], [5.0, 0.0, 0.0]])
+
+
+def test_dense_arc_is_thinned_but_covered() -> None:
+    # 360 beams on an arc at 10 m (8.7 cm apart): fewer points, one per grid cell, none of the arc uncovered.
+    b = np.linspace(-np.pi / 2, np.pi / 2, 360)
+    arc = np.column_stack([10.0 * np.cos(b), 10.0 * np.sin(b), np.zeros(360)])
+    mem = ObstacleMemory(expiry_s=1.0, merge_radius_m=0.2, max_points=1000)
+    mem.add(arc, t_s=0.0)
+    kept = mem.points(0.0)
+    assert len(kept) < 300
+    cells = np.floor(kept / (0.2 / np.sqrt(3.0))).astype(np.int64)
+    assert len(np.unique(cells, axis=0)) == len(kept)
+    d = np.linalg.norm(arc[:, None, :] - kept[None, :, :], axis=-1)
+    assert np.all(d.min(axis=1) <= 0.2)
+    # Seen again next cycle, slightly moved: fresh points cover the new arc and the memory does not grow much
+    # (an old point stays, with its old time, only where no kept new point came within the radius).
+    moved = arc + 0.01
+    mem.add(moved, t_s=0.5)
+    assert len(mem) <= 1.1 * len(kept)
+    fresh = mem.points(0.5)[mem.ages_s(0.5) == 0.0]
+    d = np.linalg.norm(moved[:, None, :] - fresh[None, :, :], axis=-1)
+    assert np.all(d.min(axis=1) <= 0.2)
 
 
 def test_non_finite_rows_ignored_and_shape_checked() -> None:

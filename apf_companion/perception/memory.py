@@ -25,6 +25,7 @@ from apf_companion.perception.types import FloatArray, Pose, RangeScan
 __all__ = ["ObstacleMemory"]
 
 _TWO_PI = 2.0 * math.pi
+_SQRT3 = math.sqrt(3.0)
 
 
 def _positive(name: str, value: float) -> None:
@@ -36,33 +37,26 @@ def _positive(name: str, value: float) -> None:
 def _sq_dists(a: FloatArray, b: FloatArray) -> FloatArray:
     """(N, K) squared distances between (N, 3) and (K, 3) points.
 
-    Axis by axis: several times faster than one (N, K, 3) temporary, and exact (no |a|^2 - 2ab + |b|^2
-    cancellation).
+    |a|^2 + |b|^2 - 2 a.b through one matrix product: 2-3x faster than axis-wise differences here. Both
+    sets are first centred on b's mean, so the cancellation error stays near eps * (scan extent)^2, far
+    below any merge radius.
     """
-    d = a[:, None, 0] - b[None, :, 0]
-    out = d * d
-    for axis in (1, 2):
-        d = a[:, None, axis] - b[None, :, axis]
-        out += d * d
-    return np.asarray(out, dtype=np.float64)
+    c = b.mean(axis=0)
+    ac, bc = a - c, b - c
+    out = np.einsum("ij,ij->i", ac, ac)[:, None] + np.einsum("ij,ij->i", bc, bc)[None, :] - 2.0 * (ac @ bc.T)
+    return np.asarray(np.maximum(out, 0.0), dtype=np.float64)
 
 
-def _greedy_keep(close: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
-    """First-come deduplication: keep j unless an earlier KEPT i is close to it.
+def _voxel_first(points: FloatArray, cell_m: float) -> npt.NDArray[np.intp]:
+    """Indices (ascending) of the first point in each occupied cell of a grid with edge ``cell_m``.
 
-    ``close`` is the (K, K) "within merge radius" matrix. The sequential rule is solved by fixed-point
-    iteration on whole vectors: after pass t the first t entries are final, so it ends in at most K passes
-    (in practice 2-3, the length of the longest chain of close points).
+    O(K log K) for any layout. (An exact "keep unless within r of an earlier kept point" rule is
+    sequential: along a dense scan of a wall it needs one vectorised pass per point, 10-17 ms for 360
+    beams, measured.)
     """
-    k = close.shape[0]
-    earlier = np.tril(close, k=-1)  # earlier[j, i]: i < j and close
-    keep = np.ones(k, dtype=np.bool_)
-    for _ in range(k):
-        new_keep = ~np.any(earlier & keep[None, :], axis=1)
-        if np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
-    return keep
+    keys = np.floor(points / cell_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
 
 
 class ObstacleMemory:
@@ -109,8 +103,10 @@ class ObstacleMemory:
     def add(self, points_ned_m: FloatArray, t_s: float) -> None:
         """Remember ``points_ned_m`` ((K, 3) float64, local NED [m]) as seen at ``t_s`` [s].
 
-        Non-finite rows are ignored. New points closer than ``merge_radius_m`` to each other are
-        deduplicated (first kept); a new point closer than that to a remembered one replaces it.
+        Non-finite rows are ignored. New points in the same cell of a grid with edge
+        ``merge_radius_m / sqrt(3)`` are one point (the first is kept), so every dropped point lies within
+        ``merge_radius_m`` of a kept one; kept points in neighbouring cells may be closer than that. A
+        remembered point within ``merge_radius_m`` of a kept new point is replaced by it.
         """
         pts = np.asarray(points_ned_m, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -124,7 +120,7 @@ class ObstacleMemory:
             return
         r2 = self._merge_radius_m**2
         if pts.shape[0] > 1:
-            pts = pts[_greedy_keep(_sq_dists(pts, pts) < r2)]
+            pts = pts[_voxel_first(pts, self._merge_radius_m / _SQRT3)]
         if self._t.size:
             # Only remembered points inside the new batch's bounding box (grown by the radius) can merge.
             near = np.all(
