@@ -63,7 +63,7 @@ def test_dense_arc_is_thinned_but_covered() -> None:
 
 def test_non_finite_rows_ignored_and_shape_checked() -> None:
     mem = ObstacleMemory()
-    mem.add(np.array([[math.nan, 0.0, 0.0], [1.0, 2.0, 3.0]]), t_s=0.0)
+    mem.add(np.array([[math.nan, 0.0, 0.0], [1.0, 2.0, 3.0], [1e300, 0.0, 0.0], [-math.inf, 0, 0]]), t_s=0.0)
     assert len(mem) == 1
     with pytest.raises(ConfigError, match="shape"):
         mem.add(np.zeros((2, 2)), t_s=0.0)

@@ -26,6 +26,7 @@ __all__ = ["ObstacleMemory"]
 
 _TWO_PI = 2.0 * math.pi
 _SQRT3 = math.sqrt(3.0)
+_MAX_COORD_M = 1e7  # 10,000 km: beyond any local NED frame
 
 
 def _positive(name: str, value: float) -> None:
@@ -55,7 +56,14 @@ def _voxel_first(points: FloatArray, cell_m: float) -> npt.NDArray[np.intp]:
     beams, measured.)
     """
     keys = np.floor(points / cell_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    if float(np.prod(dims.astype(np.float64))) < 2.0**62:
+        # One int64 per cell: a 1-D unique is several times faster than unique(axis=0).
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        _, first = np.unique(flat, return_index=True)
+    else:
+        _, first = np.unique(keys, axis=0, return_index=True)
     return np.sort(first)
 
 
@@ -103,7 +111,7 @@ class ObstacleMemory:
     def add(self, points_ned_m: FloatArray, t_s: float) -> None:
         """Remember ``points_ned_m`` ((K, 3) float64, local NED [m]) as seen at ``t_s`` [s].
 
-        Non-finite rows are ignored. New points in the same cell of a grid with edge
+        Rows that are not finite or lie beyond 1e7 m are ignored. New points in the same cell of a grid with edge
         ``merge_radius_m / sqrt(3)`` are one point (the first is kept), so every dropped point lies within
         ``merge_radius_m`` of a kept one; kept points in neighbouring cells may be closer than that. A
         remembered point within ``merge_radius_m`` of a kept new point is replaced by it.
@@ -115,7 +123,8 @@ class ObstacleMemory:
         if not math.isfinite(t_s):
             msg = f"t_s must be finite, got {t_s}"
             raise ConfigError(msg)
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        # Also drops absurd coordinates, which would overflow the int64 grid keys.
+        pts = pts[np.all(np.abs(pts) < _MAX_COORD_M, axis=1)]
         if pts.shape[0] == 0:
             return
         r2 = self._merge_radius_m**2
