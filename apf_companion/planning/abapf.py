@@ -41,12 +41,12 @@ BoolArray = npt.NDArray[np.bool_]
 
 
 def log_total_repulsion(dist_sq_points_m2: FloatArray, mu_per_m2: FloatArray, *, alpha_o: float) -> FloatArray:
-    """log J_o(r_b,k, mu_o,k) of Eq. (13): log-sum-exp over obstacles (last axis) of log alpha_o - mu rho.
+    """log J_o(r_b,k, mu_o,k) of Eq. (13): log-sum-exp over obstacles (first axis) of log alpha_o - mu rho.
 
-    ``dist_sq_points_m2`` (..., K, N) (inf for padding), ``mu_per_m2`` (..., K). Returns (..., K).
+    ``dist_sq_points_m2`` (N, ..., K), ``mu_per_m2`` (..., K). Returns (..., K).
     """
-    terms = math.log(alpha_o) - mu_per_m2[..., None] * dist_sq_points_m2
-    return log_sum_exp(terms, axis=-1)
+    terms = math.log(alpha_o) - mu_per_m2[None] * dist_sq_points_m2
+    return log_sum_exp(terms, axis=0)
 
 
 def grid_first_mu(
@@ -86,7 +86,7 @@ def golden_section_mu(
     repulsion falls below the threshold. The bracket is shrunk below one grid step and then finished on the
     integer grid.
     """
-    shape = dist_sq_points_m2.shape[:-1]
+    shape = dist_sq_points_m2.shape[1:]
     lo = np.full(shape, float(mu_min))
     hi = np.full(shape, float(mu_max))
 
@@ -123,12 +123,7 @@ class AbapfPlanner(BacteriaPlanner):
     def _smallest_point_mu(self) -> float:
         return float(self.params.mu_max)
 
-    def _point_mu(
-        self,
-        dist_sq_points_m2: FloatArray,
-        log_target_points: FloatArray,
-        has_obstacles: BoolArray,
-    ) -> FloatArray | float:
+    def _point_mu(self, dist_sq_points_m2: FloatArray, log_target_points: FloatArray) -> FloatArray | float:
         p = self.params
         if p.abapf_rule is AbapfRule.EXACT:
             if p.abapf_search is AbapfSearch.GRID:

@@ -2,23 +2,28 @@
 
 Each agent tests its N_b bacteria points in order of increasing distance to the target (ties: lowest index
 first) and moves to the FIRST that passes Eq. (6) (not to the lowest potential); none passes is a local
-minimum. All agents are processed at once by broadcasting over (A, K, N); there is no per-agent or per-obstacle
-Python loop, only a loop over memory-bounded chunks of agents.
+minimum. All agents are processed at once by broadcasting; there is no per-agent or per-obstacle Python loop,
+only a loop over groups of agents that have the same number of relevant obstacles (and memory-bounded chunks).
 
 Notes
 -----
-Exactness and speed. The decision is taken in the log domain (``potentials.moves_downhill``), shifted per
-agent by a = log |J_t(r)| so the target term of the left side is exactly 0 (LHS >= 1 in linear terms) and the
-target term of the right side is mu_t * Delta_k with Delta_k = rho_t(r) - rho_t(r_b,k) computed as
-(r - r_b,k) . (r + r_b,k - 2 r_t), free of cancellation at any distance. An obstacle whose every term (at the
-agent and at all points within one step) is below e^-60 relative to LHS is skipped: together such terms change
-either side by less than N e^-60, i.e. they can flip a decision only when the two sides agree to 1e-20
-relative, far below float64 resolution. For CR-BAPF obstacles beyond rho_u + step contribute exactly 0. Both
-filters are per agent, so far-away obstacles cost one distance each and nothing per bacteria point.
+Exactness. The decision is taken in the log domain (``potentials.moves_downhill``), shifted per agent by
+a = log |J_t(r)| so the target term of the left side is exactly 0 (LHS >= 1 in linear terms) and the target term
+of the right side is mu_t * Delta_k, with Delta_k = rho_t(r) - rho_t(r + o_k) = -(|o_k|^2 + 2 o_k . (r - r_t))
+for the bacteria offset o_k: free of cancellation at any distance. Squared distances to obstacles are taken
+from offsets and obstacle positions relative to the agent (no large coordinates are subtracted).
+
+Speed. An obstacle whose every term (at the agent and at all points within one step) is below e^-60 relative to
+LHS is skipped: together such terms change either side by less than N e^-60, so they can flip a decision only
+when the two sides agree to 1e-20 relative, far below float64 resolution. For CR-BAPF obstacles beyond
+rho_u + step contribute exactly 0. Both filters are per agent and cost one distance per obstacle; what remains
+is usually a handful of obstacles. Arrays are laid out (obstacle, agent, point) so every ufunc runs along the
+contiguous N_b axis (numpy is slow on tiny innermost axes such as D = 2).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import ClassVar
 
@@ -29,11 +34,7 @@ from apf_companion.errors import ConfigError
 from apf_companion.planning.base import Planner
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.params import AbapfRule, AbapfSearch, PlannerParams, RandomWalkRule
-from apf_companion.planning.potentials import (
-    dist_sq_threshold_above,
-    dist_sq_threshold_below,
-    log_sum_exp,
-)
+from apf_companion.planning.potentials import dist_sq_threshold_above, dist_sq_threshold_below
 
 __all__ = ["BacteriaPlanner"]
 
@@ -62,24 +63,35 @@ class BacteriaPlanner(Planner):
 
     def __init__(self, params: PlannerParams) -> None:
         super().__init__(params)
+        offsets = self.bacteria_offsets_m
+        n_points = offsets.shape[0]
+        self._n_points = n_points
         self._log_alpha_o = math.log(params.alpha_o)
         self._log_alpha_t = math.log(params.alpha_t)
+        self._minus_two_offsets = [np.ascontiguousarray(-2.0 * offsets[:, axis]) for axis in range(params.dim)]
+        self._offset_sq = np.sum(offsets * offsets, axis=1)
+        # Column K (after the N_b points) is the agent itself: offset 0, no target term inside its sum, and
+        # mu_o (Eq. (4)); one pass then yields both sides of Eq. (6).
+        self._columns = [np.append(offsets[:, axis], 0.0) for axis in range(params.dim)]
+        self._extra = np.append(np.zeros(n_points), -np.inf)
+        # Peak floor: 0 for the points (their "1" term); for the agent column a finite floor far below any
+        # term, so an empty sum gives log(0) = -inf without inf - inf.
+        self._peak_floor = np.append(np.zeros(n_points), -1e300)
         self._inside_d2 = dist_sq_threshold_below(params.rho_l_m)
         self._outside_d2 = dist_sq_threshold_above(params.rho_u_m)
         # A-BAPF with the exact rule and the grid needs no search (mu_max, see abapf.py): prune as BAPF.
         self._full_obstacles = self.adaptive and (
             params.abapf_rule is AbapfRule.PAPER or params.abapf_search is AbapfSearch.GOLDEN
         )
+        mu_min = min(self._smallest_point_mu(), params.mu_o_per_m2)
+        self._reach_gain = 1.0 / mu_min
+        self._reach_offset = self._log_alpha_o - _NEGLIGIBLE_LOG
 
     # --- hooks --------------------------------------------------------------------------------------
 
-    def _point_mu(
-        self,
-        dist_sq_points_m2: FloatArray,
-        log_target_points: FloatArray,
-        has_obstacles: BoolArray,
-    ) -> FloatArray | float:
-        """mu_o used at the bacteria points: (A', K) or a scalar. Overridden by A-BAPF."""
+    def _point_mu(self, dist_sq_points_m2: FloatArray, log_target_points: FloatArray) -> FloatArray | float:
+        """mu_o at the bacteria points, (A', K) or a scalar, from (N', A', K) squared distances and the
+        (A', K) log |J_t(r_b,k)|. Overridden by A-BAPF."""
         return self.params.mu_o_per_m2
 
     def _smallest_point_mu(self) -> float:
@@ -88,197 +100,217 @@ class BacteriaPlanner(Planner):
 
     # --- engine -------------------------------------------------------------------------------------
 
-    def _relevant(self, mask: BoolArray, dist_sq_agent_m2: FloatArray, log_target_agent: FloatArray) -> BoolArray:
-        """(A, N) obstacles whose terms can matter for this step (module Notes)."""
-        if self._full_obstacles:
-            return mask
+    def _reach_sq(self, log_target_agent: FloatArray) -> FloatArray:
+        """(A,) squared radius around each agent beyond which obstacles cannot matter (module Notes).
+
+        An obstacle at distance d is at least gap = d - step from every bacteria point; its terms are all below
+        e^-60 once log alpha_o - mu gap^2 - a < -60, i.e. gap > sqrt((log alpha_o - a + 60) / mu). CR-BAPF
+        also keeps obstacles within rho_l + step (they can make a point infinite) and drops those beyond
+        rho_u + step (exactly zero). Keeping more obstacles than needed is always correct.
+        """
         p = self.params
-        dist_m = np.sqrt(dist_sq_agent_m2)
-        # Lower bound of the distance from any bacteria point (or the agent) to the obstacle, with a margin
-        # far above rounding so no obstacle that matters is filtered out.
-        gap_m = np.maximum(dist_m - p.step_m - 1e-9 * (1.0 + dist_m), 0.0)
-        mu = min(self._smallest_point_mu(), p.mu_o_per_m2)
-        bound = self._log_alpha_o - mu * gap_m * gap_m - log_target_agent[:, None]
-        keep = bound >= _NEGLIGIBLE_LOG
+        gap_m = np.sqrt(np.maximum((self._reach_offset - log_target_agent) * self._reach_gain, 0.0))
         if self.branching:
-            keep = (keep | (gap_m <= p.rho_l_m)) & (gap_m <= p.rho_u_m)
-        return mask & keep
+            gap_m = np.minimum(np.maximum(gap_m, p.rho_l_m), p.rho_u_m)
+        # A relative margin far above rounding: never drop an obstacle that matters.
+        reach_m = gap_m * (1.0 + 1e-9) + (p.step_m + 1e-9)
+        reach_m *= reach_m
+        return reach_m
 
     def _step_batch(
         self,
         positions_m: FloatArray,
         targets_m: FloatArray,
         obstacles_m: FloatArray,
-        obstacle_mask: BoolArray,
+        obstacle_mask: BoolArray | None,
         rng: np.random.Generator | None,
         walk_uniforms: FloatArray | None,
     ) -> BatchDecision:
         p = self.params
         n_agents, dim = positions_m.shape
-        offsets = self.bacteria_offsets_m
-        n_points = offsets.shape[0]
 
-        points = positions_m[:, None, :] + offsets[None, :, :]  # (A, K, D)
-        rel_t = positions_m - targets_m
-        dist_sq_target = np.einsum("ad,ad->a", rel_t, rel_t)
-        log_target_agent = self._log_alpha_t - p.mu_t_per_m2 * dist_sq_target  # a = log |J_t(r)|
-        # Delta_k = rho_t(r) - rho_t(r_b,k), without cancellation; the shifted target term of the RHS.
-        gain = np.einsum(
-            "akd,akd->ak",
-            positions_m[:, None, :] - points,
-            (positions_m + positions_m - 2.0 * targets_m)[:, None, :] - (positions_m[:, None, :] - points),
-        )
-        shifted_target_points = p.mu_t_per_m2 * gain  # (A, K)
+        rel_t = positions_m - targets_m  # (A, D)
+        log_target_agent = self._log_alpha_t - p.mu_t_per_m2 * np.add.reduce(rel_t * rel_t, axis=1)  # a
+        # gain = Delta_k = rho_t(r) - rho_t(r + o_k) = -(|o_k|^2 + 2 o_k . (r - r_t)): (A, K), > 0 = closer.
+        gain = rel_t[:, 0, None] * self._minus_two_offsets[0]
+        for axis in range(1, dim):
+            gain += rel_t[:, axis, None] * self._minus_two_offsets[axis]
+        gain -= self._offset_sq
 
-        rel_o = obstacles_m - positions_m[:, None, :]
-        dist_sq_agent = np.einsum("and,and->an", rel_o, rel_o)  # (A, N)
-        relevant = self._relevant(obstacle_mask, dist_sq_agent, log_target_agent)
-        counts = relevant.sum(axis=1)
+        # Obstacles relative to the agent, one (A, N) array per axis (contiguous when it pays off).
+        by_axis = obstacles_m.transpose(2, 0, 1)
+        if n_agents > 8:
+            by_axis = np.ascontiguousarray(by_axis)
+        rel_o = [by_axis[axis] - positions_m[:, axis, None] for axis in range(dim)]
+        dist_sq_agent = rel_o[0] * rel_o[0]
+        for axis in range(1, dim):
+            dist_sq_agent += rel_o[axis] * rel_o[axis]
+        if self._full_obstacles:
+            relevant = np.ones(dist_sq_agent.shape, dtype=bool) if obstacle_mask is None else obstacle_mask
+        else:
+            relevant = dist_sq_agent <= self._reach_sq(log_target_agent)[:, None]
+            if obstacle_mask is not None:
+                relevant &= obstacle_mask
+        counts = np.add.reduce(relevant, axis=1)
 
-        passing: BoolArray = np.asarray(shifted_target_points > 0.0)  # no relevant obstacle: LHS = 0, RHS = mu_t Delta
-        unsafe = np.zeros((n_agents, n_points), dtype=bool)
-        mu_points = np.full((n_agents, n_points), np.nan)
+        passing: BoolArray = gain > 0.0  # no relevant obstacle: LHS = 0 < RHS = mu_t Delta
+        inside: BoolArray | None = None
+        mu_points: FloatArray | None = None
         if self.adaptive:
-            has_any = obstacle_mask.any(axis=1)
-            mu_empty = np.where(has_any, float(p.mu_max), float(p.mu_min))
-            mu_points[:] = mu_empty[:, None]
+            known = obstacle_mask.any(axis=1) if obstacle_mask is not None else np.full(n_agents, by_axis.size > 0)
+            mu_points = np.repeat(np.where(known, float(p.mu_max), float(p.mu_min))[:, None], self._n_points, 1)
 
         rows = np.flatnonzero(counts)
-        if rows.size:
-            n_slots = int(counts[rows].max())
-            sub = relevant[rows]
-            r_i, c_i = np.nonzero(sub)
-            slot = (np.cumsum(sub, axis=1) - 1)[r_i, c_i]
-            # Padding obstacles sit at infinity: their terms are exactly -inf and never inside rho_l.
-            packed = np.full((rows.size, n_slots, dim), np.inf)
-            packed[r_i, slot] = obstacles_m[rows[r_i], c_i]
-            packed_d2_agent = np.full((rows.size, n_slots), np.inf)
-            packed_d2_agent[r_i, slot] = dist_sq_agent[rows[r_i], c_i]
-            has_obstacles: BoolArray = np.asarray(obstacle_mask[rows].any(axis=1))
-            chunk = max(1, _CHUNK_ELEMENTS // (n_points * n_slots))
-            for start in range(0, rows.size, chunk):
-                stop = min(start + chunk, rows.size)
-                idx = rows[start:stop]
-                ok, bad, mu = self._decide(
-                    points[idx],
-                    packed[start:stop],
-                    packed_d2_agent[start:stop],
-                    log_target_agent[idx],
-                    shifted_target_points[idx],
-                    has_obstacles[start:stop],
-                )
+        if rows.size == n_agents and (n_agents == 1 or counts.min() == counts.max()):
+            # Every agent has the same number of relevant obstacles (always so for A = 1 with obstacles).
+            n_obs = int(counts[0])
+            gathered = [r[relevant].reshape(n_agents, n_obs).T for r in rel_o]
+            passing, inside, mu = self._decide(gathered, log_target_agent, gain)
+            if mu_points is not None:
+                mu_points[:] = mu
+        elif rows.size:
+            if self.branching:
+                inside = np.zeros(gain.shape, dtype=bool)
+            for idx in self._groups(rows, counts):
+                n_obs = int(counts[idx[0]])
+                cols = np.nonzero(relevant[idx])[1].reshape(idx.size, n_obs)
+                gathered = [r[idx[:, None], cols].T for r in rel_o]
+                ok, bad, mu = self._decide(gathered, log_target_agent[idx], gain[idx])
                 passing[idx] = ok
-                unsafe[idx] = bad
-                if self.adaptive:
+                if inside is not None and bad is not None:
+                    inside[idx] = bad
+                if mu_points is not None:
                     mu_points[idx] = mu
+        elif self.branching:
+            inside = np.zeros(gain.shape, dtype=bool)
 
-        return self._select(points, passing, unsafe, gain, mu_points, rng, walk_uniforms)
+        return self._select(positions_m, passing, inside, gain, mu_points, rng, walk_uniforms)
+
+    def _groups(self, rows: IntArray, counts: IntArray) -> list[IntArray]:
+        """Rows split into groups of equal obstacle count (no padding), each cut to a bounded memory size."""
+        if rows.size == 1:
+            return [rows]
+        rows = rows[np.argsort(counts[rows], kind="stable")]
+        sorted_counts = counts[rows]
+        bounds = [0, *(np.flatnonzero(np.diff(sorted_counts)) + 1).tolist(), rows.size]
+        groups: list[IntArray] = []
+        for lo, hi in itertools.pairwise(bounds):
+            chunk = max(1, _CHUNK_ELEMENTS // ((self._n_points + 1) * int(sorted_counts[lo])))
+            groups.extend(rows[start : min(start + chunk, hi)] for start in range(lo, hi, chunk))
+        return groups
 
     def _decide(
         self,
-        points_m: FloatArray,
-        obstacles_m: FloatArray,
-        dist_sq_agent_m2: FloatArray,
+        rel_obstacles_m: list[FloatArray],
         log_target_agent: FloatArray,
-        shifted_target_points: FloatArray,
-        has_obstacles: BoolArray,
-    ) -> tuple[BoolArray, BoolArray, FloatArray | float]:
-        """Eq. (6) for a chunk of agents with packed obstacles: (passing, inside rho_l, mu at points)."""
+        gain: FloatArray,
+    ) -> tuple[BoolArray, BoolArray | None, FloatArray | float]:
+        """Eq. (6) for A' agents with N' obstacles each: (passing (A', K), inside rho_l (A', K), mu at points).
+
+        ``rel_obstacles_m``: D arrays (N', A') of obstacle minus agent; ``log_target_agent`` (A',);
+        ``gain`` (A', K). Work arrays are (N', A', K + 1); column K is the agent.
+        """
         p = self.params
-        diff = points_m[:, :, None, 0] - obstacles_m[:, None, :, 0]
+        n_points = self._n_points
+        columns = self._columns
+        diff = columns[0] - rel_obstacles_m[0][:, :, None]
         dist_sq = diff * diff
-        for axis in range(1, points_m.shape[-1]):
-            diff = points_m[:, :, None, axis] - obstacles_m[:, None, :, axis]
-            dist_sq += diff * diff  # (A', K, N')
+        for axis in range(1, len(columns)):
+            np.subtract(columns[axis], rel_obstacles_m[axis][:, :, None], out=diff)
+            diff *= diff
+            dist_sq += diff
 
-        shift = log_target_agent[:, None, None]
+        shift = (self._log_alpha_o - log_target_agent)[None, :, None]
+        mu: FloatArray | float = p.mu_o_per_m2
         if self.adaptive:
-            log_target_points = log_target_agent[:, None] + shifted_target_points
-            mu: FloatArray | float = self._point_mu(dist_sq, log_target_points, has_obstacles)
+            log_target_points = log_target_agent[:, None] + p.mu_t_per_m2 * gain
+            mu_k = self._point_mu(dist_sq[:, :, :n_points], log_target_points)
+            mu = mu_k
+            mu_all = np.empty((gain.shape[0], n_points + 1))
+            mu_all[:, :n_points] = mu_k
+            mu_all[:, n_points] = p.mu_o_per_m2
+            terms = mu_all * dist_sq
         else:
-            mu = p.mu_o_per_m2
-        mu_b = mu[:, :, None] if isinstance(mu, np.ndarray) else mu
-        terms = (self._log_alpha_o - shift) - mu_b * dist_sq
+            terms = mu * dist_sq
+        np.subtract(shift, terms, out=terms)  # shifted log J_o^n: (N', A', K + 1)
+        inside = None
         if self.branching:
-            terms[dist_sq > self._outside_d2] = -np.inf
-            inside = np.any(dist_sq < self._inside_d2, axis=-1)
-        else:
-            inside = np.zeros(points_m.shape[:2], dtype=bool)
-        # LHS: log(1 + sum exp(terms)); 1 is the shifted |J_t(r)|, so the peak is finite and >= 0.
-        peak = np.maximum(np.max(terms, axis=-1), 0.0)
-        lhs = peak + np.log(np.exp(-peak) + np.sum(np.exp(terms - peak[:, :, None]), axis=-1))
-        lhs[inside] = np.inf
-
+            np.copyto(terms, -np.inf, where=dist_sq > self._outside_d2)
+            inside = np.logical_or.reduce(dist_sq < self._inside_d2, axis=0)
+        # Column k < K: log(1 + sum exp(terms)) (1 = shifted |J_t(r)|); column K: log(sum exp(agent terms)).
+        peak = np.maximum(np.maximum.reduce(terms, axis=0), self._peak_floor)
+        terms -= peak
+        np.exp(terms, out=terms)
+        total = np.add.reduce(terms, axis=0)
+        total += np.exp(self._extra - peak)
+        sides = np.log(total)
+        sides += peak
+        if inside is not None:
+            sides[inside] = np.inf  # a point inside rho_l: J_k = inf; the agent inside: J_a = inf
+        rhs = p.mu_t_per_m2 * gain
         if p.agent_repulsion:
-            agent_terms = (self._log_alpha_o - log_target_agent[:, None]) - p.mu_o_per_m2 * dist_sq_agent_m2
-            if self.branching:
-                agent_terms[dist_sq_agent_m2 > self._outside_d2] = -np.inf
-                agent_inside = np.any(dist_sq_agent_m2 < self._inside_d2, axis=-1)
-            else:
-                agent_inside = np.zeros(dist_sq_agent_m2.shape[0], dtype=bool)
-            rhs_obstacles = log_sum_exp(agent_terms, axis=-1)
-            rhs_obstacles[agent_inside] = np.inf
-            rhs = np.logaddexp(rhs_obstacles[:, None], shifted_target_points)
-        else:
-            rhs = shifted_target_points
-        return lhs < rhs, inside, mu
+            rhs = np.logaddexp(sides[:, n_points, None], rhs)
+        passing = sides[:, :n_points] < rhs
+        return passing, None if inside is None else inside[:, :n_points], mu
 
     def _select(
         self,
-        points: FloatArray,
+        positions_m: FloatArray,
         passing: BoolArray,
-        unsafe: BoolArray,
+        inside: BoolArray | None,
         gain: FloatArray,
-        mu_points: FloatArray,
+        mu_points: FloatArray | None,
         rng: np.random.Generator | None,
         walk_uniforms: FloatArray | None,
     ) -> BatchDecision:
         """First passing point in order of increasing target distance; else random walk or local minimum."""
-        n_agents, n_points, _ = points.shape
+        n_agents, n_points = passing.shape
         # Larger gain = closer to the target; argmax takes the lowest index among ties.
-        key = np.where(passing, gain, -np.inf)
-        chosen = np.argmax(key, axis=1)
-        n_passing = passing.sum(axis=1)
-        greedy = n_passing > 0
-        chosen = np.where(greedy, chosen, -1)
-        reason = np.where(greedy, DecisionReason.GREEDY, DecisionReason.LOCAL_MINIMUM).astype(np.int8)
-        safe = ~unsafe
-        n_safe = safe.sum(axis=1) if self.branching else np.full(n_agents, -1, dtype=np.int64)
+        chosen = np.where(passing, gain, -np.inf).argmax(axis=1)
+        n_passing = np.add.reduce(passing, axis=1)
+        stuck = n_passing == 0
+        chosen[stuck] = -1
+        reason = np.where(stuck, np.int8(DecisionReason.LOCAL_MINIMUM), np.int8(DecisionReason.GREEDY))
+        if inside is not None:
+            safe = ~inside
+            n_safe = np.add.reduce(safe, axis=1)
+        else:
+            n_safe = np.full(n_agents, -1, dtype=np.int64)
 
-        if self.random_walk:
-            stuck = np.flatnonzero(~greedy)
-            if stuck.size:
+        if self.random_walk and inside is not None:
+            walkers = np.flatnonzero(stuck)
+            if walkers.size:
                 if walk_uniforms is not None:
-                    u = walk_uniforms[stuck]
+                    u = walk_uniforms[walkers]
                 elif rng is not None:
-                    u = rng.random(stuck.size)
+                    u = rng.random(walkers.size)
                 else:
                     raise ConfigError("rng is required: CR-BAPF* needs a random walk for this step")
                 if self.params.random_walk is RandomWalkRule.SINGLE_DRAW:
                     q = np.minimum((u * n_points).astype(np.int64), n_points - 1)
-                    moves = safe[stuck, q]
+                    moves = safe[walkers, q]
                 else:
-                    counts = n_safe[stuck]
-                    j = np.minimum((u * counts).astype(np.int64), np.maximum(counts - 1, 0))
-                    q = np.argmax(np.cumsum(safe[stuck], axis=1) > j[:, None], axis=1)
-                    moves = counts > 0
-                walkers = stuck[moves]
-                chosen[walkers] = q[moves]
+                    n_safe_w = n_safe[walkers]
+                    j = np.minimum((u * n_safe_w).astype(np.int64), np.maximum(n_safe_w - 1, 0))
+                    q = np.argmax(np.cumsum(safe[walkers], axis=1) > j[:, None], axis=1)
+                    moves = n_safe_w > 0
+                walkers, q = walkers[moves], q[moves]
+                chosen[walkers] = q
                 reason[walkers] = DecisionReason.RANDOM_WALK
+                stuck[walkers] = False
 
-        moved = chosen >= 0
-        take = np.maximum(chosen, 0)
-        next_points = points[np.arange(n_agents), take]
-        next_points[~moved] = np.nan
-        if self.adaptive:
-            mu_o_k = np.where(moved, mu_points[np.arange(n_agents), take], np.nan)
+        next_points = positions_m + self.bacteria_offsets_m[chosen]
+        next_points[stuck] = np.nan
+        if mu_points is not None:
+            mu_o_k = mu_points[np.arange(n_agents), chosen]
+            mu_o_k[stuck] = np.nan
         else:
             mu_o_k = np.full(n_agents, np.nan)
         return BatchDecision(
             next_points_m=next_points,
             reason=reason,
-            chosen_index=chosen.astype(np.int64),
+            chosen_index=chosen.astype(np.int64, copy=False),
             mu_o_k=mu_o_k,
-            n_passing=n_passing.astype(np.int64),
-            n_safe=n_safe.astype(np.int64),
+            n_passing=n_passing.astype(np.int64, copy=False),
+            n_safe=n_safe.astype(np.int64, copy=False),
         )

@@ -65,8 +65,7 @@ class Planner(ABC):
             obs = obs.reshape(0, dim)
         if obs.ndim != 2 or obs.shape[1] != dim:
             raise ConfigError(f"obstacles_m must have shape (N, {dim}); got {obs.shape}")
-        mask = np.ones((1, obs.shape[0]), dtype=bool)
-        return self._step_batch(pos[None], tgt[None], obs[None], mask, rng, None).row(0)
+        return self._step_batch(pos[None], tgt[None], obs[None], None, rng, None).row(0)
 
     def step_batch(
         self,
@@ -120,8 +119,8 @@ class Planner(ABC):
         positions_m: FloatArray,
         targets_m: FloatArray,
         obstacles_m: FloatArray,
-        obstacle_mask: npt.NDArray[np.bool_],
+        obstacle_mask: npt.NDArray[np.bool_] | None,
         rng: np.random.Generator | None,
         walk_uniforms: FloatArray | None,
     ) -> BatchDecision:
-        """The algorithm, on validated float64 arrays."""
+        """The algorithm, on validated float64 arrays; ``obstacle_mask`` None means every obstacle is known."""

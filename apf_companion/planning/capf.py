@@ -31,7 +31,7 @@ def capf_force(
     positions_m: FloatArray,
     targets_m: FloatArray,
     obstacles_m: FloatArray,
-    obstacle_mask: BoolArray,
+    obstacle_mask: BoolArray | None,
     *,
     k_att: float,
     eta: float,
@@ -39,18 +39,28 @@ def capf_force(
 ) -> tuple[FloatArray, FloatArray]:
     """-grad(U_att + U_rep) at each agent, and the sum of the norms of its parts (for the vanishing test).
 
-    Shapes: positions/targets (A, D), obstacles (A, N, D), mask (A, N). Returns ((A, D), (A,)).
+    Shapes: positions/targets (A, D), obstacles (A, N, D), mask (A, N). Returns ((A, D), (A,)). Work arrays
+    are (A, N) per axis, so ufuncs run along the obstacle axis.
     """
+    dim = positions_m.shape[1]
     attraction = -k_att * (positions_m - targets_m)
-    rel = positions_m[:, None, :] - obstacles_m  # (A, N, D), from obstacle to agent
-    dist_m = np.sqrt(np.einsum("and,and->an", rel, rel))
-    active = obstacle_mask & (dist_m < rho_0_m)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # |F_rep,n| = eta (1/rho - 1/rho_0) / rho^2, along (r - r_o) / rho.
-        coef = np.where(active, eta * (1.0 / dist_m - 1.0 / rho_0_m) / dist_m**3, 0.0)
-    repulsion = np.einsum("an,and->ad", coef, rel)
-    scale = np.sqrt(np.einsum("ad,ad->a", attraction, attraction)) + np.sum(np.abs(coef) * dist_m, axis=1)
-    return attraction + repulsion, scale
+    rel = [positions_m[:, axis, None] - obstacles_m[:, :, axis] for axis in range(dim)]  # obstacle -> agent
+    dist_sq = rel[0] * rel[0]
+    for axis in range(1, dim):
+        dist_sq += rel[axis] * rel[axis]
+    dist_m = np.sqrt(dist_sq)
+    active = dist_m < rho_0_m
+    if obstacle_mask is not None:
+        active &= obstacle_mask
+    # |F_rep,n| = eta (1/rho - 1/rho_0) / rho^2, along (r - r_o) / rho: coef = eta (1/rho - 1/rho_0) / rho^3.
+    # Inactive pairs get 1/rho = 0 (never computed), so coef = 0; an obstacle at rho = 0 gives inf, and the
+    # NaN force that follows makes the step a local minimum (the direction is undefined).
+    inv_m = np.divide(1.0, dist_m, out=np.zeros_like(dist_m), where=active)
+    coef = eta * (inv_m - 1.0 / rho_0_m)
+    coef *= inv_m * inv_m * inv_m
+    scale = np.sqrt(np.add.reduce(attraction * attraction, axis=1)) + np.add.reduce(np.abs(coef) * dist_m, axis=1)
+    force = np.stack([attraction[:, axis] + np.add.reduce(coef * rel[axis], axis=1) for axis in range(dim)], axis=1)
+    return force, scale
 
 
 class CapfPlanner(Planner):
@@ -63,7 +73,7 @@ class CapfPlanner(Planner):
         positions_m: FloatArray,
         targets_m: FloatArray,
         obstacles_m: FloatArray,
-        obstacle_mask: BoolArray,
+        obstacle_mask: BoolArray | None,
         rng: np.random.Generator | None,
         walk_uniforms: FloatArray | None,
     ) -> BatchDecision:
@@ -78,10 +88,10 @@ class CapfPlanner(Planner):
             eta=p.capf_eta,
             rho_0_m=p.capf_rho_0_m,
         )
-        norm = np.sqrt(np.einsum("ad,ad->a", force, force))
-        moves = np.isfinite(norm) & np.isfinite(scale) & (norm > _VANISHING_RATIO * scale) & (norm > 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            next_points = positions_m + p.step_m * force / norm[:, None]
+        norm = np.sqrt(np.add.reduce(force * force, axis=1))
+        # NaN (obstacle at rho = 0) compares False: no move.
+        moves = (norm > _VANISHING_RATIO * scale) & (norm > 0.0) & (norm < np.inf)
+        next_points = positions_m + force * (p.step_m / np.where(moves, norm, 1.0))[:, None]
         next_points[~moves] = np.nan
         reason = np.where(moves, DecisionReason.GREEDY, DecisionReason.LOCAL_MINIMUM).astype(np.int8)
         return BatchDecision(

@@ -1,0 +1,123 @@
+"""Planner step time: median and p99 of one ``step`` for every planner, 30 and 95 obstacles, 2D and 3D.
+
+Run: ``python benchmarks/bench_planner_step.py [--repeats N] [--batch]``. Prints a markdown table and the machine.
+
+Scenario: the agent in the middle of the paper's 30 m field, target (22, 22) or (22, 22, 10), obstacles drawn
+uniformly within the 8 m sensor range (all "detected"). 200 different scenes are cycled so the numbers cover
+near-obstacle and open-field steps alike. ``--batch`` also times ``step_batch`` for A = 4000 agents (the study
+engine's lockstep call) and prints the time per agent-step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.planning import PLANNER_NAMES, PlannerParams, get_planner
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def scenes(n_scenes: int, n_obstacles: int, dim: int, seed: int) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
+    """(position, target, obstacles) triples: obstacles uniform in the 8 m ball around the agent."""
+    rng = np.random.default_rng(seed)
+    target = np.full(dim, 22.0) if dim == 2 else np.array([22.0, 22.0, 10.0])
+    out = []
+    for _ in range(n_scenes):
+        position = rng.uniform(4.0, 20.0, dim)
+        direction = rng.normal(size=(n_obstacles, dim))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        radius = 8.0 * rng.random((n_obstacles, 1)) ** (1.0 / dim)
+        obstacles = position + np.maximum(radius, 0.5) * direction
+        out.append((position, target, obstacles))
+    return out
+
+
+def time_step(name: str, dim: int, n_obstacles: int, repeats: int) -> tuple[float, float]:
+    """Median and p99 of one ``step`` [us]."""
+    planner = get_planner(name, PlannerParams(dim=dim))
+    cases = scenes(200, n_obstacles, dim, seed=n_obstacles * 10 + dim)
+    rng = np.random.default_rng(0)
+    for position, target, obstacles in cases[:20]:  # warm-up
+        planner.step(position, target, obstacles, rng)
+    samples = np.empty(repeats)
+    clock = time.perf_counter
+    for i in range(repeats):
+        position, target, obstacles = cases[i % len(cases)]
+        t0 = clock()
+        planner.step(position, target, obstacles, rng)
+        samples[i] = clock() - t0
+    return float(np.median(samples) * 1e6), float(np.percentile(samples, 99) * 1e6)
+
+
+def time_batch(name: str, dim: int, n_obstacles: int, n_agents: int, repeats: int) -> float:
+    """Median time of one ``step_batch`` over ``n_agents`` agents, per agent [us]."""
+    planner = get_planner(name, PlannerParams(dim=dim))
+    cases = scenes(n_agents, n_obstacles, dim, seed=1)
+    positions = np.stack([c[0] for c in cases])
+    targets = np.stack([c[1] for c in cases])
+    obstacles = np.stack([c[2] for c in cases])
+    mask = np.ones(obstacles.shape[:2], dtype=bool)
+    rng = np.random.default_rng(0)
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        planner.step_batch(positions, targets, obstacles, mask, rng)
+        samples.append(time.perf_counter() - t0)
+    return float(np.median(samples) / n_agents * 1e6)
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return (
+        f"{cpu}; {os.cpu_count()} cores; Python {platform.python_version()}; numpy {np.__version__}; "
+        f"{platform.system()} {platform.release()}; OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--repeats", type=int, default=3000, help="timed steps per cell (default 3000)")
+    parser.add_argument("--batch", action="store_true", help="also time step_batch with A = 4000")
+    args = parser.parse_args(argv)
+
+    print(f"machine: {machine()}")
+    print(f"params: PlannerParams() defaults (paper Table I), N_b = 60, repeats = {args.repeats}\n")
+    print("| planner | dim | obstacles | median (us) | p99 (us) |")
+    print("|---|---|---|---|---|")
+    for dim in (2, 3):
+        for n_obstacles in (30, 95):
+            for name in PLANNER_NAMES:
+                median, p99 = time_step(name, dim, n_obstacles, args.repeats)
+                print(f"| {name} | {dim}D | {n_obstacles} | {median:.1f} | {p99:.1f} |")
+                sys.stdout.flush()
+    if args.batch:
+        print("\n| planner | dim | obstacles | step_batch A=4000, per agent (us) |")
+        print("|---|---|---|---|")
+        for dim in (2, 3):
+            for n_obstacles in (30, 95):
+                for name in PLANNER_NAMES:
+                    per_agent = time_batch(name, dim, n_obstacles, 4000, repeats=5)
+                    print(f"| {name} | {dim}D | {n_obstacles} | {per_agent:.2f} |")
+                    sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
