@@ -14,8 +14,9 @@ import pytest
 from apf_companion.planning import PLANNER_NAMES, BatchDecision, get_planner
 from sim.study.config import Density, DetectionRule, StudyConfig
 from sim.study.engine import ChunkTask, SerialExecutor, chunk_worlds, run_study, simulate
+from sim.study.engine import chunk_generators as engine_chunk_generators
 from sim.study.metrics import Outcome, summarize
-from sim.study.worlds import WorldBatch
+from sim.study.worlds import WorldBatch, draw_worlds
 
 
 def _world(points: npt.ArrayLike) -> WorldBatch:
@@ -167,3 +168,23 @@ def test_same_seed_same_results_with_one_and_two_workers() -> None:
         assert np.array_equal(x.records.safety_m, y.records.safety_m, equal_nan=True)
     other = run_study(cfg, planners, densities, 45, seed=8, executor=SerialExecutor())
     assert not np.array_equal(one[1].records.iterations, other[1].records.iterations)
+
+
+def test_safety_matches_recomputation_from_the_visited_positions() -> None:
+    # S (Eq. (16)) recomputed independently: for each obstacle that ever came within sensor range of a visited
+    # position, its minimum distance to the visited positions; mean over those obstacles.
+    cfg = StudyConfig.reference()
+    density = Density(n_low=45, n_high=70)
+    world_rng, motion_rng = engine_chunk_generators(9, density, 0)
+    worlds = draw_worlds(world_rng, 12, density, cfg.obstacle_box_m)
+    res = simulate(cfg, "cr-bapf*", worlds, motion_rng, record=True)
+    assert res.trace is not None
+    for a in range(12):
+        path = res.trace.positions_m[:, a]
+        path = path[~np.isnan(path[:, 0])]
+        assert path.shape[0] == res.records.iterations[a]
+        obs = worlds.obstacles_m[a][worlds.mask[a]]
+        min_d = np.linalg.norm(path[:, None, :] - obs[None], axis=-1).min(axis=0)
+        seen = min_d <= cfg.sensor_range_m
+        assert res.records.n_detected[a] == seen.sum()
+        assert res.records.safety_m[a] == pytest.approx(min_d[seen].mean(), rel=1e-12)
