@@ -124,6 +124,13 @@ def test_frame_is_honoured(frame: int, expected: ScanFrame) -> None:
     assert scan.frame is expected
 
 
+def test_frame_override_reads_any_frame_as_body() -> None:
+    for frame in (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_BODY_NED):
+        msg = obstacle_distance([100] * 72, increment=5, frame=frame)
+        scan = scan_from_obstacle_distance(msg, t_s=0.0, frame_override=ScanFrame.BODY_FRD)
+        assert scan.frame is ScanFrame.BODY_FRD
+
+
 def test_special_values_unknown_free_invalid_zero() -> None:
     # min 20 cm, max 1000 cm.
     d = [U16, 1001, 1000, 19, 20, 0, 5000, 250]

@@ -169,7 +169,13 @@ def _check_limits_cm(min_cm: int, max_cm: int, message: str) -> None:
         raise ProtocolError(msg)
 
 
-def scan_from_obstacle_distance(msg: ObstacleDistanceLike, *, t_s: float, zero_is_obstacle: bool = False) -> RangeScan:
+def scan_from_obstacle_distance(
+    msg: ObstacleDistanceLike,
+    *,
+    t_s: float,
+    zero_is_obstacle: bool = False,
+    frame_override: ScanFrame | None = None,
+) -> RangeScan:
     """Read an OBSTACLE_DISTANCE message into a ``RangeScan``.
 
     Element ``i`` lies at bearing ``angle_offset + i * increment`` degrees, clockwise, from the frame's
@@ -186,6 +192,10 @@ def scan_from_obstacle_distance(msg: ObstacleDistanceLike, *, t_s: float, zero_i
         Measurement time on the service's monotonic clock [s].
     zero_is_obstacle:
         Treat a 0 cm reading as an obstacle touching the sensor (the spec's meaning) instead of invalid.
+    frame_override:
+        Use this frame whatever ``frame`` says. ``ScanFrame.BODY_FRD`` reproduces ArduPilot, which ignores
+        ``frame``, for senders known to fill it wrongly (e.g. older mavros sending 0 for a body-mounted
+        sensor).
 
     Returns
     -------
@@ -196,7 +206,8 @@ def scan_from_obstacle_distance(msg: ObstacleDistanceLike, *, t_s: float, zero_i
     ------
     ProtocolError
         ``increment`` and ``increment_f`` both 0; ``|increment|`` > 360; ``increment_f`` or ``angle_offset`` not finite;
-        ``min_distance > max_distance``; ``max_distance`` 0; an unsupported ``frame``.
+        ``min_distance > max_distance``; ``max_distance`` 0; an unsupported ``frame`` (unless
+        ``frame_override`` is given).
     """
     increment_f = float(msg.increment_f)
     angle_offset_deg = float(msg.angle_offset)
@@ -214,7 +225,9 @@ def scan_from_obstacle_distance(msg: ObstacleDistanceLike, *, t_s: float, zero_i
         msg_text = f"OBSTACLE_DISTANCE: increment {increment_deg} deg is wider than a full turn"
         raise ProtocolError(msg_text)
     frame = int(msg.frame)
-    if frame in BODY_FRAMES:
+    if frame_override is not None:
+        scan_frame = frame_override
+    elif frame in BODY_FRAMES:
         scan_frame = ScanFrame.BODY_FRD
     elif frame in NORTH_ALIGNED_FRAMES:
         scan_frame = ScanFrame.LOCAL_NED
