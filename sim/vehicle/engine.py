@@ -313,19 +313,8 @@ class VehicleEngine:
             self.state.on_ground = False
             self.armed = True
             self._enter_hold()
-            self._sp = _Setpoint(
-                kind=TargetKind.POSITION,
-                type_mask=0x0DF8,
-                t_rx=0.0,
-                pos=self.state.pos_ned_m.copy(),
-                vel=None,
-                acc=None,
-                yaw=None,
-                yaw_rate=None,
-            )
             if self.px4 and self.custom_mode == PX4_OFFBOARD.to_custom_mode():
                 self._sp_times = [-1.5 + 0.1 * i for i in range(15)]  # as if a stream had been running
-                self._sp.t_rx = 0.0
         self._update_clearance()
         self._record_trajectory(force=True)
 
@@ -854,7 +843,7 @@ class VehicleEngine:
                 climbing = (sp.pos is not None and sp.pos[2] < -0.3) or (sp.vel is not None and sp.vel[2] < -0.1)
                 if not climbing:
                     return ControlTarget(kind=TargetKind.GROUND), limits
-            expired = self.t_s - sp.t_rx > self.params["GUID_TIMEOUT"]
+            expired = not self.px4 and self.t_s - sp.t_rx > self.params["GUID_TIMEOUT"]
             if not self.px4 and sp.kind in (TargetKind.VELOCITY, TargetKind.ACCELERATION) and expired:
                 if not self._guided_timed_out:
                     self._guided_timed_out = True

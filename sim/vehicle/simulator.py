@@ -30,7 +30,7 @@ from types import TracebackType
 from typing import Any
 
 from apf_companion.autopilot import Autopilot
-from apf_companion.errors import ConfigError, LinkError
+from apf_companion.errors import ApfCompanionError, ConfigError, LinkError
 from apf_companion.links import MavlinkLink
 from sim.vehicle.engine import EngineConfig, HomeConfig, SpawnConfig, VehicleEngine, VehicleSnapshot
 from sim.vehicle.sensor import RangeSensorConfig, Scan
@@ -292,10 +292,17 @@ class Simulator:
         return out
 
     async def wait_until(self, predicate: Any, *, timeout_s: float, poll_s: float = 0.005) -> bool:
-        """Poll ``predicate(sim)`` until true or ``timeout_s`` wall seconds pass; returns the last value."""
+        """Poll ``predicate(sim)`` until true or ``timeout_s`` wall seconds pass; returns the last value.
+
+        Raises:
+            ApfCompanionError: the simulation task failed (its error is chained).
+        """
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
         while True:
+            if self.error is not None:
+                msg = f"simulator failed: {self.error!r}"
+                raise ApfCompanionError(msg) from self.error
             if predicate(self):
                 return True
             if loop.time() >= deadline:
