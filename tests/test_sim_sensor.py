@@ -76,7 +76,7 @@ async def test_distance_sensor_and_obstacle_distance_3d() -> None:
             readings[ds.orientation] = ds.current_distance
         # body 45 deg -> YAW_45 (1); body 180 deg -> YAW_180 (4); the cylinder's edge also reaches into no other
         assert readings == {0: FREE_CM, 1: 400, 2: FREE_CM, 3: FREE_CM, 4: 250, 5: FREE_CM, 6: FREE_CM, 7: FREE_CM}
-        pts = {}
+        pts: dict[int, tuple[float, float, float]] = {}
         while len(pts) < 2:
             o3 = await gcs.recv_match(type="OBSTACLE_DISTANCE_3D", timeout=3.0)
             assert o3.frame == m.MAV_FRAME_BODY_FRD
