@@ -188,3 +188,20 @@ def test_safety_matches_recomputation_from_the_visited_positions() -> None:
         seen = min_d <= cfg.sensor_range_m
         assert res.records.n_detected[a] == seen.sum()
         assert res.records.safety_m[a] == pytest.approx(min_d[seen].mean(), rel=1e-12)
+
+
+def test_engine_runs_in_3d() -> None:
+    # notes.md decision 6: the same rules in 3D (bacteria points on a sphere); the engine is dimension-generic.
+    from apf_companion.planning import PlannerParams
+
+    cfg = dataclasses.replace(
+        StudyConfig.reference(),
+        planner_params=PlannerParams.reference(dim=3, n_bacteria=120),
+        start_m=(3.0, 3.0, 3.0),
+        target_m=(22.0, 22.0, 22.0),
+    )
+    cells = run_study(cfg, ("cr-bapf*",), (Density(n_low=200, n_high=300),), 12, seed=0, executor=SerialExecutor())
+    s = summarize(cells[0].records)
+    assert s.success >= 9
+    assert 75.0 <= s.M_s <= 200.0  # (32.9 m - 0.7 m) / 0.4 m = 81 moves without noise
+    assert cfg.collision_radius_m < s.S < cfg.sensor_range_m
