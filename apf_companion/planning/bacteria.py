@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
 from apf_companion.planning.base import Planner
-from apf_companion.planning.decision import BatchDecision, DecisionReason
+from apf_companion.planning.decision import BatchDecision, DecisionReason, filled
 from apf_companion.planning.params import AbapfRule, AbapfSearch, PlannerParams, RandomWalkRule
 from apf_companion.planning.potentials import dist_sq_threshold_above, dist_sq_threshold_below
 
@@ -49,6 +49,16 @@ _CHUNK_ELEMENTS = 1 << 20
 #: Paper rule of A-BAPF: repulsion <= 2^-53 |J_t| (float64 rounds J_t + J_o to J_t).
 _LOG_HALF_ULP = -53.0 * math.log(2.0)
 _INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
+_LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
+#: Stand-in for the +inf log-term inside rho_l (Eq. (12)): larger than any finite log-sum-exp that can occur.
+_INSIDE_LOG = 1e300
+
+
+def _count_rows(flags: BoolArray) -> IntArray:
+    """Number of True per row of an (A, K) bool array (a cheaper path for A = 1)."""
+    if flags.shape[0] == 1:
+        return np.array([np.count_nonzero(flags)])
+    return np.asarray(np.add.reduce(flags, axis=1), dtype=np.int64)
 
 
 class BacteriaPlanner(Planner):
@@ -85,6 +95,8 @@ class BacteriaPlanner(Planner):
         )
         mu_min = min(self._smallest_point_mu(), params.mu_o_per_m2)
         self._reach_gain = 1.0 / mu_min
+        self._rho_l_sq = params.rho_l_m**2
+        self._rho_u_sq = params.rho_u_m**2
         self._reach_offset = self._log_alpha_o - _NEGLIGIBLE_LOG
 
     # --- hooks --------------------------------------------------------------------------------------
@@ -109,9 +121,11 @@ class BacteriaPlanner(Planner):
         rho_u + step (exactly zero). Keeping more obstacles than needed is always correct.
         """
         p = self.params
-        gap_m = np.sqrt(np.maximum((self._reach_offset - log_target_agent) * self._reach_gain, 0.0))
+        gap_sq = (self._reach_offset - log_target_agent) * self._reach_gain
         if self.branching:
-            gap_m = np.minimum(np.maximum(gap_m, p.rho_l_m), p.rho_u_m)
+            gap_m = np.sqrt(np.minimum(np.maximum(gap_sq, self._rho_l_sq), self._rho_u_sq))
+        else:
+            gap_m = np.sqrt(np.maximum(gap_sq, 0.0))
         # A relative margin far above rounding: never drop an obstacle that matters.
         reach_m = gap_m * (1.0 + 1e-9) + (p.step_m + 1e-9)
         reach_m *= reach_m
@@ -151,27 +165,28 @@ class BacteriaPlanner(Planner):
             relevant = dist_sq_agent <= self._reach_sq(log_target_agent)[:, None]
             if obstacle_mask is not None:
                 relevant &= obstacle_mask
-        counts = np.add.reduce(relevant, axis=1)
+        # (np.count_nonzero without an axis is several times cheaper for the single-agent step.)
+        counts = np.add.reduce(relevant, axis=1) if n_agents > 1 else np.array([np.count_nonzero(relevant)])
 
-        passing: BoolArray = gain > 0.0  # no relevant obstacle: LHS = 0 < RHS = mu_t Delta
         inside: BoolArray | None = None
         mu_points: FloatArray | None = None
         if self.adaptive:
             known = obstacle_mask.any(axis=1) if obstacle_mask is not None else np.full(n_agents, by_axis.size > 0)
             mu_points = np.repeat(np.where(known, float(p.mu_max), float(p.mu_min))[:, None], self._n_points, 1)
 
-        rows = np.flatnonzero(counts)
-        if rows.size == n_agents and (n_agents == 1 or counts.min() == counts.max()):
+        if n_agents and counts[0] and (n_agents == 1 or counts.min() == counts.max()):
             # Every agent has the same number of relevant obstacles (always so for A = 1 with obstacles).
             n_obs = int(counts[0])
             gathered = [r[relevant].reshape(n_agents, n_obs).T for r in rel_o]
             passing, inside, mu = self._decide(gathered, log_target_agent, gain)
             if mu_points is not None:
                 mu_points[:] = mu
-        elif rows.size:
+        else:
+            passing = gain > 0.0  # no relevant obstacle: LHS = 0 < RHS = mu_t Delta
             if self.branching:
                 inside = np.zeros(gain.shape, dtype=bool)
-            for idx in self._groups(rows, counts):
+            rows = np.flatnonzero(counts)
+            for idx in self._groups(rows, counts) if rows.size else []:
                 n_obs = int(counts[idx[0]])
                 cols = np.nonzero(relevant[idx])[1].reshape(idx.size, n_obs)
                 gathered = [r[idx[:, None], cols].T for r in rel_o]
@@ -181,8 +196,6 @@ class BacteriaPlanner(Planner):
                     inside[idx] = bad
                 if mu_points is not None:
                     mu_points[idx] = mu
-        elif self.branching:
-            inside = np.zeros(gain.shape, dtype=bool)
 
         return self._select(positions_m, passing, inside, gain, mu_points, rng, walk_uniforms)
 
@@ -233,10 +246,11 @@ class BacteriaPlanner(Planner):
         else:
             terms = mu * dist_sq
         np.subtract(shift, terms, out=terms)  # shifted log J_o^n: (N', A', K + 1)
-        inside = None
         if self.branching:
             np.copyto(terms, -np.inf, where=dist_sq > self._outside_d2)
-            inside = np.logical_or.reduce(dist_sq < self._inside_d2, axis=0)
+            # Inside rho_l the term is +inf (Eq. (12)); a huge finite stand-in keeps the sums free of inf - inf
+            # and still dominates every finite side, so each comparison below ends as with +inf.
+            np.copyto(terms, _INSIDE_LOG, where=dist_sq < self._inside_d2)
         # Column k < K: log(1 + sum exp(terms)) (1 = shifted |J_t(r)|); column K: log(sum exp(agent terms)).
         peak = np.maximum(np.maximum.reduce(terms, axis=0), self._peak_floor)
         terms -= peak
@@ -245,8 +259,7 @@ class BacteriaPlanner(Planner):
         total += np.exp(self._extra - peak)
         sides = np.log(total)
         sides += peak
-        if inside is not None:
-            sides[inside] = np.inf  # a point inside rho_l: J_k = inf; the agent inside: J_a = inf
+        inside = sides >= _INSIDE_LOG if self.branching else None
         rhs = p.mu_t_per_m2 * gain
         if p.agent_repulsion:
             rhs = np.logaddexp(sides[:, n_points, None], rhs)
@@ -267,15 +280,16 @@ class BacteriaPlanner(Planner):
         n_agents, n_points = passing.shape
         # Larger gain = closer to the target; argmax takes the lowest index among ties.
         chosen = np.where(passing, gain, -np.inf).argmax(axis=1)
-        n_passing = np.add.reduce(passing, axis=1)
+        n_passing = _count_rows(passing)
         stuck = n_passing == 0
         chosen[stuck] = -1
-        reason = np.where(stuck, np.int8(DecisionReason.LOCAL_MINIMUM), np.int8(DecisionReason.GREEDY))
+        # GREEDY = 0, LOCAL_MINIMUM = 2: the int8 view of the bool array times 2.
+        reason = stuck.view(np.int8) * _LOCAL_MINIMUM_CODE
         if inside is not None:
             safe = ~inside
-            n_safe = np.add.reduce(safe, axis=1)
+            n_safe = _count_rows(safe)
         else:
-            n_safe = np.full(n_agents, -1, dtype=np.int64)
+            n_safe = filled(n_agents, -1, np.int64)
 
         if self.random_walk and inside is not None:
             walkers = np.flatnonzero(stuck)
@@ -305,7 +319,7 @@ class BacteriaPlanner(Planner):
             mu_o_k = mu_points[np.arange(n_agents), chosen]
             mu_o_k[stuck] = np.nan
         else:
-            mu_o_k = np.full(n_agents, np.nan)
+            mu_o_k = filled(n_agents, np.nan, np.float64)
         return BatchDecision(
             next_points_m=next_points,
             reason=reason,

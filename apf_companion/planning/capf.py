@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.planning.base import Planner
-from apf_companion.planning.decision import BatchDecision, DecisionReason
+from apf_companion.planning.decision import BatchDecision, DecisionReason, filled
 
 __all__ = ["CapfPlanner", "capf_force"]
 
@@ -25,6 +25,7 @@ BoolArray = npt.NDArray[np.bool_]
 
 #: The gradient "vanishes" when its norm is below this fraction of the sum of the norms of its parts.
 _VANISHING_RATIO = 1e-12
+_LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
 
 
 def capf_force(
@@ -39,12 +40,17 @@ def capf_force(
 ) -> tuple[FloatArray, FloatArray]:
     """-grad(U_att + U_rep) at each agent, and the sum of the norms of its parts (for the vanishing test).
 
-    Shapes: positions/targets (A, D), obstacles (A, N, D), mask (A, N). Returns ((A, D), (A,)). Work arrays
+    Shapes: positions/targets (A, D), obstacles (A, N, D), mask (A, N) or None (all known). Returns (A, D)
+    and (A,). Work arrays
     are (A, N) per axis, so ufuncs run along the obstacle axis.
     """
-    dim = positions_m.shape[1]
-    attraction = -k_att * (positions_m - targets_m)
-    rel = [positions_m[:, axis, None] - obstacles_m[:, :, axis] for axis in range(dim)]  # obstacle -> agent
+    n_agents, dim = positions_m.shape
+    force = (targets_m - positions_m) * k_att  # attraction, then the repulsion is added per axis
+    scale = np.sqrt(np.add.reduce(force * force, axis=1))
+    by_axis = obstacles_m.transpose(2, 0, 1)
+    if n_agents > 8:
+        by_axis = np.ascontiguousarray(by_axis)  # contiguous (A, N) per axis: fast ufunc loops
+    rel = [positions_m[:, axis, None] - by_axis[axis] for axis in range(dim)]  # obstacle -> agent
     dist_sq = rel[0] * rel[0]
     for axis in range(1, dim):
         dist_sq += rel[axis] * rel[axis]
@@ -55,11 +61,15 @@ def capf_force(
     # |F_rep,n| = eta (1/rho - 1/rho_0) / rho^2, along (r - r_o) / rho: coef = eta (1/rho - 1/rho_0) / rho^3.
     # Inactive pairs get 1/rho = 0 (never computed), so coef = 0; an obstacle at rho = 0 gives inf, and the
     # NaN force that follows makes the step a local minimum (the direction is undefined).
-    inv_m = np.divide(1.0, dist_m, out=np.zeros_like(dist_m), where=active)
-    coef = eta * (inv_m - 1.0 / rho_0_m)
-    coef *= inv_m * inv_m * inv_m
-    scale = np.sqrt(np.add.reduce(attraction * attraction, axis=1)) + np.add.reduce(np.abs(coef) * dist_m, axis=1)
-    force = np.stack([attraction[:, axis] + np.add.reduce(coef * rel[axis], axis=1) for axis in range(dim)], axis=1)
+    inv_m = np.zeros(dist_m.shape)
+    np.divide(1.0, dist_m, out=inv_m, where=active)
+    coef = (inv_m - 1.0 / rho_0_m) * eta
+    coef *= inv_m
+    coef *= inv_m
+    coef *= inv_m
+    for axis in range(dim):
+        force[:, axis] += np.add.reduce(coef * rel[axis], axis=1)
+    scale += np.add.reduce(np.abs(coef) * dist_m, axis=1)
     return force, scale
 
 
@@ -91,14 +101,16 @@ class CapfPlanner(Planner):
         norm = np.sqrt(np.add.reduce(force * force, axis=1))
         # NaN (obstacle at rho = 0) compares False: no move.
         moves = (norm > _VANISHING_RATIO * scale) & (norm > 0.0) & (norm < np.inf)
-        next_points = positions_m + force * (p.step_m / np.where(moves, norm, 1.0))[:, None]
-        next_points[~moves] = np.nan
-        reason = np.where(moves, DecisionReason.GREEDY, DecisionReason.LOCAL_MINIMUM).astype(np.int8)
+        stuck = ~moves
+        norm[stuck] = 1.0
+        force *= (p.step_m / norm)[:, None]
+        next_points = positions_m + force
+        next_points[stuck] = np.nan
         return BatchDecision(
             next_points_m=next_points,
-            reason=reason,
-            chosen_index=np.full(n_agents, -1, dtype=np.int64),
-            mu_o_k=np.full(n_agents, np.nan),
-            n_passing=np.zeros(n_agents, dtype=np.int64),
-            n_safe=np.full(n_agents, -1, dtype=np.int64),
+            reason=stuck.view(np.int8) * _LOCAL_MINIMUM_CODE,  # GREEDY = 0, LOCAL_MINIMUM = 2
+            chosen_index=filled(n_agents, -1, np.int64),
+            mu_o_k=filled(n_agents, np.nan, np.float64),
+            n_passing=filled(n_agents, 0, np.int64),
+            n_safe=filled(n_agents, -1, np.int64),
         )

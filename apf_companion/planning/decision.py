@@ -4,11 +4,21 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["BatchDecision", "Decision", "DecisionReason"]
+__all__ = ["BatchDecision", "Decision", "DecisionReason", "filled"]
+
+_ScalarT = TypeVar("_ScalarT", bound=np.generic)
+
+
+def filled(n: int, value: float, dtype: type[_ScalarT]) -> npt.NDArray[_ScalarT]:
+    """A new (n,) array of ``value`` (cheaper than ``np.full`` for the tiny arrays of a single step)."""
+    out = np.empty(n, dtype=dtype)
+    out.fill(value)
+    return out
 
 
 class DecisionReason(enum.IntEnum):
