@@ -274,3 +274,17 @@ def run_sensor(args: argparse.Namespace) -> int:
     except ApfCompanionError as err:
         print(f"apf-sim sensor: {err}", file=sys.stderr)
         return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Standalone entry (``python -m sim.vehicle.cli vehicle ...``), the same as ``apf-sim vehicle|sensor``."""
+    parser = argparse.ArgumentParser(prog="python -m sim.vehicle.cli")
+    parser.add_argument("--log-level", default="WARNING")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=str(args.log_level).upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
