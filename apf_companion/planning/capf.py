@@ -41,8 +41,7 @@ def capf_force(
     """-grad(U_att + U_rep) at each agent, and the sum of the norms of its parts (for the vanishing test).
 
     Shapes: positions/targets (A, D), obstacles (A, N, D), mask (A, N) or None (all known). Returns (A, D)
-    and (A,). Work arrays
-    are (A, N) per axis, so ufuncs run along the obstacle axis.
+    and (A,). Work arrays are (A, N) per axis, so ufuncs run along the obstacle axis.
     """
     n_agents, dim = positions_m.shape
     force = (targets_m - positions_m) * k_att  # attraction, then the repulsion is added per axis
