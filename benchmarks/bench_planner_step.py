@@ -152,9 +152,7 @@ def main(argv: list[str] | None = None) -> int:
                     per_agent = time_batch(name, dim, n_obstacles, 4000, repeats=5)
                     print(f"| {name} | {dim}D | {n_obstacles} | {per_agent:.2f} |")
                     sys.stdout.flush()
-    print(
-        f"\nload average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; reference op: {reference_op_ns():.0f} ns"
-    )
+    print(f"\nafter: {load_line()}")
     return 0
 
 
