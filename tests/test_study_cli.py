@@ -69,6 +69,11 @@ def test_json_schema_csv_and_table(tmp_path: Path, capsys: pytest.CaptureFixture
     assert {row["outcome"] for row in rows} <= {"success", "collision", "stuck", "timeout"}
     first = [row for row in rows if row["planner"] == "bapf" and row["n_low"] == "20"]
     assert sum(row["outcome"] == "success" for row in first) == results[0]["counts"]["success"]
+    # Per-trial times split the chunk time by iterations; their mean is the cell's T_a.
+    assert sum(float(row["time_ms"]) for row in first) / 30 == pytest.approx(results[0]["T_a_ms"], rel=1e-3)
+    long_trial = max(first, key=lambda row: int(row["iterations"]))
+    short_trial = min(first, key=lambda row: int(row["iterations"]))
+    assert float(long_trial["time_ms"]) >= float(short_trial["time_ms"])
 
 
 def test_mu_sweep_and_plots(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -6,7 +6,8 @@
 - S, Eq. (16): per successful trial, the mean over the obstacles detected during the run of the minimum
   distance from the visited positions; then averaged over successful trials.
 - T_a, the mean wall-clock time per trial [ms] (in the lockstep engine: a chunk's wall time divided by its
-  trials, so it is the amortised cost of a trial, not the latency of one trial run alone).
+  trials, so it is the amortised cost of a trial, not the latency of one trial run alone; per trial, the chunk's
+  time is split in proportion to the iterations each trial ran).
 """
 
 from __future__ import annotations
