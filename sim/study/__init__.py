@@ -11,7 +11,7 @@ Modules:
 - ``paper``    the paper's Table values, for side-by-side printing
 - ``report``   markdown table, JSON and CSV output
 - ``plots``    the study's figures (matplotlib, Agg)
-- ``cli``      ``apf-sim study``
+- ``cli``      ``apf-sim study`` (also ``python -m sim.study``)
 
 This package file deliberately imports nothing heavy: worker processes import ``sim.study._worker`` first to
 limit BLAS threads before numpy loads.
