@@ -888,7 +888,8 @@ class VehicleEngine:
                 armed=self.armed,
                 disturbance_vel_ne_m_s=self._noise(),
             )
-            self.path_length_m += float(np.linalg.norm(self.state.pos_ned_m - prev))
+            d = self.state.pos_ned_m - prev
+            self.path_length_m += math.sqrt(float(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
             if impact > 0 and was_flying:
                 self._touchdown(impact)
             self._update_clearance()
@@ -988,6 +989,8 @@ class VehicleEngine:
             noise_sd_m=self.params["SIM_RNG_NOISE"],
             dropout_prob=self.params["SIM_RNG_DROP"],
             rng=self.rng_sensor,
+            octants="distance_sensor" in self.cfg.sensor.messages,
+            points="obstacle_distance_3d" in self.cfg.sensor.messages,
         )
         self.last_scan = scan
         msgs: list[Any] = []

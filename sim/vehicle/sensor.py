@@ -44,6 +44,7 @@ UINT16_MAX = 65535
 MAV_FRAME_BODY_FRD = 12
 MAV_DISTANCE_SENSOR_LASER = 0
 SENSOR_MESSAGES = frozenset({"obstacle_distance", "distance_sensor", "obstacle_distance_3d"})
+_OCTANTS_RAD = np.deg2rad(45.0 * np.arange(8))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -114,35 +115,45 @@ def scan_world(
     noise_sd_m: float,
     dropout_prob: float,
     rng: np.random.Generator,
+    octants: bool = True,
+    points: bool = True,
 ) -> Scan:
-    """Sweep the sensor from a pose; all sectors, octants and obstacle points at once (vectorised)."""
+    """Sweep the sensor from a pose; sectors, and optionally the 8 octants and the nearest point of each obstacle
+    in range (for DISTANCE_SENSOR and OBSTACLE_DISTANCE_3D), all vectorised."""
     alt = -float(pos_ned_m[2])
     pos_ne = pos_ned_m[:2]
     body = cfg.body_bearings_rad()
     half = math.radians(cfg.increment_deg) / 2.0
     ranges = world.window_ranges_m(pos_ne, body + yaw_rad, half, alt_m=alt)
-    octants = world.window_ranges_m(pos_ne, np.deg2rad(45.0 * np.arange(8)) + yaw_rad, math.radians(22.5), alt_m=alt)
-    pts_ne, dists = world.nearest_points_ne_m(pos_ne, alt)
+    if octants:
+        oct_r = world.window_ranges_m(pos_ne, _OCTANTS_RAD + yaw_rad, math.radians(22.5), alt_m=alt)
+    else:
+        oct_r = np.full(8, np.nan)
+    if points and world.n_obstacles:
+        pts_ne, dists = world.nearest_points_ne_m(pos_ne, alt)
+    else:
+        pts_ne, dists = np.zeros((0, 2)), np.zeros(0)
     sel = np.flatnonzero(dists <= max_range_m)
     rel = pts_ne[sel] - pos_ne
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     pts_body = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], np.zeros(sel.size)], axis=1)
+    octants_r = oct_r
     if noise_sd_m > 0:
         ranges = ranges + rng.normal(0.0, noise_sd_m, ranges.shape)
-        octants = octants + rng.normal(0.0, noise_sd_m, octants.shape)
+        octants_r = octants_r + rng.normal(0.0, noise_sd_m, octants_r.shape)
         d = np.hypot(pts_body[:, 0], pts_body[:, 1])
         d_noisy = np.maximum(d + rng.normal(0.0, noise_sd_m, d.shape), 0.0)
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = np.where(d > 0, d_noisy / d, 1.0)
         pts_body = pts_body * scale[:, None]
         ranges = np.where(np.isfinite(ranges), np.maximum(ranges, 0.0), ranges)
-        octants = np.where(np.isfinite(octants), np.maximum(octants, 0.0), octants)
+        octants_r = np.where(np.isfinite(octants_r), np.maximum(octants_r, 0.0), octants_r)
     ranges = np.where(ranges > max_range_m, np.inf, ranges)
-    octants = np.where(octants > max_range_m, np.inf, octants)
+    octants_r = np.where(octants_r > max_range_m, np.inf, octants_r)
     ids = sel
     if dropout_prob > 0:
         ranges = np.where(rng.random(ranges.shape) < dropout_prob, np.nan, ranges)
-        octants = np.where(rng.random(octants.shape) < dropout_prob, np.nan, octants)
+        octants_r = np.where(rng.random(octants_r.shape) < dropout_prob, np.nan, octants_r)
         keep = rng.random(sel.shape) >= dropout_prob
         pts_body, ids = pts_body[keep], sel[keep]
     return Scan(
@@ -153,7 +164,7 @@ def scan_world(
         ranges_m=ranges,
         min_range_m=min_range_m,
         max_range_m=max_range_m,
-        octant_ranges_m=octants,
+        octant_ranges_m=octants_r,
         points_body_frd_m=pts_body,
         point_ids=ids,
     )

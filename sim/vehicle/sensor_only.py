@@ -261,6 +261,8 @@ class SensorSimulator:
             noise_sd_m=self.cfg.noise_sd_m,
             dropout_prob=self.cfg.dropout_prob,
             rng=self.rng,
+            octants="distance_sensor" in self.cfg.sensor.messages,
+            points="obstacle_distance_3d" in self.cfg.sensor.messages,
         )
 
     def _publish(self, scan: Scan) -> None:

@@ -164,11 +164,17 @@ class World:
         Obstacles whose top is below ``alt_m`` (height above ground) are out of reach: +inf.
         """
         p = np.asarray(pos_ne_m, dtype=np.float64).reshape(2)
-        d_c = np.hypot(*(self.circles_ne_m - p).T) - self.circle_radii_m
-        d_c = np.where(self.circle_heights_m >= alt_m, d_c, np.inf)
-        d_w = _point_segment_distance(p, self.walls_ne_m) - 0.5 * self.wall_thickness_m
-        d_w = np.where(self.wall_heights_m >= alt_m, d_w, np.inf)
-        return np.concatenate([d_c, d_w])
+        parts = []
+        if self.n_circles:
+            rel = self.circles_ne_m - p
+            d_c = np.hypot(rel[:, 0], rel[:, 1]) - self.circle_radii_m
+            parts.append(np.where(self.circle_heights_m >= alt_m, d_c, np.inf))
+        if self.n_walls:
+            d_w = _point_segment_distance(p, self.walls_ne_m) - 0.5 * self.wall_thickness_m
+            parts.append(np.where(self.wall_heights_m >= alt_m, d_w, np.inf))
+        if not parts:
+            return np.zeros(0)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def clearance_m(self, pos_ne_m: npt.ArrayLike, alt_m: float = 0.0) -> float:
         """Distance from a point to the nearest obstacle surface [m] (inf in an empty world)."""
