@@ -99,7 +99,11 @@ async def test_px4_rejections_are_temporarily_rejected() -> None:
         ack = await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, 6, texts=texts)  # OFFBOARD without a stream
         assert ack.result == TEMP_REJECTED
         assert "Switching to Offboard is currently not available" in texts
+        ack = await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 0, 4, 3)  # no custom-mode flag
+        assert ack.result == m.MAV_RESULT_DENIED
         ack = await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, 4, 3)  # AUTO.LOITER
+        assert ack.result == ACCEPTED
+        ack = await command_long(gcs, m.MAV_CMD_COMPONENT_ARM_DISARM, 0)  # disarmed already: fine
         assert ack.result == ACCEPTED
 
 

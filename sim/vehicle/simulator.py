@@ -289,6 +289,7 @@ class Simulator:
         out["wall_time_s"] = round(self.wall_time_s, 6)
         out["speedup"] = self.cfg.speedup if math.isfinite(self.cfg.speedup) else None
         out["links"] = [str(link.endpoint) for link in self.links]
+        out["lag_resets"] = self.lag_resets  # times the host could not keep up with the speed-up
         return out
 
     async def wait_until(self, predicate: Any, *, timeout_s: float, poll_s: float = 0.005) -> bool:
