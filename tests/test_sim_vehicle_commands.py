@@ -210,6 +210,17 @@ async def test_message_interval_and_requests() -> None:
         await gcs.recv_match(type="AUTOPILOT_VERSION", timeout=2.0)
 
 
+async def test_timesync_and_mission_count() -> None:
+    async with simulator_with_client(speedup=1.0) as (sim, gcs):
+        gcs.send(gcs.mav.timesync_encode(0, 123456789))
+        ts = await gcs.recv_match(type="TIMESYNC", timeout=2.0)
+        assert ts.ts1 == 123456789
+        assert 0 < ts.tc1 <= sim.t_s * 1e9  # our simulated clock in ns
+        gcs.send(gcs.mav.mission_request_list_encode(1, 1))
+        count = await gcs.recv_match(type="MISSION_COUNT", timeout=2.0)
+        assert (count.count, count.target_system) == (0, 255)
+
+
 async def test_parameters() -> None:
     async with simulator_with_client(profile="ardupilot") as (_sim, gcs):
         gcs.send(gcs.mav.param_request_list_encode(1, 1))

@@ -676,6 +676,11 @@ class VehicleEngine:
             self.statustext(mavlink.MAV_SEVERITY_WARNING, err[:50])
         self._emit(None, self._param_value(name))
 
+    def _on_timesync(self, msg: Any, link: int) -> None:
+        # A request has tc1 == 0: answer with our clock (simulated ns since boot) and echo ts1.
+        if msg.tc1 == 0:
+            self._emit(link, self.mav.timesync_encode(int(self.t_s * 1e9), msg.ts1))
+
     def _on_mission_request_list(self, msg: Any, link: int) -> None:
         if not self._addressed_to_us(msg):
             return
@@ -1237,6 +1242,7 @@ VehicleEngine._HANDLERS = {
     "PARAM_REQUEST_READ": VehicleEngine._on_param_request_read,
     "PARAM_SET": VehicleEngine._on_param_set,
     "MISSION_REQUEST_LIST": VehicleEngine._on_mission_request_list,
+    "TIMESYNC": VehicleEngine._on_timesync,
 }
 VehicleEngine._COMMANDS = {
     mavlink.MAV_CMD_COMPONENT_ARM_DISARM: VehicleEngine._cmd_arm,
