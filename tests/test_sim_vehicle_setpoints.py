@@ -265,10 +265,10 @@ async def test_px4_offboard_rejects_a_slow_stream() -> None:
 
 
 async def test_px4_offboard_loss_failsafe() -> None:
-    spawn = SpawnConfig(airborne=True, mode="OFFBOARD")
-    async with simulator_with_client(profile="px4", spawn=spawn, speedup=2.0) as (sim, gcs):
+    async with simulator_with_client(profile="px4", spawn=SpawnConfig(airborne=True), speedup=4.0) as (sim, gcs):
+        await stream(sim, gcs, 10.0, sim.t_s + 1.2)
+        assert (await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, 6)).result == m.MAV_RESULT_ACCEPTED
         assert sim.vehicle.mode == "OFFBOARD"
-        await stream(sim, gcs, 10.0, sim.t_s + 1.5)
         sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_VELOCITY, vel=(1.0, 0.0, 0.0))
         await echo(gcs, MASK_VELOCITY)
         assert sim.vehicle.mode == "OFFBOARD"
@@ -282,6 +282,17 @@ async def test_px4_offboard_loss_failsafe() -> None:
         t_fs = next(s.t_s for s in sim.engine.statustexts if s.text.startswith("Failsafe"))
         assert 1.0 < t_fs - last <= 1.0 + 2 * sim.engine.dt  # COM_OF_LOSS_T = 1 s
         await wait_for(sim, lambda s: float(np.hypot(*s.vehicle.vel_ned_m_s[:2])) < 0.01)  # holds
+
+
+async def test_px4_spawn_in_offboard_needs_the_stream_at_once() -> None:
+    spawn = SpawnConfig(airborne=True, mode="OFFBOARD")
+    async with simulator_with_client(profile="px4", spawn=spawn, speedup=10.0) as (sim, gcs):
+        assert (await gcs.recv_match(type="HEARTBEAT", timeout=2.0)).custom_mode in (
+            PX4_OFFBOARD.to_custom_mode(),
+            PX4_HOLD.to_custom_mode(),
+        )
+        await texts_until(gcs, "Failsafe")  # nobody streams: the spawn's grace ends within COM_OF_LOSS_T
+        assert sim.vehicle.mode == "AUTO.LOITER"
 
 
 async def test_px4_offboard_takes_off_from_the_ground() -> None:
