@@ -179,14 +179,17 @@ class CycleConfig:
         ranges_max_age_s: Ranges older than this are stale -> HOLDING [s].
         cruise_speed_m_s: Velocity feed-forward along the planned step [m/s].
         arrival_radius_m: Within this distance of the goal -> ARRIVED (the paper's 0.7 m) [m].
+        replan_radius_m: The vehicle flies to each planned bacteria point and the next step is planned from
+            that point once the vehicle is this close to it (the paper's path of bacteria points) [m].
         time_scale: Vehicle seconds per wall second (simulated vehicles with a speed-up; 1 on real hardware).
     """
 
     rate_hz: float = 10.0
     pose_max_age_s: float = 0.5
     ranges_max_age_s: float = 0.5
-    cruise_speed_m_s: float = 2.0
+    cruise_speed_m_s: float = 1.0
     arrival_radius_m: float = 0.7
+    replan_radius_m: float = 0.15
     time_scale: float = 1.0
 
     def __post_init__(self) -> None:
@@ -195,6 +198,7 @@ class CycleConfig:
         _check_range("cycle.ranges_max_age_s", self.ranges_max_age_s, 0.02, 10.0)
         _check_range("cycle.cruise_speed_m_s", self.cruise_speed_m_s, 0.0, 20.0, lo_open=True)
         _check_range("cycle.arrival_radius_m", self.arrival_radius_m, 0.0, 100.0, lo_open=True)
+        _check_range("cycle.replan_radius_m", self.replan_radius_m, 0.0, 10.0, lo_open=True)
         _check_range("cycle.time_scale", self.time_scale, 0.1, 100.0)
 
 
@@ -262,7 +266,7 @@ class ZenohSection:
 
     Attributes:
         enabled: Open a zenoh session at all.
-        mode: "peer" or "client".
+        mode: "peer", "client" (to a zenohd router) or "router" (self-contained, no zenohd needed).
         connect: Endpoints to connect to, explicit ``tcp/HOST:PORT``.
         listen: Endpoints to listen on, explicit ``tcp/HOST:PORT``. Multicast scouting is always off.
         sensor_key: Key of the range topic (JSON ``apf.range_scan/1`` or ROS 2 LaserScan CDR, told apart by
@@ -282,8 +286,8 @@ class ZenohSection:
     status_rate_hz: float = 5.0
 
     def __post_init__(self) -> None:
-        if self.mode not in ("peer", "client"):
-            raise _fail("zenoh.mode", "'peer' or 'client'", self.mode)
+        if self.mode not in ("peer", "client", "router"):
+            raise _fail("zenoh.mode", "'peer', 'client' or 'router'", self.mode)
         for key, endpoints in (("zenoh.connect", self.connect), ("zenoh.listen", self.listen)):
             for ep in endpoints:
                 if not isinstance(ep, str) or not ep.startswith("tcp/") or ":" not in ep:

@@ -125,6 +125,7 @@ class _Counters:
     stale_range_cycles: int = 0
     rejected_poses: int = 0
     goals: int = 0
+    dropped_targets: int = 0
 
 
 @dataclass(slots=True)
@@ -145,6 +146,9 @@ class Navigator:
         memory: Where obstacle points live (expiry and merging are the memory's).
         rng: The random walk's generator.
         now_s: Service clock at construction [s]; the heartbeat timeout counts from here.
+        step_m: The planner's step (bacteria ring radius) [m].
+        target_guard_m: A bacteria point being flown to is dropped (and the planner re-run) once a remembered
+            obstacle lies closer than this to it; the planner's rho_l for CR-BAPF / CR-BAPF*, 0 = no check.
     """
 
     def __init__(
@@ -155,8 +159,13 @@ class Navigator:
         memory: ObstacleStore,
         rng: np.random.Generator,
         now_s: float,
+        step_m: float = 0.4,
+        target_guard_m: float = 0.0,
     ) -> None:
         self.config = config
+        self.step_m = step_m
+        self.target_guard_m = target_guard_m
+        self._step_target: FloatArray | None = None
         self.planner = planner
         self.memory = memory
         self.rng = rng
@@ -221,11 +230,22 @@ class Navigator:
         self.counters.goals += 1
         self.route = route
         self._leg = None
+        self._step_target = None
         self._hold_anchor = None
         self._hold_sent = False
         self.engaged = self.mode_ok
         self._change(now_s, State.NAVIGATING, f"new goal from {route.source}: {route.to_json_list()[-1]}")
         return True
+
+    def suspend(self) -> None:
+        """Stop sending setpoints (the service is arming / taking off)."""
+        self.suspended = True
+
+    def resume(self) -> None:
+        """Send setpoints again; the leg restarts so "keep altitude" means the altitude reached meanwhile."""
+        self.suspended = False
+        self._leg = None
+        self._step_target = None
 
     def clear_route(self, now_s: float, reason: str) -> None:
         """Forget the goal (operator stop): IDLE, send nothing."""
@@ -269,6 +289,7 @@ class Navigator:
             target[2] = self.pose.pos_ned_m[2]  # keep the altitude this leg starts at
         leg = _Leg(index=index, target_ned_m=target, best_t_s=now_s)
         self._leg = leg
+        self._step_target = None
         return leg
 
     def _hold_at_anchor(self, now_s: float, *, pose_fresh: bool) -> Setpoint | None:
@@ -284,6 +305,7 @@ class Navigator:
         return None
 
     def _enter_hold_state(self, now_s: float, new: State, reason: str) -> None:
+        self._step_target = None
         if self.state not in (State.HOLDING, State.ARRIVED, State.STUCK) or new is not self.state:
             self._hold_anchor = None
             self._hold_sent = False
@@ -342,8 +364,13 @@ class Navigator:
             return CycleOutput(t_s=now_s, state=self.state, setpoint=None, nearest_obstacle_m=nearest)
 
         pos = np.asarray(self.pose.pos_ned_m, dtype=np.float64)
-        leg = self._leg if self._leg is not None else self._start_leg(0, now_s)
-        dist = self._distance(pos, leg.target_ned_m)
+        if self._leg is not None:
+            dist = self._distance(pos, self._leg.target_ned_m)
+        else:
+            # Not started: the leg (and its "keep altitude") is fixed only once the autopilot is engaged, so a
+            # takeoff in between sets the altitude that is kept.
+            provisional = np.where(np.isnan(self.route.waypoints_ned_m[0]), pos, self.route.waypoints_ned_m[0])
+            dist = self._distance(pos, provisional)
 
         if self.state in (State.ARRIVED, State.STUCK):
             sp = self._hold_at_anchor(now_s, pose_fresh=pose_ok)
@@ -371,6 +398,8 @@ class Navigator:
                 t_s=now_s, state=self.state, setpoint=sp, distance_to_goal_m=dist, nearest_obstacle_m=nearest
             )
 
+        leg = self._leg if self._leg is not None else self._start_leg(0, now_s)
+        dist = self._distance(pos, leg.target_ned_m)
         # Arrival (and the next leg of a route).
         while dist <= cfg.cycle.arrival_radius_m:
             assert self.route is not None
@@ -389,9 +418,23 @@ class Navigator:
             leg.best_t_s = now_s
 
         obstacles = self._near(points, pos)
+        tracked = self._track_step_target(pos, obstacles)
+        if tracked is not None:
+            return CycleOutput(
+                t_s=now_s,
+                state=self.state,
+                setpoint=tracked,
+                decision="TRACKING",
+                distance_to_goal_m=dist,
+                nearest_obstacle_m=nearest,
+                n_obstacles=int(obstacles.shape[0]),
+            )
+        # Plan the next step from the bacteria point just reached (the paper's path), else from the pose.
+        origin = pos if self._step_target is None else self._step_target
+        self._step_target = None
         self.counters.planner_steps += 1
         decision = self.planner.step(
-            pos[: self.dim].copy(), leg.target_ned_m[: self.dim].copy(), obstacles[:, : self.dim], self.rng
+            origin[: self.dim].copy(), leg.target_ned_m[: self.dim].copy(), obstacles[:, : self.dim], self.rng
         )
         reason = decision.reason.name
         if reason == "GREEDY":
@@ -430,6 +473,7 @@ class Navigator:
             target[: self.dim] = np.asarray(nxt, dtype=np.float64)[: self.dim]
             if self.dim == 2:
                 target[2] = leg.target_ned_m[2]
+            self._step_target = target
             sp = navigate(pos, target, cruise_speed_m_s=cfg.cycle.cruise_speed_m_s, dim=self.dim)
         return CycleOutput(
             t_s=now_s,
@@ -440,6 +484,35 @@ class Navigator:
             nearest_obstacle_m=nearest,
             n_obstacles=int(obstacles.shape[0]),
         )
+
+    def _track_step_target(self, pos: FloatArray, obstacles: FloatArray) -> Setpoint | None:
+        """Keep flying to the current bacteria point until within ``replan_radius_m`` of it.
+
+        The point is re-validated every cycle against the fresh obstacle memory (at least ``target_guard_m``
+        from every point) and the vehicle must still be near the step (within two steps of it); otherwise it is
+        dropped and the planner runs from the pose. Returns the setpoint, or None to plan now.
+        """
+        target = self._step_target
+        if self.config.dry_run:
+            self._step_target = None  # nothing moves the vehicle along the plan: plan from the pose each cycle
+            return None
+        if target is None:
+            return None
+        d = pos[: self.dim] - target[: self.dim]
+        gap = float(np.sqrt(d @ d))
+        if gap <= self.config.cycle.replan_radius_m:
+            return None  # reached: plan from it
+        if gap > 2.0 * self.step_m or not self._clear(target, obstacles):
+            self._step_target = None
+            self.counters.dropped_targets += 1
+            return None
+        return navigate(pos, target, cruise_speed_m_s=self.config.cycle.cruise_speed_m_s, dim=self.dim)
+
+    def _clear(self, point: FloatArray, obstacles: FloatArray) -> bool:
+        if self.target_guard_m <= 0.0 or obstacles.shape[0] == 0:
+            return True
+        d = obstacles[:, : self.dim] - point[: self.dim]
+        return bool(np.min(np.einsum("ij,ij->i", d, d)) >= self.target_guard_m**2)
 
     def _near(self, points: FloatArray, pos: FloatArray) -> FloatArray:
         """Obstacle points that can matter this step (within the sensor range + a step), vectorised."""

@@ -52,6 +52,9 @@ from apf_companion.perception import (
     Pose,
     PoseHistory,
     RangeScan,
+    decode_goal_json,
+    decode_laserscan_cdr,
+    decode_scan_json,
     points_from_obstacle_distance_3d,
     scan_from_distance_sensor,
     scan_from_obstacle_distance,
@@ -62,6 +65,7 @@ from apf_companion.setpoint import SetpointKind, encode_setpoint
 from apf_companion.status import (
     NVF_GOAL_DISTANCE,
     NVF_NEAREST_OBSTACLE,
+    encode_status_json,
     severity_for,
     statustext_for,
     system_status_for,
@@ -260,6 +264,8 @@ class CompanionService:
             memory=self.memory,
             rng=np.random.default_rng(config.planner.seed),
             now_s=self.clock.now(),
+            step_m=float(self.planner.params.step_m),
+            target_guard_m=float(self.planner.params.rho_l_m) if config.planner.name.startswith("cr-") else 0.0,
         )
         self.counters = ServiceCounters()
         self.latency = _LatencyWindow()
@@ -804,11 +810,12 @@ class CompanionService:
         }
 
     def _publish_status(self, now: float) -> None:
-        from apf_companion.status import encode_status_json
-
         if self.zenoh is None or self.config.dry_run:
             return
-        self.zenoh.publish(self.config.zenoh.status_key, encode_status_json(self.status_dict(now)))
+        try:
+            self.zenoh.publish(self.config.zenoh.status_key, encode_status_json(self.status_dict(now)))
+        except LinkError:
+            log.debug("status.publish_failed", exc_info=True)
 
     # ---------------------------------------------------------------------------------------------- takeover
     async def _takeover_loop(self) -> None:
@@ -827,7 +834,7 @@ class CompanionService:
                 self.counters.mode_requests += 0
                 log.warning("takeover.failed", extra={"error": str(err)})
                 if nav.route is route:
-                    nav.suspended = False
+                    nav.resume()
                     nav.clear_route(self.clock.now(), f"takeover failed: {err}")
                     self._flush_changes(None, self.clock.now())
 
@@ -868,11 +875,11 @@ class CompanionService:
         mode_ok = lambda: self._ap_custom_mode is not None and self._mode_ok(self._ap_custom_mode)  # noqa: E731
         log.info("takeover.start", extra={"profile": cfg.profile.value, "arm": cfg.arm})
         if cfg.arm and not self._armed():
-            if ardupilot:
-                # ArduCopter takes off only in GUIDED: switch first, then arm.
-                await self._wait_for("GUIDED", mode_ok, self._set_mode_cmd, cfg.mode_timeout_s, route)
-            nav.suspended = True  # no setpoints while arming / taking off
+            nav.suspend()  # no setpoints while arming / taking off
             try:
+                if ardupilot:
+                    # ArduCopter takes off only in GUIDED: switch first, then arm.
+                    await self._wait_for("GUIDED", mode_ok, self._set_mode_cmd, cfg.mode_timeout_s, route)
                 await self._wait_for(
                     "arming",
                     self._armed,
@@ -901,7 +908,7 @@ class CompanionService:
                     )
                     log.info("takeover.airborne", extra={"down_m": target_down})
             finally:
-                nav.suspended = False
+                nav.resume()
         if not ardupilot:
             # PX4 accepts OFFBOARD only after setpoints have streamed for a while (> 1 s).
             def prestreamed() -> bool:
@@ -926,16 +933,16 @@ class CompanionService:
         zl = self.zenoh
         assert zl is not None
         zc = self.config.zenoh
-        async for key, encoding, payload in zl.samples():
+        async for sample in zl.samples():
             now = self.clock.now()
-            if key == zc.goal_key:
-                self._on_zenoh_goal(payload, now)
-            elif key == zc.sensor_key and self.config.sensors.zenoh:
-                self._on_zenoh_scan(encoding, payload, now)
+            if sample.key_expr == zc.goal_key:
+                self._on_zenoh_goal(sample.payload, now)
+            elif sample.key_expr == zc.sensor_key:
+                self._on_zenoh_scan(sample.encoding, sample.payload, now)
+            else:
+                self.counters.foreign_messages += 1
 
     def _on_zenoh_goal(self, payload: bytes, now: float) -> None:
-        from apf_companion.perception import decode_goal_json
-
         try:
             goal = decode_goal_json(payload)
         except (ProtocolError, ConfigError) as err:
@@ -946,8 +953,6 @@ class CompanionService:
         self._set_route(Route.point(float(p[0]), float(p[1]), float(p[2]), source="zenoh"), now)
 
     def _on_zenoh_scan(self, encoding: str, payload: bytes, now: float) -> None:
-        from apf_companion.perception import decode_laserscan_cdr, decode_scan_json
-
         try:
             if "cdr" in encoding:
                 scan = decode_laserscan_cdr(payload, t_s=now)
@@ -967,5 +972,16 @@ class _TakeoverFailed(ApfCompanionError):
 
 
 async def _open_zenoh(config: ServiceConfig) -> Any:
-    """Open the zenoh session (see apf_companion.links.zenoh)."""
-    raise LinkError("zenoh support is not wired yet")
+    """Open the zenoh session and subscribe: sensor topic latest-wins, goal topic FIFO (bounded)."""
+    from apf_companion.links.zenoh import Overflow, ZenohConfig, ZenohLink
+
+    zc = config.zenoh
+    link = await ZenohLink.open(ZenohConfig(mode=zc.mode, connect=zc.connect, listen=zc.listen))
+    try:
+        if config.sensors.zenoh:
+            await link.subscribe(zc.sensor_key, overflow=Overflow.LATEST_PER_KEY, capacity=4)
+        await link.subscribe(zc.goal_key, overflow=Overflow.FIFO, capacity=16)
+    except BaseException:
+        await link.aclose()
+        raise
+    return link

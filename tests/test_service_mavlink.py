@@ -220,7 +220,8 @@ async def test_nan_and_rogue_pose_during_flight_do_not_move_setpoints() -> None:
 
 async def test_frozen_pose_holds_within_one_cycle() -> None:
     route = Route.point(30.0, 0.0, -5.0, source="test")
-    cfg = fast_config(cycle={"rate_hz": 20.0, "pose_max_age_s": 0.3})
+    # Ranges may be late on a loaded machine; only the pose's limit is under test here.
+    cfg = fast_config(cycle={"rate_hz": 20.0, "pose_max_age_s": 0.3, "ranges_max_age_s": 5.0})
     async with rig(cfg, route) as (svc, ap):
         await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
         frozen_at = time.monotonic()
@@ -233,8 +234,8 @@ async def test_frozen_pose_holds_within_one_cycle() -> None:
         nav_after = [m for t, m in ap.setpoints() if frozen_at < t < holds[0][0] and m.vx != 0]
         # At most pose_max_age_s * rate_hz (+1 for the cycle in flight) steps on the frozen pose.
         assert len(nav_after) <= int(0.3 * 20) + 1
-        changes = [m.text for m in ap.of_type("STATUSTEXT") if "HOLDING" in m.text]
-        assert changes and "pose" in changes[0]
+        changes = [m.text for t, m in ap.received if t > frozen_at and m.get_type() == "STATUSTEXT"]
+        assert changes and "HOLDING" in changes[0] and "pose" in changes[0]
         ap.freeze_pose_ms = None
         await until(lambda: svc.navigator.state is State.NAVIGATING, 3.0, "navigating again")
 
@@ -320,6 +321,8 @@ async def test_dry_run_sends_nothing() -> None:
     cfg = dataclasses.replace(fast_config(), dry_run=True)
     route = Route.point(3.0, 0.0, -5.0, source="test")
     async with rig(cfg, route) as (svc, ap):
+        # Dry run plans from the pose every cycle (nothing moves the vehicle along the plan) and logs it.
         await until(lambda: svc.navigator.counters.planner_steps > 10, 10.0, "planning")
+        assert svc.navigator.last_output is not None and svc.navigator.last_output.decision == "GREEDY"
         assert not ap.received
         assert svc.counters.setpoints_sent == 0

@@ -77,7 +77,7 @@ def test_navigate_setpoint_is_one_step_with_feed_forward() -> None:
     sp = out.setpoint
     assert sp is not None and sp.kind is SetpointKind.NAVIGATE and out.decision == "GREEDY"
     assert math.isclose(math.dist(sp.pos_ned_m[:2], (0, 0)), 0.4, rel_tol=1e-9)
-    assert math.isclose(math.hypot(*sp.vel_ned_m_s[:2]), 2.0, rel_tol=1e-9)
+    assert math.isclose(math.hypot(*sp.vel_ned_m_s[:2]), ServiceConfig().cycle.cruise_speed_m_s, rel_tol=1e-9)
     assert sp.vel_ned_m_s[2] == 0.0
 
 

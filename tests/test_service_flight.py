@@ -1,0 +1,296 @@
+"""The service flying the bundled simulator over loopback (real UDP sockets, real zenoh sessions, one event loop).
+
+Every flight runs the simulator ``SPEEDUP`` times faster than real time and the service with the same
+``cycle.time_scale``, so all limits keep their meaning in simulated seconds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import socket
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+import numpy as np
+import pytest
+
+from apf_companion.autopilot import CopterMode, Px4MainMode, Px4Mode
+from apf_companion.config import ServiceConfig, config_from_mapping
+from apf_companion.goal import Route
+from apf_companion.links import MavlinkLink
+from apf_companion.navigator import State
+from apf_companion.perception import GoalCommand, encode_goal_json
+from apf_companion.service import CompanionService
+from sim.vehicle import SimConfig, Simulator, SpawnConfig, ZenohOutput
+from sim.world import World, paper_field
+
+pytestmark = pytest.mark.timeout(90)
+
+SPEEDUP = 4.0
+GOAL = (22.0, 22.0, -5.0)
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def service_config(profile: str = "ardupilot", planner: str = "cr-bapf*", **extra: dict[str, Any]) -> ServiceConfig:
+    base: dict[str, Any] = {
+        "link": {"connect": "udpin:127.0.0.1:0"},
+        "autopilot": {"profile": profile},
+        "planner": {"name": planner, "seed": 1},
+        "cycle": {
+            "rate_hz": 10.0,
+            "time_scale": SPEEDUP,
+            "pose_max_age_s": 1.0,
+            "ranges_max_age_s": 1.0,
+        },
+        "status": {"named_value_rate_hz": 1.0},
+    }
+    for key, value in extra.items():
+        base[key] = base.get(key, {}) | value
+    return config_from_mapping(base)
+
+
+@contextlib.asynccontextmanager
+async def flight(
+    world: World,
+    cfg: ServiceConfig,
+    *,
+    route: Route | None = None,
+    profile: str = "ardupilot",
+    spawn_mode: str | None = None,
+    zenoh_out: Callable[[int], ZenohOutput] | None = None,
+    sensor_messages: frozenset[str] = frozenset({"obstacle_distance"}),
+) -> AsyncIterator[tuple[CompanionService, Simulator]]:
+    """Service (udpin, free port) and simulator (udpout to it) in this loop; yields both while they run."""
+    zport = free_tcp_port()
+    if zenoh_out is not None:
+        zsec = {"enabled": True, "mode": "peer", "listen": [f"tcp/127.0.0.1:{zport}"]}
+        cfg = config_from_mapping(_as_mapping(cfg) | {"zenoh": zsec} | {"sensors": {"mavlink": False, "zenoh": True}})
+    svc = await CompanionService.open(cfg, route=route)
+    assert svc.link is not None and svc.link.local_address is not None
+    port = svc.link.local_address[1]
+    from sim.vehicle import RangeSensorConfig
+
+    sim = await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{port}"],
+            profile=profile,
+            world=world,
+            speedup=SPEEDUP,
+            seed=3,
+            spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=True, alt_m=5.0, mode=spawn_mode),
+            sensor=RangeSensorConfig(messages=sensor_messages),
+            zenoh=None if zenoh_out is None else zenoh_out(zport),
+        )
+    )
+    try:
+        async with asyncio.TaskGroup() as tg:
+            task = tg.create_task(svc.run())
+            try:
+                yield svc, sim
+            finally:
+                svc.stop()
+                await task
+    finally:
+        await sim.aclose()
+
+
+def _as_mapping(cfg: ServiceConfig) -> dict[str, Any]:
+    """The config back as a TOML-like mapping (to add sections in a test)."""
+    out: dict[str, Any] = {}
+    for section in ("link", "autopilot", "planner", "cycle", "status"):
+        obj = getattr(cfg, section)
+        table = {}
+        for name in obj.__dataclass_fields__:
+            v = getattr(obj, name)
+            table[name] = v.value if hasattr(v, "value") else list(v) if isinstance(v, tuple) else v
+        if section == "planner":
+            table["params"] = dict(cfg.planner.params)
+        out[section] = table
+    return out
+
+
+async def wait_state(svc: CompanionService, states: set[State], timeout_s: float) -> State:
+    async with asyncio.timeout(timeout_s):
+        while svc.navigator.state not in states:
+            await asyncio.sleep(0.02)
+    return svc.navigator.state
+
+
+def sparse_world(seed: int, n: int = 12) -> World:
+    return paper_field("reference", n, np.random.default_rng(seed))
+
+
+@pytest.mark.parametrize(
+    ("planner", "seed"),
+    [("capf", 0), ("bapf", 0), ("a-bapf", 0), ("cr-bapf", 0), ("cr-bapf*", 0), ("cr-bapf*", 5)],
+)
+async def test_each_planner_flies_a_seeded_world(planner: str, seed: int) -> None:
+    world = sparse_world(seed)
+    cfg = service_config(planner=planner)
+    async with flight(world, cfg, route=Route.point(*GOAL, source="test"), spawn_mode="LOITER") as (svc, sim):
+        state = await wait_state(svc, {State.ARRIVED, State.STUCK}, 60.0)
+        res = sim.result()
+    assert state is State.ARRIVED, svc.result()
+    assert not res["collided"]
+    assert math.dist(res["final_pos_ned_m"][:2], GOAL[:2]) <= 0.7 + 0.3
+    assert res["min_clearance_m"] is None or res["min_clearance_m"] > 0.0
+    assert svc.navigator.counters.planner_steps > 40  # ~27 m in 0.4 m steps
+
+
+async def test_ardupilot_takeover_confirmed_from_heartbeat() -> None:
+    cfg = service_config()
+    async with flight(World.empty(), cfg, route=Route.point(8.0, 3.0, -5.0, source="t"), spawn_mode="LOITER") as (
+        svc,
+        sim,
+    ):
+        assert sim.vehicle.mode == "LOITER"
+        await wait_state(svc, {State.ARRIVED}, 30.0)
+        assert sim.vehicle.custom_mode == CopterMode.GUIDED
+        assert svc.navigator.engaged and svc.counters.mode_requests >= 1
+
+
+async def test_px4_offboard_after_prestream() -> None:
+    cfg = service_config(profile="px4")
+    async with flight(World.empty(), cfg, route=Route.point(8.0, 3.0, -5.0, source="t"), profile="px4") as (
+        svc,
+        sim,
+    ):
+        await wait_state(svc, {State.ARRIVED}, 30.0)
+        assert Px4Mode.from_custom_mode(sim.vehicle.custom_mode).main == Px4MainMode.OFFBOARD
+        texts = [t for _, _, t in sim.result()["statustexts"]]
+        assert not any("rejected" in t.lower() for t in texts), texts
+        assert svc.counters.mode_requests >= 1
+        # The switch was requested only after >= 1 s (simulated) of streamed setpoints.
+        assert svc._prestream_since is not None
+
+
+async def test_arm_and_takeoff_from_the_ground_when_asked() -> None:
+    cfg = service_config(autopilot={"arm": True, "takeoff_alt_m": 4.0})
+    async with _ground_flight(cfg, Route.point(6.0, 3.0, None, source="t")) as (svc, sim):
+        assert not sim.vehicle.armed and sim.vehicle.on_ground
+        await wait_state(svc, {State.ARRIVED}, 45.0)
+        assert sim.vehicle.armed and not sim.vehicle.on_ground
+        assert -sim.vehicle.pos_ned_m[2] > 3.0
+        assert sim.vehicle.custom_mode == CopterMode.GUIDED
+
+
+@contextlib.asynccontextmanager
+async def _ground_flight(cfg: ServiceConfig, route: Route) -> AsyncIterator[tuple[CompanionService, Simulator]]:
+    svc = await CompanionService.open(cfg, route=route)
+    assert svc.link is not None and svc.link.local_address is not None
+    sim = await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{svc.link.local_address[1]}"],
+            profile="ardupilot",
+            speedup=SPEEDUP,
+            spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=False),
+        )
+    )
+    try:
+        async with asyncio.TaskGroup() as tg:
+            task = tg.create_task(svc.run())
+            try:
+                yield svc, sim
+            finally:
+                svc.stop()
+                await task
+    finally:
+        await sim.aclose()
+
+
+async def test_not_armed_by_default() -> None:
+    cfg = service_config()
+    async with _ground_flight(cfg, Route.point(6.0, 3.0, None, source="t")) as (svc, sim):
+        await asyncio.sleep(1.5)
+        assert not sim.vehicle.armed and sim.vehicle.on_ground
+        assert svc.navigator.state is State.NAVIGATING  # it has a goal; it just never arms on its own
+
+
+@pytest.mark.parametrize("encoding", ["json", "cdr"])
+async def test_ranges_over_zenoh_instead_of_mavlink(encoding: str) -> None:
+    # The sim publishes its scans only on zenoh (no range message on MAVLink): the service must see the
+    # obstacles there, or it would stay in HOLDING (no fresh ranges) and never fly.
+    world = sparse_world(0)
+    cfg = service_config()
+    async with flight(
+        world,
+        cfg,
+        route=Route.point(*GOAL, source="t"),
+        spawn_mode="LOITER",
+        zenoh_out=lambda port: ZenohOutput(connect=(f"tcp/127.0.0.1:{port}",), encoding=encoding),
+        sensor_messages=frozenset(),
+    ) as (svc, sim):
+        state = await wait_state(svc, {State.ARRIVED, State.STUCK}, 60.0)
+        res = sim.result()
+        remembered = svc.memory.points(svc.clock.now())
+    assert state is State.ARRIVED
+    assert not res["collided"]
+    assert svc.counters.scans > 10 and svc.counters.bad_scans == 0
+    # The remembered points lie on real obstacles: off by the 5-degree sector quantisation (<= 0.35 m at 8 m)
+    # plus the motion between measurement and placement (zenoh scans carry no boot time: stamped on receipt,
+    # and at SPEEDUP x a few ms of wall latency are a few cm more).
+    assert remembered.shape[0] > 0
+    d = np.hypot(*(remembered[:, None, :2] - world.circles_ne_m[None, :, :]).transpose(2, 0, 1))
+    err = np.min(d, axis=1)
+    assert np.median(err) < 0.3 and np.max(err) < 0.8, err
+
+
+async def test_goal_changed_mid_flight_by_zenoh() -> None:
+    cfg = service_config()
+    zport = free_tcp_port()
+    cfg = config_from_mapping(_as_mapping(cfg) | {"zenoh": {"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"]}})
+    from apf_companion.links.zenoh import ZenohConfig, ZenohLink
+
+    async with (
+        flight(World.empty(), cfg, route=Route.point(20.0, 3.0, -5.0, source="t"), spawn_mode="LOITER") as (
+            svc,
+            sim,
+        ),
+        await ZenohLink.open(ZenohConfig(connect=(f"tcp/127.0.0.1:{zport}",))) as zl,
+    ):
+        status_sub = await zl.subscribe("apf/status")
+        async with asyncio.timeout(20):
+            while svc.navigator.counters.planner_steps < 10:
+                await asyncio.sleep(0.02)
+        goal = GoalCommand(pos_ned_m=np.array([3.0, 12.0, -6.0]))
+        async with asyncio.timeout(10):
+            while svc.navigator.route is None or svc.navigator.route.source != "zenoh":
+                zl.publish("apf/cmd/goal", encode_goal_json(goal))
+                await asyncio.sleep(0.2)
+        await wait_state(svc, {State.ARRIVED}, 40.0)
+        sample = await status_sub.recv(timeout=5.0)
+        import json
+
+        status = json.loads(sample.payload)
+        assert status["schema"] == "apf.status/1"
+        assert status["state"] in {s.value for s in State}
+        assert {"pose", "goal", "nearest_obstacle_m", "loop_latency_ms"} <= set(status)
+    assert math.dist(sim.result()["final_pos_ned_m"][:2], (3.0, 12.0)) <= 1.0
+
+
+async def test_goal_changed_mid_flight_by_do_reposition() -> None:
+    cfg = service_config()
+    async with flight(World.empty(), cfg, route=Route.point(20.0, 3.0, -5.0, source="t"), spawn_mode="LOITER") as (
+        svc,
+        sim,
+    ):
+        async with asyncio.timeout(20):
+            while svc.navigator.counters.planner_steps < 10:
+                await asyncio.sleep(0.02)
+        port = svc.link.local_address[1]  # type: ignore[union-attr,index]
+        gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+        try:
+            gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, 30000, 120000, -5.0))
+            ack = await gcs.recv_match(type="COMMAND_ACK", timeout=5.0)
+            assert ack.command == 192 and ack.result == 0
+        finally:
+            await gcs.aclose()
+        await wait_state(svc, {State.ARRIVED}, 40.0)
+    assert math.dist(sim.result()["final_pos_ned_m"][:2], (3.0, 12.0)) <= 1.0
