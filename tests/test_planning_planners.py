@@ -416,3 +416,84 @@ def test_3d_planners_reach_the_goal(name: str, preset: str) -> None:
     reached, closest = fly(planner, start, target, obstacle[None])
     assert reached
     assert closest >= (0.4 if name.startswith("cr") else 0.25)
+
+
+@pytest.mark.parametrize("search", list(AbapfSearch))
+@pytest.mark.parametrize("preset", ["paper", "reference"])
+def test_a_bapf_paper_rule_decisions_equal_a_full_search(search: AbapfSearch, preset: str) -> None:
+    """The paper rule searches mu_o,k only near ties; a brute-force scan of every point must agree."""
+    params = getattr(PlannerParams, preset)(abapf_rule=AbapfRule.PAPER, abapf_search=search, n_bacteria=24)
+    planner = get_planner("a-bapf", params)
+    rng = np.random.default_rng(21)
+    mus = np.arange(params.mu_min, params.mu_max + 1, dtype=np.float64)
+    mp = mpmath.mpf
+    checked = 0
+    for i in range(25):
+        position, target, obstacles = random_case(rng, 2, far=i % 3 == 0)
+        if len(obstacles) == 0:
+            continue
+        d = planner.step(position, target, obstacles)
+        points = position + planner.bacteria_offsets_m
+        verdicts = []
+        keys = []
+        for b in points:
+            rho = np.sum((obstacles - b) ** 2, axis=1)
+            log_rep = np.logaddexp.reduce(np.log(params.alpha_o) - mus[:, None] * rho[None, :], axis=1)
+            log_jt = np.log(params.alpha_t) - params.mu_t_per_m2 * np.sum((b - target) ** 2)
+            ok = log_rep <= log_jt - 53 * np.log(2)
+            mu_hat = mus[np.argmax(ok)] if ok.any() else float(params.mu_max)
+            # Eq. (15) in exact arithmetic with that mu_o,k.
+            jt_r = mp(params.alpha_t) * mpmath.exp(
+                -mp(params.mu_t_per_m2) * mp(float(np.sum((position - target) ** 2)))
+            )
+            jt_b = mp(params.alpha_t) * mpmath.exp(-mp(params.mu_t_per_m2) * mp(float(np.sum((b - target) ** 2))))
+            rep_b = mpmath.fsum(mp(params.alpha_o) * mpmath.exp(-mp(mu_hat) * mp(float(r))) for r in rho)
+            rho_a = np.sum((obstacles - position) ** 2, axis=1)
+            rep_a = (
+                mpmath.fsum(mp(params.alpha_o) * mpmath.exp(-mp(params.mu_o_per_m2) * mp(float(r))) for r in rho_a)
+                if params.agent_repulsion
+                else mp(0)
+            )
+            lhs, rhs = jt_r + rep_b, jt_b + rep_a
+            verdicts.append(None if abs(lhs - rhs) <= mp("1e-12") * max(lhs, rhs) else bool(lhs < rhs))
+            keys.append((float(np.sum((b - target) ** 2)), mu_hat))
+        order = sorted(range(len(points)), key=lambda k: (keys[k][0], k))
+        first_unknown = next((j for j, k in enumerate(order) if verdicts[k] is None), len(order))
+        first_pass = next((j for j, k in enumerate(order) if verdicts[k]), len(order))
+        if first_unknown < first_pass:
+            continue
+        if first_pass < len(order):
+            k = order[first_pass]
+            assert d.chosen_index == k and d.mu_o_k == keys[k][1]
+            assert d.n_passing == sum(1 for v in verdicts if v)
+        else:
+            assert d.reason is DecisionReason.LOCAL_MINIMUM
+        checked += 1
+    assert checked >= 15
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    dist_sq=hnp.arrays(
+        np.float64,
+        st.tuples(st.integers(1, 6), st.integers(1, 4)),
+        elements=st.one_of(st.just(0.0), st.floats(1e-6, 30.0)),
+    ),
+    threshold=st.floats(-3000.0, 5.0),
+    mu_range=st.sampled_from([(1, 1000), (1, 1), (5, 60), (300, 301)]),
+)
+def test_mu_searches_equal_a_scan_of_the_grid(dist_sq: FloatArray, threshold: float, mu_range: tuple[int, int]) -> None:
+    from apf_companion.planning.abapf import golden_section_mu, grid_first_mu
+
+    mu_min, mu_max = mu_range
+    thresholds = np.full(dist_sq.shape[1], threshold)
+    mus = np.arange(mu_min, mu_max + 1, dtype=np.float64)
+    log_rep = np.logaddexp.reduce(-mus[:, None, None] * dist_sq[None], axis=1)  # (grid, M), alpha_o = 1
+    ok = log_rep <= thresholds[None]
+    expected = np.where(ok.any(axis=0), mus[np.argmax(ok, axis=0)], float(mu_max))
+    got = grid_first_mu(dist_sq, thresholds, alpha_o=1.0, mu_min=mu_min, mu_max=mu_max)
+    golden = golden_section_mu(dist_sq, thresholds, alpha_o=1.0, mu_min=mu_min, mu_max=mu_max)
+    # Skip the measure-zero case of a grid point exactly at the threshold (float ties between the two forms).
+    near = np.min(np.abs(log_rep - thresholds[None]), axis=0) < 1e-9
+    np.testing.assert_array_equal(got[~near], expected[~near])
+    np.testing.assert_array_equal(golden[~near], expected[~near])

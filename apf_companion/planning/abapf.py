@@ -20,6 +20,11 @@ The predicate is monotone in mu, so GRID finds the first grid point by bisection
 same answer as scanning all of it, in about 10 evaluations) and GOLDEN by golden-section search with ties
 broken to the left on max(log J_o(mu), threshold), finished on the integer grid.
 
+The paper rule's move test needs mu_o,k only near a tie: when the threshold is reachable, 0 < J_o(mu_o,k) <=
+2^-53 |J_t(r_b,k)|, so Eq. (15) holds for sure if |J_t(r)| + 2^-53 |J_t(r_b,k)| < |J_t(r_b,k)| + J_o(r) and fails
+for sure if |J_t(r)| >= |J_t(r_b,k)| + J_o(r). The search runs only for points between the two (rare) and for
+each agent's chosen point (its mu_o,k is reported); the result is the same as searching every point.
+
 In both rules the move test is Eq. (15) with J_a(r) of Eq. (4) at the fixed mu_o.
 """
 
@@ -31,6 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.planning.bacteria import _INV_PHI, _LOG_HALF_ULP, BacteriaPlanner
+from apf_companion.planning.decision import filled
 from apf_companion.planning.params import AbapfRule, AbapfSearch
 from apf_companion.planning.potentials import log_sum_exp
 
@@ -54,21 +60,43 @@ def grid_first_mu(
 ) -> FloatArray:
     """Smallest integer mu in [mu_min, mu_max] with log J_o(mu) <= threshold (mu_max if none), by bisection.
 
-    log J_o is non-increasing in mu, so the predicate is monotone and bisection over the integer grid returns
-    exactly the first grid point that satisfies it.
+    ``dist_sq_points_m2`` (N, M) finite, ``threshold_log`` (M,). log J_o is non-increasing in mu, so the
+    predicate is monotone and bisection over the integer grid returns exactly the first grid point that
+    satisfies it. The bracket starts from alpha_o e^(-mu rho_min) <= J_o(mu) <= N alpha_o e^(-mu rho_min), and
+    both ends are checked, so rounding in the bracket can cost an iteration but never the answer.
     """
-    shape = threshold_log.shape
-    lo = np.full(shape, mu_min - 1, dtype=np.int64)  # predicate false (sentinel below the grid)
-    hi = np.full(shape, mu_max, dtype=np.int64)  # answer, or mu_max when no grid point satisfies it
+    log_alpha = math.log(alpha_o)
+
+    def satisfied(mu: npt.NDArray[np.int64]) -> BoolArray:
+        terms = log_alpha - mu.astype(np.float64)[None] * dist_sq_points_m2
+        peak = np.maximum.reduce(terms, axis=0)
+        terms -= peak
+        np.exp(terms, out=terms)
+        return np.asarray(peak + np.log(np.add.reduce(terms, axis=0)) <= threshold_log)
+
+    rho_min = np.minimum.reduce(dist_sq_points_m2, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lo_f = np.floor((log_alpha - threshold_log) / rho_min) - 2.0
+        hi_f = np.ceil((log_alpha + math.log(dist_sq_points_m2.shape[0]) - threshold_log) / rho_min) + 2.0
+    lo_f = np.nan_to_num(lo_f, nan=mu_min - 1.0, posinf=mu_max - 1.0, neginf=mu_min - 1.0)
+    lo = np.clip(lo_f, mu_min - 1, mu_max - 1).astype(np.int64)  # predicate false here (or below the grid)
+    hi_f = np.nan_to_num(hi_f, nan=float(mu_max), posinf=float(mu_max), neginf=float(mu_min))
+    hi = np.clip(hi_f, lo + 1, mu_max).astype(np.int64)  # predicate true here, or mu_max (the fallback)
+    check = lo >= mu_min
+    if check.any():
+        lo = np.where(check & satisfied(np.maximum(lo, mu_min)), mu_min - 1, lo)
+    check = hi < mu_max
+    if check.any():
+        hi = np.where(check & ~satisfied(hi), mu_max, hi)
     while True:
         open_ = hi - lo > 1
         if not open_.any():
             break
         mid = (lo + hi) // 2
-        ok = log_total_repulsion(dist_sq_points_m2, mid.astype(np.float64), alpha_o=alpha_o) <= threshold_log
+        ok = satisfied(mid)
         hi = np.where(open_ & ok, mid, hi)
         lo = np.where(open_ & ~ok, mid, lo)
-    return hi.astype(np.float64)
+    return np.asarray(hi, dtype=np.float64)
 
 
 def golden_section_mu(
@@ -134,3 +162,55 @@ class AbapfPlanner(BacteriaPlanner):
         if p.abapf_search is AbapfSearch.GRID:
             return grid_first_mu(dist_sq_points_m2, threshold, alpha_o=p.alpha_o, mu_min=p.mu_min, mu_max=p.mu_max)
         return golden_section_mu(dist_sq_points_m2, threshold, alpha_o=p.alpha_o, mu_min=p.mu_min, mu_max=p.mu_max)
+
+    def _search(self, dist_sq_m2: FloatArray, threshold_log: FloatArray) -> FloatArray:
+        """Paper-rule mu_o,k for M points: ``dist_sq_m2`` (N, M), ``threshold_log`` (M,)."""
+        p = self.params
+        if p.abapf_search is AbapfSearch.GRID:
+            return grid_first_mu(dist_sq_m2, threshold_log, alpha_o=p.alpha_o, mu_min=p.mu_min, mu_max=p.mu_max)
+        return golden_section_mu(dist_sq_m2, threshold_log, alpha_o=p.alpha_o, mu_min=p.mu_min, mu_max=p.mu_max)
+
+    def _adaptive_decision(
+        self, dist_sq_m2: FloatArray, log_target_agent: FloatArray, gain: FloatArray
+    ) -> tuple[BoolArray, BoolArray | None, FloatArray] | None:
+        """The paper rule, searching mu_o,k only where it can matter (module Notes)."""
+        p = self.params
+        if p.abapf_rule is not AbapfRule.PAPER:
+            return None
+        n_agents, n_points = gain.shape
+        points = dist_sq_m2[:, :, :n_points]
+        target_gain = p.mu_t_per_m2 * gain  # log |J_t(r_b,k)| - log |J_t(r)|
+        threshold = (log_target_agent[:, None] + target_gain) + _LOG_HALF_ULP  # (A', K), absolute logs
+        at_mu_max = log_total_repulsion(points, filled(1, float(p.mu_max), np.float64), alpha_o=p.alpha_o)
+        reachable = at_mu_max <= threshold
+
+        # Both sides shifted by a = log |J_t(r)|, as in the generic path.
+        shift = log_target_agent[:, None]
+        rhs = target_gain
+        if p.agent_repulsion:
+            agent = log_sum_exp(math.log(p.alpha_o) - p.mu_o_per_m2 * dist_sq_m2[:, :, n_points], axis=0)
+            rhs = np.logaddexp((agent - log_target_agent)[:, None], target_gain)
+        passing = np.where(
+            reachable,
+            np.logaddexp(0.0, threshold - shift) < rhs,  # sure pass (see Notes)
+            np.logaddexp(0.0, at_mu_max - shift) < rhs,  # not reachable: mu_o,k = mu_max, exact
+        )
+        mu = np.full((n_agents, n_points), np.nan)
+        mu[~reachable] = float(p.mu_max)
+        band = reachable & ~passing & (rhs > 0.0)  # neither sure pass nor sure fail
+        if band.any():
+            rows, cols = np.nonzero(band)
+            mu_band = self._search(points[:, rows, cols], threshold[rows, cols])
+            lhs = np.logaddexp(
+                0.0, log_total_repulsion(points[:, rows, cols], mu_band, alpha_o=p.alpha_o) - shift[rows, 0]
+            )
+            passing[rows, cols] = lhs < rhs[rows, cols]
+            mu[rows, cols] = mu_band
+        # The chosen point of each agent (first passing in order) reports its mu_o,k.
+        chosen = np.where(passing, gain, -np.inf).argmax(axis=1)
+        agents = np.arange(n_agents)
+        need = np.flatnonzero(passing[agents, chosen] & np.isnan(mu[agents, chosen]))
+        if need.size:
+            cols = chosen[need]
+            mu[need, cols] = self._search(points[:, need, cols], threshold[need, cols])
+        return passing, None, mu

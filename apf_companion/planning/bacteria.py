@@ -110,6 +110,12 @@ class BacteriaPlanner(Planner):
         """Lower bound of the mu_o used at the points (for the negligibility filter)."""
         return self.params.mu_o_per_m2
 
+    def _adaptive_decision(
+        self, dist_sq_m2: FloatArray, log_target_agent: FloatArray, gain: FloatArray
+    ) -> tuple[BoolArray, BoolArray | None, FloatArray] | None:
+        """A-BAPF may decide a group itself from the (N', A', K + 1) squared distances; None: the generic path."""
+        return None
+
     # --- engine -------------------------------------------------------------------------------------
 
     def _reach_sq(self, log_target_agent: FloatArray) -> FloatArray:
@@ -233,6 +239,10 @@ class BacteriaPlanner(Planner):
             diff *= diff
             dist_sq += diff
 
+        if self.adaptive:
+            shortcut = self._adaptive_decision(dist_sq, log_target_agent, gain)
+            if shortcut is not None:
+                return shortcut
         shift = (self._log_alpha_o - log_target_agent)[None, :, None]
         mu: FloatArray | float = p.mu_o_per_m2
         if self.adaptive:

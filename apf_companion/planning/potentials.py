@@ -141,21 +141,19 @@ def log_sum_exp(log_terms: ArrayLike, axis: int = -1, *, extra: ArrayLike | None
     term per output, e.g. the target term of one side of Eq. (6).
     """
     x = np.asarray(log_terms, dtype=np.float64)
-    x = np.moveaxis(x, axis, -1)
-    out = np.full(x.shape[:-1], -np.inf) if x.shape[-1] == 0 else _lse_last(x)
+    if x.shape[axis] == 0:
+        out = np.full(np.delete(np.array(x.shape), axis).tolist(), -np.inf)
+    else:
+        peak = np.maximum.reduce(x, axis=axis, keepdims=True)
+        finite = np.isfinite(peak)
+        safe_peak = np.where(finite, peak, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            total = np.add.reduce(np.exp(x - safe_peak), axis=axis, keepdims=True)
+            out = np.where(finite, safe_peak + np.log(total), peak)
+        out = np.squeeze(out, axis=axis)
     if extra is not None:
         out = np.logaddexp(out, np.asarray(extra, dtype=np.float64))
     return np.asarray(out, dtype=np.float64)
-
-
-def _lse_last(x: FloatArray) -> FloatArray:
-    """log-sum-exp over the last (non-empty) axis; +inf wins, all -inf gives -inf."""
-    peak = np.max(x, axis=-1)
-    finite_peak = np.where(np.isfinite(peak), peak, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        total = np.sum(np.exp(x - finite_peak[..., None]), axis=-1)
-        out = finite_peak + np.log(total)
-    return np.asarray(np.where(np.isfinite(peak), out, peak), dtype=np.float64)
 
 
 def moves_downhill(
