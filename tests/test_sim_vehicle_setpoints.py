@@ -287,12 +287,11 @@ async def test_px4_offboard_loss_failsafe() -> None:
 async def test_px4_spawn_in_offboard_needs_the_stream_at_once() -> None:
     spawn = SpawnConfig(airborne=True, mode="OFFBOARD")
     async with simulator_with_client(profile="px4", spawn=spawn, speedup=10.0) as (sim, gcs):
-        assert (await gcs.recv_match(type="HEARTBEAT", timeout=2.0)).custom_mode in (
-            PX4_OFFBOARD.to_custom_mode(),
-            PX4_HOLD.to_custom_mode(),
-        )
-        await texts_until(gcs, "Failsafe")  # nobody streams: the spawn's grace ends within COM_OF_LOSS_T
+        # nobody streams: the spawn's pretend stream ended at t = -0.1 s, so the failsafe fires at t = 0.9 s
+        await texts_until(gcs, "Failsafe")
         assert sim.vehicle.mode == "AUTO.LOITER"
+        t_fs = next(s.t_s for s in sim.engine.statustexts if s.text.startswith("Failsafe"))
+        assert t_fs == pytest.approx(0.9, abs=2 * sim.engine.dt)
 
 
 async def test_px4_offboard_takes_off_from_the_ground() -> None:
