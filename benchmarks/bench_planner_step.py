@@ -1,6 +1,6 @@
 """Planner step time: median and p99 of one ``step`` for every planner, 30 and 95 obstacles, 2D and 3D.
 
-Run: ``python benchmarks/bench_planner_step.py [--repeats N] [--batch]``. Prints a markdown table and the machine.
+Run: ``python benchmarks/bench_planner_step.py [--rounds N] [--batch]``. Prints a markdown table and the machine.
 
 Scenario: the agent in the middle of the paper's 30 m field, target (22, 22) or (22, 22, 10), obstacles drawn
 uniformly within the 8 m sensor range (all "detected"). 200 different scenes are cycled so the numbers cover
@@ -8,9 +8,9 @@ near-obstacle and open-field steps alike. ``--batch`` also times ``step_batch`` 
 engine's lockstep call) and prints the time per agent-step.
 
 Columns: median and p99 over all timed steps (wall clock, ``time.perf_counter``); "quiet median" is the median
-over scenes of the best of 5 back-to-back steps on the same scene, an estimate that holds up on a shared,
-loaded machine. The header records the load average and the time of a reference numpy op (``a + a`` on 60
-floats) so runs on different machines or loads can be compared.
+over scenes of each scene's best round, an estimate that holds up on a shared, loaded machine. The planners
+are interleaved scene by scene, so load bursts hit them alike. The header records the load average and the
+time of a reference numpy op (``a + a`` on 60 floats) so runs on different machines or loads can be compared.
 """
 
 from __future__ import annotations
@@ -46,33 +46,27 @@ def scenes(n_scenes: int, n_obstacles: int, dim: int, seed: int) -> list[tuple[F
     return out
 
 
-def time_step(name: str, dim: int, n_obstacles: int, repeats: int) -> tuple[float, float, float]:
-    """Median, p99 and quiet median (median over scenes of the best of 5) of one ``step`` [us]."""
-    planner = get_planner(name, PlannerParams(dim=dim))
+def time_steps(dim: int, n_obstacles: int, rounds: int) -> dict[str, FloatArray]:
+    """Seconds per ``step``, shape (rounds, scenes), for every planner.
+
+    The planners are interleaved scene by scene within each round, so load bursts on a shared machine hit all
+    of them alike.
+    """
+    planners = {name: get_planner(name, PlannerParams(dim=dim)) for name in PLANNER_NAMES}
     cases = scenes(200, n_obstacles, dim, seed=n_obstacles * 10 + dim)
     rng = np.random.default_rng(0)
-    for position, target, obstacles in cases[:20]:  # warm-up
-        planner.step(position, target, obstacles, rng)
-    samples = np.empty(repeats)
+    out = {name: np.empty((rounds, len(cases))) for name in PLANNER_NAMES}
     clock = time.perf_counter
-    for i in range(repeats):
-        position, target, obstacles = cases[i % len(cases)]
-        t0 = clock()
-        planner.step(position, target, obstacles, rng)
-        samples[i] = clock() - t0
-    best = []
-    for position, target, obstacles in cases:
-        runs = []
-        for _ in range(5):
-            t0 = clock()
+    for planner in planners.values():  # warm-up
+        for position, target, obstacles in cases[:20]:
             planner.step(position, target, obstacles, rng)
-            runs.append(clock() - t0)
-        best.append(min(runs))
-    return (
-        float(np.median(samples) * 1e6),
-        float(np.percentile(samples, 99) * 1e6),
-        float(np.median(best) * 1e6),
-    )
+    for r in range(rounds):
+        for i, (position, target, obstacles) in enumerate(cases):
+            for name, planner in planners.items():
+                t0 = clock()
+                planner.step(position, target, obstacles, rng)
+                out[name][r, i] = clock() - t0
+    return out
 
 
 def reference_op_ns() -> float:
@@ -128,19 +122,22 @@ def machine() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--repeats", type=int, default=3000, help="timed steps per cell (default 3000)")
+    parser.add_argument("--rounds", type=int, default=15, help="rounds over the 200 scenes (default 15)")
     parser.add_argument("--batch", action="store_true", help="also time step_batch with A = 4000")
     args = parser.parse_args(argv)
 
     print(f"machine: {machine()}")
     print(f"before: {load_line()}")
-    print(f"params: PlannerParams() defaults (paper Table I), N_b = 60, repeats = {args.repeats}\n")
+    print(f"params: PlannerParams() defaults (paper Table I), N_b = 60, {args.rounds} rounds x 200 scenes\n")
     print("| planner | dim | obstacles | median (us) | p99 (us) | quiet median (us) |")
     print("|---|---|---|---|---|---|")
     for dim in (2, 3):
         for n_obstacles in (30, 95):
+            samples = time_steps(dim, n_obstacles, args.rounds)
             for name in PLANNER_NAMES:
-                median, p99, quiet = time_step(name, dim, n_obstacles, args.repeats)
+                s_us = samples[name] * 1e6
+                median, p99 = np.median(s_us), np.percentile(s_us, 99)
+                quiet = np.median(s_us.min(axis=0))  # per scene, the best round
                 print(f"| {name} | {dim}D | {n_obstacles} | {median:.1f} | {p99:.1f} | {quiet:.1f} |")
                 sys.stdout.flush()
     if args.batch:
