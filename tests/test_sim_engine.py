@@ -219,6 +219,7 @@ async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
     port = free_port(socket.SOCK_DGRAM)
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "sim.vehicle.cli", "vehicle", "--world", "corridor", "--duration", "3",
+        "--actuation-noise", "0.1",
         "--speedup", "inf", "--link", f"udpout:127.0.0.1:{port}", "--result-json", str(result),
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
@@ -227,6 +228,7 @@ async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
     assert proc.returncode == 0, err.decode()
     res = json.loads(result.read_text())
     assert res["sim_time_s"] >= 3.0 and res["on_ground"] and res["speedup"] is None
+    assert res["params"]["SIM_POS_NOISE"] == 0.1 and res["params"]["GUID_TIMEOUT"] == 3.0
     bad = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "sim.vehicle.cli", "vehicle", "--param", "GUID_TIMEOUT=99", "--duration", "1",
         "--link", f"udpout:127.0.0.1:{port}",

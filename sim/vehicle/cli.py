@@ -49,6 +49,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     v.add_argument("--duration", type=float, help="stop after this many simulated seconds")
     v.add_argument("--exit-on-crash", action="store_true", help="stop when the vehicle crashes")
     v.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="parameter override")
+    v.add_argument(
+        "--actuation-noise",
+        type=float,
+        metavar="SD",
+        help="horizontal actuation noise SD per 0.1 s [m] (SIM_POS_NOISE; the paper's is 0.1)",
+    )
     v.add_argument("--airborne", action="store_true", help="start flying (armed, hovering) instead of landed")
     v.add_argument("--alt", type=float, default=5.0, help="hover height for --airborne [m]")
     v.add_argument("--start", type=_pair, metavar="N,E", help="start north,east [m] (default: world start)")
@@ -182,7 +188,7 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         spawn=SpawnConfig(
             pos_ne_m=args.start, yaw_deg=args.yaw, airborne=args.airborne, alt_m=args.alt, mode=args.mode
         ),
-        params=_params(args.param),
+        params=_params(args.param) | ({} if args.actuation_noise is None else {"SIM_POS_NOISE": args.actuation_noise}),
         sensor=_sensor_cfg(args),
         home=home,
         physics_rate_hz=args.physics_rate,

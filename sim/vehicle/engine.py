@@ -1193,6 +1193,7 @@ class VehicleEngine:
             "trajectory_t_s": list(self.trajectory_t_s),
             "trajectory_ned_m": [list(p) for p in self.trajectory_ned_m],
             "statustexts": [[s.t_s, s.severity, s.text] for s in self.statustexts],
+            "params": dict(self.params.items()),
             "world": self.world.describe(),
         }
 
