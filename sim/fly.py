@@ -1,0 +1,430 @@
+"""apf-sim fly: one SITL-style flight of the companion service against the bundled simulator, in one command.
+
+Two processes on loopback, as on a real vehicle: the simulated autopilot (``apf-sim vehicle``) and the companion
+service (``apf-companion run``), which finds the simulator on a free UDP port. This command watches the flight
+on a third MAVLink link (as a ground station would), shows progress, and when the flight ends prints the outcome,
+path length, minimum clearance and flight time, and writes a trajectory plot, both .tlogs and the results to
+``--out``. ``--json PATH`` writes the outcome record::
+
+    {"outcome": "arrived" | "collision" | "stuck" | "timeout" | "error", "steps": int,
+     "min_clearance_m": float | null, "path_length_m": float, "sim_time_s": float, "flight_time_s": float,
+     "planner": str, "profile": str, "world": str, "seed": int, "wall_time_s": float, ...}
+
+The paper's scenario by default: take off at (3, 3), fly to (22, 22) at 5 m through a random field of point
+obstacles (``--preset reference`` draws them in [5, 20]^2, ``paper`` in [0, 30]^2; ``--obstacles N`` or a
+density low/mid/high), or any world file with ``--world``.
+
+Time: the simulator runs ``--speedup`` times faster than real time and the service gets the same
+``cycle.time_scale``, so its 10 Hz cycle, 0.5 s staleness limits and 3 s heartbeat timeout stay in simulated
+seconds (100 Hz, 50 ms and 0.3 s of wall time at the default speed-up of 10).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import math
+import os
+import signal
+import socket
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from apf_companion.errors import ApfCompanionError, LinkTimeout
+from apf_companion.links import MavlinkLink
+
+__all__ = ["FlyOptions", "fly", "register"]
+
+OUTCOMES = ("arrived", "collision", "stuck", "timeout", "error")
+PAPER_START = (3.0, 3.0)
+PAPER_GOAL = (22.0, 22.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FlyOptions:
+    """One flight (the CLI flags of ``apf-sim fly``)."""
+
+    planner: str = "cr-bapf*"
+    profile: str = "ardupilot"
+    seed: int = 0
+    preset: str = "reference"
+    obstacles: str = "mid"
+    world: str | None = None
+    start_ne_m: tuple[float, float] = PAPER_START
+    goal_ne_m: tuple[float, float] = PAPER_GOAL
+    alt_m: float = 5.0
+    speedup: float = 10.0
+    rate_hz: float = 10.0
+    max_flight_s: float = 300.0
+    noise_m: float = 0.0
+    out: Path = Path("fly-out")
+    json_path: Path | None = None
+    plot: bool = True
+    progress: bool = True
+    service_args: tuple[str, ...] = field(default_factory=tuple)
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _service_toml(opt: FlyOptions, port: int, tlog: Path) -> str:
+    north, east = opt.goal_ne_m
+    return f"""# written by apf-sim fly
+exit_when_done = true
+max_flight_s = {opt.max_flight_s}
+
+[link]
+connect = "udpin:127.0.0.1:{port}"
+tlog = "{tlog}"
+
+[autopilot]
+profile = "{opt.profile}"
+arm = true
+takeoff_alt_m = {opt.alt_m}
+
+[planner]
+name = "{opt.planner}"
+seed = {opt.seed}
+
+[cycle]
+rate_hz = {opt.rate_hz}
+time_scale = {opt.speedup}
+
+[goal]
+north_m = {north}
+east_m = {east}
+down_m = {-opt.alt_m}
+"""
+
+
+def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
+    argv = [
+        sys.executable,
+        "-m",
+        "sim",
+        "--log-level",
+        "WARNING",
+        "vehicle",
+        "--profile",
+        opt.profile,
+        "--link",
+        f"udpout:127.0.0.1:{port}",
+        "--link",
+        f"udpout:127.0.0.1:{gcs_port}",
+        "--speedup",
+        str(opt.speedup),
+        "--seed",
+        str(opt.seed),
+        "--tlog",
+        str(opt.out / "vehicle.tlog"),
+        "--result-json",
+        str(opt.out / "sim_result.json"),
+        "--start",
+        f"{opt.start_ne_m[0]},{opt.start_ne_m[1]}",
+        "--exit-on-crash",
+        "--duration",
+        str(opt.max_flight_s + 120.0),
+    ]
+    if opt.noise_m > 0:
+        argv += ["--param", f"SIM_POS_NOISE={opt.noise_m}"]
+    if opt.world is not None:
+        argv += ["--world", opt.world]
+    else:
+        argv += ["--paper-field", f"{opt.preset}:{opt.obstacles}", "--field-seed", str(opt.seed)]
+    return argv
+
+
+class _Progress:
+    def __init__(self, enabled: bool, goal: tuple[float, float]) -> None:
+        self.enabled = enabled
+        self.goal = goal
+        self.tty = sys.stderr.isatty()
+        self.last_print = 0.0
+        self.pos: tuple[float, float, float] | None = None
+        self.sim_t = 0.0
+        self.texts: list[str] = []
+
+    def show(self, force: bool = False) -> None:
+        if not self.enabled or self.pos is None:
+            return
+        now = time.monotonic()
+        if not force and now - self.last_print < (0.2 if self.tty else 2.0):
+            return
+        self.last_print = now
+        n, e, d = self.pos
+        dist = math.hypot(self.goal[0] - n, self.goal[1] - e)
+        line = f"t={self.sim_t:6.1f} s  pos=({n:6.2f}, {e:6.2f}, alt {-d:4.1f})  to goal {dist:5.2f} m"
+        if self.tty:
+            sys.stderr.write("\r" + line.ljust(78))
+        else:
+            sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.enabled and self.tty:
+            sys.stderr.write("\n")
+
+
+async def _watch(gcs: MavlinkLink, progress: _Progress) -> None:
+    """Follow the flight as a ground station: position for the progress line, STATUSTEXT for the log."""
+    while True:
+        try:
+            msg = await gcs.recv(timeout=1.0)
+        except LinkTimeout:
+            continue
+        kind = msg.get_type()
+        if kind == "LOCAL_POSITION_NED":
+            progress.pos = (msg.x, msg.y, msg.z)
+            progress.sim_t = msg.time_boot_ms / 1000.0
+            progress.show()
+        elif kind == "STATUSTEXT":
+            text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode(errors="replace")
+            progress.texts.append(text.rstrip("\x00"))
+
+
+async def _stop(proc: asyncio.subprocess.Process, grace_s: float) -> None:
+    if proc.returncode is not None:
+        return
+    with contextlib.suppress(ProcessLookupError):
+        proc.send_signal(signal.SIGINT)
+    try:
+        await asyncio.wait_for(proc.wait(), grace_s)
+    except TimeoutError:
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
+        await proc.wait()
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _outcome(sim: dict[str, Any] | None, svc: dict[str, Any] | None) -> str:
+    if sim is None:
+        return "error"
+    if sim.get("collided") or sim.get("crashed"):
+        return "collision"
+    if svc is None:
+        return "error"
+    outcome = svc.get("outcome")
+    if outcome in ("arrived", "stuck", "timeout"):
+        return str(outcome)
+    return "error"
+
+
+async def fly(opt: FlyOptions) -> dict[str, Any]:
+    """Fly once; returns the result record (also written to ``opt.out/result.json`` and ``opt.json_path``)."""
+    opt.out.mkdir(parents=True, exist_ok=True)
+    for stale in ("sim_result.json", "service_result.json"):
+        (opt.out / stale).unlink(missing_ok=True)
+    port = free_udp_port()
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    assert gcs.local_address is not None
+    gcs_port = gcs.local_address[1]
+    cfg_path = opt.out / "service.toml"
+    cfg_path.write_text(_service_toml(opt, port, (opt.out / "companion.tlog").resolve()))
+    env = os.environ | {"OPENBLAS_NUM_THREADS": "1"}
+    t0 = time.monotonic()
+    svc_log = (opt.out / "service.log").open("wb")
+    sim_log = (opt.out / "vehicle.log").open("wb")
+    service = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "apf_companion",
+        "--log-format",
+        "json",
+        "run",
+        "--config",
+        str(cfg_path),
+        "--result-json",
+        str(opt.out / "service_result.json"),
+        *opt.service_args,
+        stdout=svc_log,
+        stderr=svc_log,
+        env=env,
+    )
+    vehicle = await asyncio.create_subprocess_exec(
+        *_sim_argv(opt, port, gcs_port), stdout=sim_log, stderr=sim_log, env=env
+    )
+    progress = _Progress(opt.progress, opt.goal_ne_m)
+    wall_limit_s = opt.max_flight_s / opt.speedup + 60.0  # + start-up and takeoff
+    watcher = asyncio.create_task(_watch(gcs, progress))
+    try:
+        done, _ = await asyncio.wait(
+            [asyncio.create_task(service.wait()), asyncio.create_task(vehicle.wait())],
+            timeout=wall_limit_s,
+            return_when=asyncio.FIRST_COMPLETED,
+        )
+        timed_out = not done
+    finally:
+        progress.show(force=True)
+        progress.done()
+        await _stop(service, 10.0)
+        await _stop(vehicle, 10.0)
+        watcher.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await watcher
+        await gcs.aclose()
+        svc_log.close()
+        sim_log.close()
+    wall_s = time.monotonic() - t0
+    sim_res = _read_json(opt.out / "sim_result.json")
+    svc_res = _read_json(opt.out / "service_result.json")
+    outcome = "timeout" if timed_out and sim_res is not None else _outcome(sim_res, svc_res)
+    record: dict[str, Any] = {
+        "outcome": outcome,
+        "steps": int(svc_res["steps"]) if svc_res else 0,
+        "min_clearance_m": sim_res.get("min_clearance_m") if sim_res else None,
+        "path_length_m": float(sim_res["path_length_m"]) if sim_res else 0.0,
+        "sim_time_s": float(sim_res["sim_time_s"]) if sim_res else 0.0,
+        "flight_time_s": float(svc_res["flight_time_s"]) if svc_res else 0.0,
+        "planner": opt.planner,
+        "profile": opt.profile,
+        "world": (sim_res or {}).get("world", {}).get("name", opt.world),
+        "seed": opt.seed,
+        "speedup": opt.speedup,
+        "wall_time_s": round(wall_s, 3),
+        "service_state": svc_res.get("state") if svc_res else None,
+        "latency_ms_p99": svc_res.get("latency_ms_p99") if svc_res else None,
+        "service_exit_code": service.returncode,
+        "vehicle_exit_code": vehicle.returncode,
+        "statustexts": progress.texts[-20:],
+    }
+    (opt.out / "result.json").write_text(json.dumps(record, indent=2) + "\n")
+    if opt.json_path is not None:
+        opt.json_path.parent.mkdir(parents=True, exist_ok=True)
+        opt.json_path.write_text(json.dumps(record, indent=2) + "\n")
+    if opt.plot and sim_res is not None:
+        try:
+            plot_trajectory(sim_res, record, opt.out / "trajectory.png", goal_ne_m=opt.goal_ne_m)
+        except Exception as err:  # a missing matplotlib must not lose the flight result
+            print(f"apf-sim fly: no plot ({err})", file=sys.stderr)
+    return record
+
+
+def plot_trajectory(
+    sim_res: dict[str, Any], record: dict[str, Any], path: Path, *, goal_ne_m: tuple[float, float]
+) -> None:
+    """The flown path over the world (east right, north up), with the start, goal and obstacles."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    world = sim_res.get("world", {})
+    traj = sim_res.get("trajectory_ned_m") or []
+    fig, ax = plt.subplots(figsize=(6.5, 6.5), dpi=110)
+    for (n, e), r in zip(world.get("circles_ne_m", []), world.get("circle_radii_m", []), strict=False):
+        ax.add_patch(Circle((e, n), max(r, 0.08), color="k"))
+        ax.add_patch(Circle((e, n), max(r, 0.0) + 0.25, fill=False, ls=":", lw=0.6, color="r"))
+    for (a, b), t in zip(world.get("walls_ne_m", []), world.get("wall_thickness_m", []), strict=False):
+        ax.plot([a[1], b[1]], [a[0], b[0]], "k-", lw=max(2.0, 20 * t))
+    if traj:
+        ax.plot([p[1] for p in traj], [p[0] for p in traj], "-", color="tab:blue", lw=1.5, label="flown path")
+        ax.plot(traj[0][1], traj[0][0], "go", label="start")
+    ax.plot(goal_ne_m[1], goal_ne_m[0], "r*", ms=14, label="goal")
+    ax.add_patch(Circle((goal_ne_m[1], goal_ne_m[0]), 0.7, fill=False, color="r", lw=0.8))
+    crash = sim_res.get("crashed_at")
+    if isinstance(crash, dict) and "pos_ned_m" in crash:
+        ax.plot(crash["pos_ned_m"][1], crash["pos_ned_m"][0], "rx", ms=12, mew=2, label="collision")
+    clearance = record.get("min_clearance_m")
+    ax.set_title(
+        f"{record['planner']} ({record['profile']}), {record['world']}: {record['outcome']}\n"
+        f"path {record['path_length_m']:.1f} m, min clearance "
+        f"{'n/a' if clearance is None else f'{clearance:.2f} m'}, {record['steps']} steps"
+    )
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _pair(text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    if len(parts) != 2:
+        msg = f"expected N,E got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return float(parts[0]), float(parts[1])
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add ``apf-sim fly``."""
+    p = subparsers.add_parser(
+        "fly",
+        help="fly the companion service against the simulator (the paper's scenario by default)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--planner", default="cr-bapf*", help="capf, bapf, a-bapf, cr-bapf, cr-bapf* (default)")
+    p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
+    p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
+    p.add_argument("--obstacles", default="mid", help="obstacle count N, or density low|mid|high (default mid)")
+    p.add_argument("--world", help="world TOML file or bundled example (forest, corridor, u-trap, wall)")
+    p.add_argument("--start", type=_pair, default=PAPER_START, metavar="N,E", help="start (default 3,3)")
+    p.add_argument("--goal", type=_pair, default=PAPER_GOAL, metavar="N,E", help="goal (default 22,22)")
+    p.add_argument("--alt", type=float, default=5.0, help="flight height above home [m]")
+    p.add_argument("--speedup", type=float, default=10.0, help="simulated s per wall s (default 10)")
+    p.add_argument("--rate", type=float, default=10.0, help="service cycle rate in simulated Hz (default 10)")
+    p.add_argument("--max-flight", type=float, default=300.0, help="give up after this many simulated s")
+    p.add_argument("--noise", type=float, default=0.0, help="actuation noise SD [m] (the paper's is 0.1)")
+    p.add_argument("--out", type=Path, default=Path("fly-out"), help="output directory (default ./fly-out)")
+    p.add_argument("--json", type=Path, help="write the result record here too")
+    p.add_argument("--no-plot", action="store_true", help="skip the trajectory PNG")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=_cmd_fly)
+
+
+def _cmd_fly(args: argparse.Namespace) -> int:
+    opt = FlyOptions(
+        planner=args.planner,
+        profile=args.profile,
+        seed=args.seed,
+        preset=args.preset,
+        obstacles=args.obstacles,
+        world=args.world,
+        start_ne_m=args.start,
+        goal_ne_m=args.goal,
+        alt_m=args.alt,
+        speedup=args.speedup,
+        rate_hz=args.rate,
+        max_flight_s=args.max_flight,
+        noise_m=args.noise,
+        out=args.out,
+        json_path=args.json,
+        plot=not args.no_plot,
+        progress=not args.quiet,
+    )
+    try:
+        rec = asyncio.run(fly(opt))
+    except ApfCompanionError as err:
+        print(f"apf-sim fly: {err}", file=sys.stderr)
+        return 1
+    clearance = rec["min_clearance_m"]
+    print(
+        f"outcome: {rec['outcome']}\n"
+        f"planner: {rec['planner']} ({rec['profile']}), world: {rec['world']}, seed {rec['seed']}\n"
+        f"path length: {rec['path_length_m']:.2f} m\n"
+        f"min clearance: {'n/a' if clearance is None else f'{clearance:.3f} m'}\n"
+        f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
+        f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
+        f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs)"
+    )
+    return 0 if rec["outcome"] == "arrived" else 3

@@ -1,0 +1,76 @@
+"""apf-sim fly end to end: two real processes on loopback, result files, plot and tlogs."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from pymavlink import mavutil
+
+from sim.fly import _outcome
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _types_in_tlog(path: Path) -> set[str]:
+    conn = mavutil.mavlink_connection(str(path))
+    seen: set[str] = set()
+    while True:
+        msg = conn.recv_match()
+        if msg is None:
+            return seen
+        seen.add(msg.get_type())
+
+
+def test_fly_paper_scenario_one_command(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    result = tmp_path / "r.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sim",
+            "fly",
+            "--obstacles",
+            "20",
+            "--seed",
+            "1",
+            "--out",
+            str(out),
+            "--json",
+            str(result),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=110,
+        env=os.environ | {"OPENBLAS_NUM_THREADS": "1"},
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rec = json.loads(result.read_text())
+    assert rec["outcome"] == "arrived"
+    assert {"outcome", "steps", "min_clearance_m", "path_length_m", "sim_time_s"} <= set(rec)
+    # 26.9 m diagonal in 0.4 m steps, plus the 5 m climb in the path length.
+    assert rec["steps"] >= 60
+    assert rec["path_length_m"] >= 26.8
+    assert rec["min_clearance_m"] > 0.25
+    assert "outcome: arrived" in proc.stdout and "path length:" in proc.stdout
+    assert (out / "trajectory.png").stat().st_size > 10_000
+    companion = _types_in_tlog(out / "companion.tlog")
+    assert {"SET_POSITION_TARGET_LOCAL_NED", "HEARTBEAT", "OBSTACLE_DISTANCE", "LOCAL_POSITION_NED"} <= companion
+    assert "SET_POSITION_TARGET_LOCAL_NED" in _types_in_tlog(out / "vehicle.tlog")
+
+
+def test_outcome_rules() -> None:
+    assert _outcome(None, {"outcome": "arrived"}) == "error"
+    assert _outcome({"collided": True}, {"outcome": "arrived"}) == "collision"
+    assert _outcome({"collided": False, "crashed": False}, {"outcome": "arrived"}) == "arrived"
+    assert _outcome({"collided": False}, {"outcome": "stuck"}) == "stuck"
+    assert _outcome({"collided": False}, {"outcome": "timeout"}) == "timeout"
+    assert _outcome({"collided": False}, {"outcome": "link_lost"}) == "error"
+    assert _outcome({"collided": False}, None) == "error"
