@@ -333,8 +333,8 @@ class BacteriaPlanner(Planner):
         return BatchDecision(
             next_points_m=next_points,
             reason=reason,
-            chosen_index=chosen.astype(np.int64, copy=False),
+            chosen_index=chosen,
             mu_o_k=mu_o_k,
-            n_passing=n_passing.astype(np.int64, copy=False),
-            n_safe=n_safe.astype(np.int64, copy=False),
+            n_passing=n_passing,
+            n_safe=n_safe,
         )
