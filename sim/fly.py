@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -58,7 +59,7 @@ class FlyOptions:
     start_ne_m: tuple[float, float] = PAPER_START
     goal_ne_m: tuple[float, float] = PAPER_GOAL
     alt_m: float = 5.0
-    speedup: float = 10.0
+    speedup: float = 5.0
     rate_hz: float = 10.0
     max_flight_s: float = 300.0
     noise_m: float = 0.0
@@ -84,6 +85,9 @@ max_flight_s = {opt.max_flight_s}
 [link]
 connect = "udpin:127.0.0.1:{port}"
 tlog = "{tlog}"
+# Simulated seconds: a simulator process that falls behind the wall clock for a moment (a loaded machine)
+# freezes its vehicle too, so a longer heartbeat timeout here flies nothing blind.
+heartbeat_timeout_s = {max(3.0, 1.0 * opt.speedup)}
 
 [autopilot]
 profile = "{opt.profile}"
@@ -97,6 +101,8 @@ seed = {opt.seed}
 [cycle]
 rate_hz = {opt.rate_hz}
 time_scale = {opt.speedup}
+pose_max_age_s = {max(0.5, 0.1 * opt.speedup)}
+ranges_max_age_s = {max(0.5, 0.1 * opt.speedup)}
 
 [goal]
 north_m = {north}
@@ -381,7 +387,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--start", type=_pair, default=PAPER_START, metavar="N,E", help="start (default 3,3)")
     p.add_argument("--goal", type=_pair, default=PAPER_GOAL, metavar="N,E", help="goal (default 22,22)")
     p.add_argument("--alt", type=float, default=5.0, help="flight height above home [m]")
-    p.add_argument("--speedup", type=float, default=10.0, help="simulated s per wall s (default 10)")
+    p.add_argument("--speedup", type=float, default=5.0, help="simulated s per wall s (default 5)")
     p.add_argument("--rate", type=float, default=10.0, help="service cycle rate in simulated Hz (default 10)")
     p.add_argument("--max-flight", type=float, default=300.0, help="give up after this many simulated s")
     p.add_argument("--noise", type=float, default=0.0, help="actuation noise SD [m] (the paper's is 0.1)")
@@ -389,6 +395,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--json", type=Path, help="write the result record here too")
     p.add_argument("--no-plot", action="store_true", help="skip the trajectory PNG")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument(
+        "--trials",
+        type=int,
+        default=1,
+        help="fly this many worlds (seeds SEED, SEED+1, ...) one after another and print the success rate",
+    )
     p.set_defaults(func=_cmd_fly)
 
 
@@ -412,6 +424,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         plot=not args.no_plot,
         progress=not args.quiet,
     )
+    if args.trials > 1:
+        return _sweep(opt, args.trials)
     try:
         rec = asyncio.run(fly(opt))
     except ApfCompanionError as err:
@@ -428,3 +442,75 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs)"
     )
     return 0 if rec["outcome"] == "arrived" else 3
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial proportion."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _sweep_loop(base: FlyOptions, trials: int, records: list[dict[str, Any]]) -> None:
+    for k in range(trials):
+        seed = base.seed + k
+        opt = dataclasses.replace(
+            base, seed=seed, out=base.out / f"seed-{seed}", json_path=None, progress=False, plot=base.plot
+        )
+        try:
+            rec = asyncio.run(fly(opt))
+        except ApfCompanionError as err:
+            rec = {"outcome": "error", "seed": seed, "error": str(err)}
+        records.append(rec)
+        ok = sum(r["outcome"] == "arrived" for r in records)
+        print(
+            f"[{k + 1}/{trials}] seed {seed}: {rec['outcome']:9s} world {rec.get('world')} "
+            f"clearance {rec.get('min_clearance_m')} steps {rec.get('steps')}  (success so far {ok}/{k + 1})",
+            flush=True,
+        )
+
+
+def _sweep(base: FlyOptions, trials: int) -> int:
+    """Fly seeds base.seed .. base.seed + trials - 1; per-trial output in OUT/seed-<k>/, summary in OUT/."""
+    records: list[dict[str, Any]] = []
+    try:
+        _sweep_loop(base, trials, records)
+    except KeyboardInterrupt:
+        print(f"interrupted after {len(records)} flights", file=sys.stderr)
+    trials = len(records)
+    if trials == 0:
+        return 130
+    counts = {o: sum(r["outcome"] == o for r in records) for o in OUTCOMES}
+
+    ok = counts["arrived"]
+    lo, hi = wilson_interval(ok, trials)
+    wins = [r for r in records if r["outcome"] == "arrived"]
+    summary = {
+        "planner": base.planner,
+        "profile": base.profile,
+        "preset": base.preset if base.world is None else None,
+        "obstacles": base.obstacles if base.world is None else None,
+        "world": base.world,
+        "noise_m": base.noise_m,
+        "trials": trials,
+        "first_seed": base.seed,
+        "success_rate": ok / trials,
+        "success_rate_95ci": [lo, hi],
+        "counts": counts,
+        "mean_steps_success": (sum(r["steps"] for r in wins) / len(wins)) if wins else None,
+        "mean_path_length_m_success": (sum(r["path_length_m"] for r in wins) / len(wins)) if wins else None,
+        "records": records,
+    }
+    base.out.mkdir(parents=True, exist_ok=True)
+    (base.out / "sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if base.json_path is not None:
+        base.json_path.write_text(json.dumps(summary, indent=2) + "\n")
+    print(
+        f"success {ok}/{trials} = {ok / trials:.3f} (95 % CI {lo:.3f}-{hi:.3f}); "
+        + ", ".join(f"{o} {n}" for o, n in counts.items())
+    )
+    return 0
