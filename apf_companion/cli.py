@@ -71,8 +71,10 @@ def _setup_logging(level: str, fmt: str) -> None:
         handler.setFormatter(_JsonFormatter())
     else:
         handler.setFormatter(_TextFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.set_name("apf-companion")
     root = logging.getLogger()
-    root.handlers[:] = [handler]
+    # Replace only our own handler (a second main() call in one process must not log twice).
+    root.handlers[:] = [h for h in root.handlers if h.get_name() != "apf-companion"] + [handler]
     root.setLevel(level.upper())
 
 

@@ -1,0 +1,79 @@
+"""apf-companion command line: check-config, config errors, overrides, a short real run."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from apf_companion.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_check_config_ok_prints_effective_config(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check-config", str(REPO / "deploy" / "apf-companion.toml")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["cycle"]["rate_hz"] == 10.0 and out["autopilot"]["profile"] == "ardupilot"
+
+
+def test_check_config_names_the_bad_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[link]\ncomponent_id = 400\n")
+    assert main(["check-config", str(bad)]) == 2
+    assert "link.component_id must be an integer in [1, 255], got 400" in capsys.readouterr().err
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[planner]\nnmae = 'bapf'\n")
+    assert main(["check-config", str(typo)]) == 2
+    assert "did you mean 'name'" in capsys.readouterr().err
+
+
+def test_run_refuses_bad_overrides(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", "--planner", "apf"]) == 2
+    assert "planner.name must be one of" in capsys.readouterr().err
+    assert main(["run", "--goal", "1,nope"]) == 2
+    assert "--goal must be 'NORTH,EAST[,DOWN]'" in capsys.readouterr().err
+
+
+def test_run_dry_run_process_stops_cleanly_on_sigint(tmp_path: Path) -> None:
+    result = tmp_path / "result.json"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "apf_companion",
+            "run",
+            "--connect",
+            "udpin:127.0.0.1:0",
+            "--dry-run",
+            "--goal",
+            "10,0,-5",
+            "--result-json",
+            str(result),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=os.environ | {"OPENBLAS_NUM_THREADS": "1"},
+    )
+    try:
+        deadline = time.monotonic() + 30.0
+        assert proc.stderr is not None
+        while time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            if "service.start" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    rec = json.loads(result.read_text())
+    assert rec["outcome"] == "stopped" and rec["state"] == "IDLE"
+    assert rec["counters"]["setpoints_sent"] == 0
