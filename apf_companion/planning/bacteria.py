@@ -157,22 +157,26 @@ class BacteriaPlanner(Planner):
             gain += rel_t[:, axis, None] * self._minus_two_offsets[axis]
         gain -= self._offset_sq
 
-        # Obstacles relative to the agent, one (A, N) array per axis (contiguous when it pays off).
+        # Obstacles relative to the agent, (D, A, N): one (A, N) slab per axis (contiguous when it pays off).
         by_axis = obstacles_m.transpose(2, 0, 1)
         if n_agents > 8:
             by_axis = np.ascontiguousarray(by_axis)
-        rel_o = [by_axis[axis] - positions_m[:, axis, None] for axis in range(dim)]
-        dist_sq_agent = rel_o[0] * rel_o[0]
-        for axis in range(1, dim):
-            dist_sq_agent += rel_o[axis] * rel_o[axis]
+        rel_o = by_axis - positions_m.T[:, :, None]
+        dist_sq_agent = np.add.reduce(rel_o * rel_o, axis=0)
         if self._full_obstacles:
             relevant = np.ones(dist_sq_agent.shape, dtype=bool) if obstacle_mask is None else obstacle_mask
         else:
             relevant = dist_sq_agent <= self._reach_sq(log_target_agent)[:, None]
             if obstacle_mask is not None:
                 relevant &= obstacle_mask
-        # (np.count_nonzero without an axis is several times cheaper for the single-agent step.)
-        counts = np.add.reduce(relevant, axis=1) if n_agents > 1 else np.array([np.count_nonzero(relevant)])
+        # Does every agent have the same, non-zero number of relevant obstacles? (Always so for A = 1 with
+        # obstacles; np.count_nonzero without an axis is several times cheaper for that single-agent step.)
+        if n_agents == 1:
+            counts = None
+            n_same = int(np.count_nonzero(relevant))
+        else:
+            counts = np.add.reduce(relevant, axis=1)
+            n_same = int(counts[0]) if n_agents and counts.min() == counts.max() else 0
 
         inside: BoolArray | None = None
         mu_points: FloatArray | None = None
@@ -180,28 +184,27 @@ class BacteriaPlanner(Planner):
             known = obstacle_mask.any(axis=1) if obstacle_mask is not None else np.full(n_agents, by_axis.size > 0)
             mu_points = np.repeat(np.where(known, float(p.mu_max), float(p.mu_min))[:, None], self._n_points, 1)
 
-        if n_agents and counts[0] and (n_agents == 1 or counts.min() == counts.max()):
-            # Every agent has the same number of relevant obstacles (always so for A = 1 with obstacles).
-            n_obs = int(counts[0])
-            gathered = [r[relevant].reshape(n_agents, n_obs).T for r in rel_o]
+        if n_same:
+            gathered = rel_o[:, relevant].reshape(dim, n_agents, n_same).transpose(0, 2, 1)
             passing, inside, mu = self._decide(gathered, log_target_agent, gain)
             if mu_points is not None:
                 mu_points[:] = mu
         else:
             passing = gain > 0.0  # no relevant obstacle: LHS = 0 < RHS = mu_t Delta
-            if self.branching:
-                inside = np.zeros(gain.shape, dtype=bool)
-            rows = np.flatnonzero(counts)
-            for idx in self._groups(rows, counts) if rows.size else []:
-                n_obs = int(counts[idx[0]])
-                cols = np.nonzero(relevant[idx])[1].reshape(idx.size, n_obs)
-                gathered = [r[idx[:, None], cols].T for r in rel_o]
-                ok, bad, mu = self._decide(gathered, log_target_agent[idx], gain[idx])
-                passing[idx] = ok
-                if inside is not None and bad is not None:
-                    inside[idx] = bad
-                if mu_points is not None:
-                    mu_points[idx] = mu
+            rows = np.flatnonzero(counts) if counts is not None else None  # None: one agent, no obstacle
+            if counts is not None and rows is not None and rows.size:
+                if self.branching:
+                    inside = np.zeros(gain.shape, dtype=bool)  # None below means no point is inside rho_l
+                for idx in self._groups(rows, counts):
+                    n_obs = int(counts[idx[0]])
+                    cols = np.nonzero(relevant[idx])[1].reshape(idx.size, n_obs)
+                    gathered = rel_o[:, idx[:, None], cols].transpose(0, 2, 1)
+                    ok, bad, mu = self._decide(gathered, log_target_agent[idx], gain[idx])
+                    passing[idx] = ok
+                    if inside is not None and bad is not None:
+                        inside[idx] = bad
+                    if mu_points is not None:
+                        mu_points[idx] = mu
 
         return self._select(positions_m, passing, inside, gain, mu_points, rng, walk_uniforms)
 
@@ -220,13 +223,13 @@ class BacteriaPlanner(Planner):
 
     def _decide(
         self,
-        rel_obstacles_m: list[FloatArray],
+        rel_obstacles_m: FloatArray,
         log_target_agent: FloatArray,
         gain: FloatArray,
     ) -> tuple[BoolArray, BoolArray | None, FloatArray | float]:
         """Eq. (6) for A' agents with N' obstacles each: (passing (A', K), inside rho_l (A', K), mu at points).
 
-        ``rel_obstacles_m``: D arrays (N', A') of obstacle minus agent; ``log_target_agent`` (A',);
+        ``rel_obstacles_m``: (D, N', A') obstacle minus agent; ``log_target_agent`` (A',);
         ``gain`` (A', K). Work arrays are (N', A', K + 1); column K is the agent.
         """
         p = self.params
@@ -286,7 +289,10 @@ class BacteriaPlanner(Planner):
         rng: np.random.Generator | None,
         walk_uniforms: FloatArray | None,
     ) -> BatchDecision:
-        """First passing point in order of increasing target distance; else random walk or local minimum."""
+        """First passing point in order of increasing target distance; else random walk or local minimum.
+
+        ``inside`` (A, K): bacteria points within rho_l of a known obstacle (CR-BAPF); None: none are.
+        """
         n_agents, n_points = passing.shape
         # Larger gain = closer to the target; argmax takes the lowest index among ties.
         chosen = np.where(passing, gain, -np.inf).argmax(axis=1)
@@ -295,13 +301,16 @@ class BacteriaPlanner(Planner):
         chosen[stuck] = -1
         # GREEDY = 0, LOCAL_MINIMUM = 2: the int8 view of the bool array times 2.
         reason = stuck.view(np.int8) * _LOCAL_MINIMUM_CODE
-        if inside is not None:
+        if not self.branching:
+            n_safe = filled(n_agents, -1, np.int64)
+        elif inside is None:  # no obstacle near any agent: every point is safe
+            safe = np.ones(passing.shape, dtype=bool) if self.random_walk else passing
+            n_safe = filled(n_agents, n_points, np.int64)
+        else:
             safe = ~inside
             n_safe = _count_rows(safe)
-        else:
-            n_safe = filled(n_agents, -1, np.int64)
 
-        if self.random_walk and inside is not None:
+        if self.random_walk:
             walkers = np.flatnonzero(stuck)
             if walkers.size:
                 if walk_uniforms is not None:

@@ -16,6 +16,8 @@ _ScalarT = TypeVar("_ScalarT", bound=np.generic)
 
 def filled(n: int, value: float, dtype: type[_ScalarT]) -> npt.NDArray[_ScalarT]:
     """A new (n,) array of ``value`` (cheaper than ``np.full`` for the tiny arrays of a single step)."""
+    if n == 1:
+        return np.array([value], dtype=dtype)
     out = np.empty(n, dtype=dtype)
     out.fill(value)
     return out
@@ -30,6 +32,10 @@ class DecisionReason(enum.IntEnum):
     RANDOM_WALK = 1
     #: No move: no point passed (and no random-walk move was possible), or the CAPF gradient vanished.
     LOCAL_MINIMUM = 2
+
+
+#: DecisionReason by int code (a tuple lookup is cheaper than the Enum call in the single-agent step).
+_REASONS: tuple[DecisionReason, ...] = tuple(sorted(DecisionReason, key=int))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -88,15 +94,14 @@ class BatchDecision:
 
     def row(self, index: int) -> Decision:
         """Agent ``index`` as a ``Decision``."""
-        reason = DecisionReason(int(self.reason[index]))
-        moved = reason != DecisionReason.LOCAL_MINIMUM
+        reason = _REASONS[int(self.reason[index])]
         chosen = int(self.chosen_index[index])
         mu = float(self.mu_o_k[index])
         return Decision(
-            next_point_m=self.next_points_m[index].copy() if moved else None,
+            next_point_m=None if reason is DecisionReason.LOCAL_MINIMUM else self.next_points_m[index].copy(),
             reason=reason,
             chosen_index=chosen if chosen >= 0 else None,
-            mu_o_k=mu if not np.isnan(mu) else None,
+            mu_o_k=None if mu != mu else mu,  # NaN: none
             n_passing=int(self.n_passing[index]),
             n_safe=int(self.n_safe[index]),
         )
