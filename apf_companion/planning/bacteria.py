@@ -94,9 +94,11 @@ class BacteriaPlanner(Planner):
             params.abapf_rule is AbapfRule.PAPER or params.abapf_search is AbapfSearch.GOLDEN
         )
         mu_min = min(self._smallest_point_mu(), params.mu_o_per_m2)
-        self._reach_gain = 1.0 / mu_min
-        self._rho_l_sq = params.rho_l_m**2
-        self._rho_u_sq = params.rho_u_m**2
+        widen = (1.0 + 1e-9) ** 2
+        self._reach_gain = widen / mu_min
+        self._rho_l_sq = widen * params.rho_l_m**2
+        self._rho_u_sq = widen * params.rho_u_m**2
+        self._reach_step = params.step_m + 1e-9
         self._reach_offset = self._log_alpha_o - _NEGLIGIBLE_LOG
 
     # --- hooks --------------------------------------------------------------------------------------
@@ -126,14 +128,14 @@ class BacteriaPlanner(Planner):
         also keeps obstacles within rho_l + step (they can make a point infinite) and drops those beyond
         rho_u + step (exactly zero). Keeping more obstacles than needed is always correct.
         """
-        p = self.params
+        # The gap is taken 1e-9 relative larger (folded into the constants), a margin far above rounding:
+        # never drop an obstacle that matters.
         gap_sq = (self._reach_offset - log_target_agent) * self._reach_gain
         if self.branching:
-            gap_m = np.sqrt(np.minimum(np.maximum(gap_sq, self._rho_l_sq), self._rho_u_sq))
+            reach_m = np.sqrt(np.minimum(np.maximum(gap_sq, self._rho_l_sq), self._rho_u_sq))
         else:
-            gap_m = np.sqrt(np.maximum(gap_sq, 0.0))
-        # A relative margin far above rounding: never drop an obstacle that matters.
-        reach_m = gap_m * (1.0 + 1e-9) + (p.step_m + 1e-9)
+            reach_m = np.sqrt(np.maximum(gap_sq, 0.0))
+        reach_m += self._reach_step
         reach_m *= reach_m
         return reach_m
 
