@@ -170,6 +170,19 @@ async def test_takeoff_px4_goes_to_hold() -> None:
         await heartbeat(gcs, lambda h: h.custom_mode == PX4_TAKEOFF.to_custom_mode())
         await heartbeat(gcs, lambda h: h.custom_mode == PX4_HOLD.to_custom_mode())
         assert sim.vehicle.pos_ned_m[2] == pytest.approx(-2.5, abs=0.15)  # MIS_TAKEOFF_ALT
+        # param7 is AMSL on PX4: home (584 m) + 6 m climbs 6 m; a relative "5" is below home: the minimum
+        assert (await command_long(gcs, m.MAV_CMD_NAV_LAND)).result == ACCEPTED
+        await wait_for(sim, lambda s: s.vehicle.on_ground and not s.vehicle.armed)
+        assert (await command_long(gcs, m.MAV_CMD_COMPONENT_ARM_DISARM, 1)).result == ACCEPTED
+        texts: list[str] = []
+        ack = await command_long(gcs, m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 5.0, texts=texts)
+        assert ack.result == ACCEPTED and texts == ["Using minimum takeoff altitude: 2.50 m"]
+        assert (await command_long(gcs, m.MAV_CMD_NAV_LAND)).result == ACCEPTED
+        await wait_for(sim, lambda s: s.vehicle.on_ground and not s.vehicle.armed)
+        assert (await command_long(gcs, m.MAV_CMD_COMPONENT_ARM_DISARM, 1)).result == ACCEPTED
+        assert (await command_long(gcs, m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 584.0 + 6.0)).result == ACCEPTED
+        await heartbeat(gcs, lambda h: h.custom_mode == PX4_HOLD.to_custom_mode())
+        assert sim.vehicle.pos_ned_m[2] == pytest.approx(-6.0, abs=0.15)
         assert (await command_long(gcs, m.MAV_CMD_NAV_RETURN_TO_LAUNCH)).result == ACCEPTED
         assert sim.vehicle.mode == "AUTO.RTL"
 

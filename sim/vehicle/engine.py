@@ -542,9 +542,14 @@ class VehicleEngine:
         if self.px4:
             if not self.state.on_ground:
                 return self._fail()
-            alt = self.params["MIS_TAKEOFF_ALT"] if math.isnan(p[6]) else p[6] - self.cfg.home.alt_amsl_m
-            if not alt > 0:
-                alt = self.params["MIS_TAKEOFF_ALT"]
+            # param7 is an AMSL altitude on PX4 (NaN = MIS_TAKEOFF_ALT above home); like PX4's Takeoff mode,
+            # a target below home + MIS_TAKEOFF_ALT is raised to it, and it says so
+            minimum = self.params["MIS_TAKEOFF_ALT"]
+            alt = minimum if math.isnan(p[6]) else p[6] - self.cfg.home.alt_amsl_m
+            if not alt >= minimum:
+                if not math.isnan(p[6]):
+                    self.statustext(mavlink.MAV_SEVERITY_CRITICAL, f"Using minimum takeoff altitude: {minimum:.2f} m")
+                alt = minimum
             self._set_mode(PX4_TAKEOFF.to_custom_mode(), "takeoff")
             self._takeoff_alt = alt
             return int(mavlink.MAV_RESULT_ACCEPTED)
