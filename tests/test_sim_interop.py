@@ -61,10 +61,16 @@ async def test_mavsdk_discovers_and_reads_position_velocity(profile: str) -> Non
         await sim.aclose()
 
 
-@pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
+def _mavproxy() -> str | None:
+    """mavproxy.py beside this interpreter (a venv used without activation), else on PATH."""
+    beside = Path(sys.executable).parent / "mavproxy.py"
+    return str(beside) if beside.is_file() else shutil.which("mavproxy.py")
+
+
+@pytest.mark.skipif(_mavproxy() is None, reason="MAVProxy not installed (pip install --no-deps MAVProxy)")
 async def test_mavproxy_headless_sees_heartbeat_and_mode(tmp_path: Path) -> None:
     port = free_port(socket.SOCK_DGRAM)
-    mavproxy = shutil.which("mavproxy.py")
+    mavproxy = _mavproxy()
     assert mavproxy is not None
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-u", mavproxy, f"--master=udpin:127.0.0.1:{port}", "--daemon", "--non-interactive",
