@@ -497,3 +497,29 @@ def test_mu_searches_equal_a_scan_of_the_grid(dist_sq: FloatArray, threshold: fl
     near = np.min(np.abs(log_rep - thresholds[None]), axis=0) < 1e-9
     np.testing.assert_array_equal(got[~near], expected[~near])
     np.testing.assert_array_equal(golden[~near], expected[~near])
+
+
+@pytest.mark.parametrize("name", PLANNER_NAMES)
+def test_empty_batch_and_bad_walk_uniforms(name: str) -> None:
+    planner = get_planner(name)
+    empty = planner.step_batch(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 4, 2)), np.zeros((0, 4), bool))
+    assert empty.next_points_m.shape == (0, 2) and empty.reason.shape == (0,)
+    with pytest.raises(ConfigError, match="walk_uniforms"):
+        planner.step_batch(
+            np.zeros((2, 2)), np.ones((2, 2)), np.zeros((2, 1, 2)), np.ones((2, 1), bool), walk_uniforms=[0.5]
+        )
+
+
+def test_agent_inside_rho_l_flees_to_a_safe_point() -> None:
+    """Paper preset: J_a = +inf when the agent is inside rho_l, so any point outside rho_l passes Eq. (6)."""
+    obstacle = np.array([[0.1, 0.0]])
+    target = np.array([20.0, 0.0])
+    d = get_planner("cr-bapf").step(np.zeros(2), target, obstacle)
+    assert d.reason is DecisionReason.GREEDY and d.next_point_m is not None
+    assert np.linalg.norm(d.next_point_m - obstacle[0]) >= 0.4
+    assert d.n_passing == d.n_safe  # every safe point passes, whatever its target distance
+    # Reference preset (J_o(r) = 0): a point must beat |J_t(r)| ~ e^-388 while the obstacle 0.4 m away adds
+    # ~e^-160 to it, so nothing passes: a local minimum with the same safe set.
+    ref = get_planner("cr-bapf", PlannerParams.reference()).step(np.zeros(2), target, obstacle)
+    assert ref.reason is DecisionReason.LOCAL_MINIMUM and ref.n_passing == 0
+    assert ref.n_safe == d.n_safe
