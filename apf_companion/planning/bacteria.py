@@ -49,9 +49,19 @@ _CHUNK_ELEMENTS = 1 << 20
 #: Paper rule of A-BAPF: repulsion <= 2^-53 |J_t| (float64 rounds J_t + J_o to J_t).
 _LOG_HALF_ULP = -53.0 * math.log(2.0)
 _INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
-_LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
+# numpy constants as 0-d arrays: as ufunc operands they cost about half of what a Python float does, which
+# matters in the single-agent step (tens of ufunc calls on tiny arrays).
+_LOCAL_MINIMUM_CODE = np.array(DecisionReason.LOCAL_MINIMUM, dtype=np.int8)
+_ZERO = np.array(0.0)
+_ZERO_COUNT = np.array(0, dtype=np.int64)
+_MINUS_INF = np.array(-np.inf)
 #: Stand-in for the +inf log-term inside rho_l (Eq. (12)): larger than any finite log-sum-exp that can occur.
-_INSIDE_LOG = 1e300
+_INSIDE_LOG = np.array(1e300)
+
+
+def _const(value: float) -> FloatArray:
+    """A 0-d float64 array (see the constants above)."""
+    return np.array(value, dtype=np.float64)
 
 
 def _count_rows(flags: BoolArray) -> IntArray:
@@ -76,8 +86,10 @@ class BacteriaPlanner(Planner):
         offsets = self.bacteria_offsets_m
         n_points = offsets.shape[0]
         self._n_points = n_points
-        self._log_alpha_o = math.log(params.alpha_o)
-        self._log_alpha_t = math.log(params.alpha_t)
+        self._log_alpha_o = _const(math.log(params.alpha_o))
+        self._log_alpha_t = _const(math.log(params.alpha_t))
+        self._mu_t = _const(params.mu_t_per_m2)
+        self._mu_o = _const(params.mu_o_per_m2)
         self._minus_two_offsets = [np.ascontiguousarray(-2.0 * offsets[:, axis]) for axis in range(params.dim)]
         self._offset_sq = np.sum(offsets * offsets, axis=1)
         # Column K (after the N_b points) is the agent itself: offset 0, no target term inside its sum, and
@@ -87,19 +99,19 @@ class BacteriaPlanner(Planner):
         # Peak floor: 0 for the points (their "1" term); for the agent column a finite floor far below any
         # term, so an empty sum gives log(0) = -inf without inf - inf.
         self._peak_floor = np.append(np.zeros(n_points), -1e300)
-        self._inside_d2 = dist_sq_threshold_below(params.rho_l_m)
-        self._outside_d2 = dist_sq_threshold_above(params.rho_u_m)
+        self._inside_d2 = _const(dist_sq_threshold_below(params.rho_l_m))
+        self._outside_d2 = _const(dist_sq_threshold_above(params.rho_u_m))
         # A-BAPF with the exact rule and the grid needs no search (mu_max, see abapf.py): prune as BAPF.
         self._full_obstacles = self.adaptive and (
             params.abapf_rule is AbapfRule.PAPER or params.abapf_search is AbapfSearch.GOLDEN
         )
         mu_min = min(self._smallest_point_mu(), params.mu_o_per_m2)
         widen = (1.0 + 1e-9) ** 2
-        self._reach_gain = widen / mu_min
-        self._rho_l_sq = widen * params.rho_l_m**2
-        self._rho_u_sq = widen * params.rho_u_m**2
-        self._reach_step = params.step_m + 1e-9
-        self._reach_offset = self._log_alpha_o - _NEGLIGIBLE_LOG
+        self._reach_gain = _const(widen / mu_min)
+        self._rho_l_sq = _const(widen * params.rho_l_m**2)
+        self._rho_u_sq = _const(widen * params.rho_u_m**2)
+        self._reach_step = _const(params.step_m + 1e-9)
+        self._reach_offset = _const(math.log(params.alpha_o) - _NEGLIGIBLE_LOG)
 
     # --- hooks --------------------------------------------------------------------------------------
 
@@ -134,7 +146,7 @@ class BacteriaPlanner(Planner):
         if self.branching:
             reach_m = np.sqrt(np.minimum(np.maximum(gap_sq, self._rho_l_sq), self._rho_u_sq))
         else:
-            reach_m = np.sqrt(np.maximum(gap_sq, 0.0))
+            reach_m = np.sqrt(np.maximum(gap_sq, _ZERO))
         reach_m += self._reach_step
         reach_m *= reach_m
         return reach_m
@@ -152,7 +164,7 @@ class BacteriaPlanner(Planner):
         n_agents, dim = positions_m.shape
 
         rel_t = positions_m - targets_m  # (A, D)
-        log_target_agent = self._log_alpha_t - p.mu_t_per_m2 * np.add.reduce(rel_t * rel_t, axis=1)  # a
+        log_target_agent = self._log_alpha_t - self._mu_t * np.add.reduce(rel_t * rel_t, axis=1)  # a
         # gain = Delta_k = rho_t(r) - rho_t(r + o_k) = -(|o_k|^2 + 2 o_k . (r - r_t)): (A, K), > 0 = closer.
         gain = rel_t[:, 0, None] * self._minus_two_offsets[0]
         for axis in range(1, dim):
@@ -192,7 +204,7 @@ class BacteriaPlanner(Planner):
             if mu_points is not None:
                 mu_points[:] = mu
         else:
-            passing = gain > 0.0  # no relevant obstacle: LHS = 0 < RHS = mu_t Delta
+            passing = gain > _ZERO  # no relevant obstacle: LHS = 0 < RHS = mu_t Delta
             rows = np.flatnonzero(counts) if counts is not None else None  # None: one agent, no obstacle
             if counts is not None and rows is not None and rows.size:
                 if self.branching:
@@ -249,9 +261,9 @@ class BacteriaPlanner(Planner):
             if shortcut is not None:
                 return shortcut
         shift = (self._log_alpha_o - log_target_agent)[None, :, None]
-        mu: FloatArray | float = p.mu_o_per_m2
+        mu: FloatArray | float = self._mu_o
         if self.adaptive:
-            log_target_points = log_target_agent[:, None] + p.mu_t_per_m2 * gain
+            log_target_points = log_target_agent[:, None] + self._mu_t * gain
             mu_k = self._point_mu(dist_sq[:, :, :n_points], log_target_points)
             mu = mu_k
             mu_all = np.empty((gain.shape[0], n_points + 1))
@@ -262,7 +274,7 @@ class BacteriaPlanner(Planner):
             terms = mu * dist_sq
         np.subtract(shift, terms, out=terms)  # shifted log J_o^n: (N', A', K + 1)
         if self.branching:
-            np.copyto(terms, -np.inf, where=dist_sq > self._outside_d2)
+            np.copyto(terms, _MINUS_INF, where=dist_sq > self._outside_d2)
             # Inside rho_l the term is +inf (Eq. (12)); a huge finite stand-in keeps the sums free of inf - inf
             # and still dominates every finite side, so each comparison below ends as with +inf.
             np.copyto(terms, _INSIDE_LOG, where=dist_sq < self._inside_d2)
@@ -275,7 +287,7 @@ class BacteriaPlanner(Planner):
         sides = np.log(total)
         sides += peak
         inside = sides >= _INSIDE_LOG if self.branching else None
-        rhs = p.mu_t_per_m2 * gain
+        rhs = self._mu_t * gain
         if p.agent_repulsion:
             rhs = np.logaddexp(sides[:, n_points, None], rhs)
         passing = sides[:, :n_points] < rhs
@@ -297,9 +309,9 @@ class BacteriaPlanner(Planner):
         """
         n_agents, n_points = passing.shape
         # Larger gain = closer to the target; argmax takes the lowest index among ties.
-        chosen = np.where(passing, gain, -np.inf).argmax(axis=1)
+        chosen = np.where(passing, gain, _MINUS_INF).argmax(axis=1)
         n_passing = _count_rows(passing)
-        stuck = n_passing == 0
+        stuck = n_passing == _ZERO_COUNT
         chosen[stuck] = -1
         # GREEDY = 0, LOCAL_MINIMUM = 2: the int8 view of the bool array times 2.
         reason = stuck.view(np.int8) * _LOCAL_MINIMUM_CODE

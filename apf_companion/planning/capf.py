@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from apf_companion.planning.base import Planner
 from apf_companion.planning.decision import BatchDecision, DecisionReason, filled
+from apf_companion.planning.params import PlannerParams
 
 __all__ = ["CapfPlanner", "capf_force"]
 
@@ -24,8 +25,8 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 #: The gradient "vanishes" when its norm is below this fraction of the sum of the norms of its parts.
-_VANISHING_RATIO = 1e-12
-_LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
+_VANISHING_RATIO = np.array(1e-12)
+_LOCAL_MINIMUM_CODE = np.array(DecisionReason.LOCAL_MINIMUM, dtype=np.int8)
 
 
 def capf_force(
@@ -41,20 +42,17 @@ def capf_force(
     """-grad(U_att + U_rep) at each agent, and the sum of the norms of its parts (for the vanishing test).
 
     Shapes: positions/targets (A, D), obstacles (A, N, D), mask (A, N) or None (all known). Returns (A, D)
-    and (A,). Work arrays are (A, N) per axis, so ufuncs run along the obstacle axis.
+    and (A,). Work arrays are (D, A, N), so ufuncs run along the obstacle axis.
     """
-    n_agents, dim = positions_m.shape
-    force = (targets_m - positions_m) * k_att  # attraction, then the repulsion is added per axis
+    n_agents = positions_m.shape[0]
+    force = (targets_m - positions_m) * np.array(k_att)  # attraction; the repulsion is added below
     scale = np.sqrt(np.add.reduce(force * force, axis=1))
     by_axis = obstacles_m.transpose(2, 0, 1)
     if n_agents > 8:
         by_axis = np.ascontiguousarray(by_axis)  # contiguous (A, N) per axis: fast ufunc loops
-    rel = [positions_m[:, axis, None] - by_axis[axis] for axis in range(dim)]  # obstacle -> agent
-    dist_sq = rel[0] * rel[0]
-    for axis in range(1, dim):
-        dist_sq += rel[axis] * rel[axis]
-    dist_m = np.sqrt(dist_sq)
-    active = dist_m < rho_0_m
+    rel = positions_m.T[:, :, None] - by_axis  # (D, A, N), obstacle -> agent
+    dist_m = np.sqrt(np.add.reduce(rel * rel, axis=0))
+    active = dist_m < np.array(rho_0_m)
     if obstacle_mask is not None:
         active &= obstacle_mask
     # |F_rep,n| = eta (1/rho - 1/rho_0) / rho^2, along (r - r_o) / rho: coef = eta (1/rho - 1/rho_0) / rho^3.
@@ -62,12 +60,9 @@ def capf_force(
     # NaN force that follows makes the step a local minimum (the direction is undefined).
     inv_m = np.zeros(dist_m.shape)
     np.divide(1.0, dist_m, out=inv_m, where=active)
-    coef = (inv_m - 1.0 / rho_0_m) * eta
-    coef *= inv_m
-    coef *= inv_m
-    coef *= inv_m
-    for axis in range(dim):
-        force[:, axis] += np.add.reduce(coef * rel[axis], axis=1)
+    coef = (inv_m - np.array(1.0 / rho_0_m)) * np.array(eta)
+    coef *= inv_m * inv_m * inv_m
+    force += np.add.reduce(coef * rel, axis=2).T
     scale += np.add.reduce(np.abs(coef) * dist_m, axis=1)
     return force, scale
 
@@ -76,6 +71,10 @@ class CapfPlanner(Planner):
     """CAPF (module docstring): a fixed step along -grad U; no bacteria points."""
 
     name = "capf"
+
+    def __init__(self, params: PlannerParams) -> None:
+        super().__init__(params)
+        self._step = np.array(params.step_m)
 
     def _step_batch(
         self,
@@ -98,11 +97,10 @@ class CapfPlanner(Planner):
             rho_0_m=p.capf_rho_0_m,
         )
         norm = np.sqrt(np.add.reduce(force * force, axis=1))
-        # NaN (obstacle at rho = 0) compares False: no move.
-        moves = (norm > _VANISHING_RATIO * scale) & (norm > 0.0) & (norm < np.inf)
-        stuck = ~moves
+        # False for a zero gradient (norm 0 <= 0), a vanishing one, and NaN or inf (obstacle at rho = 0).
+        stuck = ~(norm > _VANISHING_RATIO * scale)
         norm[stuck] = 1.0
-        force *= (p.step_m / norm)[:, None]
+        force *= (self._step / norm)[:, None]
         next_points = positions_m + force
         next_points[stuck] = np.nan
         return BatchDecision(
