@@ -166,6 +166,7 @@ class Navigator:
         self.step_m = step_m
         self.target_guard_m = target_guard_m
         self._step_target: FloatArray | None = None
+        self._step_target_t = 0.0
         self.planner = planner
         self.memory = memory
         self.rng = rng
@@ -418,7 +419,7 @@ class Navigator:
             leg.best_t_s = now_s
 
         obstacles = self._near(points, pos)
-        tracked = self._track_step_target(pos, obstacles)
+        tracked = self._track_step_target(pos, obstacles, now_s)
         if tracked is not None:
             return CycleOutput(
                 t_s=now_s,
@@ -474,7 +475,9 @@ class Navigator:
             if self.dim == 2:
                 target[2] = leg.target_ned_m[2]
             self._step_target = target
-            sp = navigate(pos, target, cruise_speed_m_s=cfg.cycle.cruise_speed_m_s, dim=self.dim)
+            self._step_target_t = now_s
+            gap = float(np.linalg.norm((target - pos)[: self.dim]))
+            sp = navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap), dim=self.dim)
         return CycleOutput(
             t_s=now_s,
             state=self.state,
@@ -485,12 +488,13 @@ class Navigator:
             n_obstacles=int(obstacles.shape[0]),
         )
 
-    def _track_step_target(self, pos: FloatArray, obstacles: FloatArray) -> Setpoint | None:
+    def _track_step_target(self, pos: FloatArray, obstacles: FloatArray, now_s: float) -> Setpoint | None:
         """Keep flying to the current bacteria point until within ``replan_radius_m`` of it.
 
         The point is re-validated every cycle against the fresh obstacle memory (at least ``target_guard_m``
-        from every point) and the vehicle must still be near the step (within two steps of it); otherwise it is
-        dropped and the planner runs from the pose. Returns the setpoint, or None to plan now.
+        from every point), the vehicle must still be near the step (within two steps of it) and must get there
+        in time (three steps at cruise speed, at least 1 s); otherwise it is dropped and the planner runs from
+        the pose. Returns the setpoint, or None to plan now.
         """
         target = self._step_target
         if self.config.dry_run:
@@ -502,11 +506,16 @@ class Navigator:
         gap = float(np.sqrt(d @ d))
         if gap <= self.config.cycle.replan_radius_m:
             return None  # reached: plan from it
-        if gap > 2.0 * self.step_m or not self._clear(target, obstacles):
+        too_long = now_s - self._step_target_t > max(1.0, 3.0 * self.step_m / self.config.cycle.cruise_speed_m_s)
+        if gap > 2.0 * self.step_m or too_long or not self._clear(target, obstacles):
             self._step_target = None
             self.counters.dropped_targets += 1
             return None
-        return navigate(pos, target, cruise_speed_m_s=self.config.cycle.cruise_speed_m_s, dim=self.dim)
+        return navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap), dim=self.dim)
+
+    def _approach_speed(self, gap_m: float) -> float:
+        """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it)."""
+        return self.config.cycle.cruise_speed_m_s * min(1.0, gap_m / self.step_m)
 
     def _clear(self, point: FloatArray, obstacles: FloatArray) -> bool:
         if self.target_guard_m <= 0.0 or obstacles.shape[0] == 0:

@@ -97,6 +97,8 @@ takeoff_alt_m = {opt.alt_m}
 [planner]
 name = "{opt.planner}"
 seed = {opt.seed}
+# The study allows 900 iterations (~0.5 s each here); give the random walk comparable room.
+progress_timeout_s = 120.0
 
 [cycle]
 rate_hz = {opt.rate_hz}
