@@ -113,3 +113,16 @@ def test_route_file_resolves_against_config_dir(tmp_path: Path) -> None:
 def test_example_toml_is_valid_toml_with_every_section() -> None:
     data = tomllib.loads((REPO / "deploy" / "apf-companion.toml").read_text())
     assert {"link", "autopilot", "planner", "cycle", "sensors", "zenoh", "status"} <= set(data)
+
+
+@pytest.mark.parametrize("name", ["apf-companion.toml", "apf-companion-px4-zenoh.toml"])
+def test_every_deploy_example_is_valid(name: str) -> None:
+    cfg = load_config(REPO / "deploy" / name)
+    build_planner(cfg)
+
+
+def test_route_example_loads() -> None:
+    from apf_companion.goal import load_route
+
+    route = load_route(REPO / "deploy" / "route-example.toml")
+    assert len(route) == 3 and math.isnan(route.waypoints_ned_m[1, 2])
