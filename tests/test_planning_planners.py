@@ -442,7 +442,7 @@ def test_a_bapf_paper_rule_decisions_equal_a_full_search(search: AbapfSearch, pr
             log_jt = np.log(params.alpha_t) - params.mu_t_per_m2 * np.sum((b - target) ** 2)
             ok = log_rep <= log_jt - 53 * np.log(2)
             mu_hat = mus[np.argmax(ok)] if ok.any() else float(params.mu_max)
-            # Eq. (15) in exact arithmetic with that mu_o,k.
+            # Eq. (12) in exact arithmetic with that mu_o,k.
             jt_r = mp(params.alpha_t) * mpmath.exp(
                 -mp(params.mu_t_per_m2) * mp(float(np.sum((position - target) ** 2)))
             )

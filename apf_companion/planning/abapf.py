@@ -1,4 +1,4 @@
-"""A-BAPF: bacteria APF with an adaptive mu_o,k per bacteria point (Diab et al. 2023, Eqs. (13)-(15)).
+"""A-BAPF: bacteria APF with an adaptive mu_o,k per bacteria point (Diab et al. 2023, Eqs. (9)-(12)).
 
 Diab, Mohammadkarimi, Rajan, "Artificial Potential Field-Based Path Planning for Cluttered Environments",
 IEEE Aerospace 2023, DOI 10.1109/AERO55745.2023.10115857.
@@ -7,7 +7,7 @@ Notes
 -----
 Theorem (exact rule). For a bacteria point with at least one obstacle at squared distance rho_n > 0,
 J_k(mu) = J_t + sum_n alpha_o exp(-mu rho_n) has derivative -sum_n alpha_o rho_n exp(-mu rho_n) < 0, so it is
-strictly decreasing in mu and the argmin of Eq. (14) over [mu_min : mu_max] is mu_max. (The paper calls J_k
+strictly decreasing in mu and the argmin of Eq. (11) over [mu_min : mu_max] is mu_max. (The paper calls J_k
 convex in mu; it is, and also monotone.) With no known obstacle J_k is constant and the first minimum,
 mu_min, is taken. ``AbapfRule.EXACT`` with ``AbapfSearch.GRID`` uses this closed form; with
 ``AbapfSearch.GOLDEN`` the golden-section search actually evaluates the objective (in logs) and lands on the
@@ -21,11 +21,11 @@ same answer as scanning all of it, in about 10 evaluations) and GOLDEN by golden
 broken to the left on max(log J_o(mu), threshold), finished on the integer grid.
 
 The paper rule's move test needs mu_o,k only near a tie: when the threshold is reachable, 0 < J_o(mu_o,k) <=
-2^-53 |J_t(r_b,k)|, so Eq. (15) holds for sure if |J_t(r)| + 2^-53 |J_t(r_b,k)| < |J_t(r_b,k)| + J_o(r) and fails
+2^-53 |J_t(r_b,k)|, so Eq. (12) holds for sure if |J_t(r)| + 2^-53 |J_t(r_b,k)| < |J_t(r_b,k)| + J_o(r) and fails
 for sure if |J_t(r)| >= |J_t(r_b,k)| + J_o(r). The search runs only for points between the two (rare) and for
 each agent's chosen point (its mu_o,k is reported); the result is the same as searching every point.
 
-In both rules the move test is Eq. (15) with J_a(r) of Eq. (4) at the fixed mu_o.
+In both rules the move test is Eq. (12) with J_a(r) of Eq. (4) at the fixed mu_o.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ BoolArray = npt.NDArray[np.bool_]
 
 
 def log_total_repulsion(dist_sq_points_m2: FloatArray, mu_per_m2: FloatArray, *, alpha_o: float) -> FloatArray:
-    """log J_o(r_b,k, mu_o,k) of Eq. (13): log-sum-exp over obstacles (first axis) of log alpha_o - mu rho.
+    """log J_o(r_b,k, mu_o,k) of Eq. (10): log-sum-exp over obstacles (first axis) of log alpha_o - mu rho.
 
     ``dist_sq_points_m2`` (N, ..., K), ``mu_per_m2`` (..., K). Returns (..., K).
     """
@@ -107,7 +107,7 @@ def golden_section_mu(
     mu_min: int,
     mu_max: int,
 ) -> FloatArray:
-    """Golden-section search of Eq. (14) over [mu_min, mu_max], ties to the left (first minimum).
+    """Golden-section search of Eq. (11) over [mu_min, mu_max], ties to the left (first minimum).
 
     ``threshold_log`` None: the exact objective log J_o(mu) (strictly decreasing, so this converges to
     mu_max); otherwise the paper-rule objective max(log J_o(mu), threshold), whose first minimum is where the
@@ -143,7 +143,7 @@ def golden_section_mu(
 
 
 class AbapfPlanner(BacteriaPlanner):
-    """A-BAPF (Eqs. (13)-(15)); rule and search from ``PlannerParams.abapf_rule`` / ``abapf_search``."""
+    """A-BAPF (Eqs. (9)-(12)); rule and search from ``PlannerParams.abapf_rule`` / ``abapf_search``."""
 
     name = "a-bapf"
     adaptive = True

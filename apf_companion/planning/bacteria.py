@@ -55,7 +55,7 @@ _LOCAL_MINIMUM_CODE = np.array(DecisionReason.LOCAL_MINIMUM, dtype=np.int8)
 _ZERO = np.array(0.0)
 _ZERO_COUNT = np.array(0, dtype=np.int64)
 _MINUS_INF = np.array(-np.inf)
-#: Stand-in for the +inf log-term inside rho_l (Eq. (12)): larger than any finite log-sum-exp that can occur.
+#: Stand-in for the +inf log-term inside rho_l (Eq. (13)): larger than any finite log-sum-exp that can occur.
 _INSIDE_LOG = np.array(1e300)
 
 
@@ -74,11 +74,11 @@ def _count_rows(flags: BoolArray) -> IntArray:
 class BacteriaPlanner(Planner):
     """Shared engine; subclasses choose the repulsion (Eq. (2) or (12)), adaptivity and random walk."""
 
-    #: CR-BAPF: branching repulsion of Eq. (12) instead of Eq. (2).
+    #: CR-BAPF: branching repulsion of Eq. (13) instead of Eq. (2).
     branching: ClassVar[bool] = False
     #: CR-BAPF*: random walk when no point passes.
     random_walk: ClassVar[bool] = False
-    #: A-BAPF: mu_o,k chosen per point by Eq. (14).
+    #: A-BAPF: mu_o,k chosen per point by Eq. (11).
     adaptive: ClassVar[bool] = False
 
     def __init__(self, params: PlannerParams) -> None:
@@ -275,7 +275,7 @@ class BacteriaPlanner(Planner):
         np.subtract(shift, terms, out=terms)  # shifted log J_o^n: (N', A', K + 1)
         if self.branching:
             np.copyto(terms, _MINUS_INF, where=dist_sq > self._outside_d2)
-            # Inside rho_l the term is +inf (Eq. (12)); a huge finite stand-in keeps the sums free of inf - inf
+            # Inside rho_l the term is +inf (Eq. (13)); a huge finite stand-in keeps the sums free of inf - inf
             # and still dominates every finite side, so each comparison below ends as with +inf.
             np.copyto(terms, _INSIDE_LOG, where=dist_sq < self._inside_d2)
         # Column k < K: log(1 + sum exp(terms)) (1 = shifted |J_t(r)|); column K: log(sum exp(agent terms)).

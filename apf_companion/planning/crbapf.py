@@ -1,9 +1,9 @@
 """CR-BAPF and CR-BAPF*: changing-radii bacteria APF, with and without random walk (Diab et al. 2023).
 
 Diab, Mohammadkarimi, Rajan, "Artificial Potential Field-Based Path Planning for Cluttered Environments",
-IEEE Aerospace 2023, DOI 10.1109/AERO55745.2023.10115857. Repulsion: Eq. (12) (0 beyond rho_u, +inf inside
-rho_l, limits inclusive on the plain distance); move test: Eq. (6); random walk: q ~ U{Q} (Sec. "Local Minima
-Trap"). The engine is in ``bacteria.py``.
+IEEE Aerospace 2023, DOI 10.1109/AERO55745.2023.10115857. Repulsion: Eq. (13) (0 beyond rho_u, +inf inside
+rho_l, limits inclusive on the plain distance); move test: Eq. (6); random walk: q ~ U{Q}, Eqs. (7)-(8)
+(Sec. "Local Minima Trap"). The engine is in ``bacteria.py``.
 
 Notes
 -----
@@ -20,7 +20,7 @@ __all__ = ["CrBapfPlanner", "CrBapfStarPlanner"]
 
 
 class CrBapfPlanner(BacteriaPlanner):
-    """CR-BAPF: branching repulsion of Eq. (12); no move at a local minimum."""
+    """CR-BAPF: branching repulsion of Eq. (13); no move at a local minimum."""
 
     name = "cr-bapf"
     branching = True

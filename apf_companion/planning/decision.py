@@ -47,7 +47,7 @@ class Decision:
     next_point_m : (D,) float64 next position, or None when the agent does not move.
     reason : why.
     chosen_index : 0-based index of the chosen bacteria point (row of ``bacteria_offsets_m``), or None.
-    mu_o_k : A-BAPF: mu_o,k of the chosen point (Eq. (14)) [1/m^2]; None for other planners or no move.
+    mu_o_k : A-BAPF: mu_o,k of the chosen point (Eq. (11)) [1/m^2]; None for other planners or no move.
     n_passing : how many bacteria points passed Eq. (6) (0 for CAPF, which has none).
     n_safe : how many bacteria points are at least rho_l from every known obstacle (the random walk's set Q);
         -1 when the planner does not compute it.

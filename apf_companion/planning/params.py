@@ -19,9 +19,9 @@ __all__ = ["AbapfRule", "AbapfSearch", "PlannerParams", "RandomWalkRule"]
 
 
 class AbapfRule(enum.Enum):
-    """How A-BAPF picks mu_o,k for a bacteria point (Eq. (14))."""
+    """How A-BAPF picks mu_o,k for a bacteria point (Eq. (11))."""
 
-    #: The exact argmin of Eq. (14). J_k(mu) is strictly decreasing in mu, so this is mu_max whenever the
+    #: The exact argmin of Eq. (11). J_k(mu) is strictly decreasing in mu, so this is mu_max whenever the
     #: agent knows an obstacle (mu_min when it knows none: J_k is then constant and the first minimum is taken).
     EXACT = "exact"
     #: The rule that reproduces the paper's mu_o,k figure (float64 ties in MATLAB's ``min``): the smallest
@@ -30,7 +30,7 @@ class AbapfRule(enum.Enum):
 
 
 class AbapfSearch(enum.Enum):
-    """How the mu_o,k search of Eq. (14) is carried out over [mu_min, mu_max]."""
+    """How the mu_o,k search of Eq. (11) is carried out over [mu_min, mu_max]."""
 
     #: The integer grid mu_min, mu_min + 1, ..., mu_max (first minimum, as MATLAB's ``min``).
     GRID = "grid"
@@ -41,8 +41,8 @@ class AbapfSearch(enum.Enum):
 class RandomWalkRule(enum.Enum):
     """CR-BAPF* escape move when no bacteria point passes Eq. (6)."""
 
-    #: The paper's text: q ~ U{Q}, uniform over the safe points (at least rho_l from every known obstacle);
-    #: an empty Q is a local minimum.
+    #: The paper's text, Eqs. (7)-(8): q ~ U{Q}, uniform over the safe points (at least rho_l from every known
+    #: obstacle); an empty Q is a local minimum.
     SAFE_SET = "safe-set"
     #: The authors' code: one index drawn uniformly from all N_b points; the agent moves only if that point is
     #: safe, otherwise the iteration passes without a move (reported as a local minimum).
@@ -67,13 +67,13 @@ class PlannerParams:
     ----------
     alpha_t : target potential gain alpha_t of Eq. (1), > 0.
     mu_t_per_m2 : target decay mu_t of Eq. (1) [1/m^2], > 0.
-    alpha_o : obstacle potential gain alpha_o of Eqs. (2), (12), (13), > 0.
-    mu_o_per_m2 : obstacle decay mu_o of Eqs. (2), (12) [1/m^2], > 0.
-    rho_l_m : lower (safety) radius of Eq. (12) [m], 0 <= rho_l_m < rho_u_m.
-    rho_u_m : upper radius of Eq. (12) [m]; obstacles farther away do not repel.
+    alpha_o : obstacle potential gain alpha_o of Eqs. (2), (10), (13), > 0.
+    mu_o_per_m2 : obstacle decay mu_o of Eqs. (2), (13) [1/m^2], > 0.
+    rho_l_m : lower (safety) radius of Eq. (13) [m], 0 <= rho_l_m < rho_u_m.
+    rho_u_m : upper radius of Eq. (13) [m]; obstacles farther away do not repel.
     step_m : movement step, the bacteria ring/sphere radius [m], > 0.
     n_bacteria : number of bacteria points N_b, >= 3 (2D) or >= 4 (3D).
-    mu_min, mu_max : the integer search interval [mu_min : mu_max] of Eq. (14) [1/m^2], 1 <= mu_min <= mu_max.
+    mu_min, mu_max : the integer search interval [mu_min : mu_max] of Eq. (11) [1/m^2], 1 <= mu_min <= mu_max.
     abapf_rule, abapf_search : A-BAPF rule and search method (see the enums).
     random_walk : CR-BAPF* escape rule.
     agent_repulsion : include the agent's own repulsion J_o(r) in J_a (Eq. (4)). False reproduces the

@@ -13,7 +13,7 @@ negative terms across gives a comparison of two sums of positive exponentials,
 
     alpha_t e^(-mu_t rho_t(r)) + sum_n J_o^n(r_b,k)  <  alpha_t e^(-mu_t rho_t(r_b,k)) + sum_n J_o^n(r),
 
-and both sides are compared through their log-sum-exp, with +inf (inside rho_l, Eq. (12)) propagating and
+and both sides are compared through their log-sum-exp, with +inf (inside rho_l, Eq. (13)) propagating and
 inf < inf false (IEEE: inf - inf is NaN, and NaN < 0 is false). The linear functions below exist for reference
 and tests.
 """
@@ -57,7 +57,7 @@ def obstacle_potential(dist_sq_obstacle_m2: ArrayLike, *, alpha_o: float, mu_o_p
 def branch_obstacle_potential(
     dist_sq_obstacle_m2: ArrayLike, *, alpha_o: float, mu_o_per_m2: float, rho_l_m: float, rho_u_m: float
 ) -> FloatArray:
-    """Eq. (12), CR-BAPF: 0 beyond rho_u, Eq. (2) for rho_l <= distance <= rho_u (inclusive), +inf inside rho_l.
+    """Eq. (13), CR-BAPF: 0 beyond rho_u, Eq. (2) for rho_l <= distance <= rho_u (inclusive), +inf inside rho_l.
 
     The limits compare the plain distance sqrt(rho_o^n), as the equation does.
     """
@@ -86,7 +86,7 @@ def log_target_term(dist_sq_target_m2: ArrayLike, *, alpha_t: float, mu_t_per_m2
 
 
 def log_obstacle_terms(dist_sq_obstacle_m2: ArrayLike, *, alpha_o: float, mu_o_per_m2: ArrayLike) -> FloatArray:
-    """log J_o^n of Eq. (2) (and Eq. (13) with a per-point mu_o,k): log alpha_o - mu_o rho_o^n."""
+    """log J_o^n of Eq. (2) (and Eq. (10) with a per-point mu_o,k): log alpha_o - mu_o rho_o^n."""
     return math.log(alpha_o) - np.asarray(mu_o_per_m2, dtype=np.float64) * np.asarray(
         dist_sq_obstacle_m2, dtype=np.float64
     )
@@ -96,7 +96,7 @@ def dist_sq_threshold_below(rho_m: float) -> float:
     """Smallest float64 x >= 0 with sqrt(x) >= rho_m, so that ``sqrt(d2) < rho_m`` is exactly ``d2 < x``.
 
     sqrt is correctly rounded and monotone, so comparing squared distances against this threshold gives the
-    same answer as comparing the plain distance (Eq. (12)) without a square root per pair.
+    same answer as comparing the plain distance (Eq. (13)) without a square root per pair.
     """
     if rho_m <= 0.0:
         return 0.0
@@ -126,7 +126,7 @@ def log_branch_obstacle_terms(
     rho_l_m: float,
     rho_u_m: float,
 ) -> FloatArray:
-    """log of Eq. (12): -inf beyond rho_u (a zero term), log alpha_o - mu_o rho between, +inf inside rho_l."""
+    """log of Eq. (13): -inf beyond rho_u (a zero term), log alpha_o - mu_o rho between, +inf inside rho_l."""
     dist_sq = np.asarray(dist_sq_obstacle_m2, dtype=np.float64)
     logs = log_obstacle_terms(dist_sq, alpha_o=alpha_o, mu_o_per_m2=mu_o_per_m2)
     inside = dist_sq < dist_sq_threshold_below(rho_l_m)
