@@ -72,7 +72,7 @@ def _count_rows(flags: BoolArray) -> IntArray:
 
 
 class BacteriaPlanner(Planner):
-    """Shared engine; subclasses choose the repulsion (Eq. (2) or (12)), adaptivity and random walk."""
+    """Shared engine; subclasses choose the repulsion (Eq. (2) or (13)), adaptivity and random walk."""
 
     #: CR-BAPF: branching repulsion of Eq. (13) instead of Eq. (2).
     branching: ClassVar[bool] = False
@@ -315,16 +315,18 @@ class BacteriaPlanner(Planner):
         chosen[stuck] = -1
         # GREEDY = 0, LOCAL_MINIMUM = 2: the int8 view of the bool array times 2.
         reason = stuck.view(np.int8) * _LOCAL_MINIMUM_CODE
+        safe: BoolArray | None = None
         if not self.branching:
             n_safe = filled(n_agents, -1, np.int64)
         elif inside is None:  # no obstacle near any agent: every point is safe
-            safe = np.ones(passing.shape, dtype=bool) if self.random_walk else passing
             n_safe = filled(n_agents, n_points, np.int64)
         else:
             safe = ~inside
             n_safe = _count_rows(safe)
 
         if self.random_walk:
+            if safe is None:
+                safe = np.ones(passing.shape, dtype=bool)
             walkers = np.flatnonzero(stuck)
             if walkers.size:
                 if walk_uniforms is not None:
