@@ -174,3 +174,27 @@ def test_moves_downhill_matches_mpmath(seed: int) -> None:
             assert bool(got[k]) == expected, (dist_t, d2_points_t[k], lo_a, lo_p[k])
             checked += 1
     assert checked > 250
+
+
+distances = st.floats(min_value=0.0, max_value=1e3, allow_nan=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(d1=distances, d2=distances, mu=st.floats(min_value=1e-3, max_value=1e3))
+def test_potentials_are_monotone_in_distance(d1: float, d2: float, mu: float) -> None:
+    near, far = sorted((d1, d2))
+    # Eq. (1) rises toward 0 with distance; Eq. (2) falls toward 0; their logs are finite at any distance.
+    assert target_potential(near**2, alpha_t=1e4, mu_t_per_m2=mu) <= target_potential(
+        far**2, alpha_t=1e4, mu_t_per_m2=mu
+    )
+    assert obstacle_potential(near**2, alpha_o=1.0, mu_o_per_m2=mu) >= obstacle_potential(
+        far**2, alpha_o=1.0, mu_o_per_m2=mu
+    )
+    logs = log_obstacle_terms(np.array([near**2, far**2]), alpha_o=1.0, mu_o_per_m2=mu)
+    assert np.all(np.isfinite(logs)) and logs[0] >= logs[1]
+    assert np.isfinite(log_target_term(far**2, alpha_t=1e4, mu_t_per_m2=mu))
+    # Eq. (13): non-increasing in distance too (inf, then the exponential, then 0).
+    branch = branch_obstacle_potential(
+        np.array([near**2, far**2]), alpha_o=1.0, mu_o_per_m2=mu, rho_l_m=0.4, rho_u_m=4.5
+    )
+    assert branch[0] >= branch[1]
