@@ -294,3 +294,18 @@ async def test_goal_changed_mid_flight_by_do_reposition() -> None:
             await gcs.aclose()
         await wait_state(svc, {State.ARRIVED}, 40.0)
     assert math.dist(sim.result()["final_pos_ned_m"][:2], (3.0, 12.0)) <= 1.0
+
+
+async def test_3d_planner_climbs_and_avoids() -> None:
+    world = sparse_world(0)
+    cfg = config_from_mapping(_as_mapping(service_config()) | {"planner": {"name": "cr-bapf*", "dim": 3}})
+    async with flight(world, cfg, route=Route.point(22.0, 22.0, -8.0, source="t"), spawn_mode="LOITER") as (
+        svc,
+        sim,
+    ):
+        state = await wait_state(svc, {State.ARRIVED, State.STUCK}, 60.0)
+        res = sim.result()
+    assert state is State.ARRIVED
+    assert not res["collided"]
+    final = res["final_pos_ned_m"]
+    assert math.dist(final, (22.0, 22.0, -8.0)) <= 0.7 + 0.3  # 3D arrival radius
