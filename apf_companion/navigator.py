@@ -238,6 +238,11 @@ class Navigator:
         self._change(now_s, State.NAVIGATING, f"new goal from {route.source}: {route.to_json_list()[-1]}")
         return True
 
+    def drain_changes(self) -> list[StateChange]:
+        """State changes recorded outside ``cycle`` (``set_route``, heartbeats), oldest first; clears them."""
+        changes, self._pending = self._pending, []
+        return changes
+
     def suspend(self) -> None:
         """Stop sending setpoints (the service is arming / taking off)."""
         self.suspended = True

@@ -615,7 +615,7 @@ class CompanionService:
             self._outcome = None
             self._end_s = None
             log.info("goal.set", extra={"source": route.source, "waypoints_ned_m": route.to_json_list()})
-            self._flush_changes(self.navigator.last_output, now)
+            self._flush_changes(None, now)
         else:
             self.counters.bad_goals += 1
         return accepted
@@ -691,11 +691,7 @@ class CompanionService:
 
     def _flush_changes(self, out: CycleOutput | None, now: float) -> None:
         changes = list(out.changes) if out is not None else []
-        # set_route records its change outside a cycle: fetch it from the navigator's pending list.
-        pending = self.navigator._pending
-        if pending:
-            changes.extend(pending)
-            pending.clear()
+        changes.extend(self.navigator.drain_changes())  # from set_route / heartbeats, outside a cycle
         for ch in changes:
             self._reason = ch.reason
             log.info(
@@ -831,7 +827,6 @@ class CompanionService:
             try:
                 await self._take_over(route)
             except _TakeoverFailed as err:
-                self.counters.mode_requests += 0
                 log.warning("takeover.failed", extra={"error": str(err)})
                 if nav.route is route:
                     nav.resume()
