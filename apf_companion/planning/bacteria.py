@@ -92,6 +92,8 @@ class BacteriaPlanner(Planner):
         self._mu_o = _const(params.mu_o_per_m2)
         self._minus_two_offsets = [np.ascontiguousarray(-2.0 * offsets[:, axis]) for axis in range(params.dim)]
         self._offset_sq = np.sum(offsets * offsets, axis=1)
+        # Offsets with a NaN row at index -1: chosen index -1 (no move) gives a NaN next point for free.
+        self._offsets_or_nan = np.vstack([offsets, np.full((1, params.dim), np.nan)])
         # Column K (after the N_b points) is the agent itself: offset 0, no target term inside its sum, and
         # mu_o (Eq. (4)); one pass then yields both sides of Eq. (6).
         self._columns = [np.append(offsets[:, axis], 0.0) for axis in range(params.dim)]
@@ -348,8 +350,7 @@ class BacteriaPlanner(Planner):
                 reason[walkers] = DecisionReason.RANDOM_WALK
                 stuck[walkers] = False
 
-        next_points = positions_m + self.bacteria_offsets_m[chosen]
-        next_points[stuck] = np.nan
+        next_points = positions_m + self._offsets_or_nan[chosen]  # chosen = -1: the NaN row
         if mu_points is not None:
             mu_o_k = mu_points[np.arange(n_agents), chosen]
             mu_o_k[stuck] = np.nan
