@@ -310,10 +310,12 @@ def test_walk_uniforms_select_the_safe_point() -> None:
 
 @pytest.mark.parametrize("name", PLANNER_NAMES)
 @pytest.mark.parametrize("dim", [2, 3])
-def test_step_is_a_row_of_step_batch(name: str, dim: int) -> None:
+def test_step_is_a_row_of_step_batch(name: str, dim: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Small memory chunks, so the batch is split into many groups and chunks.
+    monkeypatch.setattr("apf_companion.planning.bacteria._CHUNK_ELEMENTS", 4000)
     rng = np.random.default_rng(8)
     planner = get_planner(name, PlannerParams(dim=dim))
-    n_agents, n_max = 1500, 40  # large enough for several memory chunks
+    n_agents, n_max = 1500, 40
     positions = rng.uniform(0.0, 30.0, (n_agents, dim))
     targets = np.where(rng.random((n_agents, 1)) < 0.5, 22.0, rng.uniform(-100.0, 100.0, (n_agents, dim)))
     obstacles = positions[:, None, :] + rng.uniform(-2.5, 2.5, (n_agents, n_max, dim))
