@@ -189,7 +189,7 @@ class CycleConfig:
     ranges_max_age_s: float = 0.5
     cruise_speed_m_s: float = 1.0
     arrival_radius_m: float = 0.7
-    replan_radius_m: float = 0.15
+    replan_radius_m: float = 0.1
     time_scale: float = 1.0
 
     def __post_init__(self) -> None:
