@@ -165,10 +165,10 @@ async def test_px4_offboard_after_prestream() -> None:
         await wait_state(svc, {State.ARRIVED}, 30.0)
         assert Px4Mode.from_custom_mode(sim.vehicle.custom_mode).main == Px4MainMode.OFFBOARD
         texts = [t for _, _, t in sim.result()["statustexts"]]
-        assert not any("rejected" in t.lower() for t in texts), texts
-        assert svc.counters.mode_requests >= 1
-        # The switch was requested only after >= 1 s (simulated) of streamed setpoints.
-        assert svc._prestream_since is not None
+        # The simulator refuses OFFBOARD without >= 1 s of setpoints ("... not available"): never happened.
+        assert not any("not available" in t or "offboard signal lost" in t for t in texts), texts
+        # One request sufficed: the first DO_SET_MODE came after the pre-stream.
+        assert svc.counters.mode_requests == 1
 
 
 async def test_arm_and_takeoff_from_the_ground_when_asked() -> None:
