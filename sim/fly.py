@@ -386,8 +386,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
     p.add_argument("--obstacles", default="mid", help="obstacle count N, or density low|mid|high (default mid)")
     p.add_argument("--world", help="world TOML file or bundled example (forest, corridor, u-trap, wall)")
-    p.add_argument("--start", type=_pair, default=PAPER_START, metavar="N,E", help="start (default 3,3)")
-    p.add_argument("--goal", type=_pair, default=PAPER_GOAL, metavar="N,E", help="goal (default 22,22)")
+    p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
+    p.add_argument("--goal", type=_pair, metavar="N,E", help="goal (default: the world file's, else 22,22)")
     p.add_argument("--alt", type=float, default=5.0, help="flight height above home [m]")
     p.add_argument("--speedup", type=float, default=5.0, help="simulated s per wall s (default 5)")
     p.add_argument("--rate", type=float, default=10.0, help="service cycle rate in simulated Hz (default 10)")
@@ -406,7 +406,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.set_defaults(func=_cmd_fly)
 
 
+def _start_goal(args: argparse.Namespace) -> tuple[tuple[float, float], tuple[float, float]]:
+    """--start/--goal, else the world file's suggested start/goal, else the paper's (3, 3) -> (22, 22)."""
+    start, goal = PAPER_START, PAPER_GOAL
+    if args.world is not None:
+        from sim.world import load_world
+
+        world = load_world(args.world)
+        start = world.start_ne_m or start
+        goal = world.goal_ne_m or goal
+    return (args.start or start), (args.goal or goal)
+
+
 def _cmd_fly(args: argparse.Namespace) -> int:
+    try:
+        start, goal = _start_goal(args)
+    except ApfCompanionError as err:
+        print(f"apf-sim fly: {err}", file=sys.stderr)
+        return 2
     opt = FlyOptions(
         planner=args.planner,
         profile=args.profile,
@@ -414,8 +431,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         preset=args.preset,
         obstacles=args.obstacles,
         world=args.world,
-        start_ne_m=args.start,
-        goal_ne_m=args.goal,
+        start_ne_m=start,
+        goal_ne_m=goal,
         alt_m=args.alt,
         speedup=args.speedup,
         rate_hz=args.rate,
