@@ -712,6 +712,8 @@ class CompanionService:
             outcome = "stuck"
         elif state is State.LINK_LOST:
             outcome = "link_lost"
+        elif state is State.IDLE and self.counters.goals > 0 and self.navigator.route is None:
+            outcome = "error"  # the goal was dropped: takeover failed or the pilot took over
         elif (
             self.config.max_flight_s > 0
             and self._first_nav_s is not None
@@ -892,11 +894,21 @@ class CompanionService:
                             TAKEOFF_REACHED_FRACTION * cfg.takeoff_alt_m
                         )
 
+                    takeoff_alt = cfg.takeoff_alt_m  # ArduCopter: param7 is the height above home
+                    if not ardupilot:
+                        # PX4: param7 is an AMSL altitude; home AMSL comes from GLOBAL_POSITION_INT.
+                        await self._wait_for(
+                            "global position", lambda: self._global_ref is not None, None, cfg.mode_timeout_s, route
+                        )
+                        ref = self._global_ref
+                        assert ref is not None
+                        takeoff_alt = ref.alt_amsl_m - ref.alt_rel_m + cfg.takeoff_alt_m
+
                     await self._wait_for(
                         "takeoff",
                         high_enough,
                         lambda: self._command_long(
-                            MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, cfg.takeoff_alt_m
+                            MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, takeoff_alt
                         ),
                         cfg.mode_timeout_s + 4.0 * cfg.takeoff_alt_m,
                         route,

@@ -171,24 +171,30 @@ async def test_px4_offboard_after_prestream() -> None:
         assert svc.counters.mode_requests == 1
 
 
-async def test_arm_and_takeoff_from_the_ground_when_asked() -> None:
-    cfg = service_config(autopilot={"arm": True, "takeoff_alt_m": 4.0})
-    async with _ground_flight(cfg, Route.point(6.0, 3.0, None, source="t")) as (svc, sim):
+@pytest.mark.parametrize("profile", ["ardupilot", "px4"])
+async def test_arm_and_takeoff_from_the_ground_when_asked(profile: str) -> None:
+    cfg = service_config(profile, autopilot={"arm": True, "takeoff_alt_m": 4.0})
+    async with _ground_flight(cfg, Route.point(6.0, 3.0, None, source="t"), profile) as (svc, sim):
         assert not sim.vehicle.armed and sim.vehicle.on_ground
         await wait_state(svc, {State.ARRIVED}, 45.0)
         assert sim.vehicle.armed and not sim.vehicle.on_ground
-        assert -sim.vehicle.pos_ned_m[2] > 3.0
-        assert sim.vehicle.custom_mode == CopterMode.GUIDED
+        assert -sim.vehicle.pos_ned_m[2] > 3.0  # "keep altitude" kept the takeoff height, not the ground's
+        if profile == "ardupilot":
+            assert sim.vehicle.custom_mode == CopterMode.GUIDED
+        else:
+            assert Px4Mode.from_custom_mode(sim.vehicle.custom_mode).main == Px4MainMode.OFFBOARD
 
 
 @contextlib.asynccontextmanager
-async def _ground_flight(cfg: ServiceConfig, route: Route) -> AsyncIterator[tuple[CompanionService, Simulator]]:
+async def _ground_flight(
+    cfg: ServiceConfig, route: Route, profile: str = "ardupilot"
+) -> AsyncIterator[tuple[CompanionService, Simulator]]:
     svc = await CompanionService.open(cfg, route=route)
     assert svc.link is not None and svc.link.local_address is not None
     sim = await Simulator.start(
         SimConfig(
             links=[f"udpout:127.0.0.1:{svc.link.local_address[1]}"],
-            profile="ardupilot",
+            profile=profile,
             speedup=SPEEDUP,
             spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=False),
         )
