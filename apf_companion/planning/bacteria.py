@@ -286,7 +286,8 @@ class BacteriaPlanner(Planner):
         np.exp(terms, out=terms)
         total = np.add.reduce(terms, axis=0)
         total += np.exp(self._extra - peak)
-        sides = np.log(total)
+        with np.errstate(divide="ignore"):  # an empty sum (no repulsion at the agent) is log 0 = -inf, as intended
+            sides = np.log(total)
         sides += peak
         inside = sides >= _INSIDE_LOG if self.branching else None
         rhs = self._mu_t * gain
