@@ -32,14 +32,21 @@ import signal
 import socket
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from apf_companion.errors import ApfCompanionError, LinkTimeout
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink
 
-__all__ = ["FlyOptions", "fly", "register"]
+if TYPE_CHECKING:
+    from sim.world import World
+
+__all__ = ["FlyOptions", "flown_world", "fly", "paper_world", "register", "study_same_worlds"]
 
 OUTCOMES = ("arrived", "collision", "stuck", "timeout", "error")
 PAPER_START = (3.0, 3.0)
@@ -74,6 +81,70 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def paper_world(opt: FlyOptions) -> World:
+    """The random field the simulator flies for ``opt`` (``--paper-field PRESET:OBSTACLES --field-seed SEED``):
+    the same two calls ``apf-sim vehicle`` makes, so the same seed gives the same obstacle coordinates."""
+    from sim.world import paper_field, parse_field_spec
+
+    preset, count = parse_field_spec(f"{opt.preset}:{opt.obstacles}")
+    return paper_field(preset, count, np.random.default_rng(opt.seed))
+
+
+def flown_world(opt: FlyOptions, sim_res: dict[str, Any] | None) -> npt.NDArray[np.float64]:
+    """(N, 2) north/east obstacle points the simulator flew: from its result file when there is one (exactly
+    the coordinates it checked collisions against), else regenerated with :func:`paper_world`."""
+    if sim_res is not None:
+        circles = sim_res.get("world", {}).get("circles_ne_m")
+        if circles is not None:
+            return np.asarray(circles, dtype=np.float64).reshape(-1, 2)
+    return np.array(paper_world(opt).circles_ne_m, dtype=np.float64)
+
+
+def study_same_worlds(
+    fields_ne_m: Sequence[npt.NDArray[np.float64]],
+    *,
+    preset: str,
+    planner: str,
+    replications: int,
+    seed: int,
+    noise_std_m: float | None = None,
+) -> npt.NDArray[np.int64]:
+    """The study's success count per world: ``replications`` lockstep trials (``sim.study.engine.simulate``,
+    ``StudyConfig.from_preset(preset)``: its noise, detection and planner parameters) on each given field.
+
+    ``noise_std_m`` replaces the preset's actuation noise (0: only the random walk varies between replications).
+    Returns (W,) successes out of ``replications`` per field. One motion generator seeded with ``seed``.
+    """
+    from sim.study.config import StudyConfig
+    from sim.study.engine import simulate
+    from sim.study.metrics import Outcome
+    from sim.study.worlds import WorldBatch
+
+    if replications < 1:
+        msg = f"study replications must be >= 1, got {replications}"
+        raise ConfigError(msg)
+    n_worlds = len(fields_ne_m)
+    if n_worlds == 0:
+        return np.zeros(0, dtype=np.int64)
+    config = StudyConfig.from_preset(preset)
+    if noise_std_m is not None:
+        config = dataclasses.replace(config, noise_std_m=noise_std_m)
+    n_max = max(max(len(f) for f in fields_ne_m), 1)
+    obstacles = np.zeros((n_worlds, n_max, 2))
+    mask = np.zeros((n_worlds, n_max), dtype=bool)
+    for w, f in enumerate(fields_ne_m):
+        obstacles[w, : len(f)] = f
+        mask[w, : len(f)] = True
+    # Trial w * R + r is replication r of world w.
+    batch = WorldBatch(
+        obstacles_m=np.repeat(obstacles, replications, axis=0), mask=np.repeat(mask, replications, axis=0)
+    )
+    result = simulate(config, planner, batch, np.random.default_rng(seed))
+    ok = (result.records.outcome == Outcome.SUCCESS).reshape(n_worlds, replications)
+    successes: npt.NDArray[np.int64] = ok.sum(axis=1).astype(np.int64)
+    return successes
 
 
 def _service_toml(opt: FlyOptions, port: int, tlog: Path) -> str:
@@ -403,6 +474,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         default=1,
         help="fly this many worlds (seeds SEED, SEED+1, ...) one after another and print the success rate",
     )
+    p.add_argument(
+        "--study-reps",
+        type=int,
+        default=100,
+        metavar="R",
+        help="with --trials on a paper field: also run the study's engine R times on each flown field "
+        "(its noise and rules) and print its success rate on the same worlds (default 100; 0 = off)",
+    )
     p.set_defaults(func=_cmd_fly)
 
 
@@ -444,7 +523,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     if args.trials > 1:
-        return _sweep(opt, args.trials)
+        return _sweep(opt, args.trials, study_reps=args.study_reps)
     try:
         rec = asyncio.run(fly(opt))
     except ApfCompanionError as err:
@@ -474,7 +553,9 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def _sweep_loop(base: FlyOptions, trials: int, records: list[dict[str, Any]]) -> None:
+def _sweep_loop(
+    base: FlyOptions, trials: int, records: list[dict[str, Any]], fields: list[npt.NDArray[np.float64]]
+) -> None:
     for k in range(trials):
         seed = base.seed + k
         opt = dataclasses.replace(
@@ -484,6 +565,8 @@ def _sweep_loop(base: FlyOptions, trials: int, records: list[dict[str, Any]]) ->
             rec = asyncio.run(fly(opt))
         except ApfCompanionError as err:
             rec = {"outcome": "error", "seed": seed, "error": str(err)}
+        if base.world is None:
+            fields.append(flown_world(opt, _read_json(opt.out / "sim_result.json")))
         records.append(rec)
         ok = sum(r["outcome"] == "arrived" for r in records)
         print(
@@ -493,11 +576,71 @@ def _sweep_loop(base: FlyOptions, trials: int, records: list[dict[str, Any]]) ->
         )
 
 
-def _sweep(base: FlyOptions, trials: int) -> int:
-    """Fly seeds base.seed .. base.seed + trials - 1; per-trial output in OUT/seed-<k>/, summary in OUT/."""
+def _mean_ci(values: npt.NDArray[np.float64], z: float = 1.96) -> tuple[float, float, float]:
+    """Mean and its normal-approximation 95 % interval (worlds as the sampling unit)."""
+    mean = float(values.mean())
+    if values.size < 2:
+        return mean, -math.inf, math.inf
+    half = z * float(values.std(ddof=1)) / math.sqrt(values.size)
+    return mean, mean - half, mean + half
+
+
+def _study_summary(
+    base: FlyOptions, records: list[dict[str, Any]], fields: list[npt.NDArray[np.float64]], replications: int
+) -> dict[str, Any]:
+    """The study's rate on the flown fields, per world into ``records``, overall as the returned dict."""
+    successes = study_same_worlds(
+        fields, preset=base.preset, planner=base.planner, replications=replications, seed=base.seed
+    )
+    for rec, n_ok in zip(records, successes, strict=True):
+        rec["study_successes"] = int(n_ok)
+        rec["study_rate"] = float(n_ok) / replications
+    total = int(successes.sum())
+    n = replications * len(records)
+    quiet = study_same_worlds(
+        fields, preset=base.preset, planner=base.planner, replications=replications, seed=base.seed, noise_std_m=0.0
+    )
+    for rec, n_ok in zip(records, quiet, strict=True):
+        rec["study_rate_no_noise"] = float(n_ok) / replications
+    fly_ok = np.array([r["outcome"] == "arrived" for r in records], dtype=np.float64)
+    study_rate = successes.astype(np.float64) / replications
+    mean, lo, hi = _mean_ci(study_rate)
+    diff, dlo, dhi = _mean_ci(fly_ok - study_rate)
+    return {
+        "rate": total / n,
+        # Every trial as independent (as the study reports its rates) ...
+        "ci95": list(wilson_interval(total, n)),
+        # ... and with the world as the unit (these worlds are a sample of the density's fields).
+        "ci95_worlds": [max(0.0, lo), min(1.0, hi)],
+        "replications": replications,
+        "trials": n,
+        "preset": base.preset,
+        "planner": base.planner,
+        "noise_std_m": _study_noise(base.preset),
+        "fly_minus_study": diff,
+        "fly_minus_study_ci95": [dlo, dhi],
+        "study_mean_of_world_rates": mean,
+        # The same trials without actuation noise: how much of the gap the noise explains.
+        "no_noise": {"rate": int(quiet.sum()) / n, "ci95": list(wilson_interval(int(quiet.sum()), n))},
+    }
+
+
+def _study_noise(preset: str) -> float:
+    from sim.study.config import StudyConfig
+
+    return float(StudyConfig.from_preset(preset).noise_std_m)
+
+
+def _sweep(base: FlyOptions, trials: int, study_reps: int = 0) -> int:
+    """Fly seeds base.seed .. base.seed + trials - 1; per-trial output in OUT/seed-<k>/, summary in OUT/.
+
+    With ``study_reps`` > 0 (paper fields only) the study's engine then runs ``study_reps`` noisy trials on each
+    flown field, so the flight rate can be compared with the study's on exactly the same worlds.
+    """
     records: list[dict[str, Any]] = []
+    fields: list[npt.NDArray[np.float64]] = []
     try:
-        _sweep_loop(base, trials, records)
+        _sweep_loop(base, trials, records, fields)
     except KeyboardInterrupt:
         print(f"interrupted after {len(records)} flights", file=sys.stderr)
     trials = len(records)
@@ -508,7 +651,7 @@ def _sweep(base: FlyOptions, trials: int) -> int:
     ok = counts["arrived"]
     lo, hi = wilson_interval(ok, trials)
     wins = [r for r in records if r["outcome"] == "arrived"]
-    summary = {
+    summary: dict[str, Any] = {
         "planner": base.planner,
         "profile": base.profile,
         "preset": base.preset if base.world is None else None,
@@ -522,8 +665,12 @@ def _sweep(base: FlyOptions, trials: int) -> int:
         "counts": counts,
         "mean_steps_success": (sum(r["steps"] for r in wins) / len(wins)) if wins else None,
         "mean_path_length_m_success": (sum(r["path_length_m"] for r in wins) / len(wins)) if wins else None,
-        "records": records,
     }
+    study: dict[str, Any] | None = None
+    if study_reps > 0 and base.world is None and len(fields) == trials:
+        study = _study_summary(base, records, fields, study_reps)
+        summary["study_same_worlds"] = study
+    summary["records"] = records
     base.out.mkdir(parents=True, exist_ok=True)
     (base.out / "sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
     if base.json_path is not None:
@@ -532,4 +679,15 @@ def _sweep(base: FlyOptions, trials: int) -> int:
         f"success {ok}/{trials} = {ok / trials:.3f} (95 % CI {lo:.3f}-{hi:.3f}); "
         + ", ".join(f"{o} {n}" for o, n in counts.items())
     )
+    if study is not None:
+        slo, shi = study["ci95"]
+        wlo, whi = study["ci95_worlds"]
+        dlo, dhi = study["fly_minus_study_ci95"]
+        print(
+            f"study on the same {trials} worlds ({study['preset']}, noise {study['noise_std_m']} m, "
+            f"{study_reps} replications each): {study['rate']:.3f} (95 % CI {slo:.3f}-{shi:.3f} over trials, "
+            f"{wlo:.3f}-{whi:.3f} over worlds); without its noise {study['no_noise']['rate']:.3f}\n"
+            f"flight {ok / trials:.3f} vs study {study['rate']:.3f}: paired difference "
+            f"{study['fly_minus_study']:+.3f} (95 % CI {dlo:+.3f} to {dhi:+.3f})"
+        )
     return 0
