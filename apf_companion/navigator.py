@@ -41,6 +41,7 @@ __all__ = ["CycleOutput", "Navigator", "ObstacleStore", "PlannerLike", "State", 
 
 FloatArray = npt.NDArray[np.float64]
 PROGRESS_EPS_M = 0.1  # a new best distance to the goal must beat the old by this much to count as progress
+SLOW_FRACTION = 0.2  # feed-forward speed next to an obstacle, as a fraction of cruise
 
 
 class State(enum.Enum):
@@ -149,6 +150,9 @@ class Navigator:
         step_m: The planner's step (bacteria ring radius) [m].
         target_guard_m: A bacteria point being flown to is dropped (and the planner re-run) once a remembered
             obstacle lies closer than this to it; the planner's rho_l for CR-BAPF / CR-BAPF*, 0 = no check.
+        clearance_m: The clearance the planner keeps (its rho_l). Within ``clearance_m + 2 step_m`` of a
+            remembered obstacle the feed-forward speed falls linearly to ``SLOW_FRACTION`` of cruise at
+            ``clearance_m``, so the vehicle turns at the bacteria points there without swinging wide (0 = off).
     """
 
     def __init__(
@@ -161,10 +165,12 @@ class Navigator:
         now_s: float,
         step_m: float = 0.4,
         target_guard_m: float = 0.0,
+        clearance_m: float = 0.0,
     ) -> None:
         self.config = config
         self.step_m = step_m
         self.target_guard_m = target_guard_m
+        self.clearance_m = clearance_m
         self._step_target: FloatArray | None = None
         self._step_target_t = 0.0
         self.planner = planner
@@ -424,7 +430,7 @@ class Navigator:
             leg.best_t_s = now_s
 
         obstacles = self._near(points, pos)
-        tracked = self._track_step_target(pos, obstacles, now_s)
+        tracked = self._track_step_target(pos, obstacles, now_s, nearest)
         if tracked is not None:
             return CycleOutput(
                 t_s=now_s,
@@ -482,7 +488,7 @@ class Navigator:
             self._step_target = target
             self._step_target_t = now_s
             gap = float(np.linalg.norm((target - pos)[: self.dim]))
-            sp = navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap), dim=self.dim)
+            sp = navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap, nearest), dim=self.dim)
         return CycleOutput(
             t_s=now_s,
             state=self.state,
@@ -493,12 +499,14 @@ class Navigator:
             n_obstacles=int(obstacles.shape[0]),
         )
 
-    def _track_step_target(self, pos: FloatArray, obstacles: FloatArray, now_s: float) -> Setpoint | None:
+    def _track_step_target(
+        self, pos: FloatArray, obstacles: FloatArray, now_s: float, nearest_m: float | None
+    ) -> Setpoint | None:
         """Keep flying to the current bacteria point until within ``replan_radius_m`` of it.
 
         The point is re-validated every cycle against the fresh obstacle memory (at least ``target_guard_m``
         from every point), the vehicle must still be near the step (within two steps of it) and must get there
-        in time (three steps at cruise speed, at least 1 s); otherwise it is dropped and the planner runs from
+        in time (three steps at the approach speed, at least 1 s); otherwise it is dropped and the planner runs from
         the pose. Returns the setpoint, or None to plan now.
         """
         target = self._step_target
@@ -511,16 +519,26 @@ class Navigator:
         gap = float(np.sqrt(d @ d))
         if gap <= self.config.cycle.replan_radius_m:
             return None  # reached: plan from it
-        too_long = now_s - self._step_target_t > max(1.0, 3.0 * self.step_m / self.config.cycle.cruise_speed_m_s)
+        # In time: three steps at the speed flown here (cruise, or the slower speed near obstacles).
+        too_long = now_s - self._step_target_t > max(
+            1.0, 3.0 * self.step_m / self._approach_speed(self.step_m, nearest_m)
+        )
         if gap > 2.0 * self.step_m or too_long or not self._clear(target, obstacles):
             self._step_target = None
             self.counters.dropped_targets += 1
             return None
-        return navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap), dim=self.dim)
+        return navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap, nearest_m), dim=self.dim)
 
-    def _approach_speed(self, gap_m: float) -> float:
-        """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it)."""
-        return self.config.cycle.cruise_speed_m_s * min(1.0, gap_m / self.step_m)
+    def _approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
+        """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower
+        near obstacles (``clearance_m``): a vehicle that reaches a bacteria point at speed swings on along its old
+        heading when the next step turns, towards the obstacle it is turning away from."""
+        speed = self.config.cycle.cruise_speed_m_s * min(1.0, gap_m / self.step_m)
+        if self.clearance_m > 0.0 and nearest_m is not None:
+            span = 2.0 * self.step_m
+            frac = min(1.0, max(0.0, (nearest_m - self.clearance_m) / span))
+            speed *= SLOW_FRACTION + (1.0 - SLOW_FRACTION) * frac
+        return speed
 
     def _clear(self, point: FloatArray, obstacles: FloatArray) -> bool:
         if self.target_guard_m <= 0.0 or obstacles.shape[0] == 0:

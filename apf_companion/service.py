@@ -71,7 +71,7 @@ from apf_companion.status import (
     system_status_for,
 )
 
-__all__ = ["CompanionService", "ServiceClock", "ServiceResult", "build_planner", "initial_route"]
+__all__ = ["CompanionService", "ServiceClock", "ServiceResult", "build_navigator", "build_planner", "initial_route"]
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +161,22 @@ class ServiceResult:
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2, allow_nan=False)
+
+
+def build_navigator(config: ServiceConfig, planner: Any, memory: ObstacleMemory, *, now_s: float) -> Navigator:
+    """The decision core for ``planner`` (``build_planner``): its step, and its rho_l as the clearance to keep
+    (the bacteria-point guard of CR-BAPF / CR-BAPF*; the slow-down near obstacles for every planner)."""
+    rho_l_m = float(planner.params.rho_l_m)
+    return Navigator(
+        config=config,
+        planner=planner,
+        memory=memory,
+        rng=np.random.default_rng(config.planner.seed),
+        now_s=now_s,
+        step_m=float(planner.params.step_m),
+        target_guard_m=rho_l_m if config.planner.name.startswith("cr-") else 0.0,
+        clearance_m=rho_l_m,
+    )
 
 
 def build_planner(config: ServiceConfig) -> Any:
@@ -258,15 +274,7 @@ class CompanionService:
             max_points=config.sensors.max_points,
         )
         self.history = PoseHistory(200)
-        self.navigator = Navigator(
-            config=config,
-            planner=self.planner,
-            memory=self.memory,
-            rng=np.random.default_rng(config.planner.seed),
-            now_s=self.clock.now(),
-            step_m=float(self.planner.params.step_m),
-            target_guard_m=float(self.planner.params.rho_l_m) if config.planner.name.startswith("cr-") else 0.0,
-        )
+        self.navigator = build_navigator(config, self.planner, self.memory, now_s=self.clock.now())
         self.counters = ServiceCounters()
         self.latency = _LatencyWindow()
         self.result_path = result_path
