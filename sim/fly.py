@@ -15,8 +15,11 @@ obstacles (``--preset reference`` draws them in [5, 20]^2, ``paper`` in [0, 30]^
 density low/mid/high), or any world file with ``--world``.
 
 Time: the simulator runs ``--speedup`` times faster than real time and the service gets the same
-``cycle.time_scale``, so its 10 Hz cycle, 0.5 s staleness limits and 3 s heartbeat timeout stay in simulated
-seconds (100 Hz, 50 ms and 0.3 s of wall time at the default speed-up of 10).
+``cycle.time_scale``, so its 10 Hz cycle and 0.5 s staleness limits stay in simulated seconds (50 Hz and 100 ms of
+wall time at the default speed-up of 5); the heartbeat timeout is ``max(3, speedup)`` simulated seconds.
+
+``--trials N`` flies seeds SEED..SEED+N-1 and, on paper fields, runs the study's engine ``--study-reps`` times on
+each flown field (``study_same_worlds``), so the flight rate is compared with the study's on the same worlds.
 """
 
 from __future__ import annotations
