@@ -1,6 +1,6 @@
 """The service configuration: one TOML file, validated at start.
 
-Every section is a frozen dataclass whose defaults are the documented defaults (docs/parts/service.md has the
+Every section is a frozen dataclass whose defaults are the documented defaults (the README's Service section has the
 reference table; ``deploy/apf-companion.toml`` is a commented example). Loading is strict: an unknown key, a wrong
 type or a value outside its range raises ``ConfigError`` naming the key (``cycle.rate_hz``) and the allowed range;
 a likely typo gets a suggestion. Nothing here touches the network.

@@ -5,7 +5,7 @@ No sockets, no asyncio, no wall clock: the service feeds inputs stamped with its
 a setpoint is only ever computed from inputs fresh at ``now_s`` (pose younger than ``pose_max_age_s``, ranges
 younger than ``ranges_max_age_s``); nothing re-sends an old setpoint.
 
-States (docs/parts/service.md has the diagram):
+States (the README's Service section has the diagram):
 
 - IDLE: no goal (or the pilot took the vehicle out of GUIDED/OFFBOARD). Sends nothing.
 - NAVIGATING: a goal and fresh inputs. Before the autopilot is in GUIDED/OFFBOARD it streams holds at the

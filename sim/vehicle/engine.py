@@ -1179,7 +1179,7 @@ class VehicleEngine:
         )
 
     def result(self) -> dict[str, Any]:
-        """The flight result (JSON-ready); the format is documented in docs/parts/simulator.md."""
+        """The flight result (JSON-ready); the format is documented in README, Simulator."""
         return {
             "schema": "apf.sim_result/1",
             "profile": self.profile.value,
