@@ -336,13 +336,11 @@ class MavlinkLink:
                 return
             self._on_bytes(data, key, datagram=False)
 
-    async def _serve_tcp_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _run_tcp_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """One TCP peer (a tcpin client or our tcp: connection): register it, read until it ends, forget it."""
         key = object()
         self._tcp_writers[key] = writer
         self._connected.set()
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
         try:
             await self._pump_stream(reader, key)
         except (ConnectionError, OSError):
@@ -353,6 +351,14 @@ class MavlinkLink:
             if not self._tcp_writers:
                 self._connected.clear()
             writer.close()
+
+    async def _serve_tcp_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._tasks.add(task)  # so aclose cancels it
+        try:
+            await self._run_tcp_connection(reader, writer)
+        finally:
             if task is not None:
                 self._tasks.discard(task)
 
@@ -372,19 +378,8 @@ class MavlinkLink:
                 self.stats.reconnects += 1
             first = False
             backoff = TCP_BACKOFF_MIN_S
-            key = object()
-            self._tcp_writers[key] = writer
-            self._connected.set()
             log.info("mavlink.tcp_connected", extra={"endpoint": str(ep)})
-            try:
-                await self._pump_stream(reader, key)
-            except (ConnectionError, OSError):
-                pass
-            finally:
-                self._tcp_writers.pop(key, None)
-                self._parsers.pop(key, None)
-                self._connected.clear()
-                writer.close()
+            await self._run_tcp_connection(reader, writer)
             log.warning("mavlink.tcp_disconnected", extra={"endpoint": str(ep)})
             await asyncio.sleep(backoff)
 
