@@ -57,6 +57,21 @@ def service_config(profile: str = "ardupilot", planner: str = "cr-bapf*", **extr
 
 
 @contextlib.asynccontextmanager
+async def running(svc: CompanionService, sim: Simulator) -> AsyncIterator[None]:
+    """Run the service in this loop while the body runs; then stop it and close the simulator."""
+    try:
+        async with asyncio.TaskGroup() as tg:
+            task = tg.create_task(svc.run())
+            try:
+                yield
+            finally:
+                svc.stop()
+                await task
+    finally:
+        await sim.aclose()
+
+
+@contextlib.asynccontextmanager
 async def flight(
     world: World,
     cfg: ServiceConfig,
@@ -89,16 +104,8 @@ async def flight(
             zenoh=None if zenoh_out is None else zenoh_out(zport),
         )
     )
-    try:
-        async with asyncio.TaskGroup() as tg:
-            task = tg.create_task(svc.run())
-            try:
-                yield svc, sim
-            finally:
-                svc.stop()
-                await task
-    finally:
-        await sim.aclose()
+    async with running(svc, sim):
+        yield svc, sim
 
 
 def _as_mapping(cfg: ServiceConfig) -> dict[str, Any]:
@@ -199,16 +206,8 @@ async def _ground_flight(
             spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=False),
         )
     )
-    try:
-        async with asyncio.TaskGroup() as tg:
-            task = tg.create_task(svc.run())
-            try:
-                yield svc, sim
-            finally:
-                svc.stop()
-                await task
-    finally:
-        await sim.aclose()
+    async with running(svc, sim):
+        yield svc, sim
 
 
 async def test_not_armed_by_default() -> None:
