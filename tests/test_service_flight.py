@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import socket
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -26,16 +25,12 @@ from apf_companion.service import CompanionService
 from sim.vehicle import SimConfig, Simulator, SpawnConfig, ZenohOutput
 from sim.world import World, paper_field
 
+from .conftest import free_port
+
 pytestmark = pytest.mark.timeout(90)
 
 SPEEDUP = 4.0
 GOAL = (22.0, 22.0, -5.0)
-
-
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def service_config(profile: str = "ardupilot", planner: str = "cr-bapf*", **extra: dict[str, Any]) -> ServiceConfig:
@@ -83,7 +78,7 @@ async def flight(
     sensor_messages: frozenset[str] = frozenset({"obstacle_distance"}),
 ) -> AsyncIterator[tuple[CompanionService, Simulator]]:
     """Service (udpin, free port) and simulator (udpout to it) in this loop; yields both while they run."""
-    zport = free_tcp_port()
+    zport = free_port()
     if zenoh_out is not None:
         zsec = {"enabled": True, "mode": "peer", "listen": [f"tcp/127.0.0.1:{zport}"]}
         cfg = config_from_mapping(_as_mapping(cfg) | {"zenoh": zsec} | {"sensors": {"mavlink": False, "zenoh": True}})
@@ -249,7 +244,7 @@ async def test_ranges_over_zenoh_instead_of_mavlink(encoding: str) -> None:
 
 async def test_goal_changed_mid_flight_by_zenoh() -> None:
     cfg = service_config()
-    zport = free_tcp_port()
+    zport = free_port()
     cfg = config_from_mapping(_as_mapping(cfg) | {"zenoh": {"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"]}})
     from apf_companion.links.zenoh import ZenohConfig, ZenohLink
 

@@ -32,14 +32,10 @@ from apf_companion.perception import (
     encode_scan_json,
 )
 
+from .conftest import free_port
+
 # The all-interfaces address, spelled out only to check that it is refused (nothing here binds it).
 ANY_IPV4 = ".".join("0" * 4)
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.mark.parametrize(
