@@ -99,37 +99,58 @@ _MAX_BOOT_MS = 0xFFFFFFFF
 class ObstacleDistanceLike(Protocol):
     """The OBSTACLE_DISTANCE fields read here (a pymavlink message satisfies it)."""
 
-    time_usec: int
-    distances: Sequence[int]
-    increment: int
-    min_distance: int
-    max_distance: int
-    increment_f: float
-    angle_offset: float
-    frame: int
+    @property
+    def time_usec(self) -> int: ...
+    @property
+    def distances(self) -> Sequence[int]: ...
+    @property
+    def increment(self) -> int: ...
+    @property
+    def min_distance(self) -> int: ...
+    @property
+    def max_distance(self) -> int: ...
+    @property
+    def increment_f(self) -> float: ...
+    @property
+    def angle_offset(self) -> float: ...
+    @property
+    def frame(self) -> int: ...
 
 
 class DistanceSensorLike(Protocol):
     """The DISTANCE_SENSOR fields read here (a pymavlink message satisfies it)."""
 
-    time_boot_ms: int
-    min_distance: int
-    max_distance: int
-    current_distance: int
-    orientation: int
-    quaternion: Sequence[float]
+    @property
+    def time_boot_ms(self) -> int: ...
+    @property
+    def min_distance(self) -> int: ...
+    @property
+    def max_distance(self) -> int: ...
+    @property
+    def current_distance(self) -> int: ...
+    @property
+    def orientation(self) -> int: ...
+    @property
+    def quaternion(self) -> Sequence[float]: ...
 
 
 class ObstacleDistance3dLike(Protocol):
     """The OBSTACLE_DISTANCE_3D fields read here (a pymavlink message satisfies it)."""
 
-    time_boot_ms: int
-    frame: int
-    x: float
-    y: float
-    z: float
-    min_distance: float
-    max_distance: float
+    @property
+    def time_boot_ms(self) -> int: ...
+    @property
+    def frame(self) -> int: ...
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+    @property
+    def z(self) -> float: ...
+    @property
+    def min_distance(self) -> float: ...
+    @property
+    def max_distance(self) -> float: ...
 
 
 def wrap_angle_rad(angle_rad: FloatArray) -> FloatArray:
