@@ -95,14 +95,13 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
     )
 
 
-def build_navigator(config: ServiceConfig, planner: Any, obstacles: ObstacleView, *, now_s: float) -> Navigator:
+def build_navigator(config: ServiceConfig, planner: Any, obstacles: ObstacleView) -> Navigator:
     """The decision core for ``planner`` (``build_planner``), reading ``obstacles`` (the perception front end)."""
     return Navigator(
         params=navigator_params(config, planner),
         planner=planner,
         obstacles=obstacles,
         rng=np.random.default_rng(config.planner.seed),
-        now_s=now_s,
     )
 
 

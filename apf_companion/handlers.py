@@ -36,7 +36,7 @@ from apf_companion.links.messages import (
 from apf_companion.navigator import Navigator
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd
-from apf_companion.reporter import StatusReporter
+from apf_companion.reporter import ServiceCounters
 
 __all__ = ["AutopilotHandlers", "HandlerParams", "mode_is_ours"]
 
@@ -81,7 +81,7 @@ class AutopilotHandlers:
         perception: PerceptionFrontEnd,
         navigator: Navigator,
         outbox: Outbox,
-        reporter: StatusReporter,
+        counters: ServiceCounters,
         set_route: Callable[[Route, float], bool],
         on_pose: Callable[[], None],
         route_at_start: Route | None,
@@ -90,8 +90,7 @@ class AutopilotHandlers:
         self.perception = perception
         self.navigator = navigator
         self.outbox = outbox
-        self.reporter = reporter
-        self.counters = reporter.counters
+        self.counters = counters
         self._set_route = set_route
         self._on_pose = on_pose
         self._route_at_start = route_at_start
@@ -142,7 +141,6 @@ class AutopilotHandlers:
         self.heard = True
         self.custom_mode = rec.custom_mode
         self.base_mode = rec.base_mode
-        self.reporter.armed = self.armed
         self.navigator.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok)
         if first:
             self.outbox.request_streams(self.params.telemetry_rate_hz)

@@ -378,7 +378,8 @@ class Navigator:
         planner: A planner (``get_planner(name, params)``) whose dimension matches ``params.dim``.
         obstacles: The obstacle memory it reads (written only by the perception front end).
         rng: The random walk's generator.
-        now_s: Service clock at construction [s]; the heartbeat timeout counts from here.
+
+    The link counts as lost until the first autopilot HEARTBEAT (``autopilot_heartbeat``).
     """
 
     def __init__(
@@ -388,7 +389,6 @@ class Navigator:
         planner: PlannerLike,
         obstacles: ObstacleView,
         rng: np.random.Generator,
-        now_s: float,
     ) -> None:
         self.params = params
         self.planner = planner

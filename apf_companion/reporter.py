@@ -1,7 +1,8 @@
 """The status reporter: STATUSTEXT on state changes, HEARTBEAT, NAMED_VALUE_FLOAT, the zenoh status, counters.
 
-It owns the service's edge counters and the loop-latency window, and reads (never writes) the navigator and the
-perception front end to report them. ``due(now_s)`` sends whatever is due and returns when to call it next.
+It owns the loop-latency window and the STATUSTEXT reason, and reads (never writes) the navigator, the perception
+front end, the autopilot handlers and the edge counters (``ServiceCounters``: one record, incremented where input
+is classified) to report them. ``due(now_s)`` sends whatever is due and returns when to call it next.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from apf_companion.status import (
     system_status_for,
 )
 
-__all__ = ["LatencyWindow", "ReporterParams", "ServiceCounters", "StatusReporter"]
+__all__ = ["AutopilotView", "LatencyWindow", "ReporterParams", "ServiceCounters", "StatusReporter"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +57,13 @@ class ReporterParams:
     zenoh_status_key: str = "apf/status"
     zenoh_status_rate_hz: float = 5.0
     dry_run: bool = False
+
+
+class AutopilotView(Protocol):
+    """What the reporter reads of the autopilot (apf_companion.handlers.AutopilotHandlers owns it)."""
+
+    @property
+    def armed(self) -> bool: ...
 
 
 class LatencyWindow:
@@ -94,6 +102,8 @@ class StatusReporter:
         outbox: Outbox,
         navigator: Navigator,
         perception: PerceptionFrontEnd,
+        autopilot: AutopilotView,
+        counters: ServiceCounters,
         zenoh: Any,
         now_s: float,
     ) -> None:
@@ -102,10 +112,10 @@ class StatusReporter:
         self.navigator = navigator
         self.perception = perception
         self.zenoh = zenoh
-        self.counters = ServiceCounters()
+        self.autopilot = autopilot
+        self.counters = counters
         self.latency = LatencyWindow()
         self.reason = "starting"
-        self.armed = False  # the latest autopilot HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED (set by the handlers)
         nvf_hz = params.named_value_rate_hz
         self._nvf_period_s = 1.0 / nvf_hz if nvf_hz > 0 else math.inf
         self._z_period_s = 1.0 / params.zenoh_status_rate_hz
@@ -183,7 +193,7 @@ class StatusReporter:
             "n_obstacles": len(self.perception),
             "loop_latency_ms": self.latency.summary(),
             "decision": None if out is None else out.decision,
-            "autopilot": {"mode_ok": nav.mode_ok, "armed": self.armed, "link_alive": nav.link_alive(now_s)},
+            "autopilot": {"mode_ok": nav.mode_ok, "armed": self.autopilot.armed, "link_alive": nav.link_alive(now_s)},
             "counters": self.counts(),
         }
 

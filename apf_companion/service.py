@@ -52,7 +52,7 @@ from apf_companion.links.messages import DECODERS, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
-from apf_companion.reporter import StatusReporter
+from apf_companion.reporter import ServiceCounters, StatusReporter
 from apf_companion.setpoint import SetpointKind
 from apf_companion.takeover import Action, ActionKind, TakeoverController, TakeoverInputs
 
@@ -171,7 +171,7 @@ class CompanionService:
         now = self.clock.now()
         self.planner = build_planner(config)
         self.perception = PerceptionFrontEnd(perception_params(config))
-        self.navigator = build_navigator(config, self.planner, self.perception, now_s=now)
+        self.navigator = build_navigator(config, self.planner, self.perception)
         self.outbox = Outbox(
             link,
             dry_run=config.dry_run,
@@ -179,23 +179,26 @@ class CompanionService:
             target_component=config.link.autopilot_compid,
             now_s=self.clock.now,
         )
-        self.reporter = StatusReporter(
-            reporter_params(config),
-            outbox=self.outbox,
-            navigator=self.navigator,
-            perception=self.perception,
-            zenoh=zenoh,
-            now_s=now,
-        )
+        self.counters = ServiceCounters()
         self.handlers = AutopilotHandlers(
             handler_params(config),
             perception=self.perception,
             navigator=self.navigator,
             outbox=self.outbox,
-            reporter=self.reporter,
+            counters=self.counters,
             set_route=self.set_route,
             on_pose=self._pose_arrived,
             route_at_start=route if route is not None else initial_route(config),
+        )
+        self.reporter = StatusReporter(
+            reporter_params(config),
+            outbox=self.outbox,
+            navigator=self.navigator,
+            perception=self.perception,
+            autopilot=self.handlers,
+            counters=self.counters,
+            zenoh=zenoh,
+            now_s=now,
         )
         self.takeover = TakeoverDriver(
             TakeoverController(takeover_params(config)),
@@ -311,13 +314,13 @@ class CompanionService:
         """Fly ``route`` (replacing the current goal); False while the link is lost."""
         accepted = self.navigator.set_route(route, now)
         if accepted:
-            self.reporter.counters.goals += 1
+            self.counters.goals += 1
             self._outcome = None
             self._end_s = None
             log.info("goal.set", extra={"source": route.source, "waypoints_ned_m": route.to_json_list()})
             self.reporter.changes(self.navigator.drain_changes())
         else:
-            self.reporter.counters.bad_goals += 1
+            self.counters.bad_goals += 1
         return accepted
 
     # ---- tasks -------------------------------------------------------------------------------------------------
@@ -399,7 +402,7 @@ class CompanionService:
             return
         outcome = outcome_now(
             self.navigator,
-            goals=self.reporter.counters.goals,
+            goals=self.counters.goals,
             flown_s=self._flown_s(now),
             max_s=self.config.max_flight_s,
         )
@@ -498,13 +501,13 @@ class ZenohInputs:
             elif sample.key_expr == zc.sensor_key:
                 svc.perception.on_scan_payload(sample.encoding, sample.payload, now)
             else:
-                svc.reporter.counters.foreign_messages += 1
+                svc.counters.foreign_messages += 1
 
     def _goal(self, payload: bytes, now: float) -> None:
         try:
             goal = decode_goal_json(payload)
         except (ProtocolError, ConfigError) as err:
-            self.service.reporter.counters.bad_goals += 1
+            self.service.counters.bad_goals += 1
             log.info("goal.rejected", extra={"source": "zenoh", "error": str(err)})
             return
         p = goal.pos_ned_m

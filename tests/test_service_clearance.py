@@ -33,7 +33,7 @@ def fly_closed_loop(world_seed: int, density: str, *, clearance: bool = True) ->
     cfg = ServiceConfig()
     planner = build_planner(cfg)
     perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=10.0, merge_radius_m=0.2))
-    nav = build_navigator(cfg, planner, perception, now_s=0.0)
+    nav = build_navigator(cfg, planner, perception)
     if not clearance:
         # The behaviour before the fix.
         nav = Navigator(
@@ -41,7 +41,6 @@ def fly_closed_loop(world_seed: int, density: str, *, clearance: bool = True) ->
             planner=planner,
             obstacles=perception,
             rng=nav.rng,
-            now_s=0.0,
         )
     state = VehicleState(pos_ned_m=np.array([3.0, 3.0, -ALT_M]), on_ground=False)
     limits = Limits()  # ArduPilot defaults of the simulator (WPNAV_SPEED 5 m/s, WPNAV_ACCEL 2.5 m/s^2)
@@ -90,7 +89,7 @@ def test_without_the_slow_down_the_same_loop_grazes() -> None:
 
 def test_slow_down_near_obstacles_scales_the_feed_forward() -> None:
     cfg = ServiceConfig()
-    nav = build_navigator(cfg, build_planner(cfg), PerceptionFrontEnd(PerceptionParams()), now_s=0.0)
+    nav = build_navigator(cfg, build_planner(cfg), PerceptionFrontEnd(PerceptionParams()))
     cruise = cfg.cycle.cruise_speed_m_s
     rho_l = nav.params.clearance_m
     step_m = nav.params.step_m

@@ -20,7 +20,7 @@ from apf_companion.setpoint import SetpointKind
 def make(cfg: ServiceConfig | None = None) -> Navigator:
     cfg = cfg or ServiceConfig()
     perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=30.0, merge_radius_m=0.1))
-    nav = build_navigator(cfg, build_planner(cfg), perception, now_s=0.0)
+    nav = build_navigator(cfg, build_planner(cfg), perception)
     nav.rng = np.random.default_rng(1)
     return nav
 
