@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -12,8 +13,10 @@ from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.goal import Route, load_route
 from apf_companion.handlers import HandlerParams
+from apf_companion.links import MavlinkLink
 from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
+from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionParams
 from apf_companion.planning import PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
@@ -21,6 +24,7 @@ from apf_companion.takeover import TakeoverParams
 
 __all__ = [
     "build_navigator",
+    "build_outbox",
     "build_planner",
     "handler_params",
     "initial_route",
@@ -102,6 +106,18 @@ def build_navigator(config: ServiceConfig, planner: Any, obstacles: ObstacleView
         planner=planner,
         obstacles=obstacles,
         rng=np.random.default_rng(config.planner.seed),
+    )
+
+
+def build_outbox(config: ServiceConfig, link: MavlinkLink | None, now_s: Callable[[], float]) -> Outbox:
+    """The sending side towards the configured autopilot (silent in a dry run or without a link)."""
+    lc = config.link
+    return Outbox(
+        link,
+        dry_run=config.dry_run,
+        target_system=lc.autopilot_sysid,
+        target_component=lc.autopilot_compid,
+        now_s=now_s,
     )
 
 

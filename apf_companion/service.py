@@ -36,6 +36,7 @@ from typing import Any
 from apf_companion.autopilot import Autopilot
 from apf_companion.builders import (
     build_navigator,
+    build_outbox,
     build_planner,
     handler_params,
     initial_route,
@@ -172,13 +173,7 @@ class CompanionService:
         self.planner = build_planner(config)
         self.perception = PerceptionFrontEnd(perception_params(config))
         self.navigator = build_navigator(config, self.planner, self.perception)
-        self.outbox = Outbox(
-            link,
-            dry_run=config.dry_run,
-            target_system=config.link.autopilot_sysid,
-            target_component=config.link.autopilot_compid,
-            now_s=self.clock.now,
-        )
+        self.outbox = build_outbox(config, link, self.clock.now)
         self.counters = ServiceCounters()
         self.handlers = AutopilotHandlers(
             handler_params(config),
@@ -231,7 +226,8 @@ class CompanionService:
             ConfigError: planner parameters or the route file are invalid.
             LinkError: a link cannot be opened.
         """
-        build_planner(config)  # a config error before any socket is opened
+        build_planner(config)  # config errors (planner, route file) before any socket is opened
+        route = route if route is not None else initial_route(config)
         tlog = config.resolve(config.link.tlog) if config.link.tlog else None
         link = await MavlinkLink.open(
             config.link.connect,
