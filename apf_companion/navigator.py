@@ -20,6 +20,9 @@ States (the README's Service section has the diagram):
   ``progress_timeout_s``: hold and report. A new goal restarts.
 - LINK_LOST: no autopilot HEARTBEAT for ``heartbeat_timeout_s``: send nothing; the goal is dropped, so motion
   only resumes after a new goal once the link is back (state IDLE).
+
+Each state has one handler (``_HANDLERS``, keyed by ``State``). The navigator reads the configuration only as a
+frozen ``NavigatorParams`` and the obstacles only through ``ObstacleView`` (the perception front end writes them).
 """
 
 from __future__ import annotations
@@ -555,7 +558,8 @@ class Navigator:
 
     # ---- one handler per state ---------------------------------------------------------------------------------
     def _on_idle(self, inp: _Inputs) -> CycleOutput:
-        return self._blocked(inp) or self._silent(inp)
+        """IDLE (and LINK_LOST, left in ``cycle`` once the link is back): no goal, nothing to send."""
+        return self._silent(inp)
 
     def _on_navigating(self, inp: _Inputs) -> CycleOutput:
         blocked = self._blocked(inp)
