@@ -20,24 +20,37 @@ States (the README's Service section has the diagram):
   ``progress_timeout_s``: hold and report. A new goal restarts.
 - LINK_LOST: no autopilot HEARTBEAT for ``heartbeat_timeout_s``: send nothing; the goal is dropped, so motion
   only resumes after a new goal once the link is back (state IDLE).
+
+Each state has one handler (``_HANDLERS``, keyed by ``State``). The navigator reads the configuration only as a
+frozen ``NavigatorParams`` and the obstacles only through ``ObstacleView`` (the perception front end writes them).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.config import ServiceConfig
 from apf_companion.goal import Route
 from apf_companion.perception import Pose
 from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate
 
-__all__ = ["CycleOutput", "Navigator", "ObstacleStore", "PlannerLike", "State", "StateChange"]
+__all__ = [
+    "CycleOutput",
+    "Decision",
+    "Navigator",
+    "NavigatorParams",
+    "ObstacleView",
+    "PlannerLike",
+    "State",
+    "StateChange",
+]
 
 FloatArray = npt.NDArray[np.float64]
 PROGRESS_EPS_M = 0.1  # a new best distance to the goal must beat the old by this much to count as progress
@@ -55,12 +68,24 @@ class State(enum.Enum):
     LINK_LOST = "LINK_LOST"
 
 
-class ObstacleStore(Protocol):
-    """What the navigator needs of an obstacle memory (apf_companion.perception.ObstacleMemory)."""
+class Decision(enum.Enum):
+    """What a cycle decided about the next step (``CycleOutput.decision``; the planner's own reasons plus
+    TRACKING, still flying to the previous bacteria point)."""
 
-    def add(self, points_ned: FloatArray, t_s: float) -> None: ...
+    GREEDY = "GREEDY"
+    RANDOM_WALK = "RANDOM_WALK"
+    LOCAL_MINIMUM = "LOCAL_MINIMUM"
+    TRACKING = "TRACKING"
+
+
+class ObstacleView(Protocol):
+    """What the navigator reads of the obstacle memory; the perception front end
+    (apf_companion.perception.PerceptionFrontEnd) is its one writer."""
 
     def points(self, now_s: float) -> FloatArray: ...
+
+    @property
+    def ranges_t_s(self) -> float | None: ...
 
 
 class DecisionLike(Protocol):
@@ -77,6 +102,47 @@ class PlannerLike(Protocol):
     def step(
         self, position_m: FloatArray, target_m: FloatArray, obstacles_m: FloatArray, rng: np.random.Generator
     ) -> DecisionLike: ...
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class NavigatorParams:
+    """Everything the navigator reads of the configuration (built by ``apf_companion.builders.navigator_params``).
+
+    Attributes:
+        dim: 2 (north, east; altitude held) or 3.
+        heartbeat_timeout_s: No autopilot HEARTBEAT for this long = LINK_LOST [s].
+        pose_max_age_s, ranges_max_age_s: Freshness limits of the inputs [s].
+        require_ranges: False = fly without range data (ranges always count as fresh).
+        arrival_radius_m: Within this of a waypoint it is reached [m].
+        replan_radius_m: Within this of a bacteria point the next step is planned from it [m].
+        cruise_speed_m_s: Feed-forward speed along a step [m/s].
+        max_range_m: Obstacle points beyond this (+ 1 m) are not given to the planner [m].
+        random_walk_budget: Non-greedy decisions in a row before STUCK.
+        progress_timeout_s: No progress for this long = STUCK [s].
+        dry_run: Nothing moves the vehicle along the plan: plan from the pose every cycle.
+        step_m: The planner's step (bacteria ring radius) [m].
+        target_guard_m: A bacteria point being flown to is dropped (and the planner re-run) once a remembered
+            obstacle lies closer than this to it; the planner's rho_l for CR-BAPF / CR-BAPF*, 0 = no check.
+        clearance_m: The clearance the planner keeps (its rho_l). Within ``clearance_m + 2 step_m`` of a
+            remembered obstacle the feed-forward speed falls linearly to ``SLOW_FRACTION`` of cruise at
+            ``clearance_m``, so the vehicle turns at the bacteria points there without swinging wide (0 = off).
+    """
+
+    dim: int = 2
+    heartbeat_timeout_s: float = 3.0
+    pose_max_age_s: float = 0.5
+    ranges_max_age_s: float = 0.5
+    require_ranges: bool = True
+    arrival_radius_m: float = 0.7
+    replan_radius_m: float = 0.1
+    cruise_speed_m_s: float = 1.0
+    max_range_m: float = 8.0
+    random_walk_budget: int = 100
+    progress_timeout_s: float = 60.0
+    dry_run: bool = False
+    step_m: float = 0.4
+    target_guard_m: float = 0.0
+    clearance_m: float = 0.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -98,7 +164,8 @@ class CycleOutput:
         state: State after the cycle.
         setpoint: The setpoint to send now, or None (send nothing).
         changes: Transitions in this cycle, oldest first.
-        decision: The planner's reason name ("GREEDY", "RANDOM_WALK", "LOCAL_MINIMUM") if it ran.
+        decision: The planner's reason name ("GREEDY", "RANDOM_WALK", "LOCAL_MINIMUM") if it ran, "TRACKING"
+            while it flies on to the previous bacteria point (``Decision`` values).
         distance_to_goal_m: Distance to the active waypoint (horizontal in 2D), if a goal and pose exist.
         nearest_obstacle_m: Distance to the nearest remembered obstacle point, if any.
         n_obstacles: Remembered obstacle points used this cycle.
@@ -138,45 +205,199 @@ class _Leg:
     streak: int = 0  # consecutive non-greedy decisions
 
 
+@dataclass(frozen=True, slots=True)
+class _Inputs:
+    """What one cycle sees: the time, the remembered obstacles and the freshness of the inputs."""
+
+    now_s: float
+    points: FloatArray
+    nearest_m: float | None
+    pose_ok: bool
+    ranges_ok: bool
+
+
+class _StepTracker:
+    """The bacteria point being flown to, and the feed-forward speed towards it."""
+
+    def __init__(self, params: NavigatorParams, counters: _Counters) -> None:
+        self.p = params
+        self.counters = counters
+        self.target: FloatArray | None = None
+        self.target_t_s = 0.0
+
+    def set(self, target: FloatArray, now_s: float) -> None:
+        self.target = target
+        self.target_t_s = now_s
+
+    def track(self, pos: FloatArray, obstacles: FloatArray, now_s: float, nearest_m: float | None) -> Setpoint | None:
+        """Keep flying to the current bacteria point until within ``replan_radius_m`` of it.
+
+        The point is re-validated every cycle against the fresh obstacle memory (at least ``target_guard_m``
+        from every point), the vehicle must still be near the step (within two steps of it) and must get there
+        in time (three steps at the approach speed, at least 1 s); otherwise it is dropped and the planner runs
+        from the pose. Returns the setpoint, or None to plan now.
+        """
+        p = self.p
+        target = self.target
+        if p.dry_run:
+            self.target = None  # nothing moves the vehicle along the plan: plan from the pose each cycle
+            return None
+        if target is None:
+            return None
+        d = pos[: p.dim] - target[: p.dim]
+        gap = float(np.sqrt(d @ d))
+        if gap <= p.replan_radius_m:
+            return None  # reached: plan from it
+        # In time: three steps at the speed flown here (cruise, or the slower speed near obstacles).
+        too_long = now_s - self.target_t_s > max(1.0, 3.0 * p.step_m / self.approach_speed(p.step_m, nearest_m))
+        if gap > 2.0 * p.step_m or too_long or not self._clear(target, obstacles):
+            self.target = None
+            self.counters.dropped_targets += 1
+            return None
+        return navigate(pos, target, cruise_speed_m_s=self.approach_speed(gap, nearest_m), dim=p.dim)
+
+    def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
+        """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower
+        near obstacles (``clearance_m``): a vehicle that reaches a bacteria point at speed swings on along its old
+        heading when the next step turns, towards the obstacle it is turning away from."""
+        p = self.p
+        speed = p.cruise_speed_m_s * min(1.0, gap_m / p.step_m)
+        if p.clearance_m > 0.0 and nearest_m is not None:
+            span = 2.0 * p.step_m
+            frac = min(1.0, max(0.0, (nearest_m - p.clearance_m) / span))
+            speed *= SLOW_FRACTION + (1.0 - SLOW_FRACTION) * frac
+        return speed
+
+    def _clear(self, point: FloatArray, obstacles: FloatArray) -> bool:
+        guard = self.p.target_guard_m
+        if guard <= 0.0 or obstacles.shape[0] == 0:
+            return True
+        d = obstacles[:, : self.p.dim] - point[: self.p.dim]
+        return bool(np.min(np.einsum("ij,ij->i", d, d)) >= guard**2)
+
+
+class _Hold:
+    """The point held in HOLDING / ARRIVED / STUCK: fixed on the first holding cycle."""
+
+    def __init__(self) -> None:
+        self.anchor: FloatArray | None = None
+        self.sent = False
+
+    def reset(self) -> None:
+        self.anchor = None
+        self.sent = False
+
+    def setpoint(self, pose: Pose | None, *, pose_fresh: bool) -> Setpoint | None:
+        """Hold at the anchor: always once (the first cycle in a holding state), then only with a fresh pose."""
+        if self.anchor is None:
+            if pose is None:
+                return None
+            self.anchor = np.array(pose.pos_ned_m, dtype=np.float64)
+            self.sent = False
+        if pose_fresh or not self.sent:
+            self.sent = True
+            return hold(self.anchor)
+        return None
+
+
+class _Legs:
+    """The route's legs: which waypoint is flown to, and the progress towards it (for the give-up rules)."""
+
+    def __init__(self, params: NavigatorParams, steps: _StepTracker) -> None:
+        self.p = params
+        self.steps = steps
+        self.leg: _Leg | None = None
+
+    def distance(self, a: FloatArray, b: FloatArray) -> float:
+        d = a[: self.p.dim] - b[: self.p.dim]
+        return float(np.sqrt(d @ d))
+
+    def provisional_distance(self, route: Route, pos: FloatArray) -> float:
+        """Distance to the active waypoint; before the leg starts (it is fixed only once the autopilot is engaged,
+        so a takeoff in between sets the altitude that is kept) to the first waypoint at the current altitude."""
+        if self.leg is not None:
+            return self.distance(pos, self.leg.target_ned_m)
+        first = route.waypoints_ned_m[0]
+        return self.distance(pos, np.where(np.isnan(first), pos, first))
+
+    def current(self, route: Route, pos: FloatArray, now_s: float) -> tuple[_Leg | None, float]:
+        """The leg to fly and the distance to its waypoint; (None, distance) once the last one is reached."""
+        leg = self.leg if self.leg is not None else self._start(route, 0, pos, now_s)
+        dist = self.distance(pos, leg.target_ned_m)
+        while dist <= self.p.arrival_radius_m:
+            if leg.index + 1 >= len(route):
+                return None, dist
+            leg = self._start(route, leg.index + 1, pos, now_s)
+            dist = self.distance(pos, leg.target_ned_m)
+        # Progress bookkeeping (time-based give-up, notes.md decision 7).
+        if dist < leg.best_dist_m - PROGRESS_EPS_M or math.isinf(leg.best_dist_m):
+            leg.best_dist_m = dist
+            leg.best_t_s = now_s
+        return leg, dist
+
+    def _start(self, route: Route, index: int, pos: FloatArray, now_s: float) -> _Leg:
+        target = np.array(route.waypoints_ned_m[index], dtype=np.float64)
+        if math.isnan(target[2]):
+            target[2] = pos[2]  # keep the altitude this leg starts at
+        self.leg = _Leg(index=index, target_ned_m=target, best_t_s=now_s)
+        self.steps.target = None
+        return self.leg
+
+    def give_up(self, leg: _Leg, now_s: float) -> str | None:
+        if leg.streak > self.p.random_walk_budget:
+            return f"stuck: no greedy move for {leg.streak} cycles"
+        if now_s - leg.best_t_s > self.p.progress_timeout_s:
+            return f"stuck: no progress for {now_s - leg.best_t_s:.0f} s"
+        return None
+
+
+_HOLD_STATES = (State.HOLDING, State.ARRIVED, State.STUCK)
+_ENGAGED_STATES = (State.NAVIGATING, State.HOLDING, State.ARRIVED, State.STUCK)
+_DECISION_COUNTERS = {Decision.GREEDY: "greedy", Decision.RANDOM_WALK: "random_walk"}
+
+
+def _nearest_m(points: FloatArray, pos: FloatArray, dim: int) -> float | None:
+    """Distance to the nearest of ``points`` (horizontal in 2D), None without points."""
+    if points.shape[0] == 0:
+        return None
+    d = points[:, :dim] - pos[:dim]
+    return float(np.sqrt(np.min(np.einsum("ij,ij->i", d, d))))
+
+
+def _near(points: FloatArray, pos: FloatArray, dim: int, reach_m: float) -> FloatArray:
+    """Obstacle points within ``reach_m`` (those that can matter this step), vectorised."""
+    if points.shape[0] == 0:
+        return np.zeros((0, 3))
+    d = points[:, :dim] - pos[:dim]
+    keep = np.einsum("ij,ij->i", d, d) <= reach_m * reach_m
+    return np.asarray(points[keep], dtype=np.float64)
+
+
 class Navigator:
     """The decision core. Feed it inputs, call ``cycle(now_s)`` at the cycle rate.
 
     Args:
-        config: The validated service configuration.
-        planner: A planner (``get_planner(name, params)``) whose dimension matches ``config.planner.dim``.
-        memory: Where obstacle points live (expiry and merging are the memory's).
+        params: What it reads of the configuration (``NavigatorParams``).
+        planner: A planner (``get_planner(name, params)``) whose dimension matches ``params.dim``.
+        obstacles: The obstacle memory it reads (written only by the perception front end).
         rng: The random walk's generator.
-        now_s: Service clock at construction [s]; the heartbeat timeout counts from here.
-        step_m: The planner's step (bacteria ring radius) [m].
-        target_guard_m: A bacteria point being flown to is dropped (and the planner re-run) once a remembered
-            obstacle lies closer than this to it; the planner's rho_l for CR-BAPF / CR-BAPF*, 0 = no check.
-        clearance_m: The clearance the planner keeps (its rho_l). Within ``clearance_m + 2 step_m`` of a
-            remembered obstacle the feed-forward speed falls linearly to ``SLOW_FRACTION`` of cruise at
-            ``clearance_m``, so the vehicle turns at the bacteria points there without swinging wide (0 = off).
+
+    The link counts as lost until the first autopilot HEARTBEAT (``autopilot_heartbeat``).
     """
 
     def __init__(
         self,
         *,
-        config: ServiceConfig,
+        params: NavigatorParams,
         planner: PlannerLike,
-        memory: ObstacleStore,
+        obstacles: ObstacleView,
         rng: np.random.Generator,
-        now_s: float,
-        step_m: float = 0.4,
-        target_guard_m: float = 0.0,
-        clearance_m: float = 0.0,
     ) -> None:
-        self.config = config
-        self.step_m = step_m
-        self.target_guard_m = target_guard_m
-        self.clearance_m = clearance_m
-        self._step_target: FloatArray | None = None
-        self._step_target_t = 0.0
+        self.params = params
         self.planner = planner
-        self.memory = memory
+        self.obstacles = obstacles
         self.rng = rng
-        self.dim = config.planner.dim
+        self.dim = params.dim
         self.state = State.IDLE
         self.counters = _Counters()
         self.pose: Pose | None = None
@@ -184,14 +405,12 @@ class Navigator:
         self.engaged = False  # the autopilot has been seen in GUIDED/OFFBOARD for this route
         self.mode_ok = False  # latest HEARTBEAT: autopilot is in GUIDED/OFFBOARD
         self.suspended = False  # the service is busy with arming/takeoff: no setpoints
-        self._leg: _Leg | None = None
-        self._last_hb_s: float | None = None
-        self._created_s = now_s
-        self._last_ranges_s: float | None = None
-        self._hold_anchor: FloatArray | None = None
-        self._hold_sent = False
-        self._pending: list[StateChange] = []
         self.last_output: CycleOutput | None = None
+        self._steps = _StepTracker(params, self.counters)
+        self._hold = _Hold()
+        self._legs = _Legs(params, self._steps)
+        self._last_hb_s: float | None = None
+        self._pending: list[StateChange] = []
 
     # ---- inputs ------------------------------------------------------------------------------------------------
     def update_pose(self, pose: Pose) -> bool:
@@ -203,27 +422,10 @@ class Navigator:
         self.pose = pose
         return True
 
-    def update_ranges(self, points_ned_m: FloatArray, t_s: float) -> None:
-        """A valid scan measured at ``t_s`` (its obstacle points, possibly none: all free is news too)."""
-        if points_ned_m.shape[0]:
-            self.memory.add(points_ned_m, t_s)
-        if self._last_ranges_s is None or t_s > self._last_ranges_s:
-            self._last_ranges_s = t_s
-
     def autopilot_heartbeat(self, now_s: float, *, mode_ok: bool) -> None:
         """An autopilot HEARTBEAT; ``mode_ok`` = its custom_mode is GUIDED (ArduPilot) / OFFBOARD (PX4)."""
         self._last_hb_s = now_s
-        if (
-            self.engaged
-            and not mode_ok
-            and self.state
-            in (
-                State.NAVIGATING,
-                State.HOLDING,
-                State.ARRIVED,
-                State.STUCK,
-            )
-        ):
+        if self.engaged and not mode_ok and self.state in _ENGAGED_STATES:
             # The pilot (or a failsafe) took the vehicle: never fight it; wait for a new goal.
             self._drop_route(now_s, State.IDLE, "autopilot left guided control: goal dropped")
         self.mode_ok = mode_ok
@@ -232,14 +434,13 @@ class Navigator:
 
     def set_route(self, route: Route, now_s: float) -> bool:
         """A new goal or route replaces the active one. Refused (False) while the link is lost."""
-        if self.state is State.LINK_LOST or not self._link_alive(now_s):
+        if self.state is State.LINK_LOST or not self.link_alive(now_s):
             return False
         self.counters.goals += 1
         self.route = route
-        self._leg = None
-        self._step_target = None
-        self._hold_anchor = None
-        self._hold_sent = False
+        self._legs.leg = None
+        self._steps.target = None
+        self._hold.reset()
         self.engaged = self.mode_ok
         self._change(now_s, State.NAVIGATING, f"new goal from {route.source}: {route.to_json_list()[-1]}")
         return True
@@ -256,12 +457,197 @@ class Navigator:
     def resume(self) -> None:
         """Send setpoints again; the leg restarts so "keep altitude" means the altitude reached meanwhile."""
         self.suspended = False
-        self._leg = None
-        self._step_target = None
+        self._legs.leg = None
+        self._steps.target = None
 
     def clear_route(self, now_s: float, reason: str) -> None:
         """Forget the goal (operator stop): IDLE, send nothing."""
         self._drop_route(now_s, State.IDLE, reason)
+
+    # ---- what it reports ---------------------------------------------------------------------------------------
+    def link_alive(self, now_s: float) -> bool:
+        return self._last_hb_s is not None and now_s - self._last_hb_s <= self.params.heartbeat_timeout_s
+
+    def pose_fresh(self, now_s: float) -> bool:
+        return self.pose is not None and now_s - self.pose.t_s <= self.params.pose_max_age_s
+
+    def ranges_fresh(self, now_s: float) -> bool:
+        if not self.params.require_ranges:
+            return True
+        last = self.obstacles.ranges_t_s
+        return last is not None and now_s - last <= self.params.ranges_max_age_s
+
+    @property
+    def active_target_ned_m(self) -> FloatArray | None:
+        """The waypoint being flown to (down resolved), if any."""
+        return None if self._legs.leg is None or self.route is None else self._legs.leg.target_ned_m
+
+    @property
+    def leg_index(self) -> int | None:
+        return None if self._legs.leg is None else self._legs.leg.index
+
+    def counts(self) -> dict[str, int]:
+        """Counters for status and tests."""
+        return {name: getattr(self.counters, name) for name in self.counters.__dataclass_fields__}
+
+    def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
+        """The feed-forward speed towards a bacteria point ``gap_m`` away (see ``_StepTracker``)."""
+        return self._steps.approach_speed(gap_m, nearest_m)
+
+    # ---- the cycle ---------------------------------------------------------------------------------------------
+    def cycle(self, now_s: float) -> CycleOutput:
+        """Run one cycle at service time ``now_s``: update the state and decide the setpoint (or silence)."""
+        self.counters.cycles += 1
+        if not self.link_alive(now_s):
+            out = self._link_dead(now_s)
+        else:
+            if self.state is State.LINK_LOST:
+                self._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
+            inp = self._inputs(now_s)
+            out = _HANDLERS[self.state](self, inp)
+        if out.setpoint is not None:
+            self.counters.setpoints += 1
+        changes = tuple(self._pending)
+        self._pending.clear()
+        out = dataclasses.replace(out, state=self.state, changes=changes)
+        self.last_output = out
+        return out
+
+    def _inputs(self, now_s: float) -> _Inputs:
+        points = self.obstacles.points(now_s)
+        pose_ok = self.pose_fresh(now_s)
+        ranges_ok = self.ranges_fresh(now_s)
+        if not pose_ok:
+            self.counters.stale_pose_cycles += 1
+        if not ranges_ok:
+            self.counters.stale_range_cycles += 1
+        nearest = None if self.pose is None else _nearest_m(points, self.pose.pos_ned_m, self.dim)
+        return _Inputs(now_s, points, nearest, pose_ok, ranges_ok)
+
+    def _link_dead(self, now_s: float) -> CycleOutput:
+        if self._last_hb_s is not None and self.state is not State.LINK_LOST:
+            self._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
+        return CycleOutput(t_s=now_s, state=self.state, setpoint=None)
+
+    def _silent(self, inp: _Inputs) -> CycleOutput:
+        return CycleOutput(t_s=inp.now_s, state=self.state, setpoint=None, nearest_obstacle_m=inp.nearest_m)
+
+    def _out(self, inp: _Inputs, sp: Setpoint | None, dist: float, **kw: Any) -> CycleOutput:
+        return CycleOutput(
+            t_s=inp.now_s,
+            state=self.state,
+            setpoint=sp,
+            distance_to_goal_m=dist,
+            nearest_obstacle_m=inp.nearest_m,
+            **kw,
+        )
+
+    def _blocked(self, inp: _Inputs) -> CycleOutput | None:
+        """Silence when there is no goal or pose (NAVIGATING -> HOLDING without a pose), or while suspended."""
+        if self.route is None or self.pose is None:
+            if self.route is not None and self.state is State.NAVIGATING:
+                self._enter_hold_state(inp.now_s, State.HOLDING, "no pose yet")
+            return self._silent(inp)
+        if self.suspended:
+            return self._silent(inp)
+        return None
+
+    def _distance_to_goal(self) -> float:
+        assert self.route is not None and self.pose is not None
+        return self._legs.provisional_distance(self.route, self.pose.pos_ned_m)
+
+    # ---- one handler per state ---------------------------------------------------------------------------------
+    def _on_idle(self, inp: _Inputs) -> CycleOutput:
+        """IDLE (and LINK_LOST, left in ``cycle`` once the link is back): no goal, nothing to send."""
+        return self._silent(inp)
+
+    def _on_navigating(self, inp: _Inputs) -> CycleOutput:
+        blocked = self._blocked(inp)
+        if blocked is not None:
+            return blocked
+        if not (inp.pose_ok and inp.ranges_ok):
+            return self._hold_stale(inp)
+        return self._fly(inp)
+
+    def _on_holding(self, inp: _Inputs) -> CycleOutput:
+        blocked = self._blocked(inp)
+        if blocked is not None:
+            return blocked
+        if not (inp.pose_ok and inp.ranges_ok):
+            return self._hold_stale(inp)
+        self._hold.anchor = None
+        self._change(inp.now_s, State.NAVIGATING, "inputs fresh again: navigating")
+        return self._fly(inp)
+
+    def _on_done(self, inp: _Inputs) -> CycleOutput:
+        """ARRIVED and STUCK: hold where the state was entered (while the pose is fresh)."""
+        blocked = self._blocked(inp)
+        if blocked is not None:
+            return blocked
+        sp = self._hold.setpoint(self.pose, pose_fresh=inp.pose_ok)
+        return self._out(inp, sp, self._distance_to_goal())
+
+    def _hold_stale(self, inp: _Inputs) -> CycleOutput:
+        what = "pose" if not inp.pose_ok else "ranges"
+        if not inp.pose_ok and not inp.ranges_ok:
+            what = "pose and ranges"
+        dist = self._distance_to_goal()
+        self._enter_hold_state(inp.now_s, State.HOLDING, f"{what} stale: holding position")
+        return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=inp.pose_ok), dist)
+
+    def _fly(self, inp: _Inputs) -> CycleOutput:
+        assert self.pose is not None
+        pos = np.asarray(self.pose.pos_ned_m, dtype=np.float64)
+        if not self.engaged:
+            # Taking over: hold here until the autopilot reports GUIDED/OFFBOARD.
+            return self._out(inp, hold(pos, SetpointKind.PRESTREAM), self._distance_to_goal())
+        assert self.route is not None
+        leg, dist = self._legs.current(self.route, pos, inp.now_s)
+        if leg is None:
+            self._enter_hold_state(inp.now_s, State.ARRIVED, f"arrived at goal ({dist:.2f} m)")
+            return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=True), dist)
+        obstacles = _near(inp.points, pos, self.dim, self.params.max_range_m + 1.0)  # sensor range + a step
+        tracked = self._steps.track(pos, obstacles, inp.now_s, inp.nearest_m)
+        n = int(obstacles.shape[0])
+        if tracked is not None:
+            return self._out(inp, tracked, dist, decision=Decision.TRACKING.value, n_obstacles=n)
+        return self._plan(inp, pos, leg, dist, obstacles)
+
+    def _plan(self, inp: _Inputs, pos: FloatArray, leg: _Leg, dist: float, obstacles: FloatArray) -> CycleOutput:
+        """Plan the next step from the bacteria point just reached (the paper's path), else from the pose."""
+        origin = pos if self._steps.target is None else self._steps.target
+        self._steps.target = None
+        self.counters.planner_steps += 1
+        dim = self.dim
+        decision = self.planner.step(origin[:dim].copy(), leg.target_ned_m[:dim].copy(), obstacles[:, :dim], self.rng)
+        reason = decision.reason.name
+        if reason == Decision.GREEDY.value:
+            self.counters.greedy += 1
+            leg.streak = 0
+        else:
+            leg.streak += 1
+            if reason == Decision.RANDOM_WALK.value:
+                self.counters.random_walk += 1
+            else:
+                self.counters.local_minimum += 1
+        n = int(obstacles.shape[0])
+        give_up = self._legs.give_up(leg, inp.now_s)
+        if give_up is not None:
+            self._enter_hold_state(inp.now_s, State.STUCK, give_up)
+            return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=True), dist, decision=reason, n_obstacles=n)
+        nxt = decision.next_point_m
+        if nxt is None:
+            sp = hold(pos)  # a local minimum inside the budget: wait here (memory may change)
+        else:
+            target = np.empty(3)
+            target[:dim] = np.asarray(nxt, dtype=np.float64)[:dim]
+            if dim == 2:
+                target[2] = leg.target_ned_m[2]
+            self._steps.set(target, inp.now_s)
+            gap = float(np.linalg.norm((target - pos)[:dim]))
+            speed = self._steps.approach_speed(gap, inp.nearest_m)
+            sp = navigate(pos, target, cruise_speed_m_s=speed, dim=dim)
+        return self._out(inp, sp, dist, decision=reason, n_obstacles=n)
 
     # ---- helpers -----------------------------------------------------------------------------------------------
     def _change(self, now_s: float, new: State, reason: str) -> None:
@@ -272,301 +658,24 @@ class Navigator:
 
     def _drop_route(self, now_s: float, new: State, reason: str) -> None:
         self.route = None
-        self._leg = None
+        self._legs.leg = None
         self.engaged = False
-        self._hold_anchor = None
+        self._hold.anchor = None
         self._change(now_s, new, reason)
-
-    def _link_alive(self, now_s: float) -> bool:
-        last = self._created_s if self._last_hb_s is None else self._last_hb_s
-        return self._last_hb_s is not None and now_s - last <= self.config.link.heartbeat_timeout_s
-
-    def pose_fresh(self, now_s: float) -> bool:
-        return self.pose is not None and now_s - self.pose.t_s <= self.config.cycle.pose_max_age_s
-
-    def ranges_fresh(self, now_s: float) -> bool:
-        if not self.config.sensors.require_ranges:
-            return True
-        last = self._last_ranges_s
-        return last is not None and now_s - last <= self.config.cycle.ranges_max_age_s
-
-    def _distance(self, a: FloatArray, b: FloatArray) -> float:
-        d = a[: self.dim] - b[: self.dim]
-        return float(np.sqrt(d @ d))
-
-    def _start_leg(self, index: int, now_s: float) -> _Leg:
-        assert self.route is not None and self.pose is not None
-        target = np.array(self.route.waypoints_ned_m[index], dtype=np.float64)
-        if math.isnan(target[2]):
-            target[2] = self.pose.pos_ned_m[2]  # keep the altitude this leg starts at
-        leg = _Leg(index=index, target_ned_m=target, best_t_s=now_s)
-        self._leg = leg
-        self._step_target = None
-        return leg
-
-    def _hold_at_anchor(self, now_s: float, *, pose_fresh: bool) -> Setpoint | None:
-        """Hold at the anchor: always once (the first cycle in a holding state), then only with a fresh pose."""
-        if self._hold_anchor is None:
-            if self.pose is None:
-                return None
-            self._hold_anchor = np.array(self.pose.pos_ned_m, dtype=np.float64)
-            self._hold_sent = False
-        if pose_fresh or not self._hold_sent:
-            self._hold_sent = True
-            return hold(self._hold_anchor)
-        return None
 
     def _enter_hold_state(self, now_s: float, new: State, reason: str) -> None:
-        self._step_target = None
-        if self.state not in (State.HOLDING, State.ARRIVED, State.STUCK) or new is not self.state:
-            self._hold_anchor = None
-            self._hold_sent = False
+        self._steps.target = None
+        if self.state not in _HOLD_STATES or new is not self.state:
+            self._hold.reset()
         self._change(now_s, new, reason)
 
-    def nearest_obstacle(self, points: FloatArray) -> float | None:
-        if self.pose is None or points.shape[0] == 0:
-            return None
-        d = points[:, : self.dim] - self.pose.pos_ned_m[: self.dim]
-        return float(np.sqrt(np.min(np.einsum("ij,ij->i", d, d))))
 
-    # ---- the cycle ---------------------------------------------------------------------------------------------
-    def cycle(self, now_s: float) -> CycleOutput:
-        """Run one cycle at service time ``now_s``: update the state and decide the setpoint (or silence)."""
-        self.counters.cycles += 1
-        out = self._cycle(now_s)
-        if out.setpoint is not None:
-            self.counters.setpoints += 1
-        changes = tuple(self._pending)
-        self._pending.clear()
-        out = CycleOutput(
-            t_s=out.t_s,
-            state=self.state,
-            setpoint=out.setpoint,
-            changes=changes,
-            decision=out.decision,
-            distance_to_goal_m=out.distance_to_goal_m,
-            nearest_obstacle_m=out.nearest_obstacle_m,
-            n_obstacles=out.n_obstacles,
-        )
-        self.last_output = out
-        return out
-
-    def _cycle(self, now_s: float) -> CycleOutput:
-        cfg = self.config
-        if not self._link_alive(now_s):
-            if self._last_hb_s is not None and self.state is not State.LINK_LOST:
-                self._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
-            return CycleOutput(t_s=now_s, state=self.state, setpoint=None)
-        if self.state is State.LINK_LOST:
-            self._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
-
-        points = self.memory.points(now_s)
-        nearest = self.nearest_obstacle(points)
-        pose_ok = self.pose_fresh(now_s)
-        ranges_ok = self.ranges_fresh(now_s)
-        if not pose_ok:
-            self.counters.stale_pose_cycles += 1
-        if not ranges_ok:
-            self.counters.stale_range_cycles += 1
-        if self.route is None or self.pose is None:
-            if self.route is not None and self.state is State.NAVIGATING:
-                self._enter_hold_state(now_s, State.HOLDING, "no pose yet")
-            return CycleOutput(t_s=now_s, state=self.state, setpoint=None, nearest_obstacle_m=nearest)
-        if self.suspended:
-            return CycleOutput(t_s=now_s, state=self.state, setpoint=None, nearest_obstacle_m=nearest)
-
-        pos = np.asarray(self.pose.pos_ned_m, dtype=np.float64)
-        if self._leg is not None:
-            dist = self._distance(pos, self._leg.target_ned_m)
-        else:
-            # Not started: the leg (and its "keep altitude") is fixed only once the autopilot is engaged, so a
-            # takeoff in between sets the altitude that is kept.
-            provisional = np.where(np.isnan(self.route.waypoints_ned_m[0]), pos, self.route.waypoints_ned_m[0])
-            dist = self._distance(pos, provisional)
-
-        if self.state in (State.ARRIVED, State.STUCK):
-            sp = self._hold_at_anchor(now_s, pose_fresh=pose_ok)
-            return CycleOutput(
-                t_s=now_s, state=self.state, setpoint=sp, distance_to_goal_m=dist, nearest_obstacle_m=nearest
-            )
-
-        if not (pose_ok and ranges_ok):
-            what = "pose" if not pose_ok else "ranges"
-            if not pose_ok and not ranges_ok:
-                what = "pose and ranges"
-            self._enter_hold_state(now_s, State.HOLDING, f"{what} stale: holding position")
-            sp = self._hold_at_anchor(now_s, pose_fresh=pose_ok)
-            return CycleOutput(
-                t_s=now_s, state=self.state, setpoint=sp, distance_to_goal_m=dist, nearest_obstacle_m=nearest
-            )
-        if self.state is State.HOLDING:
-            self._hold_anchor = None
-            self._change(now_s, State.NAVIGATING, "inputs fresh again: navigating")
-
-        if not self.engaged:
-            # Taking over: hold here until the autopilot reports GUIDED/OFFBOARD.
-            sp = hold(pos, SetpointKind.PRESTREAM)
-            return CycleOutput(
-                t_s=now_s, state=self.state, setpoint=sp, distance_to_goal_m=dist, nearest_obstacle_m=nearest
-            )
-
-        leg = self._leg if self._leg is not None else self._start_leg(0, now_s)
-        dist = self._distance(pos, leg.target_ned_m)
-        # Arrival (and the next leg of a route).
-        while dist <= cfg.cycle.arrival_radius_m:
-            assert self.route is not None
-            if leg.index + 1 >= len(self.route):
-                self._enter_hold_state(now_s, State.ARRIVED, f"arrived at goal ({dist:.2f} m)")
-                sp = self._hold_at_anchor(now_s, pose_fresh=True)
-                return CycleOutput(
-                    t_s=now_s, state=self.state, setpoint=sp, distance_to_goal_m=dist, nearest_obstacle_m=nearest
-                )
-            leg = self._start_leg(leg.index + 1, now_s)
-            dist = self._distance(pos, leg.target_ned_m)
-
-        # Progress bookkeeping (time-based give-up, notes.md decision 7).
-        if dist < leg.best_dist_m - PROGRESS_EPS_M or math.isinf(leg.best_dist_m):
-            leg.best_dist_m = dist
-            leg.best_t_s = now_s
-
-        obstacles = self._near(points, pos)
-        tracked = self._track_step_target(pos, obstacles, now_s, nearest)
-        if tracked is not None:
-            return CycleOutput(
-                t_s=now_s,
-                state=self.state,
-                setpoint=tracked,
-                decision="TRACKING",
-                distance_to_goal_m=dist,
-                nearest_obstacle_m=nearest,
-                n_obstacles=int(obstacles.shape[0]),
-            )
-        # Plan the next step from the bacteria point just reached (the paper's path), else from the pose.
-        origin = pos if self._step_target is None else self._step_target
-        self._step_target = None
-        self.counters.planner_steps += 1
-        decision = self.planner.step(
-            origin[: self.dim].copy(), leg.target_ned_m[: self.dim].copy(), obstacles[:, : self.dim], self.rng
-        )
-        reason = decision.reason.name
-        if reason == "GREEDY":
-            self.counters.greedy += 1
-            leg.streak = 0
-        elif reason == "RANDOM_WALK":
-            self.counters.random_walk += 1
-            leg.streak += 1
-        else:
-            self.counters.local_minimum += 1
-            leg.streak += 1
-
-        give_up = None
-        if leg.streak > cfg.planner.random_walk_budget:
-            give_up = f"stuck: no greedy move for {leg.streak} cycles"
-        elif now_s - leg.best_t_s > cfg.planner.progress_timeout_s:
-            give_up = f"stuck: no progress for {now_s - leg.best_t_s:.0f} s"
-        if give_up is not None:
-            self._enter_hold_state(now_s, State.STUCK, give_up)
-            sp = self._hold_at_anchor(now_s, pose_fresh=True)
-            return CycleOutput(
-                t_s=now_s,
-                state=self.state,
-                setpoint=sp,
-                decision=reason,
-                distance_to_goal_m=dist,
-                nearest_obstacle_m=nearest,
-                n_obstacles=int(obstacles.shape[0]),
-            )
-
-        nxt = decision.next_point_m
-        if nxt is None:
-            sp = hold(pos)  # a local minimum inside the budget: wait here (memory may change)
-        else:
-            target = np.empty(3)
-            target[: self.dim] = np.asarray(nxt, dtype=np.float64)[: self.dim]
-            if self.dim == 2:
-                target[2] = leg.target_ned_m[2]
-            self._step_target = target
-            self._step_target_t = now_s
-            gap = float(np.linalg.norm((target - pos)[: self.dim]))
-            sp = navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap, nearest), dim=self.dim)
-        return CycleOutput(
-            t_s=now_s,
-            state=self.state,
-            setpoint=sp,
-            decision=reason,
-            distance_to_goal_m=dist,
-            nearest_obstacle_m=nearest,
-            n_obstacles=int(obstacles.shape[0]),
-        )
-
-    def _track_step_target(
-        self, pos: FloatArray, obstacles: FloatArray, now_s: float, nearest_m: float | None
-    ) -> Setpoint | None:
-        """Keep flying to the current bacteria point until within ``replan_radius_m`` of it.
-
-        The point is re-validated every cycle against the fresh obstacle memory (at least ``target_guard_m``
-        from every point), the vehicle must still be near the step (within two steps of it) and must get there
-        in time (three steps at the approach speed, at least 1 s); otherwise it is dropped and the planner runs from
-        the pose. Returns the setpoint, or None to plan now.
-        """
-        target = self._step_target
-        if self.config.dry_run:
-            self._step_target = None  # nothing moves the vehicle along the plan: plan from the pose each cycle
-            return None
-        if target is None:
-            return None
-        d = pos[: self.dim] - target[: self.dim]
-        gap = float(np.sqrt(d @ d))
-        if gap <= self.config.cycle.replan_radius_m:
-            return None  # reached: plan from it
-        # In time: three steps at the speed flown here (cruise, or the slower speed near obstacles).
-        too_long = now_s - self._step_target_t > max(
-            1.0, 3.0 * self.step_m / self._approach_speed(self.step_m, nearest_m)
-        )
-        if gap > 2.0 * self.step_m or too_long or not self._clear(target, obstacles):
-            self._step_target = None
-            self.counters.dropped_targets += 1
-            return None
-        return navigate(pos, target, cruise_speed_m_s=self._approach_speed(gap, nearest_m), dim=self.dim)
-
-    def _approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
-        """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower
-        near obstacles (``clearance_m``): a vehicle that reaches a bacteria point at speed swings on along its old
-        heading when the next step turns, towards the obstacle it is turning away from."""
-        speed = self.config.cycle.cruise_speed_m_s * min(1.0, gap_m / self.step_m)
-        if self.clearance_m > 0.0 and nearest_m is not None:
-            span = 2.0 * self.step_m
-            frac = min(1.0, max(0.0, (nearest_m - self.clearance_m) / span))
-            speed *= SLOW_FRACTION + (1.0 - SLOW_FRACTION) * frac
-        return speed
-
-    def _clear(self, point: FloatArray, obstacles: FloatArray) -> bool:
-        if self.target_guard_m <= 0.0 or obstacles.shape[0] == 0:
-            return True
-        d = obstacles[:, : self.dim] - point[: self.dim]
-        return bool(np.min(np.einsum("ij,ij->i", d, d)) >= self.target_guard_m**2)
-
-    def _near(self, points: FloatArray, pos: FloatArray) -> FloatArray:
-        """Obstacle points that can matter this step (within the sensor range + a step), vectorised."""
-        if points.shape[0] == 0:
-            return np.zeros((0, 3))
-        reach = self.config.sensors.max_range_m + 1.0
-        d = points[:, : self.dim] - pos[: self.dim]
-        keep = np.einsum("ij,ij->i", d, d) <= reach * reach
-        return np.asarray(points[keep], dtype=np.float64)
-
-    @property
-    def active_target_ned_m(self) -> FloatArray | None:
-        """The waypoint being flown to (down resolved), if any."""
-        return None if self._leg is None or self.route is None else self._leg.target_ned_m
-
-    @property
-    def leg_index(self) -> int | None:
-        return None if self._leg is None else self._leg.index
-
-    def link_alive(self, now_s: float) -> bool:
-        return self._link_alive(now_s)
-
-    def counts(self) -> dict[str, int]:
-        """Counters for status and tests."""
-        return {name: getattr(self.counters, name) for name in self.counters.__dataclass_fields__}
+_HANDLERS: dict[State, Callable[[Navigator, _Inputs], CycleOutput]] = {
+    State.IDLE: Navigator._on_idle,
+    State.LINK_LOST: Navigator._on_idle,  # left in ``cycle`` as soon as the link is alive
+    State.NAVIGATING: Navigator._on_navigating,
+    State.HOLDING: Navigator._on_holding,
+    State.ARRIVED: Navigator._on_done,
+    State.STUCK: Navigator._on_done,
+}
+"""One handler per state, for a cycle with the autopilot link alive."""

@@ -15,12 +15,13 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY
 
 __all__ = ["MAV_FRAME_LOCAL_NED", "Setpoint", "SetpointKind", "encode_setpoint", "hold", "navigate"]
 
-MAV_FRAME_LOCAL_NED = 1
+MAV_FRAME_LOCAL_NED: int = mavlink.MAV_FRAME_LOCAL_NED
 _VALID_MASKS = frozenset({MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY})
 
 

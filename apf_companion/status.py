@@ -17,6 +17,8 @@ import json
 import math
 from typing import Any
 
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
 from apf_companion.navigator import State
 
 __all__ = [
@@ -33,37 +35,29 @@ STATUS_SCHEMA = "apf.status/1"
 NVF_GOAL_DISTANCE = "APF_DGOAL"  # NAMED_VALUE_FLOAT names: at most 10 characters
 NVF_NEAREST_OBSTACLE = "APF_DOBS"
 
-# MAV_SEVERITY and MAV_STATE values (common.xml).
-_SEV_CRITICAL = 2
-_SEV_WARNING = 4
-_SEV_NOTICE = 5
-_SEV_INFO = 6
-_MAV_STATE_STANDBY = 3
-_MAV_STATE_ACTIVE = 4
-_MAV_STATE_CRITICAL = 5
+_SEVERITY: dict[State, int] = {
+    State.HOLDING: mavlink.MAV_SEVERITY_WARNING,
+    State.STUCK: mavlink.MAV_SEVERITY_WARNING,
+    State.LINK_LOST: mavlink.MAV_SEVERITY_CRITICAL,
+    State.ARRIVED: mavlink.MAV_SEVERITY_NOTICE,
+}
 
 STATUSTEXT_MAX = 50  # characters in one STATUSTEXT (no chunking needed at that length)
 
 
 def severity_for(state: State) -> int:
     """MAV_SEVERITY of the STATUSTEXT announcing ``state``."""
-    if state in (State.HOLDING, State.STUCK):
-        return _SEV_WARNING
-    if state is State.LINK_LOST:
-        return _SEV_CRITICAL
-    if state is State.ARRIVED:
-        return _SEV_NOTICE
-    return _SEV_INFO
+    return int(_SEVERITY.get(state, mavlink.MAV_SEVERITY_INFO))
 
 
 def system_status_for(state: State, *, healthy_inputs: bool) -> int:
     """HEARTBEAT.system_status: ACTIVE when in control with fresh inputs, CRITICAL when it had to hold or give
     up, STANDBY when idle (nothing to do)."""
     if state in (State.HOLDING, State.STUCK, State.LINK_LOST):
-        return _MAV_STATE_CRITICAL
+        return int(mavlink.MAV_STATE_CRITICAL)
     if state in (State.NAVIGATING, State.ARRIVED):
-        return _MAV_STATE_ACTIVE if healthy_inputs else _MAV_STATE_CRITICAL
-    return _MAV_STATE_STANDBY
+        return int(mavlink.MAV_STATE_ACTIVE if healthy_inputs else mavlink.MAV_STATE_CRITICAL)
+    return int(mavlink.MAV_STATE_STANDBY)
 
 
 def statustext_for(state: State, reason: str) -> str:

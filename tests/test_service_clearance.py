@@ -9,13 +9,15 @@ perfect sensor, so only the tracking is tested.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from apf_companion.config import ServiceConfig
 from apf_companion.goal import Route
-from apf_companion.navigator import State
-from apf_companion.perception import ObstacleMemory, Pose
+from apf_companion.navigator import Navigator, State
+from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, Pose
 from apf_companion.service import build_navigator, build_planner
 from sim.vehicle.dynamics import ControlTarget, Limits, TargetKind, VehicleState, step_dynamics
 from sim.world import paper_field
@@ -30,9 +32,16 @@ def fly_closed_loop(world_seed: int, density: str, *, clearance: bool = True) ->
     obs3 = np.hstack([obstacles, np.full((obstacles.shape[0], 1), -ALT_M)])
     cfg = ServiceConfig()
     planner = build_planner(cfg)
-    nav = build_navigator(cfg, planner, ObstacleMemory(expiry_s=10.0, merge_radius_m=0.2), now_s=0.0)
+    perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=10.0, merge_radius_m=0.2))
+    nav = build_navigator(cfg, planner, perception)
     if not clearance:
-        nav.clearance_m = 0.0  # the behaviour before the fix
+        # The behaviour before the fix.
+        nav = Navigator(
+            params=dataclasses.replace(nav.params, clearance_m=0.0),
+            planner=planner,
+            obstacles=perception,
+            rng=nav.rng,
+        )
     state = VehicleState(pos_ned_m=np.array([3.0, 3.0, -ALT_M]), on_ground=False)
     limits = Limits()  # ArduPilot defaults of the simulator (WPNAV_SPEED 5 m/s, WPNAV_ACCEL 2.5 m/s^2)
     target = ControlTarget(kind=TargetKind.HOLD, pos_ned_m=state.pos_ned_m.copy())
@@ -48,7 +57,7 @@ def fly_closed_loop(world_seed: int, density: str, *, clearance: bool = True) ->
         nav.autopilot_heartbeat(t, mode_ok=True)
         nav.update_pose(Pose(t_s=t, pos_ned_m=pos, yaw_rad=0.0))
         in_range = np.hypot(*(obstacles - pos[:2]).T) <= cfg.sensors.max_range_m
-        nav.update_ranges(obs3[in_range], t)
+        perception.remember(obs3[in_range], t)
         sp = nav.cycle(t).setpoint
         if sp is not None:
             target = ControlTarget(
@@ -80,14 +89,15 @@ def test_without_the_slow_down_the_same_loop_grazes() -> None:
 
 def test_slow_down_near_obstacles_scales_the_feed_forward() -> None:
     cfg = ServiceConfig()
-    nav = build_navigator(cfg, build_planner(cfg), ObstacleMemory(), now_s=0.0)
+    nav = build_navigator(cfg, build_planner(cfg), PerceptionFrontEnd(PerceptionParams()))
     cruise = cfg.cycle.cruise_speed_m_s
-    rho_l = nav.clearance_m
+    rho_l = nav.params.clearance_m
+    step_m = nav.params.step_m
     assert rho_l == pytest.approx(0.4)
-    assert nav._approach_speed(1.0, None) == pytest.approx(cruise)
-    assert nav._approach_speed(1.0, rho_l + 2 * nav.step_m) == pytest.approx(cruise)
-    assert nav._approach_speed(1.0, rho_l) == pytest.approx(0.2 * cruise)
-    assert nav._approach_speed(1.0, 0.1) == pytest.approx(0.2 * cruise)
-    assert nav._approach_speed(1.0, rho_l + nav.step_m) == pytest.approx(0.6 * cruise)
+    assert nav.approach_speed(1.0, None) == pytest.approx(cruise)
+    assert nav.approach_speed(1.0, rho_l + 2 * step_m) == pytest.approx(cruise)
+    assert nav.approach_speed(1.0, rho_l) == pytest.approx(0.2 * cruise)
+    assert nav.approach_speed(1.0, 0.1) == pytest.approx(0.2 * cruise)
+    assert nav.approach_speed(1.0, rho_l + step_m) == pytest.approx(0.6 * cruise)
     # Still tapering within one step of the point.
-    assert nav._approach_speed(0.5 * nav.step_m, rho_l) == pytest.approx(0.1 * cruise)
+    assert nav.approach_speed(0.5 * step_m, rho_l) == pytest.approx(0.1 * cruise)

@@ -155,7 +155,7 @@ async def test_ardupilot_takeover_confirmed_from_heartbeat() -> None:
         assert sim.vehicle.mode == "LOITER"
         await wait_state(svc, {State.ARRIVED}, 30.0)
         assert sim.vehicle.custom_mode == CopterMode.GUIDED
-        assert svc.navigator.engaged and svc.counters.mode_requests >= 1
+        assert svc.navigator.engaged and svc.reporter.counters.mode_requests >= 1
 
 
 async def test_px4_offboard_after_prestream() -> None:
@@ -170,7 +170,7 @@ async def test_px4_offboard_after_prestream() -> None:
         # The simulator refuses OFFBOARD without >= 1 s of setpoints ("... not available"): never happened.
         assert not any("not available" in t or "offboard signal lost" in t for t in texts), texts
         # One request sufficed: the first DO_SET_MODE came after the pre-stream.
-        assert svc.counters.mode_requests == 1
+        assert svc.reporter.counters.mode_requests == 1
 
 
 @pytest.mark.parametrize("profile", ["ardupilot", "px4"])
@@ -229,10 +229,10 @@ async def test_ranges_over_zenoh_instead_of_mavlink(encoding: str) -> None:
     ) as (svc, sim):
         state = await wait_state(svc, {State.ARRIVED, State.STUCK}, 60.0)
         res = sim.result()
-        remembered = svc.memory.points(svc.clock.now())
+        remembered = svc.perception.memory.points(svc.clock.now())
     assert state is State.ARRIVED
     assert not res["collided"]
-    assert svc.counters.scans > 10 and svc.counters.bad_scans == 0
+    assert svc.perception.counters.scans > 10 and svc.perception.counters.bad_scans == 0
     # The remembered points lie on real obstacles: off by the 5-degree sector quantisation (<= 0.35 m at 8 m)
     # plus the motion between measurement and placement (zenoh scans carry no boot time: stamped on receipt,
     # and at SPEEDUP x a few ms of wall latency are a few cm more).

@@ -17,6 +17,7 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import MASK_POS_VEL, CopterMode
 from apf_companion.config import ServiceConfig, config_from_mapping
@@ -184,10 +185,10 @@ async def test_bad_input_is_counted_and_never_a_setpoint() -> None:
         link.send(link.mav.obstacle_distance_encode(ap.boot_ms() * 1000, 0, [100] * 72, 0, 20, 800, 0.0, 0.0, 12))
         await until(
             lambda: (
-                svc.counters.foreign_messages >= 2
-                and svc.counters.bad_poses >= 1
-                and svc.counters.invalid_sectors >= 20
-                and svc.counters.bad_scans >= 1
+                svc.reporter.counters.foreign_messages >= 2
+                and svc.perception.counters.bad_poses >= 1
+                and svc.perception.counters.invalid_sectors >= 20
+                and svc.perception.counters.bad_scans >= 1
                 and svc.link is not None
                 and svc.link.stats.bad_frames >= 1
             ),
@@ -216,7 +217,7 @@ async def test_nan_and_rogue_pose_during_flight_do_not_move_setpoints() -> None:
         await until(lambda: svc.navigator.state is State.HOLDING, 3.0, "holding")
         for _, m in ap.setpoints()[n0:]:
             assert all(math.isfinite(v) for v in (m.x, m.y, m.z, m.vx, m.vy, m.vz))
-        assert svc.counters.bad_poses >= 10
+        assert svc.perception.counters.bad_poses >= 10
 
 
 async def test_frozen_pose_holds_within_one_cycle() -> None:
@@ -284,13 +285,13 @@ async def test_do_reposition_from_gcs_replaces_goal() -> None:
             # COMMAND_LONG cannot carry a frame: COMMAND_INT_ONLY; unsupported frame: UNSUPPORTED.
             gcs.send(gcs.mav.command_long_encode(1, 191, 192, 0, -1, 1, 0, math.nan, 0, 0, -5.0))
             ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
-            assert ack.result == 7
+            assert ack.result == mavlink.MAV_RESULT_COMMAND_INT_ONLY  # 8 (7 is COMMAND_LONG_ONLY)
             gcs.send(gcs.mav.command_int_encode(1, 191, 12, 192, 0, 0, -1, 1, 0, math.nan, 0, 0, -5.0))
             ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
             assert ack.result == 3
             await until(lambda: svc.navigator.state is State.ARRIVED, 20.0, "arrived at the new goal")
             assert math.dist(ap.pos[:2], (0.0, 5.0)) <= 0.7 + 0.1
-            assert svc.counters.foreign_messages >= 1
+            assert svc.reporter.counters.foreign_messages >= 1
         finally:
             await gcs.aclose()
 
@@ -304,7 +305,7 @@ async def test_global_reposition_is_placed_about_the_vehicle() -> None:
                 ap.boot_ms(), int(lat0 * 1e7), int(lon0 * 1e7), 500_000, 5_000, 0, 0, 0, 0
             )
         )
-        await until(lambda: svc._global_ref is not None, 2.0, "global reference")
+        await until(lambda: svc.handlers.global_ref is not None, 2.0, "global reference")
         port = svc.link.local_address[1]  # type: ignore[union-attr,index]
         gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
         try:
@@ -331,4 +332,4 @@ async def test_dry_run_sends_nothing() -> None:
         await until(lambda: svc.navigator.counters.planner_steps > 10, 10.0, "planning")
         assert svc.navigator.last_output is not None and svc.navigator.last_output.decision == "GREEDY"
         assert not ap.received
-        assert svc.counters.setpoints_sent == 0
+        assert svc.outbox.setpoints_sent == 0

@@ -8,30 +8,34 @@ import numpy as np
 import pytest
 
 from apf_companion.autopilot import MASK_POS_VEL
+from apf_companion.builders import build_navigator
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.navigator import Navigator, State
-from apf_companion.perception import ObstacleMemory, Pose
+from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, Pose
 from apf_companion.service import build_planner
 from apf_companion.setpoint import SetpointKind
 
 
 def make(cfg: ServiceConfig | None = None) -> Navigator:
     cfg = cfg or ServiceConfig()
-    return Navigator(
-        config=cfg,
-        planner=build_planner(cfg),
-        memory=ObstacleMemory(expiry_s=30.0, merge_radius_m=0.1),
-        rng=np.random.default_rng(1),
-        now_s=0.0,
-    )
+    perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=30.0, merge_radius_m=0.1))
+    nav = build_navigator(cfg, build_planner(cfg), perception)
+    nav.rng = np.random.default_rng(1)
+    return nav
+
+
+def scan(nav: Navigator, points_ned_m: np.ndarray, t: float) -> None:
+    """A scan's placed points, written by the memory's one writer (the perception front end)."""
+    assert isinstance(nav.obstacles, PerceptionFrontEnd)
+    nav.obstacles.remember(points_ned_m, t)
 
 
 def feed(nav: Navigator, t: float, pos: tuple[float, float, float], *, ranges: bool = True) -> None:
     nav.autopilot_heartbeat(t, mode_ok=True)
     nav.update_pose(Pose(t_s=t, pos_ned_m=np.array(pos), yaw_rad=0.0))
     if ranges:
-        nav.update_ranges(np.zeros((0, 3)), t)
+        scan(nav, np.zeros((0, 3)), t)
 
 
 def fly(nav: Navigator, t0: float, pos: np.ndarray, n: int, dt: float = 0.1) -> tuple[float, np.ndarray]:
@@ -85,7 +89,7 @@ def test_not_engaged_prestreams_hold_at_current_position() -> None:
     nav = make()
     nav.autopilot_heartbeat(0.1, mode_ok=False)
     nav.update_pose(Pose(t_s=0.1, pos_ned_m=np.array([1.0, 2.0, -3.0]), yaw_rad=0.0))
-    nav.update_ranges(np.zeros((0, 3)), 0.1)
+    scan(nav, np.zeros((0, 3)), 0.1)
     nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
     out = nav.cycle(0.1)
     assert out.setpoint is not None and out.setpoint.kind is SetpointKind.PRESTREAM
@@ -107,7 +111,7 @@ def test_stale_input_holds_within_one_cycle(what: str) -> None:
         t += 0.1
         nav.autopilot_heartbeat(t, mode_ok=True)
         if what == "pose":
-            nav.update_ranges(np.zeros((0, 3)), t)
+            scan(nav, np.zeros((0, 3)), t)
         else:
             nav.update_pose(Pose(t_s=t, pos_ned_m=pos, yaw_rad=0.0))
         out = nav.cycle(t)
@@ -148,7 +152,7 @@ def test_heartbeat_loss_goes_silent_and_needs_new_goal() -> None:
     for _ in range(40):  # pose and ranges keep coming, the heartbeat does not
         t += 0.1
         nav.update_pose(Pose(t_s=t, pos_ned_m=np.zeros(3), yaw_rad=0.0))
-        nav.update_ranges(np.zeros((0, 3)), t)
+        scan(nav, np.zeros((0, 3)), t)
         out = nav.cycle(t)
         if t - 0.1 > 3.0:
             assert out.state is State.LINK_LOST and out.setpoint is None
@@ -179,7 +183,7 @@ def test_local_minimum_beyond_budget_is_stuck() -> None:
     feed(nav, 0.1, (0, 0, -5))
     ang = np.linspace(0.0, 2.0 * np.pi, 40, endpoint=False)
     wall = np.stack([0.7 * np.cos(ang), 0.7 * np.sin(ang), np.full(40, -5.0)], axis=1)
-    nav.update_ranges(wall, 0.1)
+    scan(nav, wall, 0.1)
     nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
     states = []
     t = 0.1

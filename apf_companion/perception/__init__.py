@@ -15,6 +15,7 @@ from apf_companion.perception.cdr import (
     laserscan_to_scan,
     parse_laserscan_cdr,
 )
+from apf_companion.perception.frontend import PerceptionCounters, PerceptionFrontEnd, PerceptionParams
 from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
@@ -42,6 +43,9 @@ __all__ = [
     "GoalCommand",
     "LaserScanMsg",
     "ObstacleMemory",
+    "PerceptionCounters",
+    "PerceptionFrontEnd",
+    "PerceptionParams",
     "Pose",
     "PoseHistory",
     "RangeScan",

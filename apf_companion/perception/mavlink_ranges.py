@@ -34,6 +34,7 @@ from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ProtocolError
 from apf_companion.perception.types import FloatArray, Pose, RangeScan, ScanFrame, SectorCounts
@@ -56,16 +57,16 @@ UINT16_MAX = 65535
 MAX_OBSTACLE_DISTANCE_ELEMENTS = 72
 
 # MAV_FRAME values.
-_MAV_FRAME_GLOBAL = 0
-_MAV_FRAME_LOCAL_NED = 1
-_MAV_FRAME_GLOBAL_RELATIVE_ALT = 3
-_MAV_FRAME_GLOBAL_INT = 5
-_MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = 6
-_MAV_FRAME_LOCAL_OFFSET_NED = 7
-_MAV_FRAME_GLOBAL_TERRAIN_ALT = 10
-_MAV_FRAME_GLOBAL_TERRAIN_ALT_INT = 11
-_MAV_FRAME_BODY_FRD = 12
-_MAV_FRAME_LOCAL_FRD = 20
+_MAV_FRAME_GLOBAL: int = mavlink.MAV_FRAME_GLOBAL
+_MAV_FRAME_LOCAL_NED: int = mavlink.MAV_FRAME_LOCAL_NED
+_MAV_FRAME_GLOBAL_RELATIVE_ALT: int = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT
+_MAV_FRAME_GLOBAL_INT: int = mavlink.MAV_FRAME_GLOBAL_INT
+_MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: int = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+_MAV_FRAME_LOCAL_OFFSET_NED: int = mavlink.MAV_FRAME_LOCAL_OFFSET_NED
+_MAV_FRAME_GLOBAL_TERRAIN_ALT: int = mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT
+_MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: int = mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT
+_MAV_FRAME_BODY_FRD: int = mavlink.MAV_FRAME_BODY_FRD
+_MAV_FRAME_LOCAL_FRD: int = mavlink.MAV_FRAME_LOCAL_FRD
 
 NORTH_ALIGNED_FRAMES = frozenset(
     {
@@ -87,9 +88,9 @@ BODY_FRAMES = frozenset({_MAV_FRAME_BODY_FRD, _MAV_FRAME_LOCAL_FRD})
 
 # MAV_SENSOR_ORIENTATION: YAW_0 .. YAW_315 are horizontal beams at 45 deg steps; ROTATION_CUSTOM uses the
 # quaternion. The other defined orientations (up, down, rolled) are not horizontal beams.
-_SENSOR_ROTATION_YAW_315 = 7
-_SENSOR_ROTATION_CUSTOM = 100
-_SENSOR_ROTATION_LAST_DEFINED = 40
+_SENSOR_ROTATION_YAW_315: int = mavlink.MAV_SENSOR_ROTATION_YAW_315
+_SENSOR_ROTATION_CUSTOM: int = mavlink.MAV_SENSOR_ROTATION_CUSTOM
+_SENSOR_ROTATION_LAST_DEFINED: int = mavlink.MAV_SENSOR_ROTATION_ROLL_90_PITCH_315  # 40, the last before CUSTOM
 _CUSTOM_MAX_ELEVATION_RAD = math.radians(30.0)
 
 # uint32 time_boot_ms spans 49.7 days; a time_usec beyond that is UNIX time, not time since boot.
@@ -99,37 +100,58 @@ _MAX_BOOT_MS = 0xFFFFFFFF
 class ObstacleDistanceLike(Protocol):
     """The OBSTACLE_DISTANCE fields read here (a pymavlink message satisfies it)."""
 
-    time_usec: int
-    distances: Sequence[int]
-    increment: int
-    min_distance: int
-    max_distance: int
-    increment_f: float
-    angle_offset: float
-    frame: int
+    @property
+    def time_usec(self) -> int: ...
+    @property
+    def distances(self) -> Sequence[int]: ...
+    @property
+    def increment(self) -> int: ...
+    @property
+    def min_distance(self) -> int: ...
+    @property
+    def max_distance(self) -> int: ...
+    @property
+    def increment_f(self) -> float: ...
+    @property
+    def angle_offset(self) -> float: ...
+    @property
+    def frame(self) -> int: ...
 
 
 class DistanceSensorLike(Protocol):
     """The DISTANCE_SENSOR fields read here (a pymavlink message satisfies it)."""
 
-    time_boot_ms: int
-    min_distance: int
-    max_distance: int
-    current_distance: int
-    orientation: int
-    quaternion: Sequence[float]
+    @property
+    def time_boot_ms(self) -> int: ...
+    @property
+    def min_distance(self) -> int: ...
+    @property
+    def max_distance(self) -> int: ...
+    @property
+    def current_distance(self) -> int: ...
+    @property
+    def orientation(self) -> int: ...
+    @property
+    def quaternion(self) -> Sequence[float]: ...
 
 
 class ObstacleDistance3dLike(Protocol):
     """The OBSTACLE_DISTANCE_3D fields read here (a pymavlink message satisfies it)."""
 
-    time_boot_ms: int
-    frame: int
-    x: float
-    y: float
-    z: float
-    min_distance: float
-    max_distance: float
+    @property
+    def time_boot_ms(self) -> int: ...
+    @property
+    def frame(self) -> int: ...
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+    @property
+    def z(self) -> float: ...
+    @property
+    def min_distance(self) -> float: ...
+    @property
+    def max_distance(self) -> float: ...
 
 
 def wrap_angle_rad(angle_rad: FloatArray) -> FloatArray:
@@ -169,46 +191,8 @@ def _check_limits_cm(min_cm: int, max_cm: int, message: str) -> None:
         raise ProtocolError(msg)
 
 
-def scan_from_obstacle_distance(
-    msg: ObstacleDistanceLike,
-    *,
-    t_s: float,
-    zero_is_obstacle: bool = False,
-    frame_override: ScanFrame | None = None,
-) -> RangeScan:
-    """Read an OBSTACLE_DISTANCE message into a ``RangeScan``.
-
-    Element ``i`` lies at bearing ``angle_offset + i * increment`` degrees, clockwise, from the frame's
-    zero: the vehicle's forward axis for BODY_FRD (12) and LOCAL_FRD (20), north for GLOBAL* and
-    LOCAL_NED (1). ``increment_f`` is used when non-zero, else ``increment``; a negative ``increment_f``
-    runs counter-clockwise, as the spec allows. The number of elements read is
-    ``min(72, floor(360 / |increment|))`` (ArduPilot's rule); later elements are not used and not counted.
-
-    Parameters
-    ----------
-    msg:
-        The message (pymavlink ``MAVLink_obstacle_distance_message`` or anything with those fields).
-    t_s:
-        Measurement time on the service's monotonic clock [s].
-    zero_is_obstacle:
-        Treat a 0 cm reading as an obstacle touching the sensor (the spec's meaning) instead of invalid.
-    frame_override:
-        Use this frame whatever ``frame`` says. ``ScanFrame.BODY_FRD`` reproduces ArduPilot, which ignores
-        ``frame``, for senders known to fill it wrongly (e.g. older mavros sending 0 for a body-mounted
-        sensor).
-
-    Returns
-    -------
-    RangeScan
-        With ``time_boot_ms = time_usec // 1000`` when that fits a uint32 (time since boot), else None.
-
-    Raises
-    ------
-    ProtocolError
-        ``increment`` and ``increment_f`` both 0; ``|increment|`` > 360; ``increment_f`` or ``angle_offset`` not finite;
-        ``min_distance > max_distance``; ``max_distance`` 0; an unsupported ``frame`` (unless
-        ``frame_override`` is given).
-    """
+def _obstacle_distance_angles(msg: ObstacleDistanceLike) -> tuple[float, float]:
+    """(increment, angle_offset) [deg] of an OBSTACLE_DISTANCE; ProtocolError when unusable."""
     increment_f = float(msg.increment_f)
     angle_offset_deg = float(msg.angle_offset)
     if not math.isfinite(increment_f):
@@ -224,7 +208,10 @@ def scan_from_obstacle_distance(
     if abs(increment_deg) > 360.0:
         msg_text = f"OBSTACLE_DISTANCE: increment {increment_deg} deg is wider than a full turn"
         raise ProtocolError(msg_text)
-    frame = int(msg.frame)
+    return increment_deg, angle_offset_deg
+
+
+def _obstacle_distance_frame(frame: int, frame_override: ScanFrame | None) -> ScanFrame:
     if frame_override is not None:
         scan_frame = frame_override
     elif frame in BODY_FRAMES:
@@ -234,16 +221,64 @@ def scan_from_obstacle_distance(
     else:
         msg_text = f"OBSTACLE_DISTANCE: frame={frame} is not supported (use BODY_FRD=12 or LOCAL_NED=1)"
         raise ProtocolError(msg_text)
-    min_cm, max_cm = int(msg.min_distance), int(msg.max_distance)
-    _check_limits_cm(min_cm, max_cm, "OBSTACLE_DISTANCE")
+    return scan_frame
 
+
+def _obstacle_distance_elements(distances: Sequence[int], increment_deg: float) -> npt.NDArray[np.int64]:
+    """The ``min(72, floor(360 / |increment|))`` elements that are read (ArduPilot's rule) [cm]."""
     # The epsilon keeps 360/7.2 = 50 and the like from flooring to one less through float error.
     ratio = 360.0 / abs(increment_deg)  # may be inf for a subnormal increment
     n = MAX_OBSTACLE_DISTANCE_ELEMENTS if ratio >= MAX_OBSTACLE_DISTANCE_ELEMENTS else math.floor(ratio + 1e-6)
-    distances_cm = np.asarray(msg.distances, dtype=np.int64)[:n]
+    distances_cm = np.asarray(distances, dtype=np.int64)[:n]
     if distances_cm.size < n:
         msg_text = f"OBSTACLE_DISTANCE: {distances_cm.size} distances, expected at least {n}"
         raise ProtocolError(msg_text)
+    return distances_cm
+
+
+def scan_from_obstacle_distance(
+    msg: ObstacleDistanceLike,
+    *,
+    t_s: float,
+    zero_is_obstacle: bool = False,
+    frame_override: ScanFrame | None = None,
+) -> RangeScan:
+    """Read an OBSTACLE_DISTANCE message into a ``RangeScan``.
+
+    Element ``i`` lies at bearing ``angle_offset + i * increment`` degrees, clockwise, from the frame's
+    zero: the vehicle's forward axis for BODY_FRD (12) and LOCAL_FRD (20), north for GLOBAL* and
+    LOCAL_NED (1). ``increment_f`` is used when non-zero, else ``increment``; a negative ``increment_f``
+    runs counter-clockwise, as the spec allows. The number of elements read is
+    ``min(72, floor(360 / |increment|))`` (ArduPilot's rule); later elements are not used and not counted.
+    The scan's ``time_boot_ms`` is ``time_usec // 1000`` when that fits a uint32 (time since boot), else None.
+
+    Parameters
+    ----------
+    msg:
+        The message (pymavlink ``MAVLink_obstacle_distance_message`` or anything with those fields).
+    t_s:
+        Measurement time on the service's monotonic clock [s].
+    zero_is_obstacle:
+        Treat a 0 cm reading as an obstacle touching the sensor (the spec's meaning) instead of invalid.
+    frame_override:
+        Use this frame whatever ``frame`` says. ``ScanFrame.BODY_FRD`` reproduces ArduPilot, which ignores
+        ``frame``, for senders known to fill it wrongly (e.g. older mavros sending 0 for a body-mounted
+        sensor).
+
+    Raises
+    ------
+    ProtocolError
+        ``increment`` and ``increment_f`` both 0; ``|increment|`` > 360; ``increment_f`` or ``angle_offset`` not finite;
+        ``min_distance > max_distance``; ``max_distance`` 0; an unsupported ``frame`` (unless
+        ``frame_override`` is given).
+    """
+    increment_deg, angle_offset_deg = _obstacle_distance_angles(msg)
+    scan_frame = _obstacle_distance_frame(int(msg.frame), frame_override)
+    min_cm, max_cm = int(msg.min_distance), int(msg.max_distance)
+    _check_limits_cm(min_cm, max_cm, "OBSTACLE_DISTANCE")
+
+    distances_cm = _obstacle_distance_elements(msg.distances, increment_deg)
+    n = distances_cm.size
     ranges_m, counts = _classify_cm(distances_cm, min_cm, max_cm, zero_is_obstacle=zero_is_obstacle)
     bearings_rad = wrap_angle_rad(np.deg2rad(angle_offset_deg + increment_deg * np.arange(n, dtype=np.float64)))
     time_ms = int(msg.time_usec) // 1000

@@ -67,6 +67,17 @@ def _voxel_first(points: FloatArray, cell_m: float) -> npt.NDArray[np.intp]:
     return np.sort(first)
 
 
+def _nearest_beam(b_sorted: FloatArray, pb: FloatArray) -> tuple[npt.NDArray[np.intp], FloatArray]:
+    """For bearings ``pb``: the index of the nearest of the sorted beam bearings ``b_sorted`` (cyclically: the
+    neighbours either side of the insertion point) and the angle to it [rad]."""
+    m = b_sorted.size
+    hi = np.searchsorted(b_sorted, pb) % m
+    lo = (hi - 1) % m
+    d_hi = np.abs(np.remainder(pb - b_sorted[hi] + math.pi, _TWO_PI) - math.pi)
+    d_lo = np.abs(np.remainder(pb - b_sorted[lo] + math.pi, _TWO_PI) - math.pi)
+    return np.where(d_hi <= d_lo, hi, lo), np.minimum(d_hi, d_lo)
+
+
 class ObstacleMemory:
     """Obstacle points in local NED with expiry and merging (vectorised).
 
@@ -219,15 +230,7 @@ class ObstacleMemory:
 
         rel = self._pts - pose.pos_ned_m
         dist_m = np.hypot(rel[:, 0], rel[:, 1])
-        pb = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), _TWO_PI)
-        # Nearest beam by bearing: the neighbours either side of the insertion point, cyclically.
-        m = b_sorted.size
-        hi = np.searchsorted(b_sorted, pb) % m
-        lo = (hi - 1) % m
-        d_hi = np.abs(np.remainder(pb - b_sorted[hi] + math.pi, _TWO_PI) - math.pi)
-        d_lo = np.abs(np.remainder(pb - b_sorted[lo] + math.pi, _TWO_PI) - math.pi)
-        beam = np.where(d_hi <= d_lo, hi, lo)
-        ang = np.minimum(d_hi, d_lo)
+        beam, ang = _nearest_beam(b_sorted, np.mod(np.arctan2(rel[:, 1], rel[:, 0]), _TWO_PI))
         cleared = (
             (ang <= beam_half_width_rad + 1e-12)
             & (dist_m < reach[beam] - margin_m)

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from apf_companion.errors import ConfigError, ProtocolError
-from apf_companion.perception.types import GoalCommand, RangeScan, ScanFrame, SectorCounts
+from apf_companion.perception.types import FloatArray, GoalCommand, RangeScan, ScanFrame, SectorCounts
 
 __all__ = [
     "GOAL_SCHEMA",
@@ -147,6 +147,47 @@ def encode_scan_json(scan: RangeScan) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
+def _scan_values(raw: object, inc_deg: float, what: str) -> FloatArray:
+    """The ``ranges_m`` list as float64 (null -> NaN); ProtocolError for anything else."""
+    if not isinstance(raw, list):
+        msg = f"{what}: field 'ranges_m' must be a list, got {type(raw).__name__}"
+        raise ProtocolError(msg)
+    if len(raw) > MAX_JSON_RANGES:
+        msg = f"{what}: field 'ranges_m' has {len(raw)} elements, at most {MAX_JSON_RANGES} allowed"
+        raise ProtocolError(msg)
+    if len(raw) > 1 and abs(inc_deg) < _MIN_INCREMENT_DEG:
+        msg = f"{what}: field 'angle_increment_deg' must be at least {_MIN_INCREMENT_DEG} in size for {len(raw)} ranges"
+        raise ProtocolError(msg)
+    if any(v is not None and (isinstance(v, bool) or not isinstance(v, int | float)) for v in raw):
+        msg = f"{what}: field 'ranges_m' may hold only numbers and null"
+        raise ProtocolError(msg)
+    try:
+        values = np.array([np.nan if v is None else float(v) for v in raw], dtype=np.float64)
+    except OverflowError as err:
+        msg = f"{what}: field 'ranges_m' holds a number too large to be finite"
+        raise ProtocolError(msg) from err
+    if not np.all(np.isfinite(values[~np.isnan(values)])):
+        msg = f"{what}: field 'ranges_m' holds a number too large to be finite"
+        raise ProtocolError(msg)
+    return values
+
+
+def _classify_m(values: FloatArray, range_min_m: float, range_max_m: float) -> tuple[FloatArray, SectorCounts]:
+    """Ranges (NaN unknown/invalid, +inf free) and the counts, as in ``decode_scan_json``."""
+    unknown = np.isnan(values)
+    free = ~unknown & (values > range_max_m)
+    invalid = ~unknown & (values < range_min_m)
+    ranges_m = np.where(unknown | invalid, np.nan, values)
+    ranges_m[free] = np.inf
+    counts = SectorCounts(
+        valid=int(values.size - np.count_nonzero(unknown | free | invalid)),
+        free=int(np.count_nonzero(free)),
+        unknown=int(np.count_nonzero(unknown)),
+        invalid=int(np.count_nonzero(invalid)),
+    )
+    return ranges_m, counts
+
+
 def decode_scan_json(data: bytes | str, *, t_s: float, source: str = "zenoh:json") -> RangeScan:
     """Decode an ``apf.range_scan/1`` JSON payload into a ``RangeScan`` stamped ``t_s``.
 
@@ -173,42 +214,12 @@ def decode_scan_json(data: bytes | str, *, t_s: float, source: str = "zenoh:json
     if not 0.0 <= range_min_m <= range_max_m:
         msg = f"{what}: fields 'range_min_m'/'range_max_m' need 0 <= min <= max, got {range_min_m}, {range_max_m}"
         raise ProtocolError(msg)
-    raw = obj.get("ranges_m")
-    if not isinstance(raw, list):
-        msg = f"{what}: field 'ranges_m' must be a list, got {type(raw).__name__}"
-        raise ProtocolError(msg)
-    if len(raw) > MAX_JSON_RANGES:
-        msg = f"{what}: field 'ranges_m' has {len(raw)} elements, at most {MAX_JSON_RANGES} allowed"
-        raise ProtocolError(msg)
-    if len(raw) > 1 and abs(inc_deg) < _MIN_INCREMENT_DEG:
-        msg = f"{what}: field 'angle_increment_deg' must be at least {_MIN_INCREMENT_DEG} in size for {len(raw)} ranges"
-        raise ProtocolError(msg)
-    if any(v is not None and (isinstance(v, bool) or not isinstance(v, int | float)) for v in raw):
-        msg = f"{what}: field 'ranges_m' may hold only numbers and null"
-        raise ProtocolError(msg)
-    try:
-        values = np.array([np.nan if v is None else float(v) for v in raw], dtype=np.float64)
-    except OverflowError as err:
-        msg = f"{what}: field 'ranges_m' holds a number too large to be finite"
-        raise ProtocolError(msg) from err
-    if not np.all(np.isfinite(values[~np.isnan(values)])):
-        msg = f"{what}: field 'ranges_m' holds a number too large to be finite"
-        raise ProtocolError(msg)
+    values = _scan_values(obj.get("ranges_m"), inc_deg, what)
     bearings_deg = angle_min_deg + inc_deg * np.arange(values.size, dtype=np.float64)
     if not np.all(np.isfinite(bearings_deg)):
         msg = f"{what}: fields 'angle_min_deg'/'angle_increment_deg' give non-finite bearings"
         raise ProtocolError(msg)
-    unknown = np.isnan(values)
-    free = ~unknown & (values > range_max_m)
-    invalid = ~unknown & (values < range_min_m)
-    ranges_m = np.where(unknown | invalid, np.nan, values)
-    ranges_m[free] = np.inf
-    counts = SectorCounts(
-        valid=int(values.size - np.count_nonzero(unknown | free | invalid)),
-        free=int(np.count_nonzero(free)),
-        unknown=int(np.count_nonzero(unknown)),
-        invalid=int(np.count_nonzero(invalid)),
-    )
+    ranges_m, counts = _classify_m(values, range_min_m, range_max_m)
     return RangeScan(
         t_s=t_s,
         frame=_FRAMES[frame_name],

@@ -1,0 +1,298 @@
+"""Typed records of the MAVLink messages the service consumes, decoded once where messages enter the service.
+
+``decode(msg)`` turns a pymavlink message into one of the frozen records below (looked up by message type in
+``DECODERS``), so no pymavlink ``Any`` travels further. It never raises: a message type the service does not
+consume gives None, and so does a consumed message whose fields cannot be read (the caller tells the two apart
+with ``DECODERS``: a consumed type that decodes to None is malformed, and counted). Float fields are passed on
+as they are, NaN and inf included: deciding what a non-finite value means (a bad pose, a malformed scan) is the
+consumer's job, where it is counted.
+
+Field names and units follow the MAVLink XML (common.xml, ardupilotmega.xml for OBSTACLE_DISTANCE_3D).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = [
+    "DECODERS",
+    "Attitude",
+    "CommandInt",
+    "CommandLong",
+    "DistanceSensor",
+    "GlobalPositionInt",
+    "Heartbeat",
+    "LocalPositionNed",
+    "ObstacleDistance",
+    "ObstacleDistance3d",
+    "Record",
+    "Source",
+    "decode",
+    "source",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class Source:
+    """Who sent a message: MAVLink system and component id."""
+
+    system: int
+    component: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Heartbeat:
+    src: Source
+    type: int  # MAV_TYPE
+    autopilot: int  # MAV_AUTOPILOT
+    base_mode: int  # MAV_MODE_FLAG bits
+    custom_mode: int
+    system_status: int  # MAV_STATE
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LocalPositionNed:
+    src: Source
+    time_boot_ms: int
+    x: float  # north [m], local NED
+    y: float  # east [m]
+    z: float  # down [m]
+    vx: float  # [m/s]
+    vy: float
+    vz: float
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Attitude:
+    src: Source
+    time_boot_ms: int
+    roll: float  # [rad]
+    pitch: float
+    yaw: float  # [rad], 0 = north, clockwise positive
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class GlobalPositionInt:
+    src: Source
+    time_boot_ms: int
+    lat: int  # [degE7]
+    lon: int  # [degE7]
+    alt: int  # AMSL [mm]
+    relative_alt: int  # above home [mm]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ObstacleDistance:
+    src: Source
+    time_usec: int
+    distances: tuple[int, ...]  # [cm]
+    increment: int  # [deg]
+    min_distance: int  # [cm]
+    max_distance: int  # [cm]
+    increment_f: float  # [deg], wins when non-zero
+    angle_offset: float  # [deg]
+    frame: int  # MAV_FRAME
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DistanceSensor:
+    src: Source
+    time_boot_ms: int
+    min_distance: int  # [cm]
+    max_distance: int  # [cm]
+    current_distance: int  # [cm]
+    orientation: int  # MAV_SENSOR_ORIENTATION
+    quaternion: tuple[float, ...]  # (w, x, y, z) for MAV_SENSOR_ROTATION_CUSTOM
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ObstacleDistance3d:
+    src: Source
+    time_boot_ms: int
+    frame: int  # MAV_FRAME
+    x: float  # [m]
+    y: float
+    z: float
+    min_distance: float  # [m]
+    max_distance: float  # [m]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CommandLong:
+    src: Source
+    target_system: int
+    target_component: int
+    command: int  # MAV_CMD
+    params: tuple[float, float, float, float, float, float, float]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CommandInt:
+    src: Source
+    target_system: int
+    target_component: int
+    frame: int  # MAV_FRAME
+    command: int  # MAV_CMD
+    params: tuple[float, float, float, float]  # param1..param4
+    x: int  # latitude [degE7] or local x
+    y: int
+    z: float
+
+
+Record = (
+    Heartbeat
+    | LocalPositionNed
+    | Attitude
+    | GlobalPositionInt
+    | ObstacleDistance
+    | DistanceSensor
+    | ObstacleDistance3d
+    | CommandLong
+    | CommandInt
+)
+
+
+def _src(msg: Any) -> Source:
+    return Source(int(msg.get_srcSystem()), int(msg.get_srcComponent()))
+
+
+def _heartbeat(msg: Any) -> Heartbeat:
+    return Heartbeat(
+        src=_src(msg),
+        type=int(msg.type),
+        autopilot=int(msg.autopilot),
+        base_mode=int(msg.base_mode),
+        custom_mode=int(msg.custom_mode),
+        system_status=int(msg.system_status),
+    )
+
+
+def _local_position_ned(msg: Any) -> LocalPositionNed:
+    return LocalPositionNed(
+        src=_src(msg),
+        time_boot_ms=int(msg.time_boot_ms),
+        x=float(msg.x),
+        y=float(msg.y),
+        z=float(msg.z),
+        vx=float(msg.vx),
+        vy=float(msg.vy),
+        vz=float(msg.vz),
+    )
+
+
+def _attitude(msg: Any) -> Attitude:
+    return Attitude(
+        src=_src(msg),
+        time_boot_ms=int(msg.time_boot_ms),
+        roll=float(msg.roll),
+        pitch=float(msg.pitch),
+        yaw=float(msg.yaw),
+    )
+
+
+def _global_position_int(msg: Any) -> GlobalPositionInt:
+    return GlobalPositionInt(
+        src=_src(msg),
+        time_boot_ms=int(msg.time_boot_ms),
+        lat=int(msg.lat),
+        lon=int(msg.lon),
+        alt=int(msg.alt),
+        relative_alt=int(msg.relative_alt),
+    )
+
+
+def _obstacle_distance(msg: Any) -> ObstacleDistance:
+    return ObstacleDistance(
+        src=_src(msg),
+        time_usec=int(msg.time_usec),
+        distances=tuple(int(d) for d in msg.distances),
+        increment=int(msg.increment),
+        min_distance=int(msg.min_distance),
+        max_distance=int(msg.max_distance),
+        increment_f=float(msg.increment_f),
+        angle_offset=float(msg.angle_offset),
+        frame=int(msg.frame),
+    )
+
+
+def _distance_sensor(msg: Any) -> DistanceSensor:
+    return DistanceSensor(
+        src=_src(msg),
+        time_boot_ms=int(msg.time_boot_ms),
+        min_distance=int(msg.min_distance),
+        max_distance=int(msg.max_distance),
+        current_distance=int(msg.current_distance),
+        orientation=int(msg.orientation),
+        quaternion=tuple(float(q) for q in msg.quaternion),
+    )
+
+
+def _obstacle_distance_3d(msg: Any) -> ObstacleDistance3d:
+    return ObstacleDistance3d(
+        src=_src(msg),
+        time_boot_ms=int(msg.time_boot_ms),
+        frame=int(msg.frame),
+        x=float(msg.x),
+        y=float(msg.y),
+        z=float(msg.z),
+        min_distance=float(msg.min_distance),
+        max_distance=float(msg.max_distance),
+    )
+
+
+def _command_long(msg: Any) -> CommandLong:
+    p = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+    return CommandLong(
+        src=_src(msg),
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        command=int(msg.command),
+        params=(float(p[0]), float(p[1]), float(p[2]), float(p[3]), float(p[4]), float(p[5]), float(p[6])),
+    )
+
+
+def _command_int(msg: Any) -> CommandInt:
+    return CommandInt(
+        src=_src(msg),
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        frame=int(msg.frame),
+        command=int(msg.command),
+        params=(float(msg.param1), float(msg.param2), float(msg.param3), float(msg.param4)),
+        x=int(msg.x),
+        y=int(msg.y),
+        z=float(msg.z),
+    )
+
+
+DECODERS: dict[str, Callable[[Any], Record]] = {
+    "HEARTBEAT": _heartbeat,
+    "LOCAL_POSITION_NED": _local_position_ned,
+    "ATTITUDE": _attitude,
+    "GLOBAL_POSITION_INT": _global_position_int,
+    "OBSTACLE_DISTANCE": _obstacle_distance,
+    "DISTANCE_SENSOR": _distance_sensor,
+    "OBSTACLE_DISTANCE_3D": _obstacle_distance_3d,
+    "COMMAND_LONG": _command_long,
+    "COMMAND_INT": _command_int,
+}
+"""Message type name -> decoder, for every message the service consumes."""
+
+
+def decode(msg: Any) -> Record | None:
+    """The typed record of ``msg``; None for a type the service does not consume or unreadable fields."""
+    try:
+        decoder = DECODERS.get(msg.get_type())
+        return None if decoder is None else decoder(msg)
+    except (AttributeError, TypeError, ValueError, OverflowError):
+        return None
+
+
+def source(msg: Any) -> Source | None:
+    """The sender of any pymavlink message (consumed or not); None if it cannot be read."""
+    try:
+        return _src(msg)
+    except (AttributeError, TypeError, ValueError):
+        return None

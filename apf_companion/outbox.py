@@ -1,0 +1,128 @@
+"""Everything the service sends to the autopilot, encoded with pymavlink's dialect constants.
+
+Silent (nothing on the wire) in a dry run or without a link. ``time_boot_ms`` of outgoing messages counts from the
+outbox's creation on the service clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from apf_companion.autopilot import PX4_OFFBOARD, Autopilot, CopterMode
+from apf_companion.links import MavlinkLink
+from apf_companion.setpoint import Setpoint, encode_setpoint
+
+__all__ = ["STREAM_INTERVALS", "Outbox"]
+
+STATUSTEXT_BYTES = 50  # one STATUSTEXT's text field
+GLOBAL_POSITION_INTERVAL_US = 200_000.0  # GLOBAL_POSITION_INT at 5 Hz: only the takeoff and DO_REPOSITION use it
+UINT32_MASK = 0xFFFFFFFF
+
+STREAM_INTERVALS: tuple[int, ...] = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE)
+"""Messages requested at ``link.telemetry_rate_hz`` (SET_MESSAGE_INTERVAL) once the autopilot is heard."""
+
+
+class Outbox:
+    """The sending side of the autopilot link.
+
+    Args:
+        link: The MAVLink link, or None (nothing is sent).
+        dry_run: Compute everything, send nothing.
+        target_system, target_component: The autopilot's ids.
+        now_s: The service clock.
+    """
+
+    def __init__(
+        self,
+        link: MavlinkLink | None,
+        *,
+        dry_run: bool,
+        target_system: int,
+        target_component: int,
+        now_s: Callable[[], float],
+    ) -> None:
+        self.link = link
+        self.dry_run = dry_run
+        self.target = (target_system, target_component)
+        self._now_s = now_s
+        self._start_s = now_s()
+        self.setpoints_sent = 0
+        self.statustexts_sent = 0
+
+    @property
+    def silent(self) -> bool:
+        return self.dry_run or self.link is None
+
+    def boot_ms(self) -> int:
+        return int((self._now_s() - self._start_s) * 1000.0) & UINT32_MASK
+
+    def _send(self, encode: Callable[[Any], Any]) -> bool:
+        if self.silent:
+            return False
+        assert self.link is not None
+        self.link.send(encode(self.link.mav))
+        return True
+
+    def command_long(self, command: int, *params: float) -> None:
+        p = [*params, *([0.0] * (7 - len(params)))]
+        self._send(lambda mav: mav.command_long_encode(*self.target, command, 0, *p))
+
+    def ack(self, command: int, result: int, target_system: int, target_component: int) -> None:
+        self._send(lambda mav: mav.command_ack_encode(command, result, 0, 0, target_system, target_component))
+
+    def setpoint(self, sp: Setpoint) -> None:
+        sent = self._send(
+            lambda mav: encode_setpoint(
+                mav, sp, time_boot_ms=self.boot_ms(), target_system=self.target[0], target_component=self.target[1]
+            )
+        )
+        self.setpoints_sent += int(sent)
+
+    def heartbeat(self, system_status: int) -> None:
+        self._send(
+            lambda mav: mav.heartbeat_encode(
+                mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+                mavlink.MAV_AUTOPILOT_INVALID,
+                0,
+                0,
+                system_status,
+            )  # mavlink_version: the encoder's default (3)
+        )
+
+    def statustext(self, severity: int, text: str) -> None:
+        payload = text.encode("ascii", "replace")[:STATUSTEXT_BYTES]
+        sent = self._send(lambda mav: mav.statustext_encode(severity, payload))
+        self.statustexts_sent += int(sent)
+
+    def named_value_float(self, name: str, value: float) -> None:
+        t = self.boot_ms()
+        self._send(lambda mav: mav.named_value_float_encode(t, name.encode(), float(value)))
+
+    def set_mode(self, profile: Autopilot) -> None:
+        """DO_SET_MODE for GUIDED (ArduCopter) / OFFBOARD (PX4)."""
+        flag = float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
+        if profile is Autopilot.ARDUPILOT:
+            self.command_long(mavlink.MAV_CMD_DO_SET_MODE, flag, float(CopterMode.GUIDED))
+        else:
+            self.command_long(mavlink.MAV_CMD_DO_SET_MODE, flag, float(PX4_OFFBOARD.main), float(PX4_OFFBOARD.sub))
+
+    def arm(self) -> None:
+        self.command_long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+
+    def takeoff(self, param7_m: float) -> None:
+        self.command_long(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, param7_m)
+
+    def request_streams(self, telemetry_rate_hz: float) -> None:
+        """SET_MESSAGE_INTERVAL for the pose streams, and GLOBAL_POSITION_INT at 5 Hz."""
+        interval_us = 1e6 / telemetry_rate_hz
+        for msg_id in STREAM_INTERVALS:
+            self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval_us)
+        self.command_long(
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+            float(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT),
+            GLOBAL_POSITION_INTERVAL_US,
+        )

@@ -1,0 +1,231 @@
+"""The status reporter: STATUSTEXT on state changes, HEARTBEAT, NAMED_VALUE_FLOAT, the zenoh status, counters.
+
+It owns the loop-latency window and the STATUSTEXT reason, and reads (never writes) the navigator, the perception
+front end, the autopilot handlers and the edge counters (``ServiceCounters``: one record, incremented where input
+is classified) to report them. ``due(now_s)`` sends whatever is due and returns when to call it next.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from apf_companion.errors import LinkError
+from apf_companion.navigator import CycleOutput, Navigator, State, StateChange
+from apf_companion.outbox import Outbox
+from apf_companion.perception import PerceptionFrontEnd
+from apf_companion.status import (
+    NVF_GOAL_DISTANCE,
+    NVF_NEAREST_OBSTACLE,
+    encode_status_json,
+    severity_for,
+    statustext_for,
+    system_status_for,
+)
+
+__all__ = ["AutopilotView", "LatencyWindow", "ReporterParams", "ServiceCounters", "StatusReporter"]
+
+log = logging.getLogger(__name__)
+
+LATENCY_WINDOW = 4096  # samples kept for the p50/p99 of the loop latency
+LATENCY_RUN_MAX = 1_000_000  # samples kept for the run's result
+HEARTBEAT_PERIOD_S = 1.0
+
+
+@dataclass(slots=True)
+class ServiceCounters:
+    """Counted at the service's edges (bad input is counted, never fatal); perception counts its own."""
+
+    foreign_messages: int = 0  # not from the autopilot and not a command for us from a GCS
+    undecodable_messages: int = 0  # a consumed message type whose fields could not be read
+    goals: int = 0
+    bad_goals: int = 0
+    commands_for_us: int = 0
+    mode_requests: int = 0
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ReporterParams:
+    statustext: bool = True
+    named_value_rate_hz: float = 2.0
+    zenoh_status_key: str = "apf/status"
+    zenoh_status_rate_hz: float = 5.0
+    dry_run: bool = False
+
+
+class AutopilotView(Protocol):
+    """What the reporter reads of the autopilot (apf_companion.handlers.AutopilotHandlers owns it)."""
+
+    @property
+    def armed(self) -> bool: ...
+
+
+class LatencyWindow:
+    """Sensor-to-setpoint latency: a sliding window for the status, and the whole run for the result [ms]."""
+
+    def __init__(self) -> None:
+        self._buf: collections.deque[float] = collections.deque(maxlen=LATENCY_WINDOW)
+        self.all: list[float] = []  # bounded by run length * rate
+
+    def add(self, ms: float) -> None:
+        self._buf.append(ms)
+        if len(self.all) < LATENCY_RUN_MAX:
+            self.all.append(ms)
+
+    def summary(self) -> dict[str, float] | None:
+        if not self._buf:
+            return None
+        arr = np.fromiter(self._buf, dtype=np.float64)
+        p50, p99 = np.percentile(arr, [50.0, 99.0])
+        return {"p50": float(p50), "p99": float(p99), "last": float(arr[-1])}
+
+    def run_percentiles(self) -> tuple[float | None, float | None]:
+        lat = np.asarray(self.all, dtype=np.float64)
+        if not lat.size:
+            return None, None
+        return float(np.percentile(lat, 50)), float(np.percentile(lat, 99))
+
+
+class StatusReporter:
+    """Reports the service's state to the autopilot / ground station (MAVLink) and to zenoh."""
+
+    def __init__(
+        self,
+        params: ReporterParams,
+        *,
+        outbox: Outbox,
+        navigator: Navigator,
+        perception: PerceptionFrontEnd,
+        autopilot: AutopilotView,
+        counters: ServiceCounters,
+        zenoh: Any,
+        now_s: float,
+    ) -> None:
+        self.params = params
+        self.outbox = outbox
+        self.navigator = navigator
+        self.perception = perception
+        self.zenoh = zenoh
+        self.autopilot = autopilot
+        self.counters = counters
+        self.latency = LatencyWindow()
+        self.reason = "starting"
+        nvf_hz = params.named_value_rate_hz
+        self._nvf_period_s = 1.0 / nvf_hz if nvf_hz > 0 else math.inf
+        self._z_period_s = 1.0 / params.zenoh_status_rate_hz
+        self._next_hb_s = self._next_nvf_s = self._next_z_s = now_s
+
+    # ---- events ------------------------------------------------------------------------------------------------
+    def changes(self, changes: list[StateChange]) -> None:
+        """Log each state change and announce it in a STATUSTEXT (except LINK_LOST: silence towards the autopilot)."""
+        for ch in changes:
+            self.reason = ch.reason
+            log.info(
+                "state.change", extra={"old": ch.old.value, "new": ch.new.value, "reason": ch.reason, "t_s": ch.t_s}
+            )
+            if ch.new is not State.LINK_LOST:
+                self.statustext(severity_for(ch.new), statustext_for(ch.new, ch.reason))
+
+    def statustext(self, severity: int, text: str) -> None:
+        if self.params.statustext and not self.outbox.silent:
+            self.outbox.statustext(severity, text)
+
+    # ---- periodic ----------------------------------------------------------------------------------------------
+    def due(self, now_s: float) -> float:
+        """Send the HEARTBEAT (1 Hz), NAMED_VALUE_FLOATs and zenoh status that are due; the next due time."""
+        if now_s >= self._next_hb_s:
+            self._next_hb_s = now_s + HEARTBEAT_PERIOD_S
+            self.outbox.heartbeat(system_status_for(self.navigator.state, healthy_inputs=self._inputs_healthy(now_s)))
+        if now_s >= self._next_nvf_s:
+            self._next_nvf_s = now_s + self._nvf_period_s
+            self._send_named_values()
+        if self.zenoh is not None and now_s >= self._next_z_s:
+            self._next_z_s = now_s + self._z_period_s
+            self._publish_status(now_s)
+        return min(self._next_hb_s, self._next_nvf_s, self._next_z_s if self.zenoh is not None else math.inf)
+
+    def _inputs_healthy(self, now_s: float) -> bool:
+        return self.navigator.pose_fresh(now_s) and self.navigator.ranges_fresh(now_s)
+
+    def _send_named_values(self) -> None:
+        out = self.navigator.last_output
+        if out is None or self.navigator.state is State.LINK_LOST or self.outbox.silent:
+            return
+        for name, value in (
+            (NVF_GOAL_DISTANCE, out.distance_to_goal_m),
+            (NVF_NEAREST_OBSTACLE, out.nearest_obstacle_m),
+        ):
+            if value is not None and math.isfinite(value):
+                self.outbox.named_value_float(name, value)
+
+    def _publish_status(self, now_s: float) -> None:
+        if self.zenoh is None or self.params.dry_run:
+            return
+        try:
+            self.zenoh.publish(self.params.zenoh_status_key, encode_status_json(self.status_dict(now_s)))
+        except LinkError:
+            log.debug("status.publish_failed", exc_info=True)
+
+    # ---- records -----------------------------------------------------------------------------------------------
+    def counts(self) -> dict[str, int]:
+        """Every edge counter: the service's, perception's and the setpoints / STATUSTEXTs sent."""
+        sent = {"setpoints_sent": self.outbox.setpoints_sent, "statustexts_sent": self.outbox.statustexts_sent}
+        return dataclasses.asdict(self.counters) | dataclasses.asdict(self.perception.counters) | sent
+
+    def status_dict(self, now_s: float) -> dict[str, Any]:
+        """The status record (see apf_companion.status for the schema)."""
+        nav = self.navigator
+        out = nav.last_output
+        return {
+            "t_s": now_s,
+            "state": nav.state.value,
+            "reason": self.reason,
+            "pose": self._pose_dict(now_s),
+            "goal": self._goal_dict(),
+            "distance_to_goal_m": None if out is None else out.distance_to_goal_m,
+            "nearest_obstacle_m": None if out is None else out.nearest_obstacle_m,
+            "n_obstacles": len(self.perception),
+            "loop_latency_ms": self.latency.summary(),
+            "decision": None if out is None else out.decision,
+            "autopilot": {"mode_ok": nav.mode_ok, "armed": self.autopilot.armed, "link_alive": nav.link_alive(now_s)},
+            "counters": self.counts(),
+        }
+
+    def _pose_dict(self, now_s: float) -> dict[str, float] | None:
+        pose = self.navigator.pose
+        if pose is None:
+            return None
+        p = pose.pos_ned_m
+        yaw_deg = math.degrees(pose.yaw_rad)
+        return {
+            "north_m": float(p[0]),
+            "east_m": float(p[1]),
+            "down_m": float(p[2]),
+            "yaw_deg": yaw_deg,
+            "age_s": now_s - pose.t_s,
+        }
+
+    def _goal_dict(self) -> dict[str, Any] | None:
+        nav = self.navigator
+        target, route = nav.active_target_ned_m, nav.route
+        if target is None or route is None:
+            return None
+        return {
+            "north_m": float(target[0]),
+            "east_m": float(target[1]),
+            "down_m": float(target[2]),
+            "leg": nav.leg_index,
+            "legs": len(route),
+            "source": route.source,
+        }
+
+    def cycle_sent(self, out: CycleOutput, trigger_wall_s: float | None, now_wall_s: float) -> None:
+        """A cycle's setpoint went out: its latency from the pose that triggered it (if one did)."""
+        if out.setpoint is not None and trigger_wall_s is not None:
+            self.latency.add((now_wall_s - trigger_wall_s) * 1000.0)

@@ -1,0 +1,249 @@
+"""Taking control of the autopilot for a goal: GUIDED (ArduCopter) / OFFBOARD (PX4), and arm / take off on request.
+
+A pure state machine: no clock, no sockets. The service steps it with the time and a snapshot of what it knows
+(``TakeoverInputs``) on a tick (``poll_interval_s``) and gets back the ``Action``s to carry out: commands to send,
+the navigator to suspend or resume, and how it went. Each phase waits for its condition, resends its command every
+``COMMAND_RETRY_S`` and fails after its timeout, or at once when the goal it works for is replaced.
+
+Order (ArduPilot's ``mode_guided.cpp`` takes off only in GUIDED; PX4's commander accepts OFFBOARD only after
+setpoints have streamed for a while, ``offboard_prestream_s``):
+
+- arm requested and disarmed: [ArduPilot: GUIDED] -> ARMING -> [takeoff_alt_m > 0: [PX4: GLOBAL_POSITION] ->
+  TAKEOFF] with the navigator suspended (no setpoints), then
+- [PX4: PRESTREAM] -> MODE (GUIDED / OFFBOARD confirmed by HEARTBEAT.custom_mode) -> done.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+from apf_companion.autopilot import Autopilot
+
+__all__ = [
+    "COMMAND_RETRY_S",
+    "Action",
+    "ActionKind",
+    "Phase",
+    "TakeoverController",
+    "TakeoverInputs",
+    "TakeoverParams",
+]
+
+COMMAND_RETRY_S = 1.0  # resend an unconfirmed mode/arm/takeoff command after this long (vehicle seconds)
+TAKEOFF_REACHED_FRACTION = 0.9  # takeoff counts as done at this fraction of the target height
+PRESTREAM_GAP_S = 0.5  # setpoints further apart than this restart the pre-stream
+IDLE_POLL_S = 0.05  # tick while waiting for a goal to take over for
+ACTIVE_POLL_S = 0.02  # tick while a phase waits for its condition
+TAKEOFF_S_PER_M = 4.0  # the takeoff phase's timeout grows by this much per metre of height
+PRESTREAM_EXTRA_S = 5.0  # the pre-stream phase may take this much longer than a mode change
+
+
+class Phase(enum.Enum):
+    IDLE = "idle"
+    MODE_BEFORE_ARM = "mode before arming"
+    ARMING = "arming"
+    GLOBAL_POSITION = "global position"
+    TAKEOFF = "takeoff"
+    PRESTREAM = "setpoint pre-stream"
+    MODE = "mode"
+
+
+class ActionKind(enum.Enum):
+    SET_MODE = "set_mode"  # send DO_SET_MODE for GUIDED / OFFBOARD
+    ARM = "arm"  # send COMPONENT_ARM_DISARM(1)
+    TAKEOFF = "takeoff"  # send NAV_TAKEOFF with param7 = ``value`` (ArduCopter: above home; PX4: AMSL) [m]
+    SUSPEND = "suspend"  # navigator: no setpoints (arming, taking off)
+    RESUME = "resume"  # navigator: setpoints again
+    STARTED = "started"
+    AIRBORNE = "airborne"  # ``value``: the target down [m]
+    DONE = "done"
+    FAILED = "failed"  # ``reason``; ``drop_goal``: the goal it worked for is still active, drop it
+
+
+@dataclass(frozen=True, slots=True)
+class Action:
+    kind: ActionKind
+    value: float = math.nan
+    reason: str = ""
+    drop_goal: bool = False
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TakeoverParams:
+    enabled: bool = True  # autopilot.takeover and not dry_run
+    profile: Autopilot = Autopilot.ARDUPILOT
+    arm: bool = False
+    takeoff_alt_m: float = 0.0
+    mode_timeout_s: float = 5.0
+    offboard_prestream_s: float = 1.3
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TakeoverInputs:
+    """What the controller sees at a tick.
+
+    Attributes:
+        navigating: The navigator is NAVIGATING.
+        engaged: The autopilot has been seen in GUIDED/OFFBOARD for the current goal.
+        route: The current goal (compared by identity), or None.
+        mode_ok: The latest autopilot HEARTBEAT's custom_mode is GUIDED (ArduPilot) / OFFBOARD (PX4).
+        armed: The latest autopilot HEARTBEAT has MAV_MODE_FLAG_SAFETY_ARMED.
+        down_m: The vehicle's down (local NED) [m], None without a pose.
+        home_amsl_m: Home altitude AMSL from GLOBAL_POSITION_INT (alt - relative_alt) [m], None until heard.
+    """
+
+    navigating: bool
+    engaged: bool
+    route: object | None
+    mode_ok: bool
+    armed: bool
+    down_m: float | None = None
+    home_amsl_m: float | None = None
+
+
+class TakeoverController:
+    """The takeover state machine (module docstring). ``step`` it; carry out the actions it returns."""
+
+    def __init__(self, params: TakeoverParams) -> None:
+        self.params = params
+        self.phase = Phase.IDLE
+        self._ardupilot = params.profile is Autopilot.ARDUPILOT
+        self._route: object | None = None
+        self._suspended = False
+        self._deadline_s = 0.0
+        self._next_send_s = 0.0
+        self._home_down_m = 0.0
+        self._takeoff_param_m = params.takeoff_alt_m
+        self._prestream_since_s: float | None = None
+        self._last_prestream_s: float | None = None
+
+    @property
+    def poll_interval_s(self) -> float:
+        """How long to wait before the next ``step`` [vehicle s]."""
+        return IDLE_POLL_S if self.phase is Phase.IDLE else ACTIVE_POLL_S
+
+    def note_prestream(self, now_s: float) -> None:
+        """A PRESTREAM setpoint was produced at ``now_s`` (PX4 wants a stream before OFFBOARD)."""
+        if self._last_prestream_s is None or now_s - self._last_prestream_s > PRESTREAM_GAP_S:
+            self._prestream_since_s = now_s
+        self._last_prestream_s = now_s
+
+    def step(self, now_s: float, inp: TakeoverInputs) -> list[Action]:
+        """Advance at ``now_s``: start for a new goal, move through every phase whose condition holds, resend or
+        fail the phase that waits. Returns the actions in the order to carry them out."""
+        acts: list[Action] = []
+        if self.phase is Phase.IDLE:
+            if not self.params.enabled or not inp.navigating or inp.engaged or inp.route is None:
+                return acts
+            self._start(now_s, inp, acts)
+        while self.phase is not Phase.IDLE:
+            if self._condition(now_s, inp):
+                self._advance(now_s, inp, acts)
+                continue
+            if inp.route is not self._route:
+                self._fail(f"{self._what()}: goal replaced", inp, acts)
+            elif now_s > self._deadline_s:
+                self._fail(f"{self._what()} not confirmed within {self._timeout_s():.1f} s", inp, acts)
+            else:
+                resend = self._command()
+                if resend is not None and now_s >= self._next_send_s:
+                    acts.append(resend)
+                    self._next_send_s = now_s + COMMAND_RETRY_S
+            break
+        return acts
+
+    # ---- phases ------------------------------------------------------------------------------------------------
+    def _start(self, now_s: float, inp: TakeoverInputs, acts: list[Action]) -> None:
+        self._route = inp.route
+        acts.append(Action(ActionKind.STARTED))
+        if self.params.arm and not inp.armed:
+            self._suspended = True
+            acts.append(Action(ActionKind.SUSPEND))
+            self._enter(Phase.MODE_BEFORE_ARM if self._ardupilot else Phase.ARMING, now_s)
+        else:
+            self._enter(self._after_arming(), now_s)
+
+    def _after_arming(self) -> Phase:
+        return Phase.MODE if self._ardupilot else Phase.PRESTREAM
+
+    def _enter(self, phase: Phase, now_s: float) -> None:
+        self.phase = phase
+        self._deadline_s = now_s + self._timeout_s()
+        self._next_send_s = now_s
+
+    def _timeout_s(self) -> float:
+        p = self.params
+        if self.phase is Phase.TAKEOFF:
+            return p.mode_timeout_s + TAKEOFF_S_PER_M * p.takeoff_alt_m
+        if self.phase is Phase.PRESTREAM:
+            return p.mode_timeout_s + PRESTREAM_EXTRA_S
+        return p.mode_timeout_s
+
+    def _what(self) -> str:
+        if self.phase in (Phase.MODE, Phase.MODE_BEFORE_ARM):
+            return "GUIDED" if self._ardupilot else "OFFBOARD"
+        return str(self.phase.value)
+
+    def _condition(self, now_s: float, inp: TakeoverInputs) -> bool:
+        phase = self.phase
+        if phase in (Phase.MODE, Phase.MODE_BEFORE_ARM):
+            return inp.mode_ok
+        if phase is Phase.ARMING:
+            return inp.armed
+        if phase is Phase.GLOBAL_POSITION:
+            return inp.home_amsl_m is not None
+        if phase is Phase.TAKEOFF:
+            climbed = None if inp.down_m is None else self._home_down_m - inp.down_m
+            return climbed is not None and climbed >= TAKEOFF_REACHED_FRACTION * self.params.takeoff_alt_m
+        since, last = self._prestream_since_s, self._last_prestream_s
+        return (
+            since is not None
+            and last is not None
+            and now_s - last < PRESTREAM_GAP_S
+            and last - since >= self.params.offboard_prestream_s
+        )
+
+    def _command(self) -> Action | None:
+        if self.phase in (Phase.MODE, Phase.MODE_BEFORE_ARM):
+            return Action(ActionKind.SET_MODE)
+        if self.phase is Phase.ARMING:
+            return Action(ActionKind.ARM)
+        if self.phase is Phase.TAKEOFF:
+            return Action(ActionKind.TAKEOFF, value=self._takeoff_param_m)
+        return None  # GLOBAL_POSITION and PRESTREAM only wait
+
+    def _advance(self, now_s: float, inp: TakeoverInputs, acts: list[Action]) -> None:
+        p = self.params
+        phase = self.phase
+        if phase is Phase.MODE_BEFORE_ARM:
+            self._enter(Phase.ARMING, now_s)
+        elif phase is Phase.ARMING and p.takeoff_alt_m > 0:
+            self._home_down_m = inp.down_m if inp.down_m is not None else 0.0
+            self._takeoff_param_m = p.takeoff_alt_m  # ArduCopter: param7 is the height above home
+            self._enter(Phase.TAKEOFF if self._ardupilot else Phase.GLOBAL_POSITION, now_s)
+        elif phase is Phase.GLOBAL_POSITION:
+            assert inp.home_amsl_m is not None
+            self._takeoff_param_m = inp.home_amsl_m + p.takeoff_alt_m  # PX4: param7 is an AMSL altitude
+            self._enter(Phase.TAKEOFF, now_s)
+        elif phase in (Phase.ARMING, Phase.TAKEOFF):
+            if phase is Phase.TAKEOFF:
+                acts.append(Action(ActionKind.AIRBORNE, value=self._home_down_m - p.takeoff_alt_m))
+            self._resume(acts)
+            self._enter(self._after_arming(), now_s)
+        elif phase is Phase.PRESTREAM:
+            self._enter(Phase.MODE, now_s)
+        else:
+            self.phase = Phase.IDLE
+            acts.append(Action(ActionKind.DONE))
+
+    def _resume(self, acts: list[Action]) -> None:
+        if self._suspended:
+            self._suspended = False
+            acts.append(Action(ActionKind.RESUME))
+
+    def _fail(self, reason: str, inp: TakeoverInputs, acts: list[Action]) -> None:
+        self._resume(acts)
+        self.phase = Phase.IDLE
+        acts.append(Action(ActionKind.FAILED, reason=reason, drop_goal=inp.route is self._route))

@@ -1,0 +1,166 @@
+"""The decode table: every consumed MAVLink message becomes a typed record, off the wire, and nothing raises."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from apf_companion.links.messages import (
+    DECODERS,
+    Attitude,
+    CommandInt,
+    CommandLong,
+    DistanceSensor,
+    GlobalPositionInt,
+    Heartbeat,
+    LocalPositionNed,
+    ObstacleDistance,
+    ObstacleDistance3d,
+    Source,
+    decode,
+    source,
+)
+
+NAN = math.nan
+
+
+def _wire(build: Any, src: tuple[int, int] = (1, 1)) -> Any:
+    """Encode with pymavlink, pack and parse again: exactly what the service gets off the link."""
+    tx = mavlink.MAVLink(None, srcSystem=src[0], srcComponent=src[1])
+    rx = mavlink.MAVLink(None)
+    rx.robust_parsing = True
+    parsed = rx.parse_buffer(build(tx).pack(tx))
+    assert parsed is not None and len(parsed) == 1
+    return parsed[0]
+
+
+CASES: list[tuple[str, Any, type[Any], dict[str, Any]]] = [
+    (
+        "HEARTBEAT",
+        lambda m: m.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 129, 4, 4),
+        Heartbeat,
+        {"type": mavlink.MAV_TYPE_QUADROTOR, "base_mode": 129, "custom_mode": 4, "system_status": 4},
+    ),
+    (
+        "LOCAL_POSITION_NED",
+        lambda m: m.local_position_ned_encode(1234, 1.5, -2.0, -5.0, 0.5, 0.0, 0.1),
+        LocalPositionNed,
+        {"time_boot_ms": 1234, "x": 1.5, "y": -2.0, "z": -5.0, "vx": 0.5},
+    ),
+    ("ATTITUDE", lambda m: m.attitude_encode(77, 0.1, 0.2, 1.5, 0, 0, 0), Attitude, {"time_boot_ms": 77}),
+    (
+        "GLOBAL_POSITION_INT",
+        lambda m: m.global_position_int_encode(5, -353632621, 1491652374, 584000, 5000, 0, 0, 0, 0),
+        GlobalPositionInt,
+        {"lat": -353632621, "lon": 1491652374, "alt": 584000, "relative_alt": 5000},
+    ),
+    (
+        "OBSTACLE_DISTANCE",
+        lambda m: m.obstacle_distance_encode(
+            9_000_000, 0, [100] * 72, 5, 20, 800, increment_f=5.0, angle_offset=-2.5, frame=12
+        ),
+        ObstacleDistance,
+        {"time_usec": 9_000_000, "increment": 5, "min_distance": 20, "max_distance": 800, "frame": 12},
+    ),
+    (
+        "DISTANCE_SENSOR",
+        lambda m: m.distance_sensor_encode(42, 20, 700, 250, 0, 0, 0, 0, quaternion=[1.0, 0.0, 0.0, 0.0]),
+        DistanceSensor,
+        {"time_boot_ms": 42, "current_distance": 250, "orientation": 0, "quaternion": (1.0, 0.0, 0.0, 0.0)},
+    ),
+    (
+        "OBSTACLE_DISTANCE_3D",
+        lambda m: m.obstacle_distance_3d_encode(8, 0, 12, 0, 1.0, 2.0, 0.5, 0.1, 20.0),
+        ObstacleDistance3d,
+        {"time_boot_ms": 8, "frame": 12, "x": 1.0, "y": 2.0, "z": 0.5, "max_distance": 20.0},
+    ),
+    (
+        "COMMAND_LONG",
+        lambda m: m.command_long_encode(1, 191, mavlink.MAV_CMD_DO_REPOSITION, 0, -1, 1, 0, NAN, 0, 0, -5.0),
+        CommandLong,
+        {"target_system": 1, "target_component": 191, "command": mavlink.MAV_CMD_DO_REPOSITION},
+    ),
+    (
+        "COMMAND_INT",
+        lambda m: m.command_int_encode(
+            1, 191, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, NAN, 0, 50000, -5.0
+        ),
+        CommandInt,
+        {"frame": mavlink.MAV_FRAME_LOCAL_NED, "x": 0, "y": 50000, "z": -5.0},
+    ),
+]
+
+
+def test_every_consumed_message_has_a_case() -> None:
+    assert {c[0] for c in CASES} == set(DECODERS)
+
+
+@pytest.mark.parametrize(("name", "build", "kind", "fields"), CASES, ids=[c[0] for c in CASES])
+def test_decode_gives_the_typed_record(name: str, build: Any, kind: type[Any], fields: dict[str, Any]) -> None:
+    rec = decode(_wire(build, src=(1, 1)))
+    assert type(rec) is kind
+    assert rec.src == Source(1, 1)
+    for key, want in fields.items():
+        assert getattr(rec, key) == pytest.approx(want), key
+    assert dataclasses.is_dataclass(rec)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        rec.src = Source(2, 2)  # type: ignore[misc]
+
+
+def test_the_sender_is_kept() -> None:
+    msg = _wire(lambda m: m.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0), (255, 190))
+    rec = decode(msg)
+    assert isinstance(rec, Heartbeat) and rec.src == Source(255, 190) == source(msg)
+
+
+def test_messages_the_service_does_not_consume_decode_to_none() -> None:
+    assert decode(_wire(lambda m: m.system_time_encode(0, 0))) is None
+    assert decode(_wire(lambda m: m.statustext_encode(mavlink.MAV_SEVERITY_INFO, b"hello"))) is None
+
+
+@pytest.mark.parametrize("bad", [NAN, math.inf, -math.inf])
+def test_non_finite_fields_decode_and_are_left_to_the_consumer(bad: float) -> None:
+    pose = decode(_wire(lambda m: m.local_position_ned_encode(10, bad, 0.0, bad, bad, 0.0, 0.0)))
+    assert isinstance(pose, LocalPositionNed) and not math.isfinite(pose.x) and not math.isfinite(pose.z)
+    att = decode(_wire(lambda m: m.attitude_encode(10, 0.0, 0.0, bad, 0, 0, 0)))
+    assert isinstance(att, Attitude) and not math.isfinite(att.yaw)
+    od = decode(
+        _wire(lambda m: m.obstacle_distance_encode(1, 0, [100] * 72, 0, 20, 800, increment_f=bad, angle_offset=bad))
+    )
+    assert isinstance(od, ObstacleDistance) and not math.isfinite(od.increment_f)
+    p3 = decode(_wire(lambda m: m.obstacle_distance_3d_encode(8, 0, 12, 0, bad, 2.0, 0.5, bad, 20.0)))
+    assert isinstance(p3, ObstacleDistance3d) and not math.isfinite(p3.x)
+    ds = decode(_wire(lambda m: m.distance_sensor_encode(1, 20, 700, 250, 0, 0, 100, 0, quaternion=[bad] * 4)))
+    assert isinstance(ds, DistanceSensor) and not math.isfinite(ds.quaternion[0])
+
+
+class _Broken:
+    """A message whose fields cannot be read (what a buggy dialect or a hand-made object could hand over)."""
+
+    def __init__(self, kind: str, **fields: Any) -> None:
+        self._kind = kind
+        self.__dict__.update(fields)
+
+    def get_type(self) -> str:
+        return self._kind
+
+    def get_srcSystem(self) -> int:
+        return 1
+
+    def get_srcComponent(self) -> int:
+        return 1
+
+
+@pytest.mark.parametrize("name", sorted(DECODERS))
+def test_unreadable_fields_are_rejected_never_raised(name: str) -> None:
+    assert decode(_Broken(name)) is None  # every field missing
+    assert decode(_Broken(name, time_boot_ms=NAN, time_usec=math.inf, type=None, command="x")) is None
+
+
+def test_an_object_that_is_no_message_is_rejected() -> None:
+    assert decode(object()) is None
+    assert source(object()) is None
