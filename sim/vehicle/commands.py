@@ -7,6 +7,7 @@ ArduCopter and PX4 differ the handler asks the vehicle's profile (``sim.vehicle.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -15,6 +16,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.vehicle.geo import GLOBAL_FRAMES, down_from_alt, latlon_to_ne
+from sim.vehicle.profiles import param_int
 from sim.vehicle.telemetry import build
 
 if TYPE_CHECKING:
@@ -51,7 +53,7 @@ def handle_command(v: VehicleEngine, c: Command) -> None:
 
 # -- arming
 def _arm(v: VehicleEngine, c: Command) -> int:
-    force = round(c.p[1]) == FORCE_ARM_MAGIC
+    force = param_int(c.p[1]) == FORCE_ARM_MAGIC
     if not c.p[0] >= 0.5:
         return _disarm(v, force=force)
     if v.armed:
@@ -78,7 +80,7 @@ def _disarm(v: VehicleEngine, *, force: bool) -> int:
 
 # -- modes
 def _set_mode(v: VehicleEngine, c: Command) -> int:
-    if not round(c.p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+    if not param_int(c.p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
         return v.profile_rules.no_custom_mode_result
     return v.profile_rules.request_mode(v, v.profile_rules.mode_from_command(c.p))
 
@@ -124,25 +126,32 @@ def _change_speed(v: VehicleEngine, c: Command) -> int:
 
 # -- message requests
 def _set_message_interval(v: VehicleEngine, c: Command) -> int:
-    ok = v.telemetry.set_interval(c.link, round(c.p[0]), c.p[1], v.t_s)
-    return ACCEPTED if ok else int(mavlink.MAV_RESULT_FAILED)
+    # an unknown message id: ArduPilot DENIED (GCS_Common.cpp set_message_interval, "No ap_message for mavlink
+    # id"), PX4 FAILED (mavlink_receiver.cpp set_message_interval returns PX4_ERROR); NaN interval = default
+    interval_us = c.p[1] if math.isfinite(c.p[1]) else 0.0
+    ok = v.telemetry.set_interval(c.link, param_int(c.p[0], -1), interval_us, v.t_s)
+    return ACCEPTED if ok else v.profile_rules.unknown_message_result
 
 
 def _get_message_interval(v: VehicleEngine, c: Command) -> None:
-    msg_id = round(c.p[0])
+    msg_id = param_int(c.p[0], -1)
     interval_us = v.telemetry.interval_us(c.link, msg_id)
     v.ack(c.link, c.msg, c.command, mavlink.MAV_RESULT_ACCEPTED)
-    v.emit(c.link, v.mav.message_interval_encode(msg_id, interval_us))
+    v.emit(c.link, v.mav.message_interval_encode(max(msg_id, 0), interval_us))
 
 
 def _request_message(v: VehicleEngine, c: Command) -> int | None:
-    msg_id = round(c.p[0])
+    msg_id = param_int(c.p[0], -1)
     out = build(v, msg_id) if v.telemetry.streamable(msg_id) else None
     if out is None:
         return int(mavlink.MAV_RESULT_FAILED)
     v.ack(c.link, c.msg, c.command, mavlink.MAV_RESULT_ACCEPTED)
     v.emit(c.link, out)
     return None
+
+
+def _condition_yaw(v: VehicleEngine, c: Command) -> int:
+    return v.profile_rules.condition_yaw(v, c.p)
 
 
 def _send_after_ack(msg_id: int) -> CommandHandler:
@@ -161,6 +170,7 @@ COMMANDS: dict[int, CommandHandler] = {
     mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: _rtl,
     mavlink.MAV_CMD_DO_REPOSITION: _reposition,
     mavlink.MAV_CMD_DO_CHANGE_SPEED: _change_speed,
+    mavlink.MAV_CMD_CONDITION_YAW: _condition_yaw,
     mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: _set_message_interval,
     mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: _get_message_interval,
     mavlink.MAV_CMD_REQUEST_MESSAGE: _request_message,

@@ -11,7 +11,8 @@ from sim.world.model import FloatArray, World
 
 __all__ = ["DEFAULT_RATES_HZ", "EngineConfig", "HomeConfig", "SpawnConfig", "StatusText", "VehicleSnapshot"]
 
-# Telemetry streamed by default [Hz], by message name; SET_MESSAGE_INTERVAL changes them per link.
+# Telemetry streamed by default [Hz], by message name; SET_MESSAGE_INTERVAL changes them per link. A rate of 0 is
+# a message sent only when requested (SET_MESSAGE_INTERVAL, REQUEST_MESSAGE).
 DEFAULT_RATES_HZ: dict[str, float] = {
     "HEARTBEAT": 1.0,
     "SYS_STATUS": 1.0,
@@ -24,6 +25,7 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "VFR_HUD": 4.0,
     "SYSTEM_TIME": 0.0,
     "AUTOPILOT_VERSION": 0.0,
+    "GPS_RAW_INT": 0.0,
 }
 
 

@@ -159,6 +159,7 @@ class VehicleEngine:
         self.takeoff_alt_m = None
         self.rtl_phase = 0
         self.guided.timed_out = False
+        self.guided.fixed_yaw_rad = None
         if not self.profile_rules.keeps_setpoint_on_mode_change:
             self.guided.sp = None
         self._enter_hold()

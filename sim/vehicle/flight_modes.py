@@ -95,7 +95,8 @@ def _guided(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
     if sp is None:
         if st.on_ground:
             return ControlTarget(kind=GROUND), limits
-        return ControlTarget(kind=TargetKind.HOLD, pos_ned_m=v.hold_pos_ned_m, face_travel=False), limits
+        hold = ControlTarget(kind=TargetKind.HOLD, pos_ned_m=v.hold_pos_ned_m, yaw_rad=v.guided.fixed_yaw_rad)
+        return hold, limits
     if st.on_ground and rules.stays_on_ground(sp):
         return ControlTarget(kind=GROUND), limits
     timeout_s = rules.guided_timeout_s(v.params)
@@ -108,14 +109,15 @@ def _guided(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
     vel, acc = sp.vel, sp.acc
     if sp.kind is TargetKind.POSITION and expired:
         vel = acc = None  # the feed-forward expires; the position is held
+    fixed_yaw = v.guided.fixed_yaw_rad  # MAV_CMD_CONDITION_YAW
     target = ControlTarget(
         kind=sp.kind,
         pos_ned_m=sp.pos,
         vel_ned_m_s=vel,
         acc_ned_m_s2=acc,
-        yaw_rad=sp.yaw,
-        yaw_rate_rad_s=sp.yaw_rate,
-        face_travel=rules.face_travel(v.params),
+        yaw_rad=sp.yaw if fixed_yaw is None else fixed_yaw,
+        yaw_rate_rad_s=sp.yaw_rate if fixed_yaw is None else None,
+        face_travel=rules.face_travel(v.params) and fixed_yaw is None,
         speed_h_m_s=rules.cruise_m_s(v.params) if vel is None else None,
     )
     return target, limits

@@ -12,7 +12,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.vehicle.commands import UNSUPPORTED_CMD_LONG_ONLY, Command, handle_command
-from sim.vehicle.geo import GLOBAL_FRAMES, LOCAL_FRAMES, down_from_alt, latlon_to_ne
+from sim.vehicle.geo import GLOBAL_FRAMES, down_from_alt, latlon_to_ne
 from sim.vehicle.guided import decode_setpoint
 from sim.vehicle.param_protocol import PARAM_HANDLERS
 from sim.world.model import FloatArray
@@ -75,16 +75,10 @@ def _on_set_mode(v: VehicleEngine, msg: Any, link: int) -> None:
 
 # -- setpoints
 def _on_set_position_target_local_ned(v: VehicleEngine, msg: Any, link: int) -> None:
-    v.guided.received(v.t_s)
-    frame = msg.coordinate_frame
-    if frame not in LOCAL_FRAMES:
-        v.warn_once_per_s("frame", mavlink.MAV_SEVERITY_WARNING, f"Setpoint ignored: frame {frame} unsupported")
-        return
-    _apply_setpoint(v, msg, frame, np.array([msg.x, msg.y, msg.z], dtype=np.float64))
+    _apply_setpoint(v, msg, msg.coordinate_frame, np.array([msg.x, msg.y, msg.z], dtype=np.float64))
 
 
 def _on_set_position_target_global_int(v: VehicleEngine, msg: Any, link: int) -> None:
-    v.guided.received(v.t_s)
     frame = msg.coordinate_frame
     if frame not in GLOBAL_FRAMES:
         v.warn_once_per_s("frame", mavlink.MAV_SEVERITY_WARNING, f"Setpoint ignored: frame {frame} unsupported")
@@ -95,21 +89,32 @@ def _on_set_position_target_global_int(v: VehicleEngine, msg: Any, link: int) ->
 
 
 def _apply_setpoint(v: VehicleEngine, msg: Any, frame: int, pos_in: FloatArray) -> None:
-    mask = int(msg.type_mask)
-    kind, reason = v.profile_rules.classify_mask(mask)
-    if kind is None:
-        text = f"Setpoint ignored: type_mask 0x{mask:04X} {reason}"
-        v.warn_once_per_s(f"mask{mask}", mavlink.MAV_SEVERITY_WARNING, text)
+    rules = v.profile_rules
+    rule = rules.setpoint_rule(int(msg.type_mask), frame)
+    if rule.kind is None:
+        if rule.text:
+            v.warn_once_per_s(rule.text, rule.severity, rule.text)
         return
-    if not v.profile_rules.accepts_setpoint(v):
+    # proof of life: PX4 publishes offboard_control_mode for every valid setpoint, in any mode (mavlink_receiver.cpp)
+    v.guided.received(v.t_s)
+    if not rules.accepts_setpoint(v):
         return
     sp = decode_setpoint(
-        msg, frame, pos_in, kind, t_s=v.t_s, pos_now_ned_m=v.state.pos_ned_m, yaw_now_rad=v.state.yaw_rad
+        msg,
+        frame,
+        pos_in,
+        rule.kind,
+        mask=rule.type_mask,
+        t_s=v.t_s,
+        pos_now_ned_m=v.state.pos_ned_m,
+        yaw_now_rad=v.state.yaw_rad,
+        body_yaw_relative=rules.body_yaw_relative,
     )
     if sp is None:
         v.warn_once_per_s("nan", mavlink.MAV_SEVERITY_WARNING, "Setpoint ignored: not finite")
         return
     v.guided.set(sp)
+    rules.after_external_target(v)
 
 
 # -- the rest

@@ -51,6 +51,7 @@ class GuidedState:
     sp: Setpoint | None = None
     times: list[float] = field(default_factory=list)  # recent arrival times (PX4's proof of life)
     timed_out: bool = False  # GUID_TIMEOUT already logged for this setpoint
+    fixed_yaw_rad: float | None = None  # MAV_CMD_CONDITION_YAW's heading, until the next setpoint
 
     def received(self, t_s: float) -> None:
         self.times.append(t_s)
@@ -64,6 +65,7 @@ class GuidedState:
     def set(self, sp: Setpoint | None) -> None:
         self.sp = sp
         self.timed_out = False
+        self.fixed_yaw_rad = None  # ArduCopter: a new target resets auto_yaw to its default (mode_guided.cpp)
 
 
 def classify_mask_arducopter(mask: int) -> tuple[TargetKind | None, str]:
@@ -94,12 +96,13 @@ def decode_setpoint(
     pos_in: FloatArray,
     kind: TargetKind,
     *,
+    mask: int,
     t_s: float,
     pos_now_ned_m: FloatArray,
     yaw_now_rad: float,
+    body_yaw_relative: bool = True,
 ) -> Setpoint | None:
-    """The message's fields in local NED (``pos_in`` already decoded by the caller); None if not finite."""
-    mask = int(msg.type_mask)
+    """The message's fields under ``mask`` in local NED (``pos_in`` decoded by the caller); None if not finite."""
     c, s = math.cos(yaw_now_rad), math.sin(yaw_now_rad)
     body = frame in BODY_FRAMES
 
@@ -115,7 +118,8 @@ def decode_setpoint(
         vel = rot(np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64))
     if not mask & ACC_IGNORE:
         acc = rot(np.array([msg.afx, msg.afy, msg.afz], dtype=np.float64))
-    yaw = None if mask & TypeMask.YAW_IGNORE else wrap_pi(msg.yaw + (yaw_now_rad if body else 0.0))
+    yaw_offset = yaw_now_rad if body and body_yaw_relative else 0.0
+    yaw = None if mask & TypeMask.YAW_IGNORE else wrap_pi(msg.yaw + yaw_offset)
     yaw_rate = None if mask & TypeMask.YAW_RATE_IGNORE else float(msg.yaw_rate)
     values = [v for v in (pos, vel, acc) if v is not None]
     if not all(np.all(np.isfinite(v)) for v in values) or (yaw is not None and not math.isfinite(yaw)):

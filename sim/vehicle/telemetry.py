@@ -50,6 +50,9 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
 )
 SIM_UID = 0x53494D0000000001  # "SIM" + 1
+GPS_EPH_CM = 80  # GPS_RAW_INT: HDOP 0.8 ...
+GPS_EPV_CM = 120  # ... VDOP 1.2
+GPS_SATELLITES = 12
 _GUIDED_FLAG_BEHAVIOURS = frozenset({Behaviour.GUIDED, Behaviour.RTL, Behaviour.LAND, Behaviour.TAKEOFF})
 
 
@@ -76,11 +79,27 @@ def _heartbeat(v: VehicleEngine) -> Any:
     )
 
 
+def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
+    """SYS_STATUS onboard_control_sensors_(present, enabled, health), as ArduPilot's GCS.cpp
+    update_sensor_status_flags: the geofence bit is healthy unless the fence is breached, also when no fence is
+    present (no fence here; MAVProxy reports "fence breach" when the bit drops); PREARM_CHECK is present and
+    enabled, and healthy when armed or when arming would pass."""
+    present = enabled = int(SENSORS_PRESENT)
+    health = present if not v.crashed else 0
+    health |= mavlink.MAV_SYS_STATUS_GEOFENCE
+    rules = v.profile_rules
+    if rules.reports_prearm_check:
+        present |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        enabled |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        if v.armed or (not v.crashed and rules.arm_refusal(v, force=False) is None):
+            health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    return present, enabled, health
+
+
 def _sys_status(v: VehicleEngine) -> Any:
-    sensors = SENSORS_PRESENT
-    health = sensors if not v.crashed else 0
+    present, enabled, health = sensor_flags(v)
     return v.mav.sys_status_encode(
-        sensors, sensors, health, LOAD_PERMILLE, BATTERY_MV, BATTERY_CA, BATTERY_PCT, 0, 0, 0, 0, 0, 0
+        present, enabled, health, LOAD_PERMILLE, BATTERY_MV, BATTERY_CA, BATTERY_PCT, 0, 0, 0, 0, 0, 0
     )
 
 
@@ -106,6 +125,28 @@ def _global_position_int(v: VehicleEngine) -> Any:
         round(vel[1] * 100.0),
         round(vel[2] * 100.0),
         hdg,
+    )
+
+
+def _gps_raw_int(v: VehicleEngine) -> Any:
+    """A healthy 3D fix at the vehicle (MAVSDK's health.is_global_position_ok falls back to fix >= 3 and >= 8
+    satellites when SYS_STATUS has no GPS bit)."""
+    st = v.state
+    lat, lon = ne_to_latlon(v.cfg.home, float(st.pos_ned_m[0]), float(st.pos_ned_m[1]))
+    vel = st.vel_ned_m_s
+    speed_cm_s = round(float(np.hypot(vel[0], vel[1])) * 100.0)
+    cog_cdeg = round(math.degrees(math.atan2(vel[1], vel[0])) * 100.0) % 36000
+    return v.mav.gps_raw_int_encode(
+        int(v.t_s * 1e6),
+        mavlink.GPS_FIX_TYPE_3D_FIX,
+        round(lat * 1e7),
+        round(lon * 1e7),
+        round((v.cfg.home.alt_amsl_m + st.alt_m) * 1000.0),
+        GPS_EPH_CM,
+        GPS_EPV_CM,
+        speed_cm_s,
+        cog_cdeg,
+        GPS_SATELLITES,
     )
 
 
@@ -144,15 +185,17 @@ def _position_target_local_ned(v: VehicleEngine) -> Any:
     pos = sp.pos if sp.pos is not None else z3
     vel = sp.vel if sp.vel is not None else z3
     acc = sp.acc if sp.acc is not None else z3
+    rules = v.profile_rules
+    echo_yaw = rules.echoes_target_yaw
     return v.mav.position_target_local_ned_encode(
         v.time_boot_ms,
         mavlink.MAV_FRAME_LOCAL_NED,
-        sp.type_mask,
+        rules.echo_type_mask(sp),
         *(float(x) for x in pos),
         *(float(x) for x in vel),
         *(float(x) for x in acc),
-        float(sp.yaw or 0.0),
-        float(sp.yaw_rate or 0.0),
+        float(sp.yaw or 0.0) if echo_yaw else 0.0,
+        float(sp.yaw_rate or 0.0) if echo_yaw else 0.0,
     )
 
 
@@ -185,6 +228,7 @@ BUILDERS: dict[int, Builder] = {
     mavlink.MAVLINK_MSG_ID_VFR_HUD: _vfr_hud,
     mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: _system_time,
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,
+    mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: _gps_raw_int,
 }
 
 

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from apf_companion.autopilot import Autopilot
 from sim.vehicle.profiles.arducopter import ArduCopterProfile
-from sim.vehicle.profiles.base import AutopilotProfile, Behaviour, ProfileTexts, replace_limits
+from sim.vehicle.profiles.base import (
+    AutopilotProfile,
+    Behaviour,
+    ProfileTexts,
+    SetpointRule,
+    param_int,
+    replace_limits,
+)
 from sim.vehicle.profiles.px4 import Px4Profile
 
 __all__ = [
@@ -14,6 +21,8 @@ __all__ = [
     "Behaviour",
     "ProfileTexts",
     "Px4Profile",
+    "SetpointRule",
+    "param_int",
     "replace_limits",
 ]
 

@@ -7,6 +7,7 @@ ArduCopter and PX4 differ, the way ArduCopter's ``Mode`` subclasses and PX4's ``
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -19,7 +20,7 @@ from sim.world.model import FloatArray
 if TYPE_CHECKING:
     from sim.vehicle.engine import VehicleEngine
 
-__all__ = ["AutopilotProfile", "Behaviour", "ProfileTexts", "replace_limits"]
+__all__ = ["AutopilotProfile", "Behaviour", "ProfileTexts", "SetpointRule", "param_int", "replace_limits"]
 
 
 class Behaviour(enum.Enum):
@@ -42,6 +43,25 @@ class ProfileTexts:
     auto_disarm: str
 
 
+@dataclass(frozen=True, slots=True)
+class SetpointRule:
+    """How the autopilot takes a SET_POSITION_TARGET_*: the kind of target and the type_mask in force, or None
+    with the STATUSTEXT it answers (severity, text; empty text = silently ignored)."""
+
+    kind: TargetKind | None
+    type_mask: int
+    severity: int = 0
+    text: str = ""
+
+
+def param_int(value: float, default: int = 0) -> int:
+    """An integer command param; NaN (or inf) means "unused" (common.xml COMMAND_LONG) and gives ``default``.
+
+    MAVSDK sends NaN for unused params (``action.arm()`` param2): ``round(nan)`` would raise.
+    """
+    return round(value) if math.isfinite(value) else default
+
+
 def replace_limits(limits: Limits, **changes: float) -> Limits:
     return Limits(**{**{k: getattr(limits, k) for k in Limits.__slots__}, **changes})
 
@@ -60,6 +80,10 @@ class AutopilotProfile(Protocol):
     set_mode_ack_command: int  # the COMMAND_ACK.command answering a SET_MODE message
     takeoff_in_guided: bool  # a takeoff climbs inside the guided mode (ArduCopter), not in a mode of its own
     keeps_setpoint_on_mode_change: bool  # the last external setpoint survives a mode change
+    unknown_message_result: int  # SET_MESSAGE_INTERVAL for a message id the autopilot cannot send
+    reports_prearm_check: bool  # SYS_STATUS carries MAV_SYS_STATUS_PREARM_CHECK
+    body_yaw_relative: bool  # in BODY_* frames the setpoint's yaw is relative to the heading
+    echoes_target_yaw: bool  # POSITION_TARGET_LOCAL_NED carries the target's yaw (else 0)
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int: ...
@@ -84,10 +108,13 @@ class AutopilotProfile(Protocol):
     def takeoff(self, v: VehicleEngine, p: tuple[float, ...]) -> int: ...
     def reposition(self, v: VehicleEngine, p: tuple[float, ...], target_ned_m: FloatArray) -> int: ...
     def change_speed(self, params: ParamTable, speed_m_s: float) -> str | None: ...
+    def condition_yaw(self, v: VehicleEngine, p: tuple[float, ...]) -> int: ...
 
     # -- setpoint rules
-    def classify_mask(self, mask: int) -> tuple[TargetKind | None, str]: ...
+    def setpoint_rule(self, mask: int, frame: int) -> SetpointRule: ...
     def accepts_setpoint(self, v: VehicleEngine) -> bool: ...
+    def after_external_target(self, v: VehicleEngine) -> None: ...
+    def echo_type_mask(self, sp: Setpoint) -> int: ...
     def stays_on_ground(self, sp: Setpoint) -> bool: ...
     def takeoff_complete(self, v: VehicleEngine, target_ned_m: FloatArray) -> None: ...
     def check_failsafes(self, v: VehicleEngine) -> None: ...

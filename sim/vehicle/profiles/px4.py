@@ -1,9 +1,11 @@
 """PX4 multicopter: modes (``px4_custom_mode.h``), commander's command rules, OFFBOARD (``offboardCheck.cpp``).
 
-HEARTBEAT autopilot PX4, custom_mode = main mode << 16 | sub mode << 24. Switching to OFFBOARD is refused
-(TEMPORARILY_REJECTED) unless setpoints have streamed for >= 1 s with no gap >= 0.5 s (> 2 Hz); in OFFBOARD, no
-setpoint for COM_OF_LOSS_T (1 s) triggers the failsafe (COM_OBL_RC_ACT; without RC: Hold = AUTO.LOITER) and a
-STATUSTEXT. OFFBOARD can take off from the ground when armed and the setpoint climbs.
+HEARTBEAT autopilot PX4, custom_mode = main mode << 16 | sub mode << 24. Switching to OFFBOARD (or arming in it)
+is refused (TEMPORARILY_REJECTED) unless the last setpoint is newer than COM_OF_LOSS_T (``offboardCheck.cpp``); in
+OFFBOARD, no setpoint for COM_OF_LOSS_T (1 s) triggers the failsafe (COM_OBL_RC_ACT; without RC: Hold =
+AUTO.LOITER) and a STATUSTEXT. OFFBOARD can take off from the ground when armed and the setpoint climbs.
+SET_POSITION_TARGET_LOCAL_NED follows ``mavlink_receiver.cpp``: LOCAL_NED or BODY_NED only (BODY_NED ignores the
+position), any combination of position / velocity / acceleration, no FORCE with an acceleration.
 """
 
 from __future__ import annotations
@@ -14,19 +16,23 @@ from typing import TYPE_CHECKING
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import (
+    ACC_IGNORE,
+    POS_IGNORE,
     PX4_HOLD,
     PX4_LAND,
     PX4_OFFBOARD,
     PX4_TAKEOFF,
+    VEL_IGNORE,
     Autopilot,
     Px4AutoSubMode,
     Px4MainMode,
     Px4Mode,
+    TypeMask,
 )
 from sim.vehicle.dynamics import Limits, TargetKind
-from sim.vehicle.guided import Setpoint, classify_mask_arducopter
+from sim.vehicle.guided import Setpoint
 from sim.vehicle.params import ParamTable
-from sim.vehicle.profiles.base import Behaviour, ProfileTexts
+from sim.vehicle.profiles.base import Behaviour, ProfileTexts, SetpointRule, param_int
 from sim.world.model import FloatArray
 
 if TYPE_CHECKING:
@@ -54,8 +60,7 @@ _BEHAVIOUR = {
 }
 # COM_OBL_RC_ACT -> the failsafe mode and its name in the STATUSTEXT (no RC: the RC-only actions mean Hold)
 _OFFBOARD_LOSS_ACTIONS = {3: (PX4_RTL, "Return"), 4: (PX4_LAND, "Land"), 6: (PX4_LAND, "Land"), 7: (PX4_LAND, "Land")}
-PRESTREAM_S = 1.0  # setpoints must have streamed this long before OFFBOARD engages
-PRESTREAM_GAP_S = 0.5  # ... with no gap this long
+_SP = "SET_POSITION_TARGET_LOCAL_NED"
 
 
 class Px4Profile:
@@ -77,6 +82,10 @@ class Px4Profile:
     set_mode_ack_command = int(mavlink.MAV_CMD_DO_SET_MODE)  # PX4 turns SET_MODE into DO_SET_MODE
     takeoff_in_guided = False
     keeps_setpoint_on_mode_change = True  # the latest setpoint waits for OFFBOARD to engage
+    unknown_message_result = int(mavlink.MAV_RESULT_FAILED)  # mavlink_receiver.cpp: no stream -> PX4_ERROR
+    reports_prearm_check = False
+    body_yaw_relative = False  # mavlink_receiver.cpp passes BODY_NED yaw through unrotated
+    echoes_target_yaw = True
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:
@@ -98,7 +107,7 @@ class Px4Profile:
         return _BEHAVIOUR.get(Px4Mode.from_custom_mode(custom_mode), Behaviour.HOLD)
 
     def mode_from_command(self, p: tuple[float, ...]) -> int:
-        return Px4Mode(round(p[1]), round(p[2])).to_custom_mode()
+        return Px4Mode(param_int(p[1]), param_int(p[2])).to_custom_mode()
 
     def request_mode(self, v: VehicleEngine, custom_mode: int) -> int:
         mode = Px4Mode.from_custom_mode(custom_mode)
@@ -117,16 +126,9 @@ class Px4Profile:
         return int(mavlink.MAV_RESULT_ACCEPTED)
 
     def offboard_ready(self, v: VehicleEngine) -> bool:
-        """Setpoints have arrived for >= 1 s with every gap < 0.5 s (> 2 Hz), the last < 0.5 s ago."""
-        times = v.guided.times
-        if not times or v.t_s - times[-1] >= PRESTREAM_GAP_S:
-            return False
-        start = times[-1]
-        for earlier in reversed(times[:-1]):
-            if start - earlier >= PRESTREAM_GAP_S:
-                break
-            start = earlier
-        return v.t_s - start >= PRESTREAM_S - 1e-9
+        """The last setpoint is newer than COM_OF_LOSS_T (offboardCheck.cpp: ``data_is_recent``); no pre-stream."""
+        last = v.guided.last_t_s
+        return last is not None and v.t_s < last + v.params["COM_OF_LOSS_T"]
 
     # -- limits and speeds
     def limits(self, params: ParamTable) -> Limits:
@@ -188,12 +190,38 @@ class Px4Profile:
     def change_speed(self, params: ParamTable, speed_m_s: float) -> str | None:
         return params.set("MPC_XY_CRUISE", min(speed_m_s, params["MPC_XY_VEL_MAX"]))
 
+    def condition_yaw(self, v: VehicleEngine, p: tuple[float, ...]) -> int:
+        return int(mavlink.MAV_RESULT_UNSUPPORTED)  # a mission item on PX4, not a command it takes in flight
+
     # -- setpoint rules
-    def classify_mask(self, mask: int) -> tuple[TargetKind | None, str]:
-        return classify_mask_arducopter(mask)
+    def setpoint_rule(self, mask: int, frame: int) -> SetpointRule:
+        """mavlink_receiver.cpp handle_message_set_position_target_local_ned."""
+        critical = mavlink.MAV_SEVERITY_CRITICAL
+        if frame not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_NED):
+            return SetpointRule(None, mask, critical, f"{_SP} coordinate frame {frame} unsupported")
+        if frame == mavlink.MAV_FRAME_BODY_NED:
+            mask |= POS_IGNORE  # BODY_NED: velocity and acceleration only
+        given = [mask & bits != bits for bits in (POS_IGNORE, VEL_IGNORE, ACC_IGNORE)]
+        if given[2] and mask & TypeMask.FORCE_SET:
+            return SetpointRule(None, mask, critical, f"{_SP} force not supported")
+        if not any(given):
+            return SetpointRule(None, mask, critical, f"{_SP} invalid")
+        if any(mask & bits not in (0, bits) for bits in (POS_IGNORE, VEL_IGNORE, ACC_IGNORE)):
+            # PX4 flies single axes (NaN per axis); the simulator's controller takes whole vectors
+            return SetpointRule(
+                None, mask, mavlink.MAV_SEVERITY_WARNING, "Setpoint ignored: partial axes not simulated"
+            )
+        kind = TargetKind.POSITION if given[0] else TargetKind.VELOCITY if given[1] else TargetKind.ACCELERATION
+        return SetpointRule(kind, mask)
 
     def accepts_setpoint(self, v: VehicleEngine) -> bool:
         return True  # kept for when OFFBOARD engages
+
+    def after_external_target(self, v: VehicleEngine) -> None:
+        return None
+
+    def echo_type_mask(self, sp: Setpoint) -> int:
+        return sp.type_mask
 
     def stays_on_ground(self, sp: Setpoint) -> bool:
         # OFFBOARD lifts off only for a setpoint that climbs
