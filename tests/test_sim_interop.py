@@ -10,6 +10,7 @@ import socket
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
@@ -120,3 +121,54 @@ async def test_mavproxy_headless_sees_heartbeat_and_mode(tmp_path: Path) -> None
         await sim.aclose()
         await ctl.aclose()
     assert (tmp_path / "mav.tlog").stat().st_size > 0  # MAVProxy logged our traffic
+
+
+@pytest.mark.parametrize("profile", ["px4", "ardupilot"])
+async def test_mavsdk_standard_flows(profile: str) -> None:
+    """MAVSDK's usual sequence: wait for health, arm (param2 = NaN), take off, goto while still climbing (the goto
+    wins: ArduCopter mode_guided.cpp / PX4 reposition), then offboard with a single setpoint before start (PX4
+    offboardCheck.cpp: the last setpoint must be newer than COM_OF_LOSS_T, no pre-stream)."""
+    mavsdk_asyncio = pytest.importorskip("mavsdk.asyncio")
+    telemetry = pytest.importorskip("mavsdk.asyncio.plugins.telemetry")
+    action = pytest.importorskip("mavsdk.asyncio.plugins.action")
+    offboard = pytest.importorskip("mavsdk.asyncio.plugins.offboard")
+    port = free_port(socket.SOCK_DGRAM)
+    sim = await Simulator.start(SimConfig(links=[f"udpout:127.0.0.1:{port}"], profile=profile, speedup=4.0))
+    try:
+        config = mavsdk_asyncio.Configuration.create_with_component_type(mavsdk_asyncio.ComponentType.GROUND_STATION)
+        async with mavsdk_asyncio.Mavsdk(config) as sdk:
+            await sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+            system = await sdk.first_autopilot(timeout_s=5.0)
+            assert system is not None
+            tel, act = telemetry.TelemetryAsync(system), action.ActionAsync(system)
+            async with asyncio.timeout(8.0):
+                async for health in tel.subscribe_health():
+                    if health.is_global_position_ok and health.is_home_position_ok:
+                        break
+            assert health.is_armable == (profile == "ardupilot")  # PX4's SYS_STATUS has no PREARM_CHECK here
+            async with asyncio.timeout(5.0):
+                await act.arm()
+                await act.set_takeoff_altitude(10.0)
+                await act.takeoff()
+            await wait_for(sim, lambda s: s.vehicle.pos_ned_m[2] < -1.5)
+            home = await tel.home()
+            north_deg = math.degrees(6.0 / 6378137.0)
+            async with asyncio.timeout(5.0):
+                await act.goto_location(
+                    home.latitude_deg + north_deg, home.longitude_deg, home.absolute_altitude_m + 4, 0
+                )
+            await wait_for(
+                sim, lambda s: abs(s.vehicle.pos_ned_m[0] - 6.0) < 0.2 and abs(s.vehicle.pos_ned_m[2] + 4) < 0.2
+            )
+            assert sim.vehicle.pos_ned_m[2] > -4.5  # the climb to 10 m was abandoned
+            off = offboard.OffboardAsync(system)
+            async with asyncio.timeout(5.0):
+                await off.set_position_ned(offboard.PositionNedYaw(0.0, 0.0, -5.0, 0.0))
+                await off.start()
+            await wait_for(sim, lambda s: s.vehicle.mode in ("OFFBOARD", "GUIDED"))
+            await wait_for(sim, lambda s: float(np.linalg.norm(s.vehicle.pos_ned_m - [0.0, 0.0, -5.0])) < 0.1)
+            async with asyncio.timeout(5.0):
+                await off.stop()
+        assert sim.error is None
+    finally:
+        await sim.aclose()

@@ -207,7 +207,8 @@ async def test_message_interval_and_requests() -> None:
         while (msg := gcs.recv_nowait()) is not None:
             got.append(msg.get_type())
         assert "LOCAL_POSITION_NED" not in got and "ATTITUDE" in got
-        assert (await command_long(gcs, m.MAV_CMD_SET_MESSAGE_INTERVAL, 12345, 1000)).result == FAILED
+        # ArduPilot DENIES a message id it cannot send (GCS_Common.cpp set_message_interval)
+        assert (await command_long(gcs, m.MAV_CMD_SET_MESSAGE_INTERVAL, 12345, 1000)).result == m.MAV_RESULT_DENIED
 
         ack = await command_long(gcs, m.MAV_CMD_REQUEST_MESSAGE, m.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         assert ack.result == ACCEPTED

@@ -6,21 +6,22 @@ In-process API::
     async with await Simulator.start(SimConfig(links=["udpout:127.0.0.1:14550"], profile="px4")) as sim:
         ...  # sim.vehicle (position, mode, armed, crashed), sim.result()
 
-The pure engine (``VehicleEngine``) runs the same rules without sockets on a simulated clock.
+The pure engine (``VehicleEngine``) runs the same rules without sockets on a simulated clock; docs/simulator.md
+maps its modules (profiles, message handlers, telemetry, dynamics).
 """
 
 from __future__ import annotations
 
-from sim.vehicle.dynamics import ControlTarget, Limits, TargetKind, VehicleState
-from sim.vehicle.engine import (
+from sim.vehicle.config import (
     DEFAULT_RATES_HZ,
     EngineConfig,
     HomeConfig,
     SpawnConfig,
     StatusText,
-    VehicleEngine,
     VehicleSnapshot,
 )
+from sim.vehicle.dynamics import ControlTarget, Limits, TargetKind, VehicleState
+from sim.vehicle.engine import VehicleEngine
 from sim.vehicle.params import ParamSpec, ParamTable, param_specs
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig, Scan, scan_world
 from sim.vehicle.simulator import SimConfig, Simulator, ZenohOutput, scan_to_range_scan, write_result_json

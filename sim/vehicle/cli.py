@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from apf_companion.errors import ApfCompanionError
-from sim.vehicle.engine import HomeConfig, SpawnConfig
+from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SensorOnlyConfig, SensorSimulator
 from sim.vehicle.simulator import SimConfig, Simulator, ZenohOutput
@@ -28,6 +28,11 @@ __all__ = ["register"]
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add ``vehicle`` and ``sensor`` to ``apf-sim``."""
+    _register_vehicle(subparsers)
+    _register_sensor(subparsers)
+
+
+def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     v = subparsers.add_parser(
         "vehicle",
         help="simulated ArduCopter/PX4 vehicle with a world and a range sensor, over MAVLink",
@@ -65,6 +70,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     _sensor_args(v)
     v.set_defaults(func=run_vehicle)
 
+
+def _register_sensor(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     s = subparsers.add_parser(
         "sensor",
         help="world + range sensor following an external autopilot's position",

@@ -103,6 +103,22 @@ class Scan:
     point_ids: npt.NDArray[np.intp]  # (K,) obstacle ids
 
 
+def _add_noise(
+    ranges: FloatArray, octants_r: FloatArray, pts_body: FloatArray, noise_sd_m: float, rng: np.random.Generator
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Gaussian range noise on sectors, octants and points (points keep their bearing); never below 0."""
+    ranges = ranges + rng.normal(0.0, noise_sd_m, ranges.shape)
+    octants_r = octants_r + rng.normal(0.0, noise_sd_m, octants_r.shape)
+    d = np.hypot(pts_body[:, 0], pts_body[:, 1])
+    d_noisy = np.maximum(d + rng.normal(0.0, noise_sd_m, d.shape), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(d > 0, d_noisy / d, 1.0)
+    pts_body = pts_body * scale[:, None]
+    ranges = np.where(np.isfinite(ranges), np.maximum(ranges, 0.0), ranges)
+    octants_r = np.where(np.isfinite(octants_r), np.maximum(octants_r, 0.0), octants_r)
+    return ranges, octants_r, pts_body
+
+
 def scan_world(
     world: World,
     cfg: RangeSensorConfig,
@@ -139,15 +155,7 @@ def scan_world(
     pts_body = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], np.zeros(sel.size)], axis=1)
     octants_r = oct_r
     if noise_sd_m > 0:
-        ranges = ranges + rng.normal(0.0, noise_sd_m, ranges.shape)
-        octants_r = octants_r + rng.normal(0.0, noise_sd_m, octants_r.shape)
-        d = np.hypot(pts_body[:, 0], pts_body[:, 1])
-        d_noisy = np.maximum(d + rng.normal(0.0, noise_sd_m, d.shape), 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(d > 0, d_noisy / d, 1.0)
-        pts_body = pts_body * scale[:, None]
-        ranges = np.where(np.isfinite(ranges), np.maximum(ranges, 0.0), ranges)
-        octants_r = np.where(np.isfinite(octants_r), np.maximum(octants_r, 0.0), octants_r)
+        ranges, octants_r, pts_body = _add_noise(ranges, octants_r, pts_body, noise_sd_m, rng)
     ranges = np.where(ranges > max_range_m, np.inf, ranges)
     octants_r = np.where(octants_r > max_range_m, np.inf, octants_r)
     ids = sel

@@ -32,7 +32,8 @@ from typing import Any
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkError
 from apf_companion.links import MavlinkLink
-from sim.vehicle.engine import EngineConfig, HomeConfig, SpawnConfig, VehicleEngine, VehicleSnapshot
+from sim.vehicle.config import EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
+from sim.vehicle.engine import VehicleEngine
 from sim.vehicle.sensor import RangeSensorConfig, Scan
 from sim.world.model import World
 

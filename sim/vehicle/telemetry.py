@@ -1,0 +1,294 @@
+"""Telemetry: one builder per message (``BUILDERS``, keyed by message id) and a per-link stream scheduler.
+
+Like ArduPilot's GCS_MAVLINK (``GCS_Common.cpp``: ``try_send_message`` per message id, intervals per link),
+every link has its own interval per message; SET_MESSAGE_INTERVAL changes one link's, 0 restores the default
+and a negative interval stops the stream. A builder returns None when the message has nothing to say now
+(POSITION_TARGET_LOCAL_NED outside GUIDED / OFFBOARD).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim.vehicle.config import DEFAULT_RATES_HZ
+from sim.vehicle.geo import ne_to_latlon
+from sim.vehicle.profiles import Behaviour
+
+if TYPE_CHECKING:
+    from sim.vehicle.engine import VehicleEngine
+
+__all__ = ["BUILDERS", "STREAM_IDS", "TelemetryScheduler", "build"]
+
+Builder = Callable[["VehicleEngine"], Any]
+
+STREAM_IDS: dict[str, int] = {name: getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in DEFAULT_RATES_HZ}
+
+SENSORS_PRESENT = (
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG
+    | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    | mavlink.MAV_SYS_STATUS_AHRS
+)
+LOAD_PERMILLE = 150
+BATTERY_MV = 12600
+BATTERY_CA = 500
+BATTERY_PCT = 90
+CAPABILITIES = (
+    mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+)
+SIM_UID = 0x53494D0000000001  # "SIM" + 1
+GPS_EPH_CM = 80  # GPS_RAW_INT: HDOP 0.8 ...
+GPS_EPV_CM = 120  # ... VDOP 1.2
+GPS_SATELLITES = 12
+_GUIDED_FLAG_BEHAVIOURS = frozenset({Behaviour.GUIDED, Behaviour.RTL, Behaviour.LAND, Behaviour.TAKEOFF})
+
+
+def base_mode(v: VehicleEngine) -> int:
+    base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+    if v.behaviour() in _GUIDED_FLAG_BEHAVIOURS:
+        base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+    if v.armed:
+        base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    return int(base)
+
+
+def system_status(v: VehicleEngine) -> int:
+    if v.crashed:
+        return int(mavlink.MAV_STATE_EMERGENCY)
+    if v.failsafe:
+        return int(mavlink.MAV_STATE_CRITICAL)
+    return int(mavlink.MAV_STATE_ACTIVE if v.armed else mavlink.MAV_STATE_STANDBY)
+
+
+def _heartbeat(v: VehicleEngine) -> Any:
+    return v.mav.heartbeat_encode(
+        mavlink.MAV_TYPE_QUADROTOR, v.profile_rules.mav_autopilot, base_mode(v), v.custom_mode, system_status(v)
+    )
+
+
+def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
+    """SYS_STATUS onboard_control_sensors_(present, enabled, health), as ArduPilot's GCS.cpp
+    update_sensor_status_flags: the geofence bit is healthy unless the fence is breached, also when no fence is
+    present (no fence here; MAVProxy reports "fence breach" when the bit drops); PREARM_CHECK is present and
+    enabled, and healthy when armed or when arming would pass."""
+    present = enabled = int(SENSORS_PRESENT)
+    health = present if not v.crashed else 0
+    health |= mavlink.MAV_SYS_STATUS_GEOFENCE
+    rules = v.profile_rules
+    if rules.reports_prearm_check:
+        present |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        enabled |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        if v.armed or (not v.crashed and rules.arm_refusal(v, force=False) is None):
+            health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    return present, enabled, health
+
+
+def _sys_status(v: VehicleEngine) -> Any:
+    present, enabled, health = sensor_flags(v)
+    return v.mav.sys_status_encode(
+        present, enabled, health, LOAD_PERMILLE, BATTERY_MV, BATTERY_CA, BATTERY_PCT, 0, 0, 0, 0, 0, 0
+    )
+
+
+def _local_position_ned(v: VehicleEngine) -> Any:
+    p, vel = v.state.pos_ned_m, v.state.vel_ned_m_s
+    return v.mav.local_position_ned_encode(
+        v.time_boot_ms, float(p[0]), float(p[1]), float(p[2]), float(vel[0]), float(vel[1]), float(vel[2])
+    )
+
+
+def _global_position_int(v: VehicleEngine) -> Any:
+    st = v.state
+    lat, lon = ne_to_latlon(v.cfg.home, float(st.pos_ned_m[0]), float(st.pos_ned_m[1]))
+    vel = st.vel_ned_m_s
+    hdg = round(math.degrees(st.yaw_rad) * 100.0) % 36000
+    return v.mav.global_position_int_encode(
+        v.time_boot_ms,
+        round(lat * 1e7),
+        round(lon * 1e7),
+        round((v.cfg.home.alt_amsl_m + st.alt_m) * 1000.0),
+        round(st.alt_m * 1000.0),
+        round(vel[0] * 100.0),
+        round(vel[1] * 100.0),
+        round(vel[2] * 100.0),
+        hdg,
+    )
+
+
+def _gps_raw_int(v: VehicleEngine) -> Any:
+    """A healthy 3D fix at the vehicle (MAVSDK's health.is_global_position_ok falls back to fix >= 3 and >= 8
+    satellites when SYS_STATUS has no GPS bit)."""
+    st = v.state
+    lat, lon = ne_to_latlon(v.cfg.home, float(st.pos_ned_m[0]), float(st.pos_ned_m[1]))
+    vel = st.vel_ned_m_s
+    speed_cm_s = round(float(np.hypot(vel[0], vel[1])) * 100.0)
+    cog_cdeg = round(math.degrees(math.atan2(vel[1], vel[0])) * 100.0) % 36000
+    return v.mav.gps_raw_int_encode(
+        int(v.t_s * 1e6),
+        mavlink.GPS_FIX_TYPE_3D_FIX,
+        round(lat * 1e7),
+        round(lon * 1e7),
+        round((v.cfg.home.alt_amsl_m + st.alt_m) * 1000.0),
+        GPS_EPH_CM,
+        GPS_EPV_CM,
+        speed_cm_s,
+        cog_cdeg,
+        GPS_SATELLITES,
+    )
+
+
+def _attitude(v: VehicleEngine) -> Any:
+    roll, pitch = v.state.attitude_rad()
+    return v.mav.attitude_encode(v.time_boot_ms, roll, pitch, v.state.yaw_rad, 0.0, 0.0, v.state.yaw_rate_rad_s)
+
+
+def landed_state(v: VehicleEngine) -> int:
+    behaviour = v.behaviour()
+    if v.state.on_ground:
+        return int(mavlink.MAV_LANDED_STATE_ON_GROUND)
+    if behaviour is Behaviour.LAND or (behaviour is Behaviour.RTL and v.rtl_phase >= 2):
+        return int(mavlink.MAV_LANDED_STATE_LANDING)
+    if v.takeoff_alt_m is not None:
+        return int(mavlink.MAV_LANDED_STATE_TAKEOFF)
+    return int(mavlink.MAV_LANDED_STATE_IN_AIR)
+
+
+def _extended_sys_state(v: VehicleEngine) -> Any:
+    return v.mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, landed_state(v))
+
+
+def _home_position(v: VehicleEngine) -> Any:
+    h = v.cfg.home
+    lat, lon, alt = round(h.lat_deg * 1e7), round(h.lon_deg * 1e7), round(h.alt_amsl_m * 1000.0)
+    q = [1.0, 0.0, 0.0, 0.0]
+    return v.mav.home_position_encode(lat, lon, alt, 0.0, 0.0, 0.0, q, 0.0, 0.0, 0.0, time_usec=int(v.t_s * 1e6))
+
+
+def _position_target_local_ned(v: VehicleEngine) -> Any:
+    sp = v.guided.sp
+    if sp is None or v.behaviour() is not Behaviour.GUIDED:
+        return None
+    z3 = (0.0, 0.0, 0.0)
+    pos = sp.pos if sp.pos is not None else z3
+    vel = sp.vel if sp.vel is not None else z3
+    acc = sp.acc if sp.acc is not None else z3
+    rules = v.profile_rules
+    echo_yaw = rules.echoes_target_yaw
+    return v.mav.position_target_local_ned_encode(
+        v.time_boot_ms,
+        mavlink.MAV_FRAME_LOCAL_NED,
+        rules.echo_type_mask(sp),
+        *(float(x) for x in pos),
+        *(float(x) for x in vel),
+        *(float(x) for x in acc),
+        float(sp.yaw or 0.0) if echo_yaw else 0.0,
+        float(sp.yaw_rate or 0.0) if echo_yaw else 0.0,
+    )
+
+
+def _vfr_hud(v: VehicleEngine) -> Any:
+    vel = v.state.vel_ned_m_s
+    gs = float(np.hypot(vel[0], vel[1]))
+    hdg = round(math.degrees(v.state.yaw_rad)) % 360
+    throttle_pct = 50 if v.armed else 0
+    return v.mav.vfr_hud_encode(gs, gs, hdg, throttle_pct, v.state.alt_m, -float(vel[2]))
+
+
+def _system_time(v: VehicleEngine) -> Any:
+    return v.mav.system_time_encode(0, v.time_boot_ms)
+
+
+def _autopilot_version(v: VehicleEngine) -> Any:
+    version = v.profile_rules.flight_sw_version
+    return v.mav.autopilot_version_encode(CAPABILITIES, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, SIM_UID)
+
+
+BUILDERS: dict[int, Builder] = {
+    mavlink.MAVLINK_MSG_ID_HEARTBEAT: _heartbeat,
+    mavlink.MAVLINK_MSG_ID_SYS_STATUS: _sys_status,
+    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: _local_position_ned,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: _global_position_int,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: _attitude,
+    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: _extended_sys_state,
+    mavlink.MAVLINK_MSG_ID_HOME_POSITION: _home_position,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: _position_target_local_ned,
+    mavlink.MAVLINK_MSG_ID_VFR_HUD: _vfr_hud,
+    mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: _system_time,
+    mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,
+    mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: _gps_raw_int,
+}
+
+
+def build(v: VehicleEngine, msg_id: int) -> Any:
+    """The message ``msg_id`` as the vehicle would send it now; None if unknown or nothing to send."""
+    builder = BUILDERS.get(msg_id)
+    return None if builder is None else builder(v)
+
+
+@dataclass(slots=True)
+class Stream:
+    interval_s: float  # 0 = off
+    next_t: float
+
+
+class TelemetryScheduler:
+    """Which message is due on which link; each link has its own intervals (SET_MESSAGE_INTERVAL)."""
+
+    def __init__(self, n_links: int, rates_hz: Mapping[str, float], *, min_interval_s: float) -> None:
+        rates = {**DEFAULT_RATES_HZ, **rates_hz}
+        self.default_intervals = {STREAM_IDS[name]: (1.0 / r if r > 0 else 0.0) for name, r in rates.items()}
+        self.min_interval_s = min_interval_s
+        self.streams: list[dict[int, Stream]] = [
+            {msg_id: Stream(iv, 0.0) for msg_id, iv in self.default_intervals.items()} for _ in range(n_links)
+        ]
+
+    def streamable(self, msg_id: int) -> bool:
+        return msg_id in self.default_intervals
+
+    def tick(self, v: VehicleEngine, emit: Callable[[int, Any], None]) -> None:
+        """Send every message due at ``v.t_s``; a message due on several links is built once."""
+        t_s = v.t_s
+        cache: dict[int, Any] = {}
+        for link, streams in enumerate(self.streams):
+            for msg_id, st in streams.items():
+                if st.interval_s <= 0 or t_s < st.next_t - 1e-9:
+                    continue
+                st.next_t = max(st.next_t + st.interval_s, t_s + 0.5 * st.interval_s)
+                if msg_id not in cache:
+                    cache[msg_id] = build(v, msg_id)
+                if cache[msg_id] is not None:
+                    emit(link, cache[msg_id])
+
+    def set_interval(self, link: int, msg_id: int, interval_us: float, t_s: float) -> bool:
+        """SET_MESSAGE_INTERVAL: 0 = default, < 0 = off; False for a message this vehicle does not stream."""
+        if msg_id not in self.default_intervals:
+            return False
+        stream = self.streams[link][msg_id]
+        if interval_us == 0:
+            stream.interval_s = self.default_intervals[msg_id]
+        elif interval_us < 0:
+            stream.interval_s = 0.0
+        else:
+            stream.interval_s = max(interval_us * 1e-6, self.min_interval_s)
+        stream.next_t = t_s
+        return True
+
+    def interval_us(self, link: int, msg_id: int) -> int:
+        """GET_MESSAGE_INTERVAL's answer: the interval [us], -1 = off, 0 = not a stream of this vehicle."""
+        if msg_id not in self.default_intervals:
+            return 0
+        iv = self.streams[link][msg_id].interval_s
+        return round(iv * 1e6) if iv > 0 else -1
