@@ -70,6 +70,10 @@ class BatchPlanner(Protocol):
     ) -> BatchDecision: ...
 
 
+ClearanceFn = Callable[[FloatArray], FloatArray]
+"""(A, D) positions -> (A,) distance to the nearest TRUE obstacle surface [m]: world files, whose walls and
+cylinders the planners see only as surface sample points (``sim.study.worldstudy``)."""
+
 _STOPS_AT_LOCAL_MINIMUM = frozenset({"capf", "bapf", "a-bapf", "cr-bapf"})
 """Planners whose trial ends at the first LOCAL_MINIMUM (notes.md, decision 3; CAPF: vanishing gradient)."""
 
@@ -109,6 +113,7 @@ def simulate(
     *,
     record: bool = False,
     planner: BatchPlanner | None = None,
+    clearance: ClearanceFn | None = None,
 ) -> SimulationResult:
     """Run A trials of ``planner_name`` in lockstep on the given obstacle fields.
 
@@ -121,6 +126,8 @@ def simulate(
     record : keep the per-iteration ``Trace`` (memory O(max_iterations * A); for small batches only).
     planner : use this planner object instead of ``get_planner(planner_name, config.planner_params)``
         (instrumented planners in tests and benchmarks; ``planner_name`` still selects the stop rules).
+    clearance : the true geometry's clearance (world files): collisions are judged on it instead of on the
+        distance to the obstacle points, and it is the recorded clearance. Default: the points are the truth.
 
     Returns
     -------
@@ -145,6 +152,8 @@ def simulate(
     iterations = np.zeros(n_trials, dtype=np.int32)
     detected_out = np.zeros((n_trials, n_max), dtype=bool)
     min_dist_out = np.full((n_trials, n_max), np.inf)
+    path_out = np.zeros(n_trials)
+    clear_out = np.full(n_trials, np.inf)
 
     # Active-set state (compacted when trials finish).
     ids = np.arange(n_trials)
@@ -175,7 +184,12 @@ def simulate(
 
         diff = obs - pos[:, None, :]
         dist = np.sqrt(np.einsum("and,and->an", diff, diff))
-        collided = (dist < config.collision_radius_m).any(axis=1)
+        if clearance is None:
+            collided = (dist < config.collision_radius_m).any(axis=1)
+        else:
+            true_clear = clearance(pos)
+            clear_out[ids] = np.minimum(clear_out[ids], true_clear)
+            collided = true_clear < config.collision_radius_m
         in_range = dist <= config.sensor_range_m
         ever |= in_range
         np.minimum(min_dist, dist, out=min_dist)
@@ -210,7 +224,9 @@ def simulate(
             if moves.any():
                 movers = sel[moves]
                 noise = rng.normal(0.0, config.noise_std_m, size=(movers.size, dim))
-                pos[movers] = next_pts[moves] + noise
+                new_pos = next_pts[moves] + noise
+                path_out[ids[movers]] += np.sqrt(np.einsum("ad,ad->a", new_pos - pos[movers], new_pos - pos[movers]))
+                pos[movers] = new_pos
 
         done = finished != _RUNNING
         if done.any():
@@ -240,6 +256,8 @@ def simulate(
         n_obstacles=exists.sum(axis=1).astype(np.int32),
         n_detected=detected_out.sum(axis=1).astype(np.int32),
         time_ms=np.zeros(n_trials),
+        path_m=path_out,
+        clearance_m=clear_out if clearance is not None else min_dist_out.min(axis=1, initial=np.inf),
     )
     trace = None
     if record:
@@ -305,6 +323,8 @@ def run_chunk(task: ChunkTask) -> ChunkResult:
         n_obstacles=rec.n_obstacles,
         n_detected=rec.n_detected,
         time_ms=per_trial_ms,
+        path_m=rec.path_m,
+        clearance_m=rec.clearance_m,
     )
     return ChunkResult(task=task, records=records, wall_s=wall_s)
 
