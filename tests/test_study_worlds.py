@@ -58,6 +58,7 @@ def test_world_cli_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         [
             "--world", "u-trap-goal", "--world", "slit", "--trials", "6", "--planners", "bapf,cr-bapf*",
             "--workers", "1", "--chunk-trials", "4", "--seed", "2", "--json", str(out_json),
+            "--plots", str(tmp_path / "figs"),
         ]
     )  # fmt: skip
     assert code == 0
@@ -65,6 +66,8 @@ def test_world_cli_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert "| cr-bapf* | slit | 6 |" in out
     assert "| bapf | u-trap-goal | 6 |" in out
     assert "24/24 trials" in err
+    for name in ("u-trap-goal", "slit"):
+        assert (tmp_path / "figs" / f"world_{name}.png").stat().st_size > 1000
     doc = json.loads(out_json.read_text())
     assert doc["kind"] == "worlds"
     assert [(r["planner"], r["world"]) for r in doc["results"]] == [
@@ -81,6 +84,7 @@ def test_world_cli_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 
 def test_world_cli_rejects_random_field_outputs(capsys: pytest.CaptureFixture[str]) -> None:
     assert _run(["--world", "slit", "--mu-sweep", "--trials", "2"]) == 2
+    assert _run(["--world", "slit", "--csv", "x.csv", "--trials", "2"]) == 2
     assert "--world" in capsys.readouterr().err
     assert _run(["--world", "no-such-world", "--trials", "2"]) == 2
 

@@ -125,7 +125,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write the summary as JSON")
     p.add_argument("--csv", type=Path, default=None, metavar="PATH", help="write per-trial records as CSV")
-    p.add_argument("--plots", type=Path, default=None, metavar="DIR", help="write the figures (PNG) here")
+    p.add_argument(
+        "--plots",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="write the figures (PNG) here (with --world: each world, its A* path and one run per planner)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument(
         "--noise", type=float, default=None, metavar="SD", help="actuation noise SD per axis [m] (default 0.1)"
@@ -310,8 +316,8 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
     from sim.study.worldstudy import cell_summary, load_case, run_world_study, world_table
     from sim.world.geometry import SURFACE_SPACING_M
 
-    if args.mu_sweep or args.plots is not None or args.csv is not None:
-        raise ConfigError("--world: --mu-sweep, --plots and --csv are for the random fields; use --json")
+    if args.mu_sweep or args.csv is not None:
+        raise ConfigError("--world: --mu-sweep and --csv are for the random fields; use --json")
     if config.dim != 2:
         raise ConfigError("--world: world files are 2D")
     if args.trials < 1:
@@ -356,6 +362,13 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
             "results": [cell_summary(c, config.goal_radius_m) for c in cells],
         }
         write_json(args.json, doc)
+    if args.plots is not None:
+        from sim.study.worldplots import plot_world
+
+        args.plots.mkdir(parents=True, exist_ok=True)
+        for case in cases:
+            plot_world(args.plots / f"world_{case.label}.png", case, config, planners, args.seed, **kw)
+        print(f"\nfigures in {args.plots}: " + ", ".join(f"world_{c.label}.png" for c in cases))
     return 0
 
 
