@@ -19,7 +19,7 @@ from sim.study.metrics import Outcome
 from sim.study.worlds import WorldBatch
 from sim.study.worldstudy import WorldCase, load_case, run_world_study
 from sim.world import World
-from sim.world.geometry import clearance_many_m
+from sim.world.geometry import segment_clearance_m
 
 
 def _run(argv: list[str]) -> int:
@@ -38,8 +38,8 @@ def test_collision_is_judged_on_the_true_wall_not_on_its_samples() -> None:
     cfg = dataclasses.replace(StudyConfig.reference(), noise_std_m=0.0)
     batch = WorldBatch(obstacles_m=samples, mask=np.ones((1, 2), dtype=bool))
 
-    def clearance(pos: np.ndarray) -> np.ndarray:
-        return clearance_many_m(wall, pos)
+    def clearance(from_ne_m: np.ndarray, to_ne_m: np.ndarray) -> np.ndarray:
+        return segment_clearance_m(wall, from_ne_m, to_ne_m)
 
     res = simulate(cfg, "cr-bapf*", batch, np.random.default_rng(0), clearance=clearance)
     assert res.records.outcome[0] == Outcome.COLLISION
@@ -50,6 +50,36 @@ def test_collision_is_judged_on_the_true_wall_not_on_its_samples() -> None:
     assert free.records.outcome[0] == Outcome.SUCCESS
     assert free.records.path_m is not None
     assert free.records.path_m[0] == pytest.approx(np.hypot(19.0, 19.0) - cfg.goal_radius_m, abs=0.4)
+
+
+def test_a_move_through_a_thin_wall_is_a_collision() -> None:
+    # 0.8 m steps from (0, 0) start iterations at north 8.0 and 8.8, both 0.35 m from a 0.1 m wall at 8.4: the
+    # paper's iteration-start check alone lets the step jump it; the swept check does not. Only the wall's far
+    # ends are samples, so the planner does not avoid it.
+    wall = World.from_obstacles(walls_ne_m=[[[8.4, -5.0], [8.4, 5.0]]], wall_thickness_m=0.1)
+    samples = np.array([[[8.4, -5.0], [8.4, 5.0]]])
+    base = StudyConfig.reference()
+    cfg = dataclasses.replace(
+        base,
+        noise_std_m=0.0,
+        start_m=(0.0, 0.0),
+        target_m=(16.0, 0.0),
+        planner_params=dataclasses.replace(base.planner_params, step_m=0.8),
+    )
+    batch = WorldBatch(obstacles_m=samples, mask=np.ones((1, 2), dtype=bool))
+
+    def at_starts(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return segment_clearance_m(wall, a, a)
+
+    def along_moves(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return segment_clearance_m(wall, a, b)
+
+    jumped = simulate(cfg, "bapf", batch, np.random.default_rng(0), clearance=at_starts)
+    assert jumped.records.outcome[0] == Outcome.SUCCESS
+    swept = simulate(cfg, "bapf", batch, np.random.default_rng(0), clearance=along_moves)
+    assert swept.records.outcome[0] == Outcome.COLLISION
+    assert swept.records.clearance_m is not None
+    assert swept.records.clearance_m[0] < 0.0  # through the wall
 
 
 def test_world_cli_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -70,9 +70,10 @@ class BatchPlanner(Protocol):
     ) -> BatchDecision: ...
 
 
-ClearanceFn = Callable[[FloatArray], FloatArray]
-"""(A, D) positions -> (A,) distance to the nearest TRUE obstacle surface [m]: world files, whose walls and
-cylinders the planners see only as surface sample points (``sim.study.worldstudy``)."""
+ClearanceFn = Callable[[FloatArray, FloatArray], FloatArray]
+"""(A, D) segment starts, (A, D) ends -> (A,) smallest distance from each straight segment to the TRUE obstacle
+surfaces [m] (a point when start = end): world files, whose walls and cylinders the planners see only as surface
+sample points (``sim.study.worldstudy``)."""
 
 _STOPS_AT_LOCAL_MINIMUM = frozenset({"capf", "bapf", "a-bapf", "cr-bapf"})
 """Planners whose trial ends at the first LOCAL_MINIMUM (notes.md, decision 3; CAPF: vanishing gradient)."""
@@ -126,8 +127,9 @@ def simulate(
     record : keep the per-iteration ``Trace`` (memory O(max_iterations * A); for small batches only).
     planner : use this planner object instead of ``get_planner(planner_name, config.planner_params)``
         (instrumented planners in tests and benchmarks; ``planner_name`` still selects the stop rules).
-    clearance : the true geometry's clearance (world files): collisions are judged on it instead of on the
-        distance to the obstacle points, and it is the recorded clearance. Default: the points are the truth.
+    clearance : the true geometry's clearance (world files): collisions are judged on it, swept along each move
+        (a thin wall cannot be stepped through), instead of on the distance to the obstacle points at the start
+        of each iteration, and it is the recorded clearance. Default: the points are the truth.
 
     Returns
     -------
@@ -154,6 +156,7 @@ def simulate(
     min_dist_out = np.full((n_trials, n_max), np.inf)
     path_out = np.zeros(n_trials)
     clear_out = np.full(n_trials, np.inf)
+    swept = np.full(n_trials, np.inf)  # clearance of the move that led to each trial's position
 
     # Active-set state (compacted when trials finish).
     ids = np.arange(n_trials)
@@ -187,7 +190,7 @@ def simulate(
         if clearance is None:
             collided = (dist < config.collision_radius_m).any(axis=1)
         else:
-            true_clear = clearance(pos)
+            true_clear = np.minimum(clearance(pos, pos), swept[ids])
             clear_out[ids] = np.minimum(clear_out[ids], true_clear)
             collided = true_clear < config.collision_radius_m
         in_range = dist <= config.sensor_range_m
@@ -225,6 +228,8 @@ def simulate(
                 movers = sel[moves]
                 noise = rng.normal(0.0, config.noise_std_m, size=(movers.size, dim))
                 new_pos = next_pts[moves] + noise
+                if clearance is not None:
+                    swept[ids[movers]] = clearance(pos[movers], new_pos)
                 path_out[ids[movers]] += np.sqrt(np.einsum("ad,ad->a", new_pos - pos[movers], new_pos - pos[movers]))
                 pos[movers] = new_pos
 

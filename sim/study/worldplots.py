@@ -14,7 +14,7 @@ from sim.study.metrics import Outcome
 from sim.study.optimal import optimal_path
 from sim.study.worlds import WorldBatch
 from sim.study.worldstudy import WorldCase, motion_generator, world_config
-from sim.world.geometry import clearance_many_m
+from sim.world.geometry import segment_clearance_m
 
 __all__ = ["example_path", "plot_world"]
 
@@ -25,8 +25,8 @@ def example_path(config: StudyConfig, planner_name: str, case: WorldCase, seed: 
     batch = WorldBatch(obstacles_m=samples[None].copy(), mask=np.ones((1, samples.shape[0]), dtype=bool))
     world = case.world
 
-    def clearance(pos: np.ndarray) -> np.ndarray:
-        return clearance_many_m(world, pos)
+    def clearance(from_ne_m: np.ndarray, to_ne_m: np.ndarray) -> np.ndarray:
+        return segment_clearance_m(world, from_ne_m, to_ne_m)
 
     rng = motion_generator(seed, f"example:{case.label}", 0)
     res = simulate(world_config(config, world), planner_name, batch, rng, record=True, clearance=clearance)

@@ -3,8 +3,9 @@
 What the planners see: the walls and cylinders as obstacle points, samples of their true surfaces every
 ``spacing_m`` (default 0.2 m = the perception memory's merge radius, see ``sim.world.geometry``), known under the
 study's detection rule (within ``sensor_range_m``; cumulative or in range, by preset). What judges them: the TRUE
-geometry. A trial collides when its distance to a wall capsule or cylinder surface is below
-``collision_radius_m``, and its clearance is the smallest such distance over its visited positions. Start and
+geometry. A trial collides when a move passes closer than ``collision_radius_m`` to a wall capsule or cylinder
+surface (swept along the straight move, so a 0.4 m step cannot tunnel through a 0.2 m wall; the paper's point
+rule checks only where each iteration starts), and its clearance is the smallest such distance along its path. Start and
 goal are the world file's; noise, goal radius, iteration cap and stop rules are the preset's.
 
 Determinism: each (world, chunk) has its own motion generator, ``SeedSequence(seed, spawn_key=(WORLD_KEY,
@@ -33,7 +34,7 @@ from sim.study.metrics import Outcome, TrialRecords, summarize
 from sim.study.optimal import DEFAULT_CLEARANCE_M, DEFAULT_RESOLUTION_M, optimal_path
 from sim.study.worlds import WorldBatch
 from sim.world import World, load_world
-from sim.world.geometry import SURFACE_SPACING_M, clearance_many_m, surface_samples_ne_m
+from sim.world.geometry import SURFACE_SPACING_M, segment_clearance_m, surface_samples_ne_m
 
 __all__ = [
     "WORLD_KEY",
@@ -132,8 +133,8 @@ def run_world_chunk(task: WorldTask) -> WorldChunkResult:
     )
     world = case.world
 
-    def clearance(pos: np.ndarray) -> np.ndarray:
-        return clearance_many_m(world, pos)
+    def clearance(from_ne_m: np.ndarray, to_ne_m: np.ndarray) -> np.ndarray:
+        return segment_clearance_m(world, from_ne_m, to_ne_m)
 
     cfg = world_config(task.config, world)
     rng = motion_generator(task.seed, case.label, task.chunk_index)
