@@ -53,7 +53,7 @@ def plot_world(
     from matplotlib.patches import Circle
 
     world = case.world
-    fig, ax = plt.subplots(figsize=(5.2, 5.2), dpi=80)
+    fig, ax = plt.subplots(figsize=(7.0, 5.0), dpi=80)
     for (n, e), r in zip(world.circles_ne_m, world.circle_radii_m, strict=True):
         ax.add_patch(Circle((e, n), max(float(r), 0.05), color="0.2"))
     for (a, b), t in zip(world.walls_ne_m, world.wall_thickness_m, strict=True):
@@ -68,7 +68,7 @@ def plot_world(
     ax.plot(s[:, 1], s[:, 0], ".", ms=1.5, color="tab:orange", label="surface samples")
     opt = optimal_path(world, clearance_m=clearance_m, resolution_m=resolution_m)
     if opt.path_ne_m.size:
-        ax.plot(opt.path_ne_m[:, 1], opt.path_ne_m[:, 0], "k--", lw=1.2, label=f"A* {opt.length_m:.1f} m")
+        ax.plot(opt.path_ne_m[:, 1], opt.path_ne_m[:, 0], "k--", lw=1.2, label=f"A* to the goal {opt.length_m:.1f} m")
     colours = plt.get_cmap("tab10")
     for k, name in enumerate(planners):
         pts, outcome = example_path(config, name, case, seed)
@@ -82,7 +82,7 @@ def plot_world(
     ax.set_ylabel("north [m]")
     ax.set_aspect("equal")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=6)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=7, borderaxespad=0.0)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
