@@ -117,6 +117,7 @@ def test_world_cli_rejects_random_field_outputs(capsys: pytest.CaptureFixture[st
     assert _run(["--world", "slit", "--csv", "x.csv", "--trials", "2"]) == 2
     assert "--world" in capsys.readouterr().err
     assert _run(["--world", "no-such-world", "--trials", "2"]) == 2
+    assert _run(["--world", "slit", "--world", "slit", "--trials", "2"]) == 2  # the label keys seeds and rows
 
 
 def test_field_optimum_is_printed_beside_the_planners(capsys: pytest.CaptureFixture[str]) -> None:

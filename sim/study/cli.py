@@ -332,6 +332,9 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
         load_case(w, spacing_m=spacing, optimum_clearance_m=kw["clearance_m"], optimum_resolution_m=kw["resolution_m"])
         for w in args.world
     ]
+    labels = [c.label for c in cases]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"--world: each world needs its own name (file stem), got {labels}")
     workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
     progress = None if args.no_progress else ProgressBar(sys.stderr)
     t0 = time.perf_counter()

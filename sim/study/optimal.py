@@ -289,9 +289,9 @@ def _relax(world: World, pts: FloatArray, clearance_m: float, rounds: int = 60) 
             flat = cand.reshape(-1, 2)
             aa = np.broadcast_to(a, cand.shape).reshape(-1, 2)
             cc = np.broadcast_to(c, cand.shape).reshape(-1, 2)
-            ok = (segment_clearance_m(world, aa, flat) >= clearance_m) & (
-                segment_clearance_m(world, flat, cc) >= clearance_m
-            )
+            # Both new segments in one call (a -> b' and b' -> c): the cost here is per numpy call, not per pair.
+            both = segment_clearance_m(world, np.concatenate([aa, flat]), np.concatenate([flat, cc])) >= clearance_m
+            ok = both[: flat.shape[0]] & both[flat.shape[0] :]
             cost = np.where(ok, np.hypot(*(flat - aa).T) + np.hypot(*(cc - flat).T), np.inf).reshape(-1, idx.size)
             best = np.argmin(cost, axis=0)
             now = np.hypot(*(b - a).T) + np.hypot(*(c - b).T)
