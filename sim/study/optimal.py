@@ -199,8 +199,7 @@ def _block_circles(
     off = np.arange(-k, k + 1)
     ci = np.rint((world.circles_ne_m[:, 0] - nodes_n[0]) / h).astype(np.intp)
     cj = np.rint((world.circles_ne_m[:, 1] - nodes_e[0]) / h).astype(np.intp)
-    ii = (ci[:, None, None] + off[None, :, None]) + 0 * off[None, None, :]
-    jj = (cj[:, None, None] + off[None, None, :]) + 0 * off[None, :, None]
+    ii, jj = np.broadcast_arrays(ci[:, None, None] + off[None, :, None], cj[:, None, None] + off[None, None, :])
     inside = (ii >= 0) & (ii < nodes_n.size) & (jj >= 0) & (jj < nodes_e.size)
     ii, jj = np.clip(ii, 0, nodes_n.size - 1), np.clip(jj, 0, nodes_e.size - 1)
     dn = nodes_n[ii] - world.circles_ne_m[:, 0, None, None]
