@@ -31,6 +31,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import signal
 import socket
 import sys
@@ -209,8 +210,8 @@ def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
         str(opt.out / "vehicle.tlog"),
         "--result-json",
         str(opt.out / "sim_result.json"),
-        "--start",
-        f"{opt.start_ne_m[0]},{opt.start_ne_m[1]}",
+        # One word: "--start -12.0,0.0" would read as two options to the vehicle's argparse.
+        f"--start={opt.start_ne_m[0]},{opt.start_ne_m[1]}",
         "--exit-on-crash",
         "--duration",
         str(opt.max_flight_s + 120.0),
@@ -459,9 +460,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
     p.add_argument("--obstacles", default="mid", help="obstacle count N, or density low|mid|high (default mid)")
-    p.add_argument("--world", help="world TOML file or bundled example (forest, corridor, u-trap, wall)")
+    p.add_argument("--world", help=f"world TOML file or bundled example ({', '.join(_bundled_worlds())})")
     p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
     p.add_argument("--goal", type=_pair, metavar="N,E", help="goal (default: the world file's, else 22,22)")
+    # "--start -12.0,0.0": argparse takes a word starting with "-" for an option unless it looks like a negative
+    # number, and its pattern (argparse._ActionsContainer) has no comma; widen it to N,E pairs for this parser.
+    p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d*\.?\d*,-?\d*\.?\d*$")
     p.add_argument("--alt", type=float, default=5.0, help="flight height above home [m]")
     p.add_argument("--speedup", type=float, default=5.0, help="simulated s per wall s (default 5)")
     p.add_argument("--rate", type=float, default=10.0, help="service cycle rate in simulated Hz (default 10)")
@@ -486,6 +490,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "(its noise and rules) and print its success rate on the same worlds (default 100; 0 = off)",
     )
     p.set_defaults(func=_cmd_fly)
+
+
+def _bundled_worlds() -> list[str]:
+    from sim.world import EXAMPLES_DIR
+
+    return sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
 
 
 def _start_goal(args: argparse.Namespace) -> tuple[tuple[float, float], tuple[float, float]]:

@@ -132,7 +132,18 @@ def test_invalid_worlds_raise() -> None:
 
 def test_examples_load_and_start_is_clear() -> None:
     names = sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
-    assert names == ["corridor", "forest", "u-trap", "wall"]
+    assert names == [
+        "corridor",
+        "corridor-bend",
+        "forest",
+        "forest-dense",
+        "rooms",
+        "slit",
+        "u-trap",
+        "u-trap-goal",
+        "wall",
+        "wall-gap",
+    ]
     for name in names:
         w = load_world(name)
         assert w.n_obstacles > 0

@@ -11,6 +11,10 @@ Modules:
 - ``paper``    the paper's Table values, for side-by-side printing
 - ``report``   markdown table, JSON and CSV output
 - ``plots``    the study's figures (matplotlib, Agg)
+- ``worldstudy`` the study over world files (``--world``): surface samples for the planners, true geometry for
+               collisions and clearance
+- ``optimal``  the full-knowledge grid optimum (Dijkstra + any-angle refinement); ``fieldoptimum`` runs it on
+               the random fields (``--optimum``)
 - ``cli``      ``apf-sim study`` (also ``python -m sim.study``)
 
 This package file deliberately imports nothing heavy: worker processes import ``sim.study._worker`` first to

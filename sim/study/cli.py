@@ -125,9 +125,63 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write the summary as JSON")
     p.add_argument("--csv", type=Path, default=None, metavar="PATH", help="write per-trial records as CSV")
-    p.add_argument("--plots", type=Path, default=None, metavar="DIR", help="write the figures (PNG) here")
+    p.add_argument(
+        "--plots",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="write the figures (PNG) here (with --world: each world, its A* path and one run per planner)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    p.add_argument(
+        "--noise", type=float, default=None, metavar="SD", help="actuation noise SD per axis [m] (default 0.1)"
+    )
+    _register_worlds(p)
     p.set_defaults(func=run)
+
+
+def _register_worlds(p: argparse.ArgumentParser) -> None:
+    """The study over world files and the full-knowledge optimum (sim/study/worldstudy.py, optimal.py)."""
+    p.add_argument(
+        "--world",
+        action="append",
+        default=None,
+        metavar="FILE|NAME",
+        help="run the planners over this world file or bundled world instead of the random fields (repeatable; "
+        "--trials per planner and world); walls and cylinders are seen as surface samples, collisions are "
+        "judged on the true geometry",
+    )
+    p.add_argument(
+        "--surface-spacing",
+        type=float,
+        default=None,
+        metavar="M",
+        help="spacing of the surface samples the planners see on world files [m] (default 0.2, the perception "
+        "memory's merge radius)",
+    )
+    p.add_argument(
+        "--optimum",
+        action="store_true",
+        help="random fields: also compute the full-knowledge grid optimum on a sample of fields and print each "
+        "planner's mean path beside it (world files always get it)",
+    )
+    p.add_argument(
+        "--optimum-fields", type=int, default=100, metavar="K", help="fields per density for --optimum (default 100)"
+    )
+    p.add_argument(
+        "--optimum-clearance",
+        type=float,
+        default=None,
+        metavar="M",
+        help="clearance the optimum keeps from the true obstacles [m] (default 0.35 = collision radius 0.25 + 0.1)",
+    )
+    p.add_argument(
+        "--optimum-resolution",
+        type=float,
+        default=None,
+        metavar="M",
+        help="optimum grid resolution [m] (default 0.1 on worlds, 0.2 on random fields)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,7 +205,13 @@ def _run(args: argparse.Namespace) -> int:
     if args.abapf_rule is not None:
         params = dataclasses.replace(config.planner_params, abapf_rule=AbapfRule(args.abapf_rule))
         config = dataclasses.replace(config, planner_params=params)
+    if args.noise is not None:
+        if not args.noise >= 0:
+            raise ConfigError(f"--noise: need >= 0, got {args.noise}")
+        config = dataclasses.replace(config, noise_std_m=args.noise)
     planners = _planners(args.planners)
+    if args.world:
+        return _run_worlds(args, config, planners)
     densities = _densities(args.densities)
     if args.trials < 1 or args.mu_trials < 1:
         raise ConfigError(f"--trials/--mu-trials: need >= 1, got {args.trials}/{args.mu_trials}")
@@ -189,6 +249,9 @@ def _run(args: argparse.Namespace) -> int:
         "chunk trials (amortised, lockstep)."
     )
 
+    if args.optimum:
+        _print_field_optimum(args, config, cells, densities, workers)
+
     if args.json is not None:
         doc = study_json(
             config,
@@ -204,6 +267,111 @@ def _run(args: argparse.Namespace) -> int:
         write_csv(args.csv, cells)
     if args.plots is not None:
         _write_plots(args.plots, config, cells, sweep_cells, densities, args.seed)
+    return 0
+
+
+def _optimum_kwargs(args: argparse.Namespace, *, fields: bool = False) -> dict[str, float]:
+    from sim.study.optimal import DEFAULT_CLEARANCE_M, DEFAULT_RESOLUTION_M, FIELD_RESOLUTION_M
+
+    clearance = DEFAULT_CLEARANCE_M if args.optimum_clearance is None else args.optimum_clearance
+    default_resolution = FIELD_RESOLUTION_M if fields else DEFAULT_RESOLUTION_M
+    resolution = default_resolution if args.optimum_resolution is None else args.optimum_resolution
+    if not (clearance >= 0 and resolution > 0):
+        raise ConfigError(f"--optimum-clearance/--optimum-resolution: need >= 0 and > 0, got {clearance}, {resolution}")
+    return {"clearance_m": clearance, "resolution_m": resolution}
+
+
+def _print_field_optimum(
+    args: argparse.Namespace, config: StudyConfig, cells: list[CellResult], densities: tuple[Density, ...], workers: int
+) -> None:
+    from sim.study.fieldoptimum import collect_optima, field_optimum_table, field_optimum_tasks, run_field_optimum
+    from sim.study.worldstudy import map_tasks
+
+    if args.optimum_fields < 1:
+        raise ConfigError(f"--optimum-fields: need >= 1, got {args.optimum_fields}")
+    kw = _optimum_kwargs(args, fields=True)
+    tasks = field_optimum_tasks(
+        config,
+        densities,
+        args.optimum_fields,
+        args.trials,
+        args.seed,
+        clearance_m=kw["clearance_m"],
+        resolution_m=kw["resolution_m"],
+    )
+    t0 = time.perf_counter()
+    results = map_tasks(run_field_optimum, tasks, [t.n_trials for t in tasks], workers=workers)
+    wall_s = time.perf_counter() - t0
+    optima = collect_optima(tasks, results)
+    n = min(args.optimum_fields, args.trials)
+    print(
+        f"\n### Full-knowledge grid optimum (clearance {kw['clearance_m']} m, grid {kw['resolution_m']} m, first {n} "
+        f"fields per density, {wall_s:.1f} s)\n"
+    )
+    print(field_optimum_table(cells, optima, config.goal_radius_m))
+
+
+def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[str, ...]) -> int:
+    from sim.study.report import write_json
+    from sim.study.worldstudy import cell_summary, load_case, run_world_study, world_table
+    from sim.world.geometry import SURFACE_SPACING_M
+
+    if args.mu_sweep or args.csv is not None:
+        raise ConfigError("--world: --mu-sweep and --csv are for the random fields; use --json")
+    if config.dim != 2:
+        raise ConfigError("--world: world files are 2D")
+    if args.trials < 1:
+        raise ConfigError(f"--trials: need >= 1, got {args.trials}")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers: need >= 1, got {args.workers}")
+    spacing = SURFACE_SPACING_M if args.surface_spacing is None else args.surface_spacing
+    if not spacing > 0:
+        raise ConfigError(f"--surface-spacing: need > 0, got {spacing}")
+    kw = _optimum_kwargs(args)
+    cases = [
+        load_case(w, spacing_m=spacing, optimum_clearance_m=kw["clearance_m"], optimum_resolution_m=kw["resolution_m"])
+        for w in args.world
+    ]
+    labels = [c.label for c in cases]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"--world: each world needs its own name (file stem), got {labels}")
+    workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
+    progress = None if args.no_progress else ProgressBar(sys.stderr)
+    t0 = time.perf_counter()
+    cells = run_world_study(config, planners, cases, args.trials, args.seed, workers=workers, progress=progress)
+    wall_s = time.perf_counter() - t0
+    print(
+        f"## apf-sim study over worlds: preset {config.preset}, noise {config.noise_std_m} m, seed {args.seed}, "
+        f"{args.trials} trials per planner and world\n"
+    )
+    print(world_table(cells, config.goal_radius_m))
+    n_trials = len(planners) * len(cases) * args.trials
+    print(
+        f"\n{n_trials} trials in {wall_s:.1f} s wall clock with {workers} worker(s). Planners see wall and trunk "
+        f"surfaces as points every {spacing} m; collision (< {config.collision_radius_m} m) and clearance on the "
+        f"true geometry. A* = full-knowledge grid optimum (clearance {kw['clearance_m']} m, grid "
+        f"{kw['resolution_m']} m) to the goal circle (radius {config.goal_radius_m} m); mean path over successes."
+    )
+    if args.json is not None:
+        doc: dict[str, object] = {
+            "schema": 1,
+            "kind": "worlds",
+            "preset": config.preset,
+            "seed": args.seed,
+            "trials_per_cell": args.trials,
+            "noise_std_m": config.noise_std_m,
+            "surface_spacing_m": spacing,
+            "optimum": kw,
+            "results": [cell_summary(c, config.goal_radius_m) for c in cells],
+        }
+        write_json(args.json, doc)
+    if args.plots is not None:
+        from sim.study.worldplots import plot_world
+
+        args.plots.mkdir(parents=True, exist_ok=True)
+        for case in cases:
+            plot_world(args.plots / f"world_{case.label}.png", case, config, planners, args.seed, **kw)
+        print(f"\nfigures in {args.plots}: " + ", ".join(f"world_{c.label}.png" for c in cases))
     return 0
 
 

@@ -70,6 +70,11 @@ class BatchPlanner(Protocol):
     ) -> BatchDecision: ...
 
 
+ClearanceFn = Callable[[FloatArray, FloatArray], FloatArray]
+"""(A, D) segment starts, (A, D) ends -> (A,) smallest distance from each straight segment to the TRUE obstacle
+surfaces [m] (a point when start = end): world files, whose walls and cylinders the planners see only as surface
+sample points (``sim.study.worldstudy``)."""
+
 _STOPS_AT_LOCAL_MINIMUM = frozenset({"capf", "bapf", "a-bapf", "cr-bapf"})
 """Planners whose trial ends at the first LOCAL_MINIMUM (notes.md, decision 3; CAPF: vanishing gradient)."""
 
@@ -109,6 +114,7 @@ def simulate(
     *,
     record: bool = False,
     planner: BatchPlanner | None = None,
+    clearance: ClearanceFn | None = None,
 ) -> SimulationResult:
     """Run A trials of ``planner_name`` in lockstep on the given obstacle fields.
 
@@ -121,6 +127,9 @@ def simulate(
     record : keep the per-iteration ``Trace`` (memory O(max_iterations * A); for small batches only).
     planner : use this planner object instead of ``get_planner(planner_name, config.planner_params)``
         (instrumented planners in tests and benchmarks; ``planner_name`` still selects the stop rules).
+    clearance : the true geometry's clearance (world files): collisions are judged on it, swept along each move
+        (a thin wall cannot be stepped through), instead of on the distance to the obstacle points at the start
+        of each iteration, and it is the recorded clearance. Default: the points are the truth.
 
     Returns
     -------
@@ -145,6 +154,9 @@ def simulate(
     iterations = np.zeros(n_trials, dtype=np.int32)
     detected_out = np.zeros((n_trials, n_max), dtype=bool)
     min_dist_out = np.full((n_trials, n_max), np.inf)
+    path_out = np.zeros(n_trials)
+    clear_out = np.full(n_trials, np.inf)
+    swept = np.full(n_trials, np.inf)  # clearance of the move that led to each trial's position
 
     # Active-set state (compacted when trials finish).
     ids = np.arange(n_trials)
@@ -175,7 +187,12 @@ def simulate(
 
         diff = obs - pos[:, None, :]
         dist = np.sqrt(np.einsum("and,and->an", diff, diff))
-        collided = (dist < config.collision_radius_m).any(axis=1)
+        if clearance is None:
+            collided = (dist < config.collision_radius_m).any(axis=1)
+        else:
+            true_clear = np.minimum(clearance(pos, pos), swept[ids])
+            clear_out[ids] = np.minimum(clear_out[ids], true_clear)
+            collided = true_clear < config.collision_radius_m
         in_range = dist <= config.sensor_range_m
         ever |= in_range
         np.minimum(min_dist, dist, out=min_dist)
@@ -210,7 +227,11 @@ def simulate(
             if moves.any():
                 movers = sel[moves]
                 noise = rng.normal(0.0, config.noise_std_m, size=(movers.size, dim))
-                pos[movers] = next_pts[moves] + noise
+                new_pos = next_pts[moves] + noise
+                if clearance is not None:
+                    swept[ids[movers]] = clearance(pos[movers], new_pos)
+                path_out[ids[movers]] += np.sqrt(np.einsum("ad,ad->a", new_pos - pos[movers], new_pos - pos[movers]))
+                pos[movers] = new_pos
 
         done = finished != _RUNNING
         if done.any():
@@ -240,6 +261,8 @@ def simulate(
         n_obstacles=exists.sum(axis=1).astype(np.int32),
         n_detected=detected_out.sum(axis=1).astype(np.int32),
         time_ms=np.zeros(n_trials),
+        path_m=path_out,
+        clearance_m=clear_out if clearance is not None else min_dist_out.min(axis=1, initial=np.inf),
     )
     trace = None
     if record:
@@ -305,6 +328,8 @@ def run_chunk(task: ChunkTask) -> ChunkResult:
         n_obstacles=rec.n_obstacles,
         n_detected=rec.n_detected,
         time_ms=per_trial_ms,
+        path_m=rec.path_m,
+        clearance_m=rec.clearance_m,
     )
     return ChunkResult(task=task, records=records, wall_s=wall_s)
 

@@ -52,6 +52,10 @@ class TrialRecords:
     """(A,) distinct obstacles detected during the run."""
     time_ms: npt.NDArray[np.float64]
     """(A,) amortised wall-clock time of the trial [ms] (not deterministic)."""
+    path_m: npt.NDArray[np.float64] | None = None
+    """(A,) length of the flown path, noise included [m] (None: not recorded)."""
+    clearance_m: npt.NDArray[np.float64] | None = None
+    """(A,) smallest distance from a visited position to a true obstacle surface [m] (None: not recorded)."""
 
     def __len__(self) -> int:
         return int(self.outcome.shape[0])
@@ -74,7 +78,15 @@ class TrialRecords:
             n_obstacles=np.concatenate([p.n_obstacles for p in parts]),
             n_detected=np.concatenate([p.n_detected for p in parts]),
             time_ms=np.concatenate([p.time_ms for p in parts]),
+            path_m=_concat_optional([p.path_m for p in parts]),
+            clearance_m=_concat_optional([p.clearance_m for p in parts]),
         )
+
+
+def _concat_optional(parts: list[npt.NDArray[np.float64] | None]) -> npt.NDArray[np.float64] | None:
+    """The concatenation when every part recorded the field, else None."""
+    present = [p for p in parts if p is not None]
+    return np.concatenate(present) if len(present) == len(parts) else None
 
 
 def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:

@@ -60,7 +60,7 @@ _KEYS = {
 
 
 def example_world_path(name: str) -> Path:
-    """The path of a bundled example world (``forest``, ``corridor``, ``u-trap``, ``wall``)."""
+    """The path of a bundled example world by name (the ``*.toml`` stems in ``sim/world/examples/``)."""
     path = EXAMPLES_DIR / f"{name}.toml"
     if not path.is_file():
         known = sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))

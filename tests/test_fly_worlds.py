@@ -1,0 +1,69 @@
+"""apf-sim fly with world files: negative start coordinates reach the vehicle, every bundled world loads."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from sim.cli import build_parser
+from sim.fly import FlyOptions, _sim_argv, _start_goal
+from sim.world import EXAMPLES_DIR, load_world
+
+
+def test_negative_start_is_one_word_for_the_vehicle() -> None:
+    argv = _sim_argv(FlyOptions(start_ne_m=(-12.0, 0.0), world="slit"), 14550, 14551)
+    assert "--start=-12.0,0.0" in argv
+    assert "--start" not in argv
+    # The vehicle's own parser (everything after "python -m sim") reads it back.
+    args = build_parser().parse_args(argv[3:])
+    assert args.start == (-12.0, 0.0)
+    assert args.world == "slit"
+
+
+@pytest.mark.parametrize(
+    "words",
+    [["--start", "-12.0,0.0"], ["--start=-12.0,0.0"], ["--start", "-12,0", "--goal", "4.5,-2"]],
+)
+def test_fly_cli_takes_negative_pairs(words: list[str]) -> None:
+    args = build_parser().parse_args(["fly", "--world", "slit", *words])
+    start, goal = _start_goal(args)
+    assert start[0] == -12.0
+    assert goal == ((4.5, -2.0) if "--goal" in words else (16.0, 0.0))
+
+
+def test_fly_cli_still_rejects_a_missing_value() -> None:
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["fly", "--start", "--quiet"])
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml")))
+def test_every_bundled_world_gives_fly_its_start_and_goal(name: str) -> None:
+    args = build_parser().parse_args(["fly", "--world", name])
+    world = load_world(name)
+    assert _start_goal(args) == (world.start_ne_m, world.goal_ne_m)
+    argv = _sim_argv(FlyOptions(world=name, start_ne_m=_start_goal(args)[0]), 1, 2)
+    assert build_parser().parse_args(argv[3:]).start == world.start_ne_m
+
+
+@pytest.mark.slow
+def test_fly_world_from_a_negative_start(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [
+            sys.executable, "-m", "sim", "fly", "--world", "slit", "--start", "-2.0,0.5", "--max-flight", "12",
+            "--out", str(out), "--quiet", "--no-plot",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=110,
+        env=os.environ | {"OPENBLAS_NUM_THREADS": "1"},
+        check=False,
+    )  # fmt: skip
+    sim_res = json.loads((out / "sim_result.json").read_text())
+    assert sim_res["trajectory_ned_m"][0][:2] == [-2.0, 0.5], proc.stdout + proc.stderr
+    assert sim_res["world"]["name"] == "slit"
