@@ -1,0 +1,136 @@
+"""Where the study's chunks run: this machine's process pool, or a Dask cluster (``--dask local|ADDRESS``).
+
+Every chunk's result depends only on (config, planner, density, chunk, seed) (see ``sim.study.engine``), so any
+``concurrent.futures.Executor`` gives the same table; this module only picks and owns one:
+
+- no ``--dask``: ``engine.default_executor(workers)`` (spawned processes, or in-process for one worker);
+- ``--dask local``: a ``distributed.LocalCluster`` of ``workers`` single-threaded worker processes bound to
+  127.0.0.1, no dashboard, BLAS limited to one thread per worker;
+- ``--dask tcp://HOST:PORT`` (any Dask scheduler address): a ``distributed.Client`` of a running cluster
+  (``dask scheduler`` + ``dask worker tcp://HOST:PORT`` on each machine, each with this package installed).
+
+Dask is an optional dependency (``pip install 'apf-companion[dask]'``); it is imported only here, and only when
+asked for.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import Any
+
+from apf_companion.errors import ConfigError
+from sim.study import _worker
+
+LOCAL = "local"
+"""``--dask local``: start a LocalCluster on loopback for this run."""
+
+CONNECT_TIMEOUT_S = 10.0
+"""How long to wait for a remote scheduler before giving up with a clear error."""
+
+
+@dataclass(frozen=True, slots=True)
+class ExecutorInfo:
+    """What ran the chunks (printed under the table and written to the JSON summary)."""
+
+    kind: str
+    """``processes``, ``dask-local`` or ``dask``."""
+    workers: int
+    """Worker processes (Dask: workers connected when the run started)."""
+    address: str = ""
+    """The Dask scheduler address (empty for the local process pool)."""
+
+    def describe(self) -> str:
+        if self.kind == "processes":
+            return f"{self.workers} worker(s)"
+        return f"{self.workers} Dask worker(s) at {self.address}"
+
+
+def check_dask_address(address: str) -> str:
+    """``local`` or a scheduler address with a scheme (``tcp://10.0.0.5:8786``); raise ``ConfigError`` otherwise."""
+    text = address.strip()
+    if text == LOCAL:
+        return text
+    scheme, sep, rest = text.partition("://")
+    if not sep or not scheme or not rest:
+        msg = f"--dask: expected 'local' or a scheduler address like tcp://HOST:8786, got {address!r}"
+        raise ConfigError(msg)
+    return text
+
+
+def _import_distributed() -> Any:
+    try:
+        import distributed
+    except ImportError as err:
+        msg = "--dask needs dask.distributed: pip install 'apf-companion[dask]'"
+        raise ConfigError(msg) from err
+    return distributed
+
+
+def _single_thread_env() -> dict[str, str]:
+    return dict.fromkeys(_worker._SINGLE_THREAD_ENV, "1")
+
+
+@contextlib.contextmanager
+def dask_executor(address: str, *, workers: int | None = None) -> Iterator[tuple[Executor, ExecutorInfo]]:
+    """A ``concurrent.futures.Executor`` backed by Dask (``Client.get_executor``), closed on exit.
+
+    ``address`` is ``local`` (start a LocalCluster of ``workers`` processes, default all cores, on 127.0.0.1) or the
+    address of a running scheduler (``workers`` must then be None: the cluster has its own).
+    """
+    address = check_dask_address(address)
+    distributed = _import_distributed()
+    with contextlib.ExitStack() as stack:
+        if address == LOCAL:
+            n = workers if workers is not None else (os.cpu_count() or 1)
+            cluster = stack.enter_context(
+                distributed.LocalCluster(
+                    n_workers=n,
+                    threads_per_worker=1,
+                    processes=True,
+                    host="127.0.0.1",
+                    dashboard_address=None,
+                    # Dask's nannies set these too (distributed.nanny.pre-spawn-environ); say it explicitly.
+                    env=_single_thread_env(),
+                )
+            )
+            client = stack.enter_context(distributed.Client(cluster))
+            kind = "dask-local"
+        else:
+            if workers is not None:
+                msg = "--workers sizes a local pool or --dask local; a remote Dask cluster has its own workers"
+                raise ConfigError(msg)
+            try:
+                client = stack.enter_context(distributed.Client(address, timeout=CONNECT_TIMEOUT_S))
+            except (OSError, TimeoutError) as err:
+                msg = f"--dask {address}: no Dask scheduler answered within {CONNECT_TIMEOUT_S:.0f} s ({err})"
+                raise ConfigError(msg) from err
+            kind = "dask"
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        if n_workers == 0:
+            msg = f"--dask {address}: the scheduler has no workers (start some: dask worker {address})"
+            raise ConfigError(msg)
+        info = ExecutorInfo(kind=kind, workers=n_workers, address=str(client.scheduler.address))
+        # pure=False: every chunk is its own task even if two were equal (Dask would otherwise run one once).
+        executor = stack.enter_context(client.get_executor(pure=False))
+        yield executor, info
+
+
+@contextlib.contextmanager
+def study_executor(dask: str | None, workers: int | None) -> Iterator[tuple[Executor, ExecutorInfo]]:
+    """The executor for ``--dask``/``--workers``: Dask when ``dask`` is given, else this machine's pool."""
+    if dask is not None:
+        with dask_executor(dask, workers=workers) as pair:
+            yield pair
+        return
+    from sim.study.engine import default_executor
+
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    executor = default_executor(n)
+    try:
+        yield executor, ExecutorInfo(kind="processes", workers=n)
+    finally:
+        executor.shutdown(wait=True, cancel_futures=True)
