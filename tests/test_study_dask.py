@@ -115,3 +115,25 @@ def test_no_scheduler_is_a_clear_error(monkeypatch: pytest.MonkeyPatch, capsys: 
     address = f"tcp://127.0.0.1:{free_port()}"
     assert _run([*_STUDY, "--dask", address]) == 2
     assert f"--dask {address}: no Dask scheduler answered within 1 s" in capsys.readouterr().err
+
+
+def test_sweep_on_a_running_scheduler_writes_the_serial_table(
+    loopback_cluster: distributed.LocalCluster, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from sim.sweep_cli import register as register_sweep
+
+    def sweep(argv: list[str]) -> str:
+        parser = argparse.ArgumentParser()
+        register_sweep(parser.add_subparsers(dest="command", required=True))
+        args = parser.parse_args(["sweep", "--param", "rho_l=0.3,0.5", "--densities", "45-70", "--trials", "8",
+                                  "--chunk-trials", "4", "--no-plots", "--no-progress", *argv])  # fmt: skip
+        assert args.func(args) == 0
+        return capsys.readouterr().out
+
+    serial_out = sweep(["--workers", "1", "--out", str(tmp_path / "serial")])
+    dask_out = sweep(["--dask", loopback_cluster.scheduler_address, "--out", str(tmp_path / "dask")])
+    assert f"with 2 Dask worker(s) at {loopback_cluster.scheduler_address}" in dask_out
+    table = [line for line in serial_out.splitlines() if line.startswith("|")]
+    assert len(table) == 2 + 2
+    assert table == [line for line in dask_out.splitlines() if line.startswith("|")]
+    assert (tmp_path / "serial" / "sweep.csv").read_text() == (tmp_path / "dask" / "sweep.csv").read_text()

@@ -16,6 +16,7 @@ asked for.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 from collections.abc import Iterator
 from concurrent.futures import Executor
@@ -70,6 +71,14 @@ def _import_distributed() -> Any:
     return distributed
 
 
+def _quiet_dask_logs() -> None:
+    """Dask logs its start-up and shut-down at INFO on its own handler: follow ``--log-level`` instead."""
+    root_level = logging.getLogger().getEffectiveLevel()
+    dask_log = logging.getLogger("distributed")
+    if dask_log.getEffectiveLevel() < root_level:
+        dask_log.setLevel(root_level)
+
+
 def _single_thread_env() -> dict[str, str]:
     return dict.fromkeys(_worker._SINGLE_THREAD_ENV, "1")
 
@@ -83,6 +92,7 @@ def dask_executor(address: str, *, workers: int | None = None) -> Iterator[tuple
     """
     address = check_dask_address(address)
     distributed = _import_distributed()
+    _quiet_dask_logs()
     with contextlib.ExitStack() as stack:
         if address == LOCAL:
             n = workers if workers is not None else (os.cpu_count() or 1)
