@@ -77,7 +77,10 @@ def loopback_cluster() -> Iterator[distributed.LocalCluster]:
 
 
 def test_running_scheduler_by_address_gives_the_serial_table(
-    loopback_cluster: distributed.LocalCluster, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    loopback_cluster: distributed.LocalCluster,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     address = loopback_cluster.scheduler_address
     assert address.startswith("tcp://127.0.0.1:")
@@ -86,6 +89,8 @@ def test_running_scheduler_by_address_gives_the_serial_table(
     assert dask_table == serial_table
     assert dask_trials == serial_trials
     assert f"with 2 Dask worker(s) at {address}" in out
+    # This cluster's nannies kept Dask's default MALLOC_TRIM_THRESHOLD_: the run says so (slow, see executors).
+    assert "2 Dask worker(s) run with MALLOC_TRIM_THRESHOLD_ set" in caplog.text
 
 
 def test_dask_local_workers_run_single_threaded_blas() -> None:
@@ -94,7 +99,9 @@ def test_dask_local_workers_run_single_threaded_blas() -> None:
         assert info.workers == 1
         assert info.address.startswith("tcp://127.0.0.1:")
         env = executor.submit(os.environ.get, "OPENBLAS_NUM_THREADS").result()
+        malloc_trim = executor.submit(os.environ.get, "MALLOC_TRIM_THRESHOLD_").result()
     assert env == "1"
+    assert malloc_trim is None
 
 
 def test_remote_cluster_refuses_workers_option(
