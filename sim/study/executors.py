@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import warnings
 from collections.abc import Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -136,6 +137,10 @@ def dask_executor(address: str, *, workers: int | None = None) -> Iterator[tuple
             stack.enter_context(dask_config_set({MALLOC_TRIM_CONFIG: None}))
             # A nanny also writes the variable into this process's environment, which spawned workers inherit.
             stack.enter_context(_without_env("MALLOC_TRIM_THRESHOLD_"))
+            # With the dashboard off the scheduler still serves /health on 127.0.0.1:8787, or a free port when
+            # another cluster has it; that fallback is fine and not worth a warning.
+            stack.enter_context(warnings.catch_warnings())
+            warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
             cluster = stack.enter_context(
                 distributed.LocalCluster(
                     n_workers=n,
