@@ -127,6 +127,32 @@ def _file_stem(planner_name: str) -> str:
     return re.sub(r"[^a-z0-9-]+", "-", planner_name.replace("*", "-star")).strip("-")
 
 
+def _grid(cells: Sequence[SweepCell]) -> tuple[list[str], list[str], np.ndarray, np.ndarray]:
+    """Row labels (grid points), column labels (scenarios), and the R_s and path-length matrices."""
+    rows = list(dict.fromkeys(point_label(c.point) for c in cells))
+    cols = list(dict.fromkeys(c.scenario.label for c in cells))
+    rs = np.full((len(rows), len(cols)), np.nan)
+    length = np.full_like(rs, np.nan)
+    for c in cells:
+        i, j = rows.index(point_label(c.point)), cols.index(c.scenario.label)
+        rs[i, j] = c.summary.R_s
+        length[i, j] = c.mean_path_length_m
+    return rows, cols, rs, length
+
+
+def _panel(fig: Any, ax: Any, data: np.ndarray, cmap: str, limits: tuple[float, float] | None) -> None:
+    """One heatmap with its colour bar and, when small enough to read, the values written in the cells."""
+    if limits is None:
+        limits = (float(np.nanmin(data)), float(np.nanmax(data))) if np.isfinite(data).any() else (0.0, 1.0)
+    im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, vmin=limits[0], vmax=limits[1], aspect="auto")
+    if data.size <= 120:
+        for (i, j), v in np.ndenumerate(data):
+            r, g, b, _ = im.cmap(im.norm(v)) if not math.isnan(v) else (1.0, 1.0, 1.0, 1.0)
+            ink = "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
+            ax.text(j, i, "–" if math.isnan(v) else f"{v:.2f}", ha="center", va="center", fontsize=7, color=ink)
+    fig.colorbar(im, ax=ax, shrink=0.8)
+
+
 def plot_heatmaps(out_dir: Path, cells: Sequence[SweepCell]) -> list[Path]:
     """One ``heatmap_<planner>.png`` per planner; returns the files written."""
     import matplotlib
@@ -137,32 +163,15 @@ def plot_heatmaps(out_dir: Path, cells: Sequence[SweepCell]) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     for planner_name in dict.fromkeys(c.planner_name for c in cells):
-        mine = [c for c in cells if c.planner_name == planner_name]
-        rows = list(dict.fromkeys(point_label(c.point) for c in mine))
-        cols = list(dict.fromkeys(c.scenario.label for c in mine))
-        rs = np.full((len(rows), len(cols)), np.nan)
-        length = np.full_like(rs, np.nan)
-        for c in mine:
-            i, j = rows.index(point_label(c.point)), cols.index(c.scenario.label)
-            rs[i, j] = c.summary.R_s
-            length[i, j] = c.mean_path_length_m
-        fig, axes = plt.subplots(
-            1, 2, figsize=(4.0 + 2.2 * len(cols), 1.8 + 0.35 * len(rows)), constrained_layout=True, squeeze=False
-        )
+        rows, cols, rs, length = _grid([c for c in cells if c.planner_name == planner_name])
+        size = (4.0 + 2.2 * len(cols), 1.8 + 0.35 * len(rows))
+        fig, axes = plt.subplots(1, 2, figsize=size, constrained_layout=True, squeeze=False)
         panels = ((rs, "R_s", "viridis", (0.0, 1.0)), (length, "mean path length (m), successes", "magma_r", None))
-        for ax, (data, title, cmap, limits) in zip(axes[0], panels, strict=True):
-            vmin, vmax = limits if limits else (np.nanmin(data), np.nanmax(data)) if np.isfinite(data).any() else (0, 1)
-            im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, vmin=vmin, vmax=vmax, aspect="auto")
+        for k, (ax, (data, title, cmap, limits)) in enumerate(zip(axes[0], panels, strict=True)):
+            _panel(fig, ax, data, cmap, limits)
             ax.set_xticks(range(len(cols)), [f"N {c}" for c in cols])
-            ax.set_yticks(range(len(rows)), rows if ax is axes[0][0] else [""] * len(rows))
+            ax.set_yticks(range(len(rows)), rows if k == 0 else [""] * len(rows))
             ax.set_title(f"{planner_name}: {title}", fontsize=9)
-            if data.size <= 120:
-                for (i, j), v in np.ndenumerate(data):
-                    r, g, b, _ = im.cmap(im.norm(v)) if not math.isnan(v) else (1.0, 1.0, 1.0, 1.0)
-                    ink = "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
-                    text = "–" if math.isnan(v) else f"{v:.2f}"
-                    ax.text(j, i, text, ha="center", va="center", fontsize=7, color=ink)
-            fig.colorbar(im, ax=ax, shrink=0.8)
         path = out_dir / f"heatmap_{_file_stem(planner_name)}.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)

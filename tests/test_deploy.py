@@ -111,6 +111,11 @@ def test_dry_run_prints_the_plan_and_changes_nothing(tmp_path: Path) -> None:
     assert f"would write: {root}/etc/systemd/system/apf-mavproxy.service" in out
     assert "skipped (--destdir): systemctl enable apf-companion.service" in out
     assert not any(root.iterdir())
+    plain = _install("--dry-run", "--destdir", str(root))
+    assert plain.returncode == 0, plain.stderr
+    assert "apf-mavproxy" not in plain.stdout
+    assert "would run:" in plain.stdout
+    assert not any(root.iterdir())
 
 
 def test_staged_install_keeps_config_and_uninstalls(tmp_path: Path) -> None:

@@ -121,6 +121,41 @@ def _single_thread_env() -> dict[str, str]:
     return dict.fromkeys(_worker._SINGLE_THREAD_ENV, "1")
 
 
+def _local_client(stack: contextlib.ExitStack, distributed: Any, workers: int | None) -> Any:
+    """Start a LocalCluster on loopback (closed with ``stack``) and return its client."""
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    stack.enter_context(dask_config_set({MALLOC_TRIM_CONFIG: None}))
+    # A nanny also writes the variable into this process's environment, which spawned workers inherit.
+    stack.enter_context(_without_env("MALLOC_TRIM_THRESHOLD_"))
+    # With the dashboard off the scheduler still serves /health on 127.0.0.1:8787, or a free port when another
+    # cluster has it; that fallback is fine and not worth a warning.
+    stack.enter_context(warnings.catch_warnings())
+    warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+    cluster = stack.enter_context(
+        distributed.LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            # Dask's nannies set these too (distributed.nanny.pre-spawn-environ); say it explicitly.
+            env=_single_thread_env(),
+        )
+    )
+    return stack.enter_context(distributed.Client(cluster))
+
+
+def _remote_client(stack: contextlib.ExitStack, distributed: Any, address: str, workers: int | None) -> Any:
+    if workers is not None:
+        msg = "--workers sizes a local pool or --dask local; a remote Dask cluster has its own workers"
+        raise ConfigError(msg)
+    try:
+        return stack.enter_context(distributed.Client(address, timeout=CONNECT_TIMEOUT_S))
+    except (OSError, TimeoutError) as err:
+        msg = f"--dask {address}: no Dask scheduler answered within {CONNECT_TIMEOUT_S:.0f} s ({err})"
+        raise ConfigError(msg) from err
+
+
 @contextlib.contextmanager
 def dask_executor(address: str, *, workers: int | None = None) -> Iterator[tuple[Executor, ExecutorInfo]]:
     """A ``concurrent.futures.Executor`` backed by Dask (``Client.get_executor``), closed on exit.
@@ -133,42 +168,15 @@ def dask_executor(address: str, *, workers: int | None = None) -> Iterator[tuple
     _quiet_dask_logs()
     with contextlib.ExitStack() as stack:
         if address == LOCAL:
-            n = workers if workers is not None else (os.cpu_count() or 1)
-            stack.enter_context(dask_config_set({MALLOC_TRIM_CONFIG: None}))
-            # A nanny also writes the variable into this process's environment, which spawned workers inherit.
-            stack.enter_context(_without_env("MALLOC_TRIM_THRESHOLD_"))
-            # With the dashboard off the scheduler still serves /health on 127.0.0.1:8787, or a free port when
-            # another cluster has it; that fallback is fine and not worth a warning.
-            stack.enter_context(warnings.catch_warnings())
-            warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-            cluster = stack.enter_context(
-                distributed.LocalCluster(
-                    n_workers=n,
-                    threads_per_worker=1,
-                    processes=True,
-                    host="127.0.0.1",
-                    dashboard_address=None,
-                    # Dask's nannies set these too (distributed.nanny.pre-spawn-environ); say it explicitly.
-                    env=_single_thread_env(),
-                )
-            )
-            client = stack.enter_context(distributed.Client(cluster))
-            kind = "dask-local"
+            client = _local_client(stack, distributed, workers)
         else:
-            if workers is not None:
-                msg = "--workers sizes a local pool or --dask local; a remote Dask cluster has its own workers"
-                raise ConfigError(msg)
-            try:
-                client = stack.enter_context(distributed.Client(address, timeout=CONNECT_TIMEOUT_S))
-            except (OSError, TimeoutError) as err:
-                msg = f"--dask {address}: no Dask scheduler answered within {CONNECT_TIMEOUT_S:.0f} s ({err})"
-                raise ConfigError(msg) from err
-            kind = "dask"
+            client = _remote_client(stack, distributed, address, workers)
         n_workers = len(client.scheduler_info().get("workers", {}))
         if n_workers == 0:
             msg = f"--dask {address}: the scheduler has no workers (start some: dask worker {address})"
             raise ConfigError(msg)
         _warn_malloc_trim(client)
+        kind = "dask-local" if address == LOCAL else "dask"
         info = ExecutorInfo(kind=kind, workers=n_workers, address=str(client.scheduler.address))
         # pure=False: every chunk is its own task even if two were equal (Dask would otherwise run one once).
         executor = stack.enter_context(client.get_executor(pure=False))
