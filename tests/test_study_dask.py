@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import csv
+import logging
 import os
 import re
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -64,7 +66,21 @@ def test_local_cluster_gives_the_table_of_two_local_workers(tmp_path: Path, caps
 
 
 @pytest.fixture(scope="module")
-def loopback_cluster() -> Iterator[distributed.LocalCluster]:
+def quiet_dask() -> Iterator[None]:
+    """Dask logs to a handler that holds the stderr of import time (pytest's capture, closed by teardown); a
+    cluster living across tests would log its shutdown into it. Keep Dask to errors, on the real stderr."""
+    dask_log = logging.getLogger("distributed")
+    level = dask_log.level
+    dask_log.setLevel(logging.ERROR)
+    for handler in dask_log.handlers:
+        if isinstance(handler, logging.StreamHandler):
+            handler.setStream(sys.__stderr__)
+    yield
+    dask_log.setLevel(level)
+
+
+@pytest.fixture(scope="module")
+def loopback_cluster(quiet_dask: None) -> Iterator[distributed.LocalCluster]:
     with distributed.LocalCluster(
         n_workers=2,
         threads_per_worker=1,
