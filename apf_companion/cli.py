@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
+import importlib.metadata
 import json
 import logging
 import os
@@ -84,7 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
         description=__doc__.splitlines()[0] if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    # The installed distribution's metadata (what pip/pipx installed), falling back to the source's version.
+    try:
+        version = importlib.metadata.version("apf-companion")
+    except importlib.metadata.PackageNotFoundError:
+        version = __version__
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version}")
     parser.add_argument(
         "--log-level",
         default=os.environ.get("APF_LOG_LEVEL", "INFO"),

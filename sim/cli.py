@@ -6,23 +6,34 @@ sets ``func`` (a callable taking the parsed namespace and returning an exit code
 - ``vehicle`` the simulated autopilot + vehicle + world + range sensor (sim/vehicle/cli.py)
 - ``sensor``  world and range sensor only, following an external autopilot (sim/vehicle/cli.py)
 - ``fly``     the simulator and the companion service together, one SITL-style flight (sim/fly.py)
+- ``sweep``   R_s and path length over a grid of planner parameters and densities (sim/sweep_cli.py)
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
 from typing import cast
 
-_SUBCOMMAND_MODULES = ("sim.fly", "sim.vehicle.cli", "sim.study.cli")
+_SUBCOMMAND_MODULES = ("sim.fly", "sim.vehicle.cli", "sim.study.cli", "sim.sweep_cli")
+
+
+def package_version() -> str:
+    """The installed distribution's version (the wheel's metadata, not a copy in the source)."""
+    try:
+        return importlib.metadata.version("apf-companion")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed: pip install -e .)"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="apf-sim", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     parser.add_argument(
         "--log-level",
         default=os.environ.get("APF_LOG_LEVEL", "WARNING"),

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import sys
 import time
 from pathlib import Path
@@ -54,13 +53,21 @@ class ProgressBar:
         elapsed = time.monotonic() - self._t0
         text = (
             f"{self._label} [{'#' * filled}{'.' * (self._width - filled)}] "
-            f"{done}/{total} trials {100 * frac:5.1f}% {elapsed:6.1f} s"
+            f"{done}/{total} trials {100 * frac:5.1f}% {elapsed:6.1f} s{eta_text(done, total, elapsed)}"
         )
         if self._tty:
             self._stream.write("\r" + text + ("\n" if done >= total else ""))
         else:
             self._stream.write(text + "\n")
         self._stream.flush()
+
+
+def eta_text(done: int, total: int, elapsed_s: float) -> str:
+    """`` ETA 12 s`` from the rate so far (empty before the first result and once done)."""
+    if done <= 0 or done >= total:
+        return ""
+    remaining_s = elapsed_s * (total - done) / done
+    return f" ETA {remaining_s:.0f} s" if remaining_s < 120 else f" ETA {remaining_s / 60:.1f} min"
 
 
 def _planners(text: str) -> tuple[str, ...]:
@@ -94,6 +101,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--seed", type=int, default=0, help="root seed (default 0)")
     p.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: all cores; 1 = run in this process)"
+    )
+    p.add_argument(
+        "--dask",
+        metavar="local|ADDRESS",
+        default=None,
+        help="run the chunks on Dask: 'local' starts a cluster of --workers processes on 127.0.0.1, an address "
+        "(tcp://HOST:8786) uses a running scheduler; same seed, same table (needs apf-companion[dask])",
     )
     p.add_argument(
         "--chunk-trials",
@@ -195,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from sim.study.engine import collect_cells, make_tasks, run_tasks
+    from sim.study.executors import study_executor
     from sim.study.report import markdown_table, study_json, write_csv, write_json
 
     config = StudyConfig.from_preset(args.preset)
@@ -217,7 +232,6 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--trials/--mu-trials: need >= 1, got {args.trials}/{args.mu_trials}")
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers: need >= 1, got {args.workers}")
-    workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
 
     tasks = make_tasks(config, planners, densities, args.trials, args.seed)
     sweep_spans: list[tuple[float, int, int]] = []
@@ -228,10 +242,12 @@ def _run(args: argparse.Namespace) -> int:
             sweep_spans.append((mu, len(all_tasks), len(all_tasks) + len(sweep)))
             all_tasks.extend(sweep)
 
-    progress = None if args.no_progress else ProgressBar(sys.stderr)
-    t0 = time.perf_counter()
-    results = run_tasks(all_tasks, workers=workers, progress=progress)
-    wall_s = time.perf_counter() - t0
+    with study_executor(args.dask, args.workers) as (executor, ran_on):
+        progress = None if args.no_progress else ProgressBar(sys.stderr)
+        t0 = time.perf_counter()
+        results = run_tasks(all_tasks, executor, progress=progress)
+        wall_s = time.perf_counter() - t0
+    workers = ran_on.workers
 
     cells = collect_cells(results[: len(tasks)])
     sweep_cells = [(mu, collect_cells(results[a:b])) for mu, a, b in sweep_spans]
@@ -244,7 +260,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"\n### R_s versus mu_o ({args.mu_trials} trials per point)\n")
         print(_sweep_table(sweep_cells))
     print(
-        f"\n{n_trials} trials in {wall_s:.1f} s wall clock with {workers} worker(s) "
+        f"\n{n_trials} trials in {wall_s:.1f} s wall clock with {ran_on.describe()} "
         f"({n_trials / wall_s:.0f} trials/s). M_s and S over successful trials; T_a = chunk wall time / "
         "chunk trials (amortised, lockstep)."
     )

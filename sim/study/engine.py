@@ -424,16 +424,35 @@ def run_tasks(
 
     Results come back in task order, whatever order the workers finish in.
     """
+    return map_tasks(run_chunk, tasks, executor, workers=workers, progress=progress)
+
+
+_R = TypeVar("_R")
+
+
+def map_tasks(
+    fn: Callable[[ChunkTask], _R],
+    tasks: Sequence[ChunkTask],
+    executor: Executor | None = None,
+    *,
+    workers: int | None = None,
+    progress: ProgressFn | None = None,
+) -> list[_R]:
+    """``[fn(t) for t in tasks]`` on ``executor`` (any ``concurrent.futures.Executor``: the process pool, Dask's
+    ``Client.get_executor()``); ``fn`` must be a module-level function so process pools can pickle it.
+
+    Results come back in task order, whatever order the workers finish in.
+    """
     own = executor is None
     ex = default_executor(workers) if executor is None else executor
     total = sum(t.n_trials for t in tasks)
     done = 0
-    results: list[ChunkResult | None] = [None] * len(tasks)
+    results: dict[int, _R] = {}
     try:
         # Largest chunks first keeps both workers busy until the end.
         order = sorted(range(len(tasks)), key=lambda i: -tasks[i].n_trials)
         with _single_thread_blas_env():
-            futures = {ex.submit(run_chunk, tasks[i]): i for i in order}
+            futures = {ex.submit(fn, tasks[i]): i for i in order}
         pending = set(futures)
         if progress is not None:
             progress(0, total)
@@ -448,7 +467,7 @@ def run_tasks(
     finally:
         if own:
             ex.shutdown(wait=True, cancel_futures=True)
-    return [r for r in results if r is not None]
+    return [results[i] for i in range(len(tasks))]
 
 
 def collect_cells(results: Sequence[ChunkResult]) -> list[CellResult]:

@@ -1,0 +1,158 @@
+"""deploy/: the systemd units pass ``systemd-analyze verify`` and rate under 3 in ``systemd-analyze security``;
+``install.sh`` (--dry-run, a staged --destdir install, --uninstall) in a temporary root."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from apf_companion.cli import EXIT_CONFIG
+
+DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
+UNITS = ("apf-companion.service", "apf-mavproxy.service")
+INSTALL = DEPLOY / "install.sh"
+SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
+needs_systemd_analyze = pytest.mark.skipif(
+    SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed (apt-get install systemd; .ci/run installs it)"
+)
+VENV = Path(sys.executable).parent.parent
+
+
+def _unit_here(name: str, tmp_path: Path) -> Path:
+    """The unit with its /opt venv and /etc env file pointed at files that exist here (verify checks them)."""
+    text = (DEPLOY / name).read_text()
+    text = text.replace("/opt/apf-companion/venv", str(VENV))
+    text = text.replace("/etc/apf-companion/mavproxy.env", str(DEPLOY / "mavproxy.env"))
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def _verify(path: Path) -> subprocess.CompletedProcess[str]:
+    assert SYSTEMD_ANALYZE is not None
+    return subprocess.run([SYSTEMD_ANALYZE, "verify", str(path)], capture_output=True, text=True, timeout=60)
+
+
+@needs_systemd_analyze
+@pytest.mark.parametrize("name", UNITS)
+def test_unit_verifies_without_a_warning(name: str, tmp_path: Path) -> None:
+    if name == "apf-mavproxy.service" and not (VENV / "bin" / "mavproxy.py").is_file():
+        pytest.skip("MAVProxy not installed in this venv (pip install --no-deps MAVProxy)")
+    result = _verify(_unit_here(name, tmp_path))
+    assert (result.returncode, result.stderr) == (0, "")
+
+
+@needs_systemd_analyze
+def test_verify_catches_a_typo(tmp_path: Path) -> None:
+    path = _unit_here("apf-companion.service", tmp_path)
+    path.write_text(path.read_text().replace("ProtectSystem=strict", "ProtectSystem=stricct"))
+    assert "Failed to parse protect system value" in _verify(path).stderr
+
+
+@needs_systemd_analyze
+@pytest.mark.parametrize("name", UNITS)
+def test_security_exposure_under_3(name: str) -> None:
+    assert SYSTEMD_ANALYZE is not None
+    result = subprocess.run(
+        [SYSTEMD_ANALYZE, "security", "--offline=yes", str(DEPLOY / name)], capture_output=True, text=True, timeout=60
+    )
+    match = re.search(r"Overall exposure level for \S+: (\d+\.\d+) (\w+)", result.stdout)
+    assert match, result.stdout + result.stderr
+    assert float(match.group(1)) < 3.0, result.stdout
+    assert match.group(2) == "OK"
+
+
+def _settings(name: str) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for line in (DEPLOY / name).read_text().splitlines():
+        key, sep, value = line.partition("=")
+        if sep and not line.startswith("#"):
+            out.setdefault(key.strip(), []).append(value.strip())
+    return out
+
+
+@pytest.mark.parametrize("name", UNITS)
+def test_unit_sandbox_settings(name: str) -> None:
+    s = _settings(name)
+    assert s["User"] == ["apf"]
+    assert s["ProtectSystem"] == ["strict"]
+    assert s["CapabilityBoundingSet"] == [""]
+    assert s["DevicePolicy"] == ["closed"]
+    assert s["DeviceAllow"] == ["/dev/serial0 rw"]
+    assert s["RestrictAddressFamilies"] == ["AF_INET AF_INET6 AF_UNIX"]
+    assert s["SystemCallFilter"][0] == "@system-service"
+    for key in ("NoNewPrivileges", "ProtectHome", "PrivateTmp"):
+        assert s[key] == ["yes"]
+    state = s["StateDirectory"][0]
+    assert s["ReadWritePaths"] == [f"/var/lib/{state}"]
+
+
+def test_config_errors_are_not_restarted() -> None:
+    assert _settings("apf-companion.service")["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
+
+
+def _install(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["bash", str(INSTALL), *args], capture_output=True, text=True, timeout=120, check=False)
+
+
+def test_dry_run_prints_the_plan_and_changes_nothing(tmp_path: Path) -> None:
+    root = tmp_path / "root"
+    root.mkdir()
+    result = _install("--dry-run", "--with-mavproxy", "--destdir", str(root))
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert f"would run: python3 -m venv {root}/opt/apf-companion/venv" in out
+    assert f"would write: {root}/etc/systemd/system/apf-companion.service" in out
+    assert f"would write: {root}/etc/systemd/system/apf-mavproxy.service" in out
+    assert "skipped (--destdir): systemctl enable apf-companion.service" in out
+    assert not any(root.iterdir())
+    plain = _install("--dry-run", "--destdir", str(root))
+    assert plain.returncode == 0, plain.stderr
+    assert "apf-mavproxy" not in plain.stdout
+    assert "would run:" in plain.stdout
+    assert not any(root.iterdir())
+
+
+def test_staged_install_keeps_config_and_uninstalls(tmp_path: Path) -> None:
+    root = tmp_path / "root"
+    result = _install("--destdir", str(root), "--no-venv", "--with-mavproxy", "--prefix", "/opt/apf")
+    assert result.returncode == 0, result.stderr
+    unit = (root / "etc/systemd/system/apf-companion.service").read_text()
+    assert "ExecStart=/opt/apf/venv/bin/apf-companion run --config /etc/apf-companion/apf-companion.toml" in unit
+    assert "/opt/apf-companion" not in unit.replace("apf-companion.service", "")
+    config = root / "etc/apf-companion/apf-companion.toml"
+    assert 'tlog = "/var/lib/apf-companion/companion.tlog"' in config.read_text()
+    assert (root / "etc/apf-companion/mavproxy.env").is_file()
+    assert (root / "etc/systemd/system/apf-mavproxy.service").stat().st_mode & 0o777 == 0o644
+
+    config.write_text(config.read_text() + "# edited\n")
+    again = _install("--destdir", str(root), "--no-venv")
+    assert "kept existing" in again.stdout
+    assert config.read_text().endswith("# edited\n")
+
+    removed = _install("--destdir", str(root), "--uninstall")
+    assert removed.returncode == 0, removed.stderr
+    assert not list((root / "etc/systemd/system").iterdir())
+    assert config.is_file()  # kept without --purge
+    purged = _install("--destdir", str(root), "--uninstall", "--purge")
+    assert purged.returncode == 0, purged.stderr
+    assert not (root / "etc/apf-companion").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--purge"], "--purge goes with --uninstall"),
+        (["--prefix", "opt/x", "--dry-run"], "--prefix must be an absolute path"),
+        (["--bogus"], "unknown option --bogus"),
+    ],
+)
+def test_install_option_errors(args: list[str], message: str) -> None:
+    result = _install(*args)
+    assert result.returncode == 2
+    assert message in result.stderr
