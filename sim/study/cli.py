@@ -300,8 +300,8 @@ def _optimum_kwargs(args: argparse.Namespace, *, fields: bool = False) -> dict[s
 def _print_field_optimum(
     args: argparse.Namespace, config: StudyConfig, cells: list[CellResult], densities: tuple[Density, ...], workers: int
 ) -> None:
+    from sim.study.engine import map_tasks
     from sim.study.fieldoptimum import collect_optima, field_optimum_table, field_optimum_tasks, run_field_optimum
-    from sim.study.worldstudy import map_tasks
 
     if args.optimum_fields < 1:
         raise ConfigError(f"--optimum-fields: need >= 1, got {args.optimum_fields}")
@@ -316,7 +316,7 @@ def _print_field_optimum(
         resolution_m=kw["resolution_m"],
     )
     t0 = time.perf_counter()
-    results = map_tasks(run_field_optimum, tasks, [t.n_trials for t in tasks], workers=workers)
+    results = map_tasks(run_field_optimum, tasks, workers=workers)
     wall_s = time.perf_counter() - t0
     optima = collect_optima(tasks, results)
     n = min(args.optimum_fields, args.trials)
@@ -328,6 +328,7 @@ def _print_field_optimum(
 
 
 def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[str, ...]) -> int:
+    from sim.study.executors import study_executor
     from sim.study.report import write_json
     from sim.study.worldstudy import cell_summary, load_case, run_world_study, world_table
     from sim.world.geometry import SURFACE_SPACING_M
@@ -351,11 +352,12 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
     labels = [c.label for c in cases]
     if len(set(labels)) != len(labels):
         raise ConfigError(f"--world: each world needs its own name (file stem), got {labels}")
-    workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
     progress = None if args.no_progress else ProgressBar(sys.stderr)
     t0 = time.perf_counter()
-    cells = run_world_study(config, planners, cases, args.trials, args.seed, workers=workers, progress=progress)
+    with study_executor(args.dask, args.workers) as (executor, ran_on):
+        cells = run_world_study(config, planners, cases, args.trials, args.seed, executor, progress=progress)
     wall_s = time.perf_counter() - t0
+    workers = ran_on.workers
     print(
         f"## apf-sim study over worlds: preset {config.preset}, noise {config.noise_std_m} m, seed {args.seed}, "
         f"{args.trials} trials per planner and world\n"

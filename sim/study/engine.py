@@ -430,9 +430,19 @@ def run_tasks(
 _R = TypeVar("_R")
 
 
+class SizedTask(Protocol):
+    """A unit of work that knows how many trials it runs (for the progress bar and the largest-first order)."""
+
+    @property
+    def n_trials(self) -> int: ...
+
+
+_TaskT = TypeVar("_TaskT", bound=SizedTask)
+
+
 def map_tasks(
-    fn: Callable[[ChunkTask], _R],
-    tasks: Sequence[ChunkTask],
+    fn: Callable[[_TaskT], _R],
+    tasks: Sequence[_TaskT],
     executor: Executor | None = None,
     *,
     workers: int | None = None,

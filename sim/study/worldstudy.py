@@ -20,8 +20,8 @@ import functools
 import math
 import time
 import zlib
-from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Executor, wait
+from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -29,7 +29,7 @@ from typing import TypeVar
 import numpy as np
 
 from sim.study.config import StudyConfig
-from sim.study.engine import ProgressFn, _single_thread_blas_env, default_executor, simulate
+from sim.study.engine import ProgressFn, map_tasks, simulate
 from sim.study.metrics import Outcome, TrialRecords, summarize
 from sim.study.optimal import DEFAULT_CLEARANCE_M, DEFAULT_RESOLUTION_M, optimal_path
 from sim.study.worlds import WorldBatch
@@ -43,7 +43,6 @@ __all__ = [
     "WorldTask",
     "load_case",
     "make_world_tasks",
-    "map_tasks",
     "run_world_chunk",
     "run_world_study",
     "world_table",
@@ -161,45 +160,6 @@ def make_world_tasks(
     ]
 
 
-def map_tasks(
-    fn: Callable[[_T], _R],
-    tasks: Sequence[_T],
-    sizes: Sequence[int],
-    executor: Executor | None = None,
-    *,
-    workers: int | None = None,
-    progress: ProgressFn | None = None,
-) -> list[_R]:
-    """``fn`` over ``tasks`` on ``executor`` (default ``default_executor(workers)``), results in task order.
-
-    ``sizes`` are the trials per task (for the progress bar); the largest tasks start first.
-    """
-    own = executor is None
-    ex = default_executor(workers) if executor is None else executor
-    total = sum(sizes)
-    done = 0
-    results: dict[int, _R] = {}
-    try:
-        order = sorted(range(len(tasks)), key=lambda i: -sizes[i])
-        with _single_thread_blas_env():
-            futures = {ex.submit(fn, tasks[i]): i for i in order}
-        pending = set(futures)
-        if progress is not None:
-            progress(0, total)
-        while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                i = futures[fut]
-                results[i] = fut.result()
-                done += sizes[i]
-            if progress is not None:
-                progress(done, total)
-    finally:
-        if own:
-            ex.shutdown(wait=True, cancel_futures=True)
-    return [results[i] for i in range(len(tasks))]
-
-
 @dataclass(frozen=True, slots=True, kw_only=True)
 class WorldCell:
     """All trials of one (planner, world), chunks in order."""
@@ -223,9 +183,7 @@ def run_world_study(
 ) -> list[WorldCell]:
     """``trials`` per (planner, world); one ``WorldCell`` each, planners outer, worlds inner."""
     tasks = make_world_tasks(config, planners, cases, trials, seed)
-    results = map_tasks(
-        run_world_chunk, tasks, [t.n_trials for t in tasks], executor, workers=workers, progress=progress
-    )
+    results = map_tasks(run_world_chunk, tasks, executor, workers=workers, progress=progress)
     groups: dict[tuple[str, str], list[WorldChunkResult]] = {}
     for r in results:
         groups.setdefault((r.task.planner_name, r.task.case.label), []).append(r)
