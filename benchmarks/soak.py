@@ -162,6 +162,7 @@ class Soak:
         self.feed = StatusFeed()
         self.flights: list[Flight] = []
         self.service: asyncio.subprocess.Process | None = None
+        self.stop = asyncio.Event()  # SIGINT / SIGTERM: finish the current flight, then summarise
 
     # ---- one flight ------------------------------------------------------------------------------------------
     async def _wait(self, cond: Any, timeout_s: float) -> bool:
@@ -244,11 +245,11 @@ class Soak:
             return "no_link"
         payload = encode_goal_json(GoalCommand(pos_ned_m=np.array([goal[0], goal[1], -ALT_M])))
 
-        def navigating() -> bool:
+        for _ in range(10):  # once, then again only if the service has not taken it within 3 s (a lost sample)
             zl.publish(GOAL_KEY, payload)
-            return self.feed.state() == "NAVIGATING"
-
-        if not await self._wait(navigating, 30.0):
+            if await self._wait(lambda: self.feed.state() == "NAVIGATING", 3.0):
+                break
+        else:
             return "goal_refused"
         if proxy is not None:  # relative blackouts: in a flight of the start-goal distance at 0.5 m/s
             proxy.start_flight(math.dist(start, goal) / EXPECTED_SPEED_M_S)
@@ -295,6 +296,9 @@ class Soak:
         )  # fmt: skip
         rows: list[dict[str, Any]] = []
         t_start = time.monotonic()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):  # also when started in the background (SIGINT ignored)
+            loop.add_signal_handler(sig, self.stop.set)
         try:
             zl = None
             for _ in range(100):  # the service opens its zenoh listener a moment after it starts
@@ -311,7 +315,7 @@ class Soak:
                 sampler = asyncio.create_task(self._sampler(rows, t_start))
                 try:
                     k = 0
-                    while time.monotonic() - t_start < args.minutes * 60.0:
+                    while time.monotonic() - t_start < args.minutes * 60.0 and not self.stop.is_set():
                         flight = await self.fly(k, zl)
                         self.flights.append(flight)
                         clearance = "n/a" if flight.min_clearance_m is None else f"{flight.min_clearance_m:.2f} m"
@@ -460,6 +464,8 @@ def main(argv: list[str] | None = None) -> int:
         LinkFaults.parse(args.link_faults)  # a typo fails here, not after the service started
     with tempfile.TemporaryDirectory(prefix="apf-soak-") as tmp:
         workdir = args.out or Path(tmp)
+        if workdir.exists() and any(workdir.iterdir()):
+            p.error(f"--out {workdir} is not empty")
         workdir.mkdir(parents=True, exist_ok=True)
         summary = asyncio.run(Soak(args, workdir).run())
         (workdir / "soak.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")

@@ -277,6 +277,9 @@ async def test_proxy_counts_a_companion_not_listening() -> None:
             vehicle_t.sendto(b"x" * 10, ("127.0.0.1", proxy.vehicle_port))
             await asyncio.sleep(0.01)
         await _wait_for(lambda: proxy.stats[Direction.TO_COMPANION].received == 5)
+        stats = proxy.stats[Direction.TO_COMPANION]
+        # Each one sent into the void (or refused with an ICMP error, counted); none raised.
+        await _wait_for(lambda: stats.delivered + stats.send_errors >= 5 and proxy.pending() == 0)
     finally:
         await proxy.aclose()
         vehicle_t.close()
