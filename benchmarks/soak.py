@@ -197,6 +197,8 @@ class Soak:
             "--exit-on-crash",
             "--duration", str(args.max_flight + 60.0),
         ]  # fmt: skip
+        if args.tlogs:
+            argv += ["--tlog", str(out / "vehicle.tlog")]
         t0 = time.monotonic()
         with (out / "vehicle.log").open("wb") as log:
             vehicle = await asyncio.create_subprocess_exec(*argv, stdout=log, stderr=log)
@@ -266,13 +268,14 @@ class Soak:
         return "timeout"
 
     # ---- sampling --------------------------------------------------------------------------------------------
-    def sample(self, t_wall: float, last_counters: dict[str, int]) -> dict[str, Any]:
+    def sample(self, t_wall: float, last_counters: dict[str, int], dt_s: float) -> dict[str, Any]:
         assert self.service is not None
         lat = np.asarray(self.feed.latencies_ms, dtype=np.float64)
         self.feed.latencies_ms = []
         counters = dict((self.feed.latest or {}).get("counters") or {})
         row: dict[str, Any] = {
             "t_s": round(t_wall, 1),
+            "dt_s": round(dt_s, 1),
             "flights": len(self.flights),
             "rss_mb": _rss_mb(self.service.pid),
             "lat_n": int(lat.size),
@@ -286,7 +289,10 @@ class Soak:
     async def run(self) -> dict[str, Any]:
         args = self.args
         cfg = self.workdir / "service.toml"
-        cfg.write_text(_service_toml(self.port, self.zport, args.speedup, args.seed))
+        toml = _service_toml(self.port, self.zport, args.speedup, args.seed)
+        if args.tlogs:  # every frame the service sent and received, for the whole soak
+            toml = toml.replace("[link]\n", f'[link]\ntlog = "{self.workdir / "companion.tlog"}"\n')
+        cfg.write_text(toml)
         env = os.environ | {"OPENBLAS_NUM_THREADS": "1"}
         svc_log = (self.workdir / "service.log").open("wb")
         self.service = await asyncio.create_subprocess_exec(
@@ -346,7 +352,8 @@ class Soak:
 
     def _row(self, rows: list[dict[str, Any]], t_start: float) -> dict[str, Any]:
         last = rows[-1]["counters"] if rows else {}
-        row = self.sample(time.monotonic() - t_start, last)
+        t = time.monotonic() - t_start
+        row = self.sample(t, last, t - (rows[-1]["t_s"] if rows else 0.0))
         _print_row(row, header=not rows)
         return row
 
@@ -369,7 +376,8 @@ class Soak:
         warm = [r for r in rows if r["flights"] >= 1 and r["rss_mb"] is not None] or [
             r for r in rows if r["rss_mb"] is not None
         ]
-        lat_rows = [r for r in rows if r["lat_p99_ms"] is not None]
+        # Latency drift over whole intervals only (the last row is whatever was left when the flights ended).
+        lat_rows = [r for r in rows if r["lat_p99_ms"] is not None and r["dt_s"] >= 0.5 * self.args.interval]
         return {
             "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
             "wall_s": wall_s,
@@ -459,6 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--link-faults", help="sim.linkfaults spec, e.g. loss=0.1,jitter=0.05 (default none)")
     p.add_argument("--seed", type=int, default=0, help="seed of worlds, starts, goals and faults")
     p.add_argument("--out", type=Path, help="keep logs and the summary JSON here (default: a temp dir)")
+    p.add_argument("--tlogs", action="store_true", help="record vehicle.tlog per flight and the service's tlog")
     args = p.parse_args(argv)
     if args.link_faults:
         LinkFaults.parse(args.link_faults)  # a typo fails here, not after the service started

@@ -518,7 +518,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
     p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
-    p.add_argument("--obstacles", default="mid", help="obstacle count N, or density low|mid|high (default mid)")
+    p.add_argument(
+        "--obstacles",
+        default="mid",
+        help="obstacle count N, or density low|mid|high (default mid); a list (low,mid,high) cycles over --trials",
+    )
     p.add_argument("--world", help="world TOML file or bundled example (forest, corridor, u-trap, wall)")
     p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
     p.add_argument("--goal", type=_pair, metavar="N,E", help="goal (default: the world file's, else 22,22)")
