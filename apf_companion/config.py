@@ -268,7 +268,7 @@ class ZenohSection:
         enabled: Open a zenoh session at all.
         mode: "peer", "client" (to a zenohd router) or "router" (self-contained, no zenohd needed).
         connect: Endpoints to connect to, explicit ``tcp/HOST:PORT`` (or ``tls/HOST:PORT`` with ``config_file``).
-        listen: Endpoints to listen on, explicit ``tcp/HOST:PORT``. Multicast scouting is always off.
+        listen: Endpoints to listen on, explicit ``tcp/HOST:PORT`` (or ``tls/``). Multicast scouting is always off.
         config_file: zenoh JSON5 file for TLS certificates / authentication (``deploy/zenoh-companion-tls.json5``),
             relative to this config's directory; it may not set mode, endpoints or multicast scouting. "" = none.
         sensor_key: Key of the range topic (JSON ``apf.range_scan/1`` or ROS 2 LaserScan CDR, told apart by

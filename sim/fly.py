@@ -41,7 +41,7 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -265,7 +265,9 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-async def _watch(gcs: MavlinkLink, progress: _Progress, airborne_m: float, on_airborne: Any = None) -> None:
+async def _watch(
+    gcs: MavlinkLink, progress: _Progress, airborne_m: float, on_airborne: Callable[[], None] | None = None
+) -> None:
     """Follow the flight as a ground station: position for the progress line, STATUSTEXT for the log;
     ``on_airborne()`` once the vehicle is ``airborne_m`` above home."""
     while True:
