@@ -267,8 +267,10 @@ class ZenohSection:
     Attributes:
         enabled: Open a zenoh session at all.
         mode: "peer", "client" (to a zenohd router) or "router" (self-contained, no zenohd needed).
-        connect: Endpoints to connect to, explicit ``tcp/HOST:PORT``.
-        listen: Endpoints to listen on, explicit ``tcp/HOST:PORT``. Multicast scouting is always off.
+        connect: Endpoints to connect to, explicit ``tcp/HOST:PORT`` (or ``tls/HOST:PORT`` with ``config_file``).
+        listen: Endpoints to listen on, explicit ``tcp/HOST:PORT`` (or ``tls/``). Multicast scouting is always off.
+        config_file: zenoh JSON5 file for TLS certificates / authentication (``deploy/zenoh-companion-tls.json5``),
+            relative to this config's directory; it may not set mode, endpoints or multicast scouting. "" = none.
         sensor_key: Key of the range topic (JSON ``apf.range_scan/1`` or ROS 2 LaserScan CDR, told apart by
             the sample's encoding).
         goal_key: Key of the goal command topic (JSON ``apf.goal/1``).
@@ -280,6 +282,7 @@ class ZenohSection:
     mode: str = "peer"
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
+    config_file: str = ""
     sensor_key: str = "apf/sensors/range0/ranges"
     goal_key: str = "apf/cmd/goal"
     status_key: str = "apf/status"
@@ -290,8 +293,8 @@ class ZenohSection:
             raise _fail("zenoh.mode", "'peer', 'client' or 'router'", self.mode)
         for key, endpoints in (("zenoh.connect", self.connect), ("zenoh.listen", self.listen)):
             for ep in endpoints:
-                if not isinstance(ep, str) or not ep.startswith("tcp/") or ":" not in ep:
-                    raise _fail(f"{key}[]", "an explicit endpoint 'tcp/HOST:PORT'", ep)
+                if not isinstance(ep, str) or not ep.startswith(("tcp/", "tls/")) or ":" not in ep:
+                    raise _fail(f"{key}[]", "an explicit endpoint 'tcp/HOST:PORT' or 'tls/HOST:PORT'", ep)
         if self.enabled and not (self.connect or self.listen):
             raise _fail("zenoh.connect/zenoh.listen", "at least one endpoint when zenoh.enabled", [])
         for key in ("sensor_key", "goal_key", "status_key"):

@@ -515,7 +515,10 @@ async def _open_zenoh(config: ServiceConfig) -> Any:
     from apf_companion.links.zenoh import Overflow, ZenohConfig, ZenohLink
 
     zc = config.zenoh
-    link = await ZenohLink.open(ZenohConfig(mode=zc.mode, connect=zc.connect, listen=zc.listen))
+    config_file = str(config.resolve(zc.config_file)) if zc.config_file else None
+    link = await ZenohLink.open(
+        ZenohConfig(mode=zc.mode, connect=zc.connect, listen=zc.listen, config_file=config_file)
+    )
     try:
         if config.sensors.zenoh:
             await link.subscribe(zc.sensor_key, overflow=Overflow.LATEST_PER_KEY, capacity=4)

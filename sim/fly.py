@@ -20,6 +20,12 @@ wall time at the default speed-up of 5); the heartbeat timeout is ``max(3, speed
 
 ``--trials N`` flies seeds SEED..SEED+N-1 and, on paper fields, runs the study's engine ``--study-reps`` times on
 each flown field (``study_same_worlds``), so the flight rate is compared with the study's on the same worlds.
+``--obstacles low,mid,high`` cycles the densities over the trials.
+
+``--link-faults SPEC`` (e.g. ``loss=0.3,jitter=0.1,dup=0.05,reorder=0.05,blackout=2@40%``) puts a seeded
+fault-injection proxy (``sim.linkfaults``, seeded with the flight's seed) between the vehicle and the service.
+Its times are simulated seconds; a relative blackout (``2@40%``) is placed in the expected flight, which starts
+when the takeoff is done and lasts the start-goal distance at ``EXPECTED_SPEED_M_S``.
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -46,15 +52,18 @@ import numpy.typing as npt
 
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink
+from sim.linkfaults import LinkFaults, LinkProxy
 
 if TYPE_CHECKING:
     from sim.world import World
 
 __all__ = ["FlyOptions", "flown_world", "fly", "paper_world", "register", "study_same_worlds"]
 
-OUTCOMES = ("arrived", "collision", "stuck", "timeout", "error")
+OUTCOMES = ("arrived", "collision", "stuck", "timeout", "link_lost", "error")
 PAPER_START = (3.0, 3.0)
 PAPER_GOAL = (22.0, 22.0)
+# Measured: the default service flies the paper's 26.9 m diagonal in ~53 simulated s after the takeoff.
+EXPECTED_SPEED_M_S = 0.5
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -79,6 +88,7 @@ class FlyOptions:
     plot: bool = True
     progress: bool = True
     service_args: tuple[str, ...] = field(default_factory=tuple)
+    link_faults: LinkFaults | None = None
 
 
 def free_udp_port() -> int:
@@ -256,8 +266,11 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-async def _watch(gcs: MavlinkLink, progress: _Progress) -> None:
-    """Follow the flight as a ground station: position for the progress line, STATUSTEXT for the log."""
+async def _watch(
+    gcs: MavlinkLink, progress: _Progress, airborne_m: float, on_airborne: Callable[[], None] | None = None
+) -> None:
+    """Follow the flight as a ground station: position for the progress line, STATUSTEXT for the log;
+    ``on_airborne()`` once the vehicle is ``airborne_m`` above home."""
     while True:
         try:
             msg = await gcs.recv(timeout=1.0)
@@ -268,6 +281,9 @@ async def _watch(gcs: MavlinkLink, progress: _Progress) -> None:
             progress.pos = (msg.x, msg.y, msg.z)
             progress.sim_t = msg.time_boot_ms / 1000.0
             progress.show()
+            if on_airborne is not None and -msg.z >= airborne_m:
+                on_airborne()
+                on_airborne = None
         elif kind == "STATUSTEXT":
             text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode(errors="replace")
             progress.texts.append(text.rstrip("\x00"))
@@ -302,9 +318,40 @@ def _outcome(sim: dict[str, Any] | None, svc: dict[str, Any] | None) -> str:
     if svc is None:
         return "error"
     outcome = svc.get("outcome")
-    if outcome in ("arrived", "stuck", "timeout"):
+    if outcome in ("arrived", "stuck", "timeout", "link_lost"):
         return str(outcome)
     return "error"
+
+
+def _service_events(log_path: Path) -> dict[str, Any]:
+    """What the service's JSON log says about the flight: state changes, failed takeovers, the last reason."""
+    events: dict[str, Any] = {"link_lost": 0, "holding": 0, "takeover_failed": [], "last_reason": None}
+    try:
+        lines = log_path.read_text(errors="replace").splitlines()
+    except OSError:
+        return events
+    for line in lines:
+        try:
+            ev = json.loads(line)
+        except ValueError:
+            continue
+        if not isinstance(ev, dict):
+            continue
+        if ev.get("event") == "state.change":
+            events["last_reason"] = ev.get("reason")
+            if ev.get("new") == "LINK_LOST":
+                events["link_lost"] += 1
+            elif ev.get("new") == "HOLDING":
+                events["holding"] += 1
+        elif ev.get("event") == "takeover.failed":
+            events["takeover_failed"].append(ev.get("error"))
+    return events
+
+
+def expected_flight_s(opt: FlyOptions) -> float:
+    """The flight a relative blackout is placed in: start-goal distance at EXPECTED_SPEED_M_S [simulated s]."""
+    dist = math.hypot(opt.goal_ne_m[0] - opt.start_ne_m[0], opt.goal_ne_m[1] - opt.start_ne_m[1])
+    return max(dist / EXPECTED_SPEED_M_S, 1.0)
 
 
 async def fly(opt: FlyOptions) -> dict[str, Any]:
@@ -316,6 +363,9 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
     gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
     assert gcs.local_address is not None
     gcs_port = gcs.local_address[1]
+    proxy: LinkProxy | None = None
+    if opt.link_faults is not None:
+        proxy = await LinkProxy.open(opt.link_faults, companion_port=port, seed=opt.seed, time_scale=opt.speedup)
     cfg_path = opt.out / "service.toml"
     cfg_path.write_text(_service_toml(opt, port, (opt.out / "companion.tlog").resolve()))
     env = os.environ | {"OPENBLAS_NUM_THREADS": "1"}
@@ -338,12 +388,14 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
         stderr=svc_log,
         env=env,
     )
+    vehicle_port = port if proxy is None else proxy.vehicle_port  # the vehicle talks to the proxy
     vehicle = await asyncio.create_subprocess_exec(
-        *_sim_argv(opt, port, gcs_port), stdout=sim_log, stderr=sim_log, env=env
+        *_sim_argv(opt, vehicle_port, gcs_port), stdout=sim_log, stderr=sim_log, env=env
     )
     progress = _Progress(opt.progress, opt.goal_ne_m)
     wall_limit_s = opt.max_flight_s / opt.speedup + 60.0  # + start-up and takeoff
-    watcher = asyncio.create_task(_watch(gcs, progress))
+    airborne = None if proxy is None else (lambda: proxy.start_flight(expected_flight_s(opt)))
+    watcher = asyncio.create_task(_watch(gcs, progress, 0.9 * opt.alt_m, airborne))
     try:
         done, _ = await asyncio.wait(
             [asyncio.create_task(service.wait()), asyncio.create_task(vehicle.wait())],
@@ -360,6 +412,8 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
         with contextlib.suppress(asyncio.CancelledError):
             await watcher
         await gcs.aclose()
+        if proxy is not None:
+            await proxy.aclose()
         svc_log.close()
         sim_log.close()
     wall_s = time.monotonic() - t0
@@ -384,7 +438,15 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
         "service_exit_code": service.returncode,
         "vehicle_exit_code": vehicle.returncode,
         "statustexts": progress.texts[-20:],
+        "service_outcome": svc_res.get("outcome") if svc_res else None,
+        # The goal was lost without arriving: LINK_LOST, or IDLE after a failed takeover / mode loss.
+        "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
+        "service_events": _service_events(opt.out / "service.log"),
     }
+    if proxy is not None:
+        record["link_faults"] = str(opt.link_faults)
+        record["link_stats"] = proxy.stats_dict()
+        record["blackout_windows_s"] = proxy.blackout_windows()
     (opt.out / "result.json").write_text(json.dumps(record, indent=2) + "\n")
     if opt.json_path is not None:
         opt.json_path.parent.mkdir(parents=True, exist_ok=True)
@@ -459,7 +521,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
     p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
-    p.add_argument("--obstacles", default="mid", help="obstacle count N, or density low|mid|high (default mid)")
+    p.add_argument(
+        "--obstacles",
+        default="mid",
+        help="obstacle count N, or density low|mid|high (default mid); a list (low,mid,high) cycles over --trials",
+    )
     p.add_argument("--world", help=f"world TOML file or bundled example ({', '.join(_bundled_worlds())})")
     p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
     p.add_argument("--goal", type=_pair, metavar="N,E", help="goal (default: the world file's, else 22,22)")
@@ -489,6 +555,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="with --trials on a paper field: also run the study's engine R times on each flown field "
         "(its noise and rules) and print its success rate on the same worlds (default 100; 0 = off)",
     )
+    p.add_argument(
+        "--link-faults",
+        type=_link_faults,
+        metavar="SPEC",
+        help="seeded faults between vehicle and service, e.g. loss=0.3,jitter=0.1,dup=0.05,reorder=0.05,"
+        "blackout=2@40%%  (times in simulated s; see sim/linkfaults.py)",
+    )
     p.set_defaults(func=_cmd_fly)
 
 
@@ -496,6 +569,13 @@ def _bundled_worlds() -> list[str]:
     from sim.world import EXAMPLES_DIR
 
     return sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
+
+
+def _link_faults(text: str) -> LinkFaults:
+    try:
+        return LinkFaults.parse(text)
+    except ConfigError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
 
 
 def _start_goal(args: argparse.Namespace) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -534,7 +614,10 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         json_path=args.json,
         plot=not args.no_plot,
         progress=not args.quiet,
+        link_faults=args.link_faults,
     )
+    if args.trials <= 1:
+        opt = dataclasses.replace(opt, obstacles=_densities(opt)[0])
     if args.trials > 1:
         return _sweep(opt, args.trials, study_reps=args.study_reps)
     try:
@@ -569,10 +652,17 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 def _sweep_loop(
     base: FlyOptions, trials: int, records: list[dict[str, Any]], fields: list[npt.NDArray[np.float64]]
 ) -> None:
+    densities = _densities(base)
     for k in range(trials):
         seed = base.seed + k
         opt = dataclasses.replace(
-            base, seed=seed, out=base.out / f"seed-{seed}", json_path=None, progress=False, plot=base.plot
+            base,
+            seed=seed,
+            obstacles=densities[k % len(densities)],
+            out=base.out / f"seed-{seed}",
+            json_path=None,
+            progress=False,
+            plot=base.plot,
         )
         try:
             rec = asyncio.run(fly(opt))
@@ -580,6 +670,7 @@ def _sweep_loop(
             rec = {"outcome": "error", "seed": seed, "error": str(err)}
         if base.world is None:
             fields.append(flown_world(opt, _read_json(opt.out / "sim_result.json")))
+            rec["obstacles"] = opt.obstacles
         records.append(rec)
         ok = sum(r["outcome"] == "arrived" for r in records)
         print(
@@ -587,6 +678,29 @@ def _sweep_loop(
             f"clearance {rec.get('min_clearance_m')} steps {rec.get('steps')}  (success so far {ok}/{k + 1})",
             flush=True,
         )
+
+
+def _densities(opt: FlyOptions) -> list[str]:
+    """``--obstacles low,mid,high``: the densities the trials cycle through (one entry: all the same)."""
+    return [d.strip() for d in opt.obstacles.split(",") if d.strip()] or ["mid"]
+
+
+def _fault_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Collisions, lowest clearance, dropped goals and LINK_LOST events over the trials (for --link-faults)."""
+    clearances = [r["min_clearance_m"] for r in records if r.get("min_clearance_m") is not None]
+    events = [r.get("service_events") or {} for r in records]
+    return {
+        "collisions": sum(r["outcome"] == "collision" for r in records),
+        "min_clearance_m": min(clearances) if clearances else None,
+        "dropped_goals": sum(bool(r.get("dropped_goal")) for r in records),
+        "link_lost_events": sum(int(e.get("link_lost", 0)) for e in events),
+        "flights_with_link_lost": sum(int(e.get("link_lost", 0)) > 0 for e in events),
+        "takeover_failures": sum(len(e.get("takeover_failed") or []) for e in events),
+        "by_obstacles": {
+            d: {o: sum(r["outcome"] == o and r.get("obstacles") == d for r in records) for o in OUTCOMES}
+            for d in sorted({str(r.get("obstacles")) for r in records})
+        },
+    }
 
 
 def _mean_ci(values: npt.NDArray[np.float64], z: float = 1.96) -> tuple[float, float, float]:
@@ -678,6 +792,8 @@ def _sweep(base: FlyOptions, trials: int, study_reps: int = 0) -> int:
         "counts": counts,
         "mean_steps_success": (sum(r["steps"] for r in wins) / len(wins)) if wins else None,
         "mean_path_length_m_success": (sum(r["path_length_m"] for r in wins) / len(wins)) if wins else None,
+        "link_faults": None if base.link_faults is None else str(base.link_faults),
+        **_fault_summary(records),
     }
     study: dict[str, Any] | None = None
     if study_reps > 0 and base.world is None and len(fields) == trials:
@@ -691,6 +807,14 @@ def _sweep(base: FlyOptions, trials: int, study_reps: int = 0) -> int:
     print(
         f"success {ok}/{trials} = {ok / trials:.3f} (95 % CI {lo:.3f}-{hi:.3f}); "
         + ", ".join(f"{o} {n}" for o, n in counts.items())
+    )
+    clearance = summary["min_clearance_m"]
+    print(
+        f"collisions {summary['collisions']}, lowest clearance "
+        f"{'n/a' if clearance is None else f'{clearance:.3f} m'}, dropped goals {summary['dropped_goals']}, "
+        f"LINK_LOST {summary['link_lost_events']} (in {summary['flights_with_link_lost']} flights), "
+        f"failed takeovers {summary['takeover_failures']}"
+        + ("" if base.link_faults is None else f"; link faults {base.link_faults}")
     )
     if study is not None:
         slo, shi = study["ci95"]

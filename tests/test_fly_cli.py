@@ -72,5 +72,8 @@ def test_outcome_rules() -> None:
     assert _outcome({"collided": False, "crashed": False}, {"outcome": "arrived"}) == "arrived"
     assert _outcome({"collided": False}, {"outcome": "stuck"}) == "stuck"
     assert _outcome({"collided": False}, {"outcome": "timeout"}) == "timeout"
-    assert _outcome({"collided": False}, {"outcome": "link_lost"}) == "error"
+    # LINK_LOST is an outcome of its own (issue 9's sweeps count it); anything else the service reports is an error.
+    assert _outcome({"collided": False}, {"outcome": "link_lost"}) == "link_lost"
+    assert _outcome({"collided": False}, {"outcome": "error"}) == "error"
+    assert _outcome({"collided": False}, {"outcome": "stopped"}) == "error"
     assert _outcome({"collided": False}, None) == "error"

@@ -13,8 +13,10 @@ buffer's overflow policy is chosen per subscription:
 Publishing is a non-blocking ``put`` from the loop (publishers use CongestionControl.DROP, so a slow
 network never blocks the cycle). Opening and closing the session run in a worker thread.
 
-Every session disables multicast scouting and uses only the explicit ``tcp/HOST:PORT`` endpoints given
-in ``ZenohConfig``; wildcard hosts (0.0.0.0, ::) are rejected.
+Every session disables multicast scouting and uses only the explicit ``tcp/HOST:PORT`` (or ``tls/HOST:PORT``)
+endpoints given in ``ZenohConfig``; wildcard hosts (0.0.0.0, ::) are rejected. ``config_file`` adds a zenoh JSON5
+file for everything else (TLS certificates, authentication, access control; ``deploy/zenoh-*.json5`` and
+docs/faults.md); it may not set the mode, the endpoints or multicast scouting, which stay ``ZenohConfig``'s.
 
 Example::
 
@@ -65,13 +67,16 @@ DEFAULT_GOAL_KEY = "apf/cmd/goal"
 DEFAULT_STATUS_KEY = "apf/status"
 
 _MODES = ("peer", "client", "router")
-_ENDPOINT_RE = re.compile(r"^tcp/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.\-]+):(?P<port>[0-9]{1,5})$")
+_ENDPOINT_RE = re.compile(r"^(?:tcp|tls)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.\-]+):(?P<port>[0-9]{1,5})$")
 
 
 def _check_endpoint(endpoint: str, *, name: str, allow_port_zero: bool) -> None:
     m = _ENDPOINT_RE.match(endpoint) if isinstance(endpoint, str) else None
     if m is None:
-        msg = f"zenoh {name} endpoint {endpoint!r} must be explicit 'tcp/HOST:PORT' (e.g. 'tcp/127.0.0.1:7447')"
+        msg = (
+            f"zenoh {name} endpoint {endpoint!r} must be explicit 'tcp/HOST:PORT' or 'tls/HOST:PORT' "
+            "(e.g. 'tcp/127.0.0.1:7447')"
+        )
         raise ConfigError(msg)
     host = m.group("host").strip("[]")
     try:
@@ -88,6 +93,29 @@ def _check_endpoint(endpoint: str, *, name: str, allow_port_zero: bool) -> None:
         raise ConfigError(msg)
 
 
+# Keys a config_file may not set: ZenohConfig owns them. Values as zenoh.Config().get_json reports the defaults.
+_OWNED_KEYS = ("mode", "connect/endpoints", "listen/endpoints")
+
+
+def _load_config_file(path: str) -> zenoh.Config:
+    """Parse a zenoh JSON5 file (zenoh itself rejects unknown keys) and check it leaves mode, endpoints and
+    multicast scouting to ZenohConfig. Raises ConfigError."""
+    try:
+        conf = zenoh.Config.from_file(path)
+    except zenoh.ZError as err:
+        msg = f"zenoh config_file {path!r}: {err}"
+        raise ConfigError(msg) from err
+    default = zenoh.Config()
+    for key in _OWNED_KEYS:
+        if conf.get_json(key) != default.get_json(key):
+            msg = f"zenoh config_file {path!r} sets {key!r}: give mode, connect and listen in the service config"
+            raise ConfigError(msg)
+    if json.loads(conf.get_json("scouting/multicast/enabled")) is True:
+        msg = f"zenoh config_file {path!r} enables multicast scouting: it stays off (explicit endpoints only)"
+        raise ConfigError(msg)
+    return conf
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ZenohConfig:
     """Validated zenoh session settings. Multicast scouting is always disabled.
@@ -95,13 +123,16 @@ class ZenohConfig:
     Attributes:
         mode: ``"peer"`` (default), ``"client"`` (needs a router in ``connect``), or ``"router"`` (a
             self-contained router for a companion without zenohd, and for tests).
-        connect: Endpoints to connect to, each ``tcp/HOST:PORT`` with port 1..65535.
-        listen: Endpoints to listen on, each ``tcp/HOST:PORT`` with port 0..65535.
+        connect: Endpoints to connect to, each ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` with port 1..65535.
+        listen: Endpoints to listen on, each ``tcp/HOST:PORT`` or ``tls/HOST:PORT`` with port 0..65535.
+        config_file: A zenoh JSON5 file with the rest (``transport/link/tls/...`` certificates, ``access_control``);
+            it may not set mode, endpoints or multicast scouting. None = zenoh's defaults.
     """
 
     mode: str = "peer"
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
+    config_file: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -123,10 +154,12 @@ class ZenohConfig:
         if not self.connect and not self.listen:
             msg = "zenoh needs at least one connect or listen endpoint (multicast scouting is disabled)"
             raise ConfigError(msg)
+        if self.config_file is not None:
+            _load_config_file(self.config_file)
 
     def to_zenoh(self) -> zenoh.Config:
-        """The equivalent ``zenoh.Config``."""
-        conf = zenoh.Config()
+        """The equivalent ``zenoh.Config`` (``config_file`` first, then mode, endpoints, scouting off)."""
+        conf = zenoh.Config() if self.config_file is None else _load_config_file(self.config_file)
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
