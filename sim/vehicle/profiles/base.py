@@ -46,7 +46,8 @@ class ProfileTexts:
 @dataclass(frozen=True, slots=True)
 class SetpointRule:
     """How the autopilot takes a SET_POSITION_TARGET_*: the kind of target and the type_mask in force, or None
-    with the STATUSTEXT it answers (severity, text; empty text = silently ignored)."""
+    with the STATUSTEXT it answers (severity, text); then the profile's ``invalid_setpoint`` says what it does
+    (ArduCopter stops, PX4 ignores)."""
 
     kind: TargetKind | None
     type_mask: int
@@ -84,6 +85,7 @@ class AutopilotProfile(Protocol):
     reports_prearm_check: bool  # SYS_STATUS carries MAV_SYS_STATUS_PREARM_CHECK
     body_yaw_relative: bool  # in BODY_* frames the setpoint's yaw is relative to the heading
     echoes_target_yaw: bool  # POSITION_TARGET_LOCAL_NED carries the target's yaw (else 0)
+    advances_position_target: bool  # a position+velocity target moves along its velocity until GUID_TIMEOUT
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int: ...
@@ -112,6 +114,7 @@ class AutopilotProfile(Protocol):
 
     # -- setpoint rules
     def setpoint_rule(self, mask: int, frame: int) -> SetpointRule: ...
+    def invalid_setpoint(self, v: VehicleEngine) -> bool: ...  # True: acted on it silently; False: ignore, warn
     def accepts_setpoint(self, v: VehicleEngine) -> bool: ...
     def after_external_target(self, v: VehicleEngine) -> None: ...
     def echo_type_mask(self, sp: Setpoint) -> int: ...

@@ -86,6 +86,7 @@ class Px4Profile:
     reports_prearm_check = False
     body_yaw_relative = False  # mavlink_receiver.cpp passes BODY_NED yaw through unrotated
     echoes_target_yaw = True
+    advances_position_target = False  # the position is flown as sent; the velocity is a feed-forward
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:
@@ -213,6 +214,9 @@ class Px4Profile:
             )
         kind = TargetKind.POSITION if given[0] else TargetKind.VELOCITY if given[1] else TargetKind.ACCELERATION
         return SetpointRule(kind, mask)
+
+    def invalid_setpoint(self, v: VehicleEngine) -> bool:
+        return False  # mavlink_receiver.cpp: an unusable setpoint is dropped (with its STATUSTEXT)
 
     def accepts_setpoint(self, v: VehicleEngine) -> bool:
         return True  # kept for when OFFBOARD engages
