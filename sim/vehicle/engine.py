@@ -340,6 +340,7 @@ class VehicleEngine:
         return {
             "schema": "apf.sim_result/1",
             "profile": self.profile.value,
+            "dynamics": self.cfg.dynamics.value,
             "seed": self.cfg.seed,
             "collided": self.crash_info is not None and self.crash_info["obstacle_id"] >= 0,
             "crashed": self.crashed,
