@@ -2,7 +2,8 @@
 measurements in issue 8) against the simulator's, stimulus by stimulus, so fidelity cannot silently regress.
 
 The engine runs in-process on its simulated clock (no sockets, no wall time) with the ``arducopter`` dynamics;
-the protocol rows (position+velocity target, invalid setpoint) hold for both dynamics.
+the protocol rows (position+velocity target, invalid setpoint) hold for both dynamics. The last tests check the
+new parameters and PX4's takeoff/land rules (read in PX4's source; no PX4 SITL measurements exist yet).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, CopterMode
+from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, Autopilot, CopterMode
 from sim.vehicle import Dynamics, EngineConfig, SpawnConfig, VehicleEngine
 
 REAL: dict[str, Any] = tomllib.loads((Path(__file__).parent / "data" / "arducopter_sitl_responses.toml").read_text())
@@ -134,3 +135,40 @@ def test_invalid_setpoint_stops_silently(dynamics: Dynamics, frame: int, mask: i
     probe.run(3.0)
     assert real["stops"] and x_stop < 15.0 and abs(probe.engine.state.pos_ned_m[0] - x_stop) < 0.1
     assert len(probe.engine.statustexts) == real["statustexts"]
+
+
+def test_arducopter_dynamics_read_their_parameters() -> None:
+    """The shape follows PSC_JERK_XY / WPNAV_ACCEL as set (PARAM_SET writes the same table)."""
+    x_1s = []
+    for jerk in (5.0, 2.0):
+        probe = Probe()
+        assert probe.engine.params.set("PSC_JERK_XY", jerk) is None
+        probe.settle()
+        probe.setpoint(MASK_POSITION, (5.0, 0.0, -5.0))
+        x_1s.append(float(at(probe.run(1.0), 1.0)[0]))
+    assert x_1s[1] < 0.7 * x_1s[0]
+
+
+def test_px4_takeoff_spools_and_ramps_and_land_slows_near_ground() -> None:
+    """PX4 Takeoff.cpp: COM_SPOOLUP_TIME after arming, then the climb speed ramps over MPC_TKO_RAMP_T;
+    FlightTaskAuto _prepareLandSetpoints: MPC_LAND_SPEED below MPC_LAND_ALT2 (checked in PX4's source, no SITL)."""
+    e = VehicleEngine(EngineConfig(profile=Autopilot.PX4), n_links=1, emit=lambda _l, _m: None)
+    e.handle(GCS.command_long_encode(1, 1, m.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0), 0)
+    e.handle(GCS.command_long_encode(1, 1, m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, float("nan")), 0)
+    climb = []
+    while e.t_s < 8.0:
+        e.step()
+        climb.append((e.t_s, -float(e.state.vel_ned_m_s[2]), e.state.alt_m))
+    assert all(alt == 0.0 for (t, _v, alt) in climb if t < 0.99)  # spooling up
+    assert all(v <= 1.5 * (t - 1.0) / 3.0 + 0.05 for (t, v, _a) in climb if t >= 1.0)  # the ramp
+    assert e.state.alt_m > 2.0
+    cfg = EngineConfig(profile=Autopilot.PX4, spawn=SpawnConfig(airborne=True, alt_m=8.0))
+    e = VehicleEngine(cfg, n_links=1, emit=lambda _l, _m: None)
+    e.handle(GCS.command_long_encode(1, 1, m.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0), 0)
+    descent: list[tuple[float, float]] = []
+    while not e.state.on_ground and e.t_s < 30.0:
+        e.step()
+        descent.append((e.state.alt_m, float(e.state.vel_ned_m_s[2])))
+    assert e.state.on_ground
+    assert max(v for (alt, v) in descent if alt < 4.5) <= 0.7 + 0.02  # MPC_LAND_SPEED below MPC_LAND_ALT2 (5 m)
+    assert max(v for (alt, v) in descent) > 0.9  # faster higher up

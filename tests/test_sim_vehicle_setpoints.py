@@ -208,7 +208,8 @@ async def test_global_int_setpoint() -> None:
         )  # fmt: skip
         e = await echo(gcs, MASK_POSITION)
         np.testing.assert_allclose([e.x, e.y, e.z], [10.0, 5.0, -7.0], atol=0.02)
-        await wait_for(sim, lambda s: bool(np.allclose(s.vehicle.pos_ned_m, [10.0, 5.0, -7.0], atol=0.05)))
+        # wait until the vehicle has settled (GLOBAL_POSITION_INT is checked to 3e-7 deg, about 3 cm)
+        await wait_for(sim, lambda s: bool(np.allclose(s.vehicle.pos_ned_m, [10.0, 5.0, -7.0], atol=0.01)))
         t_ms = round(sim.t_s * 1000)
         gpi = await gcs.recv_match(type="GLOBAL_POSITION_INT", condition=lambda g: g.time_boot_ms >= t_ms, timeout=2.0)
         assert gpi.lat == pytest.approx((lat0 + dlat) * 1e7, abs=3)

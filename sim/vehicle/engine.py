@@ -118,6 +118,7 @@ class VehicleEngine:
         self.target = ControlTarget()
         self.hold_pos_ned_m: FloatArray = self.state.pos_ned_m.copy()
         self.takeoff_alt_m: float | None = None  # a takeoff is climbing to this altitude above home [m]
+        self.takeoff_t_s = self.armed_t_s = -math.inf  # when the takeoff was commanded, when the vehicle armed
         self.rtl_phase = 0  # 0 not started, 1 climb and return, 2 land
         self.rtl_alt_m = 0.0
         self.landed_since_s: float | None = None

@@ -25,7 +25,6 @@ __all__ = ["MODE_TARGETS", "choose_target"]
 log = logging.getLogger(__name__)
 
 ModeTarget = Callable[["VehicleEngine", Limits], tuple[ControlTarget, Limits]]
-LAND_FINAL_ALT_M = 10.0  # below this a landing descends at the land speed
 RTL_CLIMB_TOLERANCE_M = 0.5  # RTL climbs to its altitude before it returns ...
 RTL_ARRIVED_M = 0.5  # ... and lands when this close (horizontally) to home
 TAKEOFF_DONE_M = 0.1  # a takeoff is complete this close below its altitude
@@ -46,10 +45,9 @@ def _land(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
     st = v.state
     if st.on_ground:
         return ControlTarget(kind=GROUND), limits
-    land_speed = v.profile_rules.land_speed_m_s(v.params)
+    speed_down = v.profile_rules.land_speed_m_s(v.params, st.alt_m, limits)
     hold = v.hold_pos_ned_m.copy()
     hold[2] = 1.0  # below the ground: keep descending until touchdown
-    speed_down = land_speed if st.alt_m < LAND_FINAL_ALT_M else limits.speed_down_m_s
     return ControlTarget(kind=TargetKind.POSITION, pos_ned_m=hold), replace_limits(limits, speed_down_m_s=speed_down)
 
 
@@ -78,7 +76,7 @@ def _rtl(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
 
 def _takeoff(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
     alt = v.takeoff_alt_m if v.takeoff_alt_m is not None else v.params["MIS_TAKEOFF_ALT"]
-    speed_up = v.profile_rules.takeoff_speed_up_m_s(v.params, limits)
+    speed_up = v.profile_rules.takeoff_speed_up_m_s(v, limits)
     tgt = v.hold_pos_ned_m.copy()
     tgt[2] = -alt
     if v.state.alt_m >= alt - TAKEOFF_DONE_M:

@@ -141,7 +141,11 @@ _PX4 = (
     ParamSpec(name="MPC_Z_VEL_MAX_UP", default=3.0, lo=0.5, hi=8.0, doc="climb speed [m/s]"),
     ParamSpec(name="MPC_Z_VEL_MAX_DN", default=1.5, lo=0.5, hi=4.0, doc="descent speed [m/s]"),
     ParamSpec(name="MPC_TKO_SPEED", default=1.5, lo=1.0, hi=5.0, doc="takeoff climb speed [m/s]"),
-    ParamSpec(name="MPC_LAND_SPEED", default=0.7, lo=0.6, hi=3.0, doc="landing speed [m/s]"),
+    ParamSpec(name="MPC_TKO_RAMP_T", default=3.0, lo=0.0, hi=5.0, doc="takeoff speed ramp time [s]"),
+    ParamSpec(name="COM_SPOOLUP_TIME", default=1.0, lo=0.0, hi=30.0, doc="motor spool-up after arming [s]"),
+    ParamSpec(name="MPC_LAND_SPEED", default=0.7, lo=0.6, hi=3.0, doc="landing speed below MPC_LAND_ALT2 [m/s]"),
+    ParamSpec(name="MPC_LAND_ALT1", default=10.0, lo=0.0, hi=122.0, doc="land: slowing down starts below [m]"),
+    ParamSpec(name="MPC_LAND_ALT2", default=5.0, lo=0.0, hi=122.0, doc="land: MPC_LAND_SPEED below [m]"),
     ParamSpec(name="MIS_TAKEOFF_ALT", default=2.5, lo=0.0, hi=80.0, doc="default takeoff altitude [m]"),
     ParamSpec(name="RTL_RETURN_ALT", default=30.0, lo=0.0, hi=150.0, doc="RTL return altitude [m]"),
     ParamSpec(

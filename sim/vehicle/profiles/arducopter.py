@@ -52,6 +52,7 @@ MODES_NO_ARM = frozenset(int(m) for m in (CopterMode.LAND, CopterMode.RTL, Copte
 _BEHAVIOUR = {int(CopterMode.GUIDED): Behaviour.GUIDED, int(CopterMode.LAND): Behaviour.LAND}
 _BEHAVIOUR[int(CopterMode.RTL)] = Behaviour.RTL
 # POSITION_TARGET_LOCAL_NED's type_mask per GUIDED submode (GCS_MAVLink_Copter.cpp send_position_target_local_ned)
+LAND_ALT_LOW_M = 10.0  # LAND_ALT_LOW default (1000 cm)
 ECHO_VEL_ACCEL = int(POS_IGNORE | TypeMask.YAW_IGNORE | TypeMask.YAW_RATE_IGNORE)  # 0x0C07
 
 
@@ -126,14 +127,15 @@ class ArduCopterProfile:
     def cruise_m_s(self, params: ParamTable) -> float:
         return params["WPNAV_SPEED"] / 100.0
 
-    def land_speed_m_s(self, params: ParamTable) -> float:
-        return params["LAND_SPEED"] / 100.0
+    def land_speed_m_s(self, params: ParamTable, alt_m: float, limits: Limits) -> float:
+        """mode_land.cpp: LAND_SPEED below LAND_ALT_LOW (10 m), the descent speed above it."""
+        return params["LAND_SPEED"] / 100.0 if alt_m < LAND_ALT_LOW_M else limits.speed_down_m_s
 
     def rtl_alt_m(self, params: ParamTable) -> float:
         return params["RTL_ALT"] / 100.0
 
-    def takeoff_speed_up_m_s(self, params: ParamTable, limits: Limits) -> float:
-        return limits.speed_up_m_s
+    def takeoff_speed_up_m_s(self, v: VehicleEngine, limits: Limits) -> float:
+        return limits.speed_up_m_s  # spool-up and the throttle slew are the arducopter dynamics' (poscontrol.py)
 
     def disarm_delay_s(self, params: ParamTable) -> float:
         return params["DISARM_DELAY"]
