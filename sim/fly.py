@@ -72,6 +72,7 @@ class FlyOptions:
 
     planner: str = "cr-bapf*"
     profile: str = "ardupilot"
+    dynamics: str = "simple"  # the simulator's vehicle response: simple | arducopter
     seed: int = 0
     preset: str = "reference"
     obstacles: str = "mid"
@@ -208,6 +209,8 @@ def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
         "vehicle",
         "--profile",
         opt.profile,
+        "--dynamics",
+        opt.dynamics,
         "--link",
         f"udpout:127.0.0.1:{port}",
         "--link",
@@ -429,6 +432,7 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
         "flight_time_s": float(svc_res["flight_time_s"]) if svc_res else 0.0,
         "planner": opt.planner,
         "profile": opt.profile,
+        "dynamics": opt.dynamics,
         "world": (sim_res or {}).get("world", {}).get("name", opt.world),
         "seed": opt.seed,
         "speedup": opt.speedup,
@@ -519,6 +523,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     p.add_argument("--planner", default="cr-bapf*", help="capf, bapf, a-bapf, cr-bapf, cr-bapf* (default)")
     p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
+    p.add_argument(
+        "--dynamics",
+        choices=("simple", "arducopter"),
+        default="simple",
+        help="the simulated vehicle's response: simple (default) or arducopter (ArduCopter's controller shape)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
     p.add_argument(
@@ -599,6 +609,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     opt = FlyOptions(
         planner=args.planner,
         profile=args.profile,
+        dynamics=args.dynamics,
         seed=args.seed,
         preset=args.preset,
         obstacles=args.obstacles,

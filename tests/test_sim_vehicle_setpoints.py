@@ -143,36 +143,46 @@ async def test_accepted_type_masks(mask: int, check: str) -> None:
 
 
 @pytest.mark.parametrize(
-    ("mask", "reason"),
+    "mask",
     [
-        (0x0DF9, "position must be given for all 3 axes"),  # x ignored only
-        (0x0DCF, "velocity must be given for all 3 axes"),  # pos ignored, vx ignored, vy vz given
-        (0x09FF, "no position, velocity or acceleration"),  # yaw alone
-        (0x05FF, "no position, velocity or acceleration"),  # yaw rate alone
-        (0x0C38, "position+acceleration unsupported"),
-        (0x0E3F, "force setpoints unsupported"),
-        (0x0FFF, "no position, velocity or acceleration"),
+        0x0DF9,  # x ignored only: any bit ignores the group; nothing left
+        0x0DCF,  # position ignored, vx ignored
+        0x09FF,  # yaw alone
+        0x05FF,  # yaw rate alone
+        0x0C38,  # position+acceleration
+        0x0E3F,  # FORCE with an acceleration
+        0x0FFF,
+        0xFFFF,
     ],
 )
-async def test_invalid_type_masks_are_ignored_and_reported(mask: int, reason: str) -> None:
+async def test_invalid_type_masks_stop_the_vehicle_ardupilot(mask: int) -> None:
+    """GCS_MAVLink_Copter.cpp: "input is not valid so stop" (mode_guided.init): no STATUSTEXT, the vehicle
+    decelerates and holds, echoed as the velocity submode (0x0C07)."""
     async with simulator_with_client(spawn=SpawnConfig(airborne=True), speedup=10.0) as (sim, gcs):
-        sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(2.0, 0.0, -5.0))
+        sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(20.0, 0.0, -5.0))
         await echo(gcs, MASK_POSITION)
+        await wait_for(sim, lambda s: s.vehicle.vel_ned_m_s[0] > 2.0)
         sp_local(gcs, m.MAV_FRAME_LOCAL_NED, mask, pos=(9.0, 9.0, -9.0), vel=(1.0, 1.0, 1.0), acc=(1.0, 1.0, 1.0))
-        text = await texts_until(gcs, "type_mask")
-        assert text == f"Setpoint ignored: type_mask 0x{mask:04X} {reason}"[:50]
-        e = await echo(gcs, MASK_POSITION)  # the previous target stays active
-        assert (e.x, e.y) == (2.0, 0.0)
-        await wait_for(sim, lambda s: abs(s.vehicle.pos_ned_m[0] - 2.0) < 0.05)
+        await echo(gcs, ECHO_VEL_ACCEL)
+        await wait_for(sim, lambda s: float(np.linalg.norm(s.vehicle.vel_ned_m_s)) < 0.05)
+        x_stop = sim.vehicle.pos_ned_m[0]
+        assert 1.0 < x_stop < 12.0  # stopped on the way, not at the old target (20 m)
+        await wait_sim_time(sim, sim.t_s + 4.0)  # and holds there (past GUID_TIMEOUT)
+        assert abs(sim.vehicle.pos_ned_m[0] - x_stop) < 0.3
+        assert not any("ignored" in t.text for t in sim.engine.statustexts)
 
 
-async def test_invalid_frame_and_non_finite_are_ignored() -> None:
+async def test_invalid_frame_stops_and_non_finite_is_ignored_ardupilot() -> None:
     async with simulator_with_client(spawn=SpawnConfig(airborne=True), speedup=10.0) as (sim, gcs):
-        sp_local(gcs, m.MAV_FRAME_GLOBAL, MASK_POSITION, pos=(1.0, 1.0, -5.0))
-        assert await texts_until(gcs, "frame") == "Setpoint ignored: frame 0 unsupported"
+        sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(3.0, 0.0, -5.0))
+        await echo(gcs, MASK_POSITION)
+        sp_local(gcs, m.MAV_FRAME_GLOBAL, MASK_POSITION, pos=(1.0, 1.0, -5.0))  # frame 0: stop, silently
+        await echo(gcs, ECHO_VEL_ACCEL)
+        assert not any("frame" in t.text for t in sim.engine.statustexts)
         sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(math.nan, 1.0, -5.0))
         assert await texts_until(gcs, "finite") == "Setpoint ignored: not finite"
-        np.testing.assert_allclose(sim.vehicle.pos_ned_m, [0.0, 0.0, -5.0], atol=0.01)
+        await wait_for(sim, lambda s: float(np.linalg.norm(s.vehicle.vel_ned_m_s)) < 0.05)
+        assert sim.vehicle.pos_ned_m[0] < 2.9  # stopped short of the position target
 
 
 async def test_setpoints_outside_guided_are_ignored_ardupilot() -> None:
@@ -198,7 +208,8 @@ async def test_global_int_setpoint() -> None:
         )  # fmt: skip
         e = await echo(gcs, MASK_POSITION)
         np.testing.assert_allclose([e.x, e.y, e.z], [10.0, 5.0, -7.0], atol=0.02)
-        await wait_for(sim, lambda s: bool(np.allclose(s.vehicle.pos_ned_m, [10.0, 5.0, -7.0], atol=0.05)))
+        # wait until the vehicle has settled (GLOBAL_POSITION_INT is checked to 3e-7 deg, about 3 cm)
+        await wait_for(sim, lambda s: bool(np.allclose(s.vehicle.pos_ned_m, [10.0, 5.0, -7.0], atol=0.01)))
         t_ms = round(sim.t_s * 1000)
         gpi = await gcs.recv_match(type="GLOBAL_POSITION_INT", condition=lambda g: g.time_boot_ms >= t_ms, timeout=2.0)
         assert gpi.lat == pytest.approx((lat0 + dlat) * 1e7, abs=3)

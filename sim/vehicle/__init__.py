@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from sim.vehicle.config import (
     DEFAULT_RATES_HZ,
+    Dynamics,
     EngineConfig,
     HomeConfig,
     SpawnConfig,
@@ -30,6 +31,7 @@ __all__ = [
     "DEFAULT_RATES_HZ",
     "SENSOR_MESSAGES",
     "ControlTarget",
+    "Dynamics",
     "EngineConfig",
     "HomeConfig",
     "Limits",

@@ -40,6 +40,13 @@ def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: 
         "a companion to any --link. Writes --result-json on exit (also SIGINT/SIGTERM) and on a crash.",
     )
     v.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
+    v.add_argument(
+        "--dynamics",
+        choices=("simple", "arducopter"),
+        default="simple",
+        help="simple (default) or arducopter: ArduCopter's jerk-limited position controller shape, lag, "
+        "overshoot and spool-up (ardupilot profile; docs/simulator.md)",
+    )
     _world_args(v)
     v.add_argument(
         "--link",
@@ -189,6 +196,7 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
     cfg = SimConfig(
         links=args.link or ["udpout:127.0.0.1:14550"],
         profile=args.profile,
+        dynamics=args.dynamics,
         world=_world(args),
         speedup=math.inf if math.isinf(args.speedup) else args.speedup,
         seed=args.seed,

@@ -63,6 +63,7 @@ def _arm(v: VehicleEngine, c: Command) -> int:
         v.statustext(mavlink.MAV_SEVERITY_CRITICAL, refusal)
         return v.profile_rules.fail_result
     v.armed = True
+    v.armed_t_s = v.t_s
     v.landed_since_s = v.t_s
     v.statustext(mavlink.MAV_SEVERITY_INFO, v.profile_rules.texts.armed)
     return ACCEPTED

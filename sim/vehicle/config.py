@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 
 from apf_companion.autopilot import Autopilot
@@ -9,7 +10,7 @@ from apf_companion.errors import ConfigError
 from sim.vehicle.sensor import RangeSensorConfig
 from sim.world.model import FloatArray, World
 
-__all__ = ["DEFAULT_RATES_HZ", "EngineConfig", "HomeConfig", "SpawnConfig", "StatusText", "VehicleSnapshot"]
+__all__ = ["DEFAULT_RATES_HZ", "Dynamics", "EngineConfig", "HomeConfig", "SpawnConfig", "StatusText", "VehicleSnapshot"]
 
 # Telemetry streamed by default [Hz], by message name; SET_MESSAGE_INTERVAL changes them per link. A rate of 0 is
 # a message sent only when requested (SET_MESSAGE_INTERVAL, REQUEST_MESSAGE).
@@ -27,6 +28,13 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "AUTOPILOT_VERSION": 0.0,
     "GPS_RAW_INT": 0.0,
 }
+
+
+class Dynamics(enum.Enum):
+    """How the vehicle responds to its position controller's targets."""
+
+    SIMPLE = "simple"  # square-root position loop, velocity loop, limited acceleration (no jerk limit, no lag)
+    ARDUCOPTER = "arducopter"  # AC_PosControl's jerk-limited shaping, tracking loops, attitude lag, spool-up
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -72,8 +80,12 @@ class EngineConfig:
     physics_rate_hz: float = 100.0
     rates_hz: dict[str, float] = field(default_factory=dict)
     trajectory_rate_hz: float = 10.0
+    dynamics: Dynamics = Dynamics.SIMPLE
 
     def __post_init__(self) -> None:
+        if self.dynamics is Dynamics.ARDUCOPTER and self.profile is not Autopilot.ARDUPILOT:
+            msg = "dynamics 'arducopter' needs the ardupilot profile"
+            raise ConfigError(msg)
         if not 10.0 <= self.physics_rate_hz <= 2000.0:
             msg = f"physics_rate_hz must be in [10, 2000], got {self.physics_rate_hz}"
             raise ConfigError(msg)

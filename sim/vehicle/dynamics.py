@@ -16,12 +16,13 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 from sim.world.model import FloatArray
 
-__all__ = ["ControlTarget", "Limits", "TargetKind", "VehicleState", "step_dynamics", "wrap_pi"]
+__all__ = ["ControlTarget", "Controller", "Limits", "TargetKind", "VehicleState", "step_dynamics", "wrap_pi"]
 
 GRAVITY_M_S2 = 9.80665
 KP_POS = 1.0  # position loop gain [1/s]
@@ -89,6 +90,16 @@ class VehicleState:
         return math.atan2(a_right, GRAVITY_M_S2), -math.atan2(a_fwd, GRAVITY_M_S2)
 
 
+class Controller(Protocol):
+    """A position controller other than the built-in cascade (sim/vehicle/poscontrol.py): it keeps state."""
+
+    def accel(
+        self, state: VehicleState, target: ControlTarget, limits: Limits, dt: float
+    ) -> tuple[FloatArray, float | None]: ...
+
+    def relax(self, state: VehicleState) -> None: ...
+
+
 def _sqrt_controller(err: FloatArray, kp: float, accel: float) -> FloatArray:
     """Velocity towards an error vector: kp*err near it, sqrt(2*a*d) far away (ArduPilot's sqrt_controller)."""
     d = float(np.hypot.reduce(err)) if err.size > 1 else abs(float(err[0]))
@@ -112,14 +123,18 @@ def step_dynamics(
     *,
     armed: bool,
     disturbance_vel_ne_m_s: FloatArray | None = None,
+    controller: Controller | None = None,
 ) -> float:
     """Advance ``state`` by ``dt`` seconds in place. Returns the downward speed at ground contact (0 if none).
 
     On the ground the vehicle stays put unless it is armed and its controller asks to climb (lift-off).
+    ``controller`` None = the built-in square-root cascade (``simple`` dynamics).
     """
     p, v = state.pos_ned_m, state.vel_ned_m_s
     travel_yaw: float | None = None
     if not armed:
+        if controller is not None:
+            controller.relax(state)
         if state.on_ground:
             _rest(state)
             return 0.0
@@ -127,9 +142,14 @@ def step_dynamics(
         state.yaw_rate_rad_s = 0.0
     else:
         if target.kind is TargetKind.GROUND and state.on_ground:
+            if controller is not None:
+                controller.relax(state)
             _rest(state)
             return 0.0
-        acc, travel_yaw = _control_accel(state, target, limits)
+        if controller is None:
+            acc, travel_yaw = _control_accel(state, target, limits)
+        else:
+            acc, travel_yaw = controller.accel(state, target, limits, dt)
         if state.on_ground and acc[2] >= -1e-6:
             _rest(state)
             return 0.0

@@ -27,17 +27,27 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.errors import ConfigError
 from sim.vehicle.config import (
     DEFAULT_RATES_HZ,
+    Dynamics,
     EngineConfig,
     HomeConfig,
     SpawnConfig,
     StatusText,
     VehicleSnapshot,
 )
-from sim.vehicle.dynamics import CRASH_IMPACT_M_S, ControlTarget, Limits, VehicleState, step_dynamics, wrap_pi
+from sim.vehicle.dynamics import (
+    CRASH_IMPACT_M_S,
+    Controller,
+    ControlTarget,
+    Limits,
+    VehicleState,
+    step_dynamics,
+    wrap_pi,
+)
 from sim.vehicle.flight_modes import choose_target
 from sim.vehicle.gcs import COMPID, SYSID, handle_message
 from sim.vehicle.guided import GuidedState
 from sim.vehicle.params import ParamTable
+from sim.vehicle.poscontrol import ArduCopterPosControl
 from sim.vehicle.profiles import PROFILES, AutopilotProfile, Behaviour
 from sim.vehicle.ranging import RangeSensorDriver
 from sim.vehicle.recorder import FlightRecorder
@@ -70,6 +80,9 @@ class VehicleEngine:
         self.profile_rules: AutopilotProfile = PROFILES[cfg.profile]
         self.world = cfg.world
         self.params = ParamTable(cfg.profile, cfg.params)
+        self.controller: Controller | None = (
+            ArduCopterPosControl(self.params) if cfg.dynamics is Dynamics.ARDUCOPTER else None
+        )
         self.n_links = n_links
         self._emit = emit
         self.mav = mavlink.MAVLink(None, srcSystem=SYSID, srcComponent=COMPID)
@@ -105,6 +118,7 @@ class VehicleEngine:
         self.target = ControlTarget()
         self.hold_pos_ned_m: FloatArray = self.state.pos_ned_m.copy()
         self.takeoff_alt_m: float | None = None  # a takeoff is climbing to this altitude above home [m]
+        self.takeoff_t_s = self.armed_t_s = -math.inf  # when the takeoff was commanded, when the vehicle armed
         self.rtl_phase = 0  # 0 not started, 1 climb and return, 2 land
         self.rtl_alt_m = 0.0
         self.landed_since_s: float | None = None
@@ -221,7 +235,13 @@ class VehicleEngine:
             prev = self.state.pos_ned_m.copy()
             was_flying = not self.state.on_ground
             impact = step_dynamics(
-                self.state, self.target, limits, self.dt, armed=self.armed, disturbance_vel_ne_m_s=self._noise()
+                self.state,
+                self.target,
+                limits,
+                self.dt,
+                armed=self.armed,
+                disturbance_vel_ne_m_s=self._noise(),
+                controller=self.controller,
             )
             self.recorder.moved(prev, self.state.pos_ned_m)
             if impact > 0 and was_flying:
@@ -321,6 +341,7 @@ class VehicleEngine:
         return {
             "schema": "apf.sim_result/1",
             "profile": self.profile.value,
+            "dynamics": self.cfg.dynamics.value,
             "seed": self.cfg.seed,
             "collided": self.crash_info is not None and self.crash_info["obstacle_id"] >= 0,
             "crashed": self.crashed,

@@ -15,6 +15,7 @@ import numpy as np
 
 from sim.vehicle.dynamics import ControlTarget, Limits, TargetKind
 from sim.vehicle.profiles import Behaviour, replace_limits
+from sim.world.model import FloatArray
 
 if TYPE_CHECKING:
     from sim.vehicle.engine import VehicleEngine
@@ -24,7 +25,6 @@ __all__ = ["MODE_TARGETS", "choose_target"]
 log = logging.getLogger(__name__)
 
 ModeTarget = Callable[["VehicleEngine", Limits], tuple[ControlTarget, Limits]]
-LAND_FINAL_ALT_M = 10.0  # below this a landing descends at the land speed
 RTL_CLIMB_TOLERANCE_M = 0.5  # RTL climbs to its altitude before it returns ...
 RTL_ARRIVED_M = 0.5  # ... and lands when this close (horizontally) to home
 TAKEOFF_DONE_M = 0.1  # a takeoff is complete this close below its altitude
@@ -45,10 +45,9 @@ def _land(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
     st = v.state
     if st.on_ground:
         return ControlTarget(kind=GROUND), limits
-    land_speed = v.profile_rules.land_speed_m_s(v.params)
+    speed_down = v.profile_rules.land_speed_m_s(v.params, st.alt_m, limits)
     hold = v.hold_pos_ned_m.copy()
     hold[2] = 1.0  # below the ground: keep descending until touchdown
-    speed_down = land_speed if st.alt_m < LAND_FINAL_ALT_M else limits.speed_down_m_s
     return ControlTarget(kind=TargetKind.POSITION, pos_ned_m=hold), replace_limits(limits, speed_down_m_s=speed_down)
 
 
@@ -77,7 +76,7 @@ def _rtl(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
 
 def _takeoff(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
     alt = v.takeoff_alt_m if v.takeoff_alt_m is not None else v.params["MIS_TAKEOFF_ALT"]
-    speed_up = v.profile_rules.takeoff_speed_up_m_s(v.params, limits)
+    speed_up = v.profile_rules.takeoff_speed_up_m_s(v, limits)
     tgt = v.hold_pos_ned_m.copy()
     tgt[2] = -alt
     if v.state.alt_m >= alt - TAKEOFF_DONE_M:
@@ -106,13 +105,15 @@ def _guided(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
             v.guided.timed_out = True
             log.info("sim.guided_timeout", extra={"t_s": v.t_s})
         return ControlTarget(kind=TargetKind.VELOCITY, vel_ned_m_s=np.zeros(3)), limits
-    vel, acc = sp.vel, sp.acc
-    if sp.kind is TargetKind.POSITION and expired:
+    pos, vel, acc = sp.pos, sp.vel, sp.acc
+    if sp.kind is TargetKind.POSITION and rules.advances_position_target and pos is not None and vel is not None:
+        pos, vel, acc = _advanced(pos, vel, acc, v.t_s - sp.t_rx, timeout_s)
+    elif sp.kind is TargetKind.POSITION and expired:
         vel = acc = None  # the feed-forward expires; the position is held
     fixed_yaw = v.guided.fixed_yaw_rad  # MAV_CMD_CONDITION_YAW
     target = ControlTarget(
         kind=sp.kind,
-        pos_ned_m=sp.pos,
+        pos_ned_m=pos,
         vel_ned_m_s=vel,
         acc_ned_m_s2=acc,
         yaw_rad=sp.yaw if fixed_yaw is None else fixed_yaw,
@@ -121,6 +122,21 @@ def _guided(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:
         speed_h_m_s=rules.cruise_m_s(v.params) if vel is None else None,
     )
     return target, limits
+
+
+def _advanced(
+    pos: FloatArray, vel: FloatArray, acc: FloatArray | None, age_s: float, timeout_s: float | None
+) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
+    """ArduCopter moves a position+velocity target along its velocity (AC_PosControl input_pos_vel_accel_NE_cm
+    integrates the input with update_pos_vel_accel) until GUID_TIMEOUT zeroes the velocity and acceleration
+    (mode_guided.cpp posvelaccel_control_run); then the advanced point is held."""
+    expired = timeout_s is not None and age_s > timeout_s
+    tau = age_s if timeout_s is None else min(age_s, timeout_s)
+    a = np.zeros(3) if acc is None else acc
+    pos_now = pos + vel * tau + 0.5 * a * tau * tau
+    if expired:
+        return pos_now, None, None
+    return pos_now, vel + a * tau, acc
 
 
 def _hold(v: VehicleEngine, limits: Limits) -> tuple[ControlTarget, Limits]:

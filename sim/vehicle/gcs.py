@@ -81,7 +81,9 @@ def _on_set_position_target_local_ned(v: VehicleEngine, msg: Any, link: int) -> 
 def _on_set_position_target_global_int(v: VehicleEngine, msg: Any, link: int) -> None:
     frame = msg.coordinate_frame
     if frame not in GLOBAL_FRAMES:
-        v.warn_once_per_s("frame", mavlink.MAV_SEVERITY_WARNING, f"Setpoint ignored: frame {frame} unsupported")
+        # ArduCopter: an unknown frame "is not valid so stop" (GCS_MAVLink_Copter.cpp); PX4 drops it
+        if not v.profile_rules.invalid_setpoint(v):
+            v.warn_once_per_s("frame", mavlink.MAV_SEVERITY_WARNING, f"Setpoint ignored: frame {frame} unsupported")
         return
     n, e = latlon_to_ne(v.cfg.home, msg.lat_int * 1e-7, msg.lon_int * 1e-7)
     down = down_from_alt(v.cfg.home, frame, msg.alt)
@@ -92,7 +94,7 @@ def _apply_setpoint(v: VehicleEngine, msg: Any, frame: int, pos_in: FloatArray) 
     rules = v.profile_rules
     rule = rules.setpoint_rule(int(msg.type_mask), frame)
     if rule.kind is None:
-        if rule.text:
+        if not rules.invalid_setpoint(v) and rule.text:
             v.warn_once_per_s(rule.text, rule.severity, rule.text)
         return
     # proof of life: PX4 publishes offboard_control_mode for every valid setpoint, in any mode (mavlink_receiver.cpp)

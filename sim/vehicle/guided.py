@@ -20,7 +20,14 @@ from sim.vehicle.dynamics import TargetKind, wrap_pi
 from sim.vehicle.geo import BODY_FRAMES
 from sim.world.model import FloatArray
 
-__all__ = ["GuidedState", "Setpoint", "classify_mask_arducopter", "decode_setpoint", "position_setpoint"]
+__all__ = [
+    "GuidedState",
+    "Setpoint",
+    "classify_mask_arducopter",
+    "decode_setpoint",
+    "position_setpoint",
+    "stop_setpoint",
+]
 
 MAX_SETPOINT_TIMES = 200  # arrival times kept (PX4's proof of life needs only the last second or so)
 
@@ -68,26 +75,27 @@ class GuidedState:
         self.fixed_yaw_rad = None  # ArduCopter: a new target resets auto_yaw to its default (mode_guided.cpp)
 
 
-def classify_mask_arducopter(mask: int) -> tuple[TargetKind | None, str]:
-    """ArduCopter's accepted type_mask combinations -> the kind of target, or None with the reason."""
-    groups = []
-    for bits, name in ((POS_IGNORE, "position"), (VEL_IGNORE, "velocity"), (ACC_IGNORE, "acceleration")):
-        got = mask & bits
-        if got not in (0, bits):
-            return None, f"{name} must be given for all 3 axes"
-        groups.append(got == 0)
-    use_pos, use_vel, use_acc = groups
+def classify_mask_arducopter(mask: int) -> TargetKind | None:
+    """ArduCopter's reading of a type_mask (GCS_MAVLink_Copter.cpp handle_message_set_position_target_local_ned):
+    a group (position, velocity, acceleration) is ignored when any of its bits is set; position+velocity(+accel),
+    velocity(+accel), acceleration alone or position alone are flown; FORCE with an acceleration and every other
+    combination is "input is not valid so stop" (None: the caller commands a stop)."""
+    use_pos, use_vel, use_acc = (not mask & bits for bits in (POS_IGNORE, VEL_IGNORE, ACC_IGNORE))
     if mask & TypeMask.FORCE_SET and use_acc:
-        return None, "force setpoints unsupported"
-    if use_pos:
-        if use_acc and not use_vel:
-            return None, "position+acceleration unsupported"
-        return TargetKind.POSITION, ""
+        return None
+    if use_pos and (use_vel or not use_acc):
+        return TargetKind.POSITION
     if use_vel:
-        return TargetKind.VELOCITY, ""
-    if use_acc:
-        return TargetKind.ACCELERATION, ""
-    return None, "no position, velocity or acceleration"
+        return TargetKind.VELOCITY
+    if use_acc and not use_pos:
+        return TargetKind.ACCELERATION
+    return None
+
+
+def stop_setpoint(t_s: float, type_mask: int) -> Setpoint:
+    """ArduCopter's answer to an invalid setpoint: ``ModeGuided::init`` starts the velocity controller at zero
+    velocity, so the vehicle decelerates and holds where it stops."""
+    return Setpoint(TargetKind.VELOCITY, type_mask, t_s, None, np.zeros(3), None, None, None)
 
 
 def decode_setpoint(

@@ -32,7 +32,7 @@ from typing import Any
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkError
 from apf_companion.links import MavlinkLink
-from sim.vehicle.config import EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
+from sim.vehicle.config import Dynamics, EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
 from sim.vehicle.engine import VehicleEngine
 from sim.vehicle.sensor import RangeSensorConfig, Scan
 from sim.world.model import World
@@ -75,6 +75,7 @@ class SimConfig:
     Attributes:
         links: MAVLink endpoints (``udpout:127.0.0.1:14550``, ``udpin:...``, ``tcpin:...``, ``tcp:...``).
         profile: ``ardupilot`` or ``px4`` (or an ``Autopilot``).
+        dynamics: ``simple`` or ``arducopter`` (or a ``Dynamics``; arducopter needs the ardupilot profile).
         world: the obstacles (``sim.world``).
         speedup: simulated seconds per wall second (``math.inf`` = as fast as possible).
         seed: seeds actuation noise and sensor noise/dropout (separate streams).
@@ -91,6 +92,7 @@ class SimConfig:
 
     links: Sequence[str] = ()
     profile: Autopilot | str = Autopilot.ARDUPILOT
+    dynamics: Dynamics | str = Dynamics.SIMPLE
     world: World = field(default_factory=World.empty)
     speedup: float = 1.0
     seed: int = 0
@@ -112,14 +114,22 @@ class SimConfig:
             except ValueError as err:
                 msg = f"profile must be 'ardupilot' or 'px4', got {self.profile!r}"
                 raise ConfigError(msg) from err
+        if isinstance(self.dynamics, str):
+            try:
+                object.__setattr__(self, "dynamics", Dynamics(self.dynamics.lower()))
+            except ValueError as err:
+                msg = f"dynamics must be 'simple' or 'arducopter', got {self.dynamics!r}"
+                raise ConfigError(msg) from err
         if not (self.speedup > 0):
             msg = f"speedup must be > 0 (inf = as fast as possible), got {self.speedup}"
             raise ConfigError(msg)
 
     def engine_config(self) -> EngineConfig:
         assert isinstance(self.profile, Autopilot)
+        assert isinstance(self.dynamics, Dynamics)
         return EngineConfig(
             profile=self.profile,
+            dynamics=self.dynamics,
             world=self.world,
             seed=self.seed,
             params=dict(self.params),

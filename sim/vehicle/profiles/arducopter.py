@@ -24,7 +24,7 @@ from apf_companion.autopilot import (
 )
 from sim.vehicle.dynamics import Limits, TargetKind, wrap_pi
 from sim.vehicle.geo import LOCAL_FRAMES
-from sim.vehicle.guided import Setpoint, classify_mask_arducopter, position_setpoint
+from sim.vehicle.guided import Setpoint, classify_mask_arducopter, position_setpoint, stop_setpoint
 from sim.vehicle.params import ParamTable
 from sim.vehicle.profiles.base import Behaviour, ProfileTexts, SetpointRule, param_int
 from sim.world.model import FloatArray
@@ -52,6 +52,7 @@ MODES_NO_ARM = frozenset(int(m) for m in (CopterMode.LAND, CopterMode.RTL, Copte
 _BEHAVIOUR = {int(CopterMode.GUIDED): Behaviour.GUIDED, int(CopterMode.LAND): Behaviour.LAND}
 _BEHAVIOUR[int(CopterMode.RTL)] = Behaviour.RTL
 # POSITION_TARGET_LOCAL_NED's type_mask per GUIDED submode (GCS_MAVLink_Copter.cpp send_position_target_local_ned)
+LAND_ALT_LOW_M = 10.0  # LAND_ALT_LOW default (1000 cm)
 ECHO_VEL_ACCEL = int(POS_IGNORE | TypeMask.YAW_IGNORE | TypeMask.YAW_RATE_IGNORE)  # 0x0C07
 
 
@@ -80,6 +81,8 @@ class ArduCopterProfile:
     reports_prearm_check = True  # GCS.cpp update_sensor_status_flags
     body_yaw_relative = True
     echoes_target_yaw = False  # GCS_MAVLink_Copter.cpp send_position_target_local_ned sends yaw 0
+    # AC_PosControl.cpp input_pos_vel_accel_NE_cm integrates the target; mode_guided.cpp zeroes vel at GUID_TIMEOUT
+    advances_position_target = True
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:
@@ -124,14 +127,15 @@ class ArduCopterProfile:
     def cruise_m_s(self, params: ParamTable) -> float:
         return params["WPNAV_SPEED"] / 100.0
 
-    def land_speed_m_s(self, params: ParamTable) -> float:
-        return params["LAND_SPEED"] / 100.0
+    def land_speed_m_s(self, params: ParamTable, alt_m: float, limits: Limits) -> float:
+        """mode_land.cpp: LAND_SPEED below LAND_ALT_LOW (10 m), the descent speed above it."""
+        return params["LAND_SPEED"] / 100.0 if alt_m < LAND_ALT_LOW_M else limits.speed_down_m_s
 
     def rtl_alt_m(self, params: ParamTable) -> float:
         return params["RTL_ALT"] / 100.0
 
-    def takeoff_speed_up_m_s(self, params: ParamTable, limits: Limits) -> float:
-        return limits.speed_up_m_s
+    def takeoff_speed_up_m_s(self, v: VehicleEngine, limits: Limits) -> float:
+        return limits.speed_up_m_s  # spool-up and the throttle slew are the arducopter dynamics' (poscontrol.py)
 
     def disarm_delay_s(self, params: ParamTable) -> float:
         return params["DISARM_DELAY"]
@@ -188,15 +192,19 @@ class ArduCopterProfile:
 
     # -- setpoint rules
     def setpoint_rule(self, mask: int, frame: int) -> SetpointRule:
+        """An unsupported frame or type_mask is not ignored: GCS_MAVLink_Copter.cpp answers it with
+        ``mode_guided.init(true)`` ("input is not valid so stop"), silently (kind None, no text)."""
         if frame not in LOCAL_FRAMES:
-            return SetpointRule(
-                None, mask, mavlink.MAV_SEVERITY_WARNING, f"Setpoint ignored: frame {frame} unsupported"
-            )
-        kind, reason = classify_mask_arducopter(mask)
-        if kind is None:
-            text = f"Setpoint ignored: type_mask 0x{mask:04X} {reason}"
-            return SetpointRule(None, mask, mavlink.MAV_SEVERITY_WARNING, text)
-        return SetpointRule(kind, mask)
+            return SetpointRule(None, mask)
+        return SetpointRule(classify_mask_arducopter(mask), mask)
+
+    def invalid_setpoint(self, v: VehicleEngine) -> bool:
+        """Stop, silently: decelerate and hold (ModeGuided::init runs the velocity controller at zero), which ends
+        a takeoff. Only in GUIDED and flying, like any setpoint."""
+        if self.accepts_setpoint(v):
+            v.guided.set(stop_setpoint(v.t_s, ECHO_VEL_ACCEL))
+            self.after_external_target(v)
+        return True
 
     def accepts_setpoint(self, v: VehicleEngine) -> bool:
         # setpoints are used only in GUIDED and not on the ground (GCS_MAVLink_Copter.cpp: in_guided_mode;

@@ -86,6 +86,7 @@ class Px4Profile:
     reports_prearm_check = False
     body_yaw_relative = False  # mavlink_receiver.cpp passes BODY_NED yaw through unrotated
     echoes_target_yaw = True
+    advances_position_target = False  # the position is flown as sent; the velocity is a feed-forward
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:
@@ -142,14 +143,28 @@ class Px4Profile:
     def cruise_m_s(self, params: ParamTable) -> float:
         return params["MPC_XY_CRUISE"]
 
-    def land_speed_m_s(self, params: ParamTable) -> float:
-        return params["MPC_LAND_SPEED"]
+    def land_speed_m_s(self, params: ParamTable, alt_m: float, limits: Limits) -> float:
+        """FlightTaskAuto land: the descent speed above MPC_LAND_ALT1, MPC_LAND_SPEED below MPC_LAND_ALT2,
+        interpolated in between."""
+        alt1, alt2, slow = params["MPC_LAND_ALT1"], params["MPC_LAND_ALT2"], params["MPC_LAND_SPEED"]
+        fast = max(limits.speed_down_m_s, slow)
+        if alt_m <= alt2 or alt1 <= alt2:
+            return slow if alt_m <= alt2 else fast
+        return slow + (fast - slow) * min(1.0, (alt_m - alt2) / (alt1 - alt2))
 
     def rtl_alt_m(self, params: ParamTable) -> float:
         return params["RTL_RETURN_ALT"]
 
-    def takeoff_speed_up_m_s(self, params: ParamTable, limits: Limits) -> float:
-        return params["MPC_TKO_SPEED"]
+    def takeoff_speed_up_m_s(self, v: VehicleEngine, limits: Limits) -> float:
+        """mc_pos_control Takeoff.cpp: the motors spool for COM_SPOOLUP_TIME after arming, then the upward speed
+        limit ramps to MPC_TKO_SPEED over MPC_TKO_RAMP_T (0 = at once)."""
+        p = v.params
+        ramp_from = max(v.armed_t_s + p["COM_SPOOLUP_TIME"], v.takeoff_t_s)
+        if v.t_s < ramp_from:
+            return 0.0
+        ramp = p["MPC_TKO_RAMP_T"]
+        share = 1.0 if ramp <= 0.0 else min(1.0, (v.t_s - ramp_from) / ramp)
+        return min(p["MPC_TKO_SPEED"], limits.speed_up_m_s) * share
 
     def disarm_delay_s(self, params: ParamTable) -> float:
         return params["COM_DISARM_PRFLT"]
@@ -179,6 +194,7 @@ class Px4Profile:
             alt = minimum
         v.set_mode(PX4_TAKEOFF.to_custom_mode(), "takeoff")
         v.takeoff_alt_m = alt
+        v.takeoff_t_s = v.t_s
         return int(mavlink.MAV_RESULT_ACCEPTED)
 
     def reposition(self, v: VehicleEngine, p: tuple[float, ...], target_ned_m: FloatArray) -> int:
@@ -213,6 +229,9 @@ class Px4Profile:
             )
         kind = TargetKind.POSITION if given[0] else TargetKind.VELOCITY if given[1] else TargetKind.ACCELERATION
         return SetpointRule(kind, mask)
+
+    def invalid_setpoint(self, v: VehicleEngine) -> bool:
+        return False  # mavlink_receiver.cpp: an unusable setpoint is dropped (with its STATUSTEXT)
 
     def accepts_setpoint(self, v: VehicleEngine) -> bool:
         return True  # kept for when OFFBOARD engages
