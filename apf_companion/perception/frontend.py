@@ -26,7 +26,7 @@ import numpy as np
 
 from apf_companion.errors import ConfigError, ProtocolError
 from apf_companion.perception.cdr import decode_laserscan_cdr
-from apf_companion.perception.geometry import scan_to_points_ned
+from apf_companion.perception.geometry import scan_to_points_ned, surface_fill_points
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     DistanceSensorLike,
@@ -60,6 +60,10 @@ class PerceptionParams:
     memory_expiry_s: float = 5.0
     merge_radius_m: float = 0.2
     max_points: int = 2000
+    surface_fill: bool = True  # points along chords between adjacent returns on one surface (geometry.py)
+    surface_fill_spacing_m: float = 0.2
+    surface_fill_max_gap_m: float = 1.5
+    surface_fill_line_tol_m: float = 0.05
 
 
 @dataclass(slots=True)
@@ -231,6 +235,15 @@ class PerceptionFrontEnd:
         if scan.counts.valid + scan.counts.free == 0:
             return  # nothing usable: no news about the surroundings, ranges stay as fresh as they were
         points = scan_to_points_ned(scan, pose)
+        if self.params.surface_fill:
+            fill = surface_fill_points(
+                scan,
+                pose,
+                spacing_m=self.params.surface_fill_spacing_m,
+                max_gap_m=self.params.surface_fill_max_gap_m,
+                line_tol_m=self.params.surface_fill_line_tol_m,
+            )
+            points = np.concatenate([points, fill])  # measured returns first: the memory's merge keeps them
         if points.shape[0]:
             rel = points[:, :2] - pose.pos_ned_m[:2]
             limit = self.params.max_range_m
