@@ -16,6 +16,10 @@ setting, over all steps:
 - ``free>0.2``: remembered points within the reach lying more than 0.2 m from every true surface (obstacles
   where there are none; the sector returns themselves sit up to about 0.2 m off a wall seen obliquely), summed
   over the steps.
+
+``--rules``: instead, the fill of single scans at 300 random free positions per world, with the rule's both-sides
+condition and with one side only: fill points per scan, and how many lie more than 0.3 m (0.2 m) from every
+true surface.
 """
 
 from __future__ import annotations
@@ -26,7 +30,14 @@ import time
 
 import numpy as np
 
-from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, RangeScan, ScanFrame
+from apf_companion.perception import (
+    PerceptionFrontEnd,
+    PerceptionParams,
+    Pose,
+    RangeScan,
+    ScanFrame,
+    surface_fill_points,
+)
 from apf_companion.perception.types import FloatArray
 from sim.study.optimal import optimal_path
 from sim.world import World, load_world
@@ -101,12 +112,54 @@ def replay(world: World, path_ne: FloatArray, *, fill: bool, reach_m: float) -> 
     return worst, holed / max(len(path_ne), 1), free
 
 
+def compare_rules(name: str, positions: int = 300) -> None:
+    """Single-scan fill at random free positions: both sides collinear (the rule) vs one side."""
+    world = load_world(example_world_path(name))
+    rng = np.random.default_rng(0)
+    placed = 0
+    filled = {True: 0, False: 0}
+    off_03 = {True: 0, False: 0}
+    off_02 = {True: 0, False: 0}
+    while placed < positions:
+        pos = rng.uniform([-5.0, -12.0], [30.0, 12.0])
+        if clearance_many_m(world, pos)[0] < 0.3:
+            continue
+        placed += 1
+        r = world.window_ranges_m(pos, SECTORS_RAD, math.radians(2.5))
+        scan = RangeScan(
+            t_s=0.0,
+            frame=ScanFrame.LOCAL_NED,
+            bearings_rad=SECTORS_RAD,
+            ranges_m=np.where(r > 8.0, np.inf, r),
+            range_min_m=0.2,
+            range_max_m=8.0,
+        )
+        pose = Pose(t_s=0.0, pos_ned_m=np.array([pos[0], pos[1], -5.0]), yaw_rad=0.0)
+        for both in (True, False):
+            fill = surface_fill_points(scan, pose, both_sides=both)
+            filled[both] += fill.shape[0]
+            if fill.shape[0]:
+                c = clearance_many_m(world, fill[:, :2])
+                off_03[both] += int(np.count_nonzero(c > 0.3))
+                off_02[both] += int(np.count_nonzero(c > 0.2))
+    for both in (True, False):
+        rule = "both sides" if both else "one side"
+        print(f"{name:<14} {rule:<10} {filled[both] / positions:6.1f} {off_03[both]:8d} {off_02[both]:8d}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--world", action="append", choices=WORLDS)
     parser.add_argument("--clearance", type=float, default=0.4, help="path clearance from true obstacles [m]")
     parser.add_argument("--reach", type=float, default=3.0, help="measure within this of the vehicle [m]")
+    parser.add_argument("--rules", action="store_true", help="compare the both-sides rule with one side")
     args = parser.parse_args()
+    if args.rules:
+        print("300 random free positions per world, one 72 x 5-degree scan each")
+        print(f"{'world':<14} {'rule':<10} {'fill/scan':>6} {'>0.3 m':>8} {'>0.2 m':>8}")
+        for name in args.world or WORLDS:
+            compare_rules(name)
+        return
     print(f"path clearance {args.clearance} m, reach {args.reach} m, {STEP_M} m per scan")
     print(f"{'world':<14} {'steps':>5}  {'fill':<5} {'hole m':>7} {'steps>0.35':>10} {'free>0.2':>8}")
     for name in args.world or WORLDS:

@@ -230,16 +230,17 @@ def test_row_of_trunks_keeps_its_passable_gaps_near_the_vehicle() -> None:
 def test_dense_forest_gets_no_fill_in_free_space() -> None:
     world = load_world(example_world_path("forest-dense"))
     rng = np.random.default_rng(7)
-    placed = filled = 0
+    placed = one_side_free = 0
     while placed < 60:
         pos = rng.uniform([-2.0, -8.0], [24.0, 8.0])
         if clearance_many_m(world, pos)[0] < 0.3:
             continue
         placed += 1
-        fill = surface_fill_points(_scan(world, (pos[0], pos[1])), _pose((pos[0], pos[1])))
-        filled += fill.shape[0]
-        assert _free_points(world, fill, 0.2).shape[0] == 0
-    assert placed == 60 and filled >= 0
+        scan, pose = _scan(world, (pos[0], pos[1])), _pose((pos[0], pos[1]))
+        assert _free_points(world, surface_fill_points(scan, pose), 0.2).shape[0] == 0
+        one_side_free += _free_points(world, surface_fill_points(scan, pose, both_sides=False), 0.2).shape[0]
+    # Three collinear returns (one side) are not enough: trunks line up that way and get bridged.
+    assert one_side_free > 0
 
 
 def _ray_scan(world: World, pos_ne: tuple[float, float], t_s: float) -> RangeScan:
@@ -307,16 +308,20 @@ def _scans(draw: st.DrawFn) -> tuple[RangeScan, Pose]:
 
 
 @settings(max_examples=150, deadline=None)
-@given(_scans(), st.floats(0.05, 1.0), st.floats(0.1, 3.0), st.floats(0.0, 0.2))
+@given(_scans(), st.floats(0.05, 1.0), st.floats(0.1, 3.0), st.floats(0.0, 0.2), st.booleans())
 def test_filled_points_lie_on_chords_between_adjacent_returns(
-    scan_pose: tuple[RangeScan, Pose], spacing_m: float, max_gap_m: float, line_tol_m: float
+    scan_pose: tuple[RangeScan, Pose], spacing_m: float, max_gap_m: float, line_tol_m: float, both_sides: bool
 ) -> None:
     scan, pose = scan_pose
-    fill = surface_fill_points(scan, pose, spacing_m=spacing_m, max_gap_m=max_gap_m, line_tol_m=line_tol_m)
+    kwargs = {"spacing_m": spacing_m, "max_gap_m": max_gap_m, "line_tol_m": line_tol_m}
+    fill = surface_fill_points(scan, pose, **kwargs, both_sides=both_sides)
     assert fill.ndim == 2 and fill.shape[1] == 3 and np.all(np.isfinite(fill))
     assert _on_chord_of_adjacent_returns(scan, pose, fill, max_gap_m)
     # Each chord's points with its two returns are at most spacing_m apart: fewer than max_gap / spacing per chord.
     assert fill.shape[0] <= len(scan) * math.ceil(max_gap_m / spacing_m)
+    if both_sides:  # the rule's chords are a subset of the one-side chords
+        loose = surface_fill_points(scan, pose, **kwargs, both_sides=False)
+        assert {tuple(p) for p in fill.round(9)} <= {tuple(p) for p in loose.round(9)}
 
 
 def test_the_hot_path_has_no_python_loop() -> None:

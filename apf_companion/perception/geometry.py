@@ -80,6 +80,7 @@ def surface_fill_points(
     spacing_m: float = 0.2,
     max_gap_m: float = 1.5,
     line_tol_m: float = 0.05,
+    both_sides: bool = True,
 ) -> FloatArray:
     """Obstacle points along the chord between adjacent sector returns that lie on one straight surface.
 
@@ -128,7 +129,10 @@ def surface_fill_points(
     max_gap_m:
         Longest chord filled [m], > 0.
     line_tol_m:
-        Largest distance of the third return from the chord's line [m], >= 0.
+        Largest distance of a neighbouring return from the chord's line [m], >= 0.
+    both_sides:
+        Require the returns on both sides on the line (the rule above). False accepts one side (three returns
+        on a line): measured for comparison only (``benchmarks/replay_surface_fill.py --rules``).
 
     Returns
     -------
@@ -159,7 +163,8 @@ def surface_fill_points(
     dev_next = np.abs(unit[:, 0] * next_off[:, 1] - unit[:, 1] * next_off[:, 0])
     line_prev = np.roll(adj, 1) & (dev_prev <= line_tol_m)  # pair i-1 valid: element i-1 adjacent and finite
     line_next = np.roll(adj, -1) & (dev_next <= line_tol_m)  # pair i+1 valid: element j+1 adjacent and finite
-    fill = adj & (length > spacing_m) & (length <= max_gap_m) & line_prev & line_next
+    same_surface = (line_prev & line_next) if both_sides else (line_prev | line_next)
+    fill = adj & (length > spacing_m) & (length <= max_gap_m) & same_surface
     pairs = np.flatnonzero(fill)
     if pairs.size == 0:
         return np.empty((0, 3), dtype=np.float64)
