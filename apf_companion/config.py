@@ -247,7 +247,7 @@ class SensorsConfig:
             docs/perception.md, "Closing walls between sectors").
         surface_fill_spacing_m: Largest distance between filled points [m] (keep it <= merge_radius_m).
         surface_fill_max_gap_m: Longest chord between two returns that is filled [m].
-        surface_fill_line_tol_m: A third return must lie this close to the chord's line [m].
+        surface_fill_line_tol_m: The returns on both sides of a chord must lie this close to its line [m].
     """
 
     mavlink: bool = True

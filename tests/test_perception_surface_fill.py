@@ -344,6 +344,16 @@ def test_config_keys_reach_the_front_end() -> None:
     assert perception_params(config_from_mapping({})).surface_fill is True
 
 
+def test_bad_front_end_fill_params_fail_at_construction() -> None:
+    for kwargs in (
+        {"surface_fill_spacing_m": 0.0},
+        {"surface_fill_max_gap_m": math.inf},
+        {"surface_fill_line_tol_m": -1.0},
+    ):
+        with pytest.raises(ConfigError, match="surface fill"):
+            PerceptionParams(**kwargs)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize(
     ("key", "value"),
     [

@@ -19,6 +19,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -64,6 +65,13 @@ class PerceptionParams:
     surface_fill_spacing_m: float = 0.2
     surface_fill_max_gap_m: float = 1.5
     surface_fill_line_tol_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        # Checked here, not at the first scan: the on_* methods must not raise.
+        fill = (self.surface_fill_spacing_m, self.surface_fill_max_gap_m, self.surface_fill_line_tol_m)
+        if not all(math.isfinite(v) for v in fill) or min(fill[:2]) <= 0.0 or fill[2] < 0.0:
+            msg = f"surface fill spacing/max gap must be finite and > 0, line tolerance >= 0, got {fill}"
+            raise ConfigError(msg)
 
 
 @dataclass(slots=True)

@@ -103,8 +103,8 @@ def surface_fill_points(
     apart, define almost any line through the next trunk's return. Measured on the simulator's 72 x 5-degree
     sensor (minimum range in each 5-degree window) at 300 random free positions per world: with one side, 137
     filled points in ``forest-dense`` lay more than 0.3 m from any trunk (in a passable gap); with both sides,
-    none did, and no filled point anywhere in ``forest-dense`` or ``forest``. Straight-wall returns deviate at
-    most 1.1 cm from the line through their neighbours, 0.3-2 m from the wall.
+    ``forest-dense`` got no filled point at all (``benchmarks/replay_surface_fill.py --rules``). Straight-wall
+    returns deviate at most 1.1 cm from the line through their neighbours, 0.3-2 m from the wall.
 
     Failure modes (filled points are obstacles only; ``ObstacleMemory.clear_observed`` removes them once a later
     scan sees through them, so a wrong fill is temporary):
