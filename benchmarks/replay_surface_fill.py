@@ -17,6 +17,9 @@ setting, over all steps:
   where there are none; the sector returns themselves sit up to about 0.2 m off a wall seen obliquely), summed
   over the steps.
 
+``--trajectory sim_result.json`` (with one ``--world``): replay a flown trajectory instead (the
+``trajectory_ned_m`` that ``apf-sim fly --out DIR`` writes to ``DIR/sim_result.json``, one scan per sample).
+
 ``--rules``: instead, the fill of single scans at 300 random free positions per world, with the rule's both-sides
 condition and with one side only: fill points per scan, and how many lie more than 0.3 m (0.2 m) from every
 true surface.
@@ -25,6 +28,7 @@ true surface.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 
@@ -153,6 +157,7 @@ def main() -> None:
     parser.add_argument("--clearance", type=float, default=0.4, help="path clearance from true obstacles [m]")
     parser.add_argument("--reach", type=float, default=3.0, help="measure within this of the vehicle [m]")
     parser.add_argument("--rules", action="store_true", help="compare the both-sides rule with one side")
+    parser.add_argument("--trajectory", help="sim_result.json of an apf-sim fly run (replay it instead)")
     args = parser.parse_args()
     if args.rules:
         print("300 random free positions per world, one 72 x 5-degree scan each")
@@ -160,15 +165,20 @@ def main() -> None:
         for name in args.world or WORLDS:
             compare_rules(name)
         return
-    print(f"path clearance {args.clearance} m, reach {args.reach} m, {STEP_M} m per scan")
+    source = args.trajectory or f"shortest paths at clearance {args.clearance} m, {STEP_M} m per scan"
+    print(f"{source}, reach {args.reach} m")
     print(f"{'world':<14} {'steps':>5}  {'fill':<5} {'hole m':>7} {'steps>0.35':>10} {'free>0.2':>8}")
     for name in args.world or WORLDS:
         world = load_world(example_world_path(name))
-        path = optimal_path(world, clearance_m=args.clearance)
-        if path.path_ne_m.shape[0] == 0:
-            print(f"{name:<14} no path at clearance {args.clearance} m")
-            continue
-        steps = _resample(path.path_ne_m, STEP_M)
+        if args.trajectory:
+            with open(args.trajectory, encoding="utf-8") as f:
+                steps = np.asarray(json.load(f)["trajectory_ned_m"], dtype=np.float64)[:, :2]
+        else:
+            path = optimal_path(world, clearance_m=args.clearance)
+            if path.path_ne_m.shape[0] == 0:
+                print(f"{name:<14} no path at clearance {args.clearance} m")
+                continue
+            steps = _resample(path.path_ne_m, STEP_M)
         for fill in (False, True):
             t0 = time.perf_counter()
             hole, frac, free = replay(world, steps, fill=fill, reach_m=args.reach)
