@@ -128,6 +128,10 @@ def perception_params(config: ServiceConfig) -> PerceptionParams:
         memory_expiry_s=s.memory_expiry_s,
         merge_radius_m=s.merge_radius_m,
         max_points=s.max_points,
+        surface_fill=s.surface_fill,
+        surface_fill_spacing_m=s.surface_fill_spacing_m,
+        surface_fill_max_gap_m=s.surface_fill_max_gap_m,
+        surface_fill_line_tol_m=s.surface_fill_line_tol_m,
     )
 
 

@@ -242,6 +242,12 @@ class SensorsConfig:
         merge_radius_m: Points closer than this are merged into one [m].
         max_points: Upper bound on remembered points (oldest dropped first).
         max_range_m: Readings beyond this are ignored (clip to the planner's world) [m].
+        surface_fill: Add obstacle points along the chord between adjacent sector returns that lie on one
+            straight surface (closes the gaps that one point per sector leaves along an oblique wall; see
+            docs/perception.md, "Closing walls between sectors").
+        surface_fill_spacing_m: Largest distance between filled points [m] (keep it <= merge_radius_m).
+        surface_fill_max_gap_m: Longest chord between two returns that is filled [m].
+        surface_fill_line_tol_m: The returns on both sides of a chord must lie this close to its line [m].
     """
 
     mavlink: bool = True
@@ -251,6 +257,10 @@ class SensorsConfig:
     merge_radius_m: float = 0.2
     max_points: int = 2000
     max_range_m: float = 8.0
+    surface_fill: bool = True
+    surface_fill_spacing_m: float = 0.2
+    surface_fill_max_gap_m: float = 1.5
+    surface_fill_line_tol_m: float = 0.05
 
     def __post_init__(self) -> None:
         _check_range("sensors.memory_expiry_s", self.memory_expiry_s, 0.1, 3600.0)
@@ -258,6 +268,9 @@ class SensorsConfig:
         if not isinstance(self.max_points, int) or not 10 <= self.max_points <= 1_000_000:
             raise _fail("sensors.max_points", "an integer in [10, 1000000]", self.max_points)
         _check_range("sensors.max_range_m", self.max_range_m, 0.1, 1000.0)
+        _check_range("sensors.surface_fill_spacing_m", self.surface_fill_spacing_m, 0.01, 5.0)
+        _check_range("sensors.surface_fill_max_gap_m", self.surface_fill_max_gap_m, 0.01, 5.0)
+        _check_range("sensors.surface_fill_line_tol_m", self.surface_fill_line_tol_m, 0.0, 1.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -29,6 +29,7 @@ from apf_companion.perception import (
     encode_scan_json,
     scan_from_obstacle_distance,
     scan_to_points_ned,
+    surface_fill_points,
 )
 
 
@@ -103,10 +104,45 @@ def main() -> None:
     mem.add(arc, t_s=0.0)
     rows.append(("ObstacleMemory.add(360 arc, steady)", _time(partial(mem.add, arc + 0.01, 1.0), rep)))
 
+    rows.extend(_surface_fill_rows(rep))
+
     width = max(len(name) for name, _ in rows)
     print(f"{'operation':<{width}}  {'p50 us':>9}  {'p99 us':>9}")
     for name, (p50, p99) in rows:
         print(f"{name:<{width}}  {p50:9.1f}  {p99:9.1f}")
+
+
+def _wall_scan(n: int, face_distance_m: float) -> tuple[RangeScan, Pose]:
+    """A full-circle n-element scan of a straight wall ``face_distance_m`` north of the vehicle (exact rays)."""
+    b = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    with np.errstate(divide="ignore"):
+        r = np.where(np.cos(b) > 0.0, face_distance_m / np.cos(b), np.inf)
+    r = np.where(r > 8.0, np.inf, r)
+    scan = RangeScan(t_s=0.0, frame=ScanFrame.LOCAL_NED, bearings_rad=b, ranges_m=r, range_min_m=0.2, range_max_m=8.0)
+    return scan, Pose(t_s=0.0, pos_ned_m=np.array([0.0, 0.0, -5.0]), yaw_rad=0.0)
+
+
+def _surface_fill_rows(rep: int) -> list[tuple[str, tuple[float, float]]]:
+    """Surface fill: the function alone, and a scan's placement + memory write without and with it."""
+    rows: list[tuple[str, tuple[float, float]]] = []
+    for n in (72, 360):
+        scan, pose = _wall_scan(n, 0.5)
+        rows.append((f"surface_fill_points({n}, wall 0.5 m)", _time(partial(surface_fill_points, scan, pose), rep)))
+        mem = ObstacleMemory(expiry_s=1e9, merge_radius_m=0.2, max_points=2000)
+
+        def place(fill: bool, scan: RangeScan = scan, pose: Pose = pose, mem: ObstacleMemory = mem) -> None:
+            pts = scan_to_points_ned(scan, pose)
+            if fill:
+                pts = np.concatenate([pts, surface_fill_points(scan, pose)])
+            mem.clear_observed(scan, pose)
+            mem.add(pts, 1.0)
+
+        place(True)
+        npts = scan_to_points_ned(scan, pose).shape[0]
+        nfill = surface_fill_points(scan, pose).shape[0]
+        rows.append((f"place+clear+add({n}: {npts} returns)", _time(partial(place, False), rep)))
+        rows.append((f"place+fill+clear+add({n}: +{nfill} filled)", _time(partial(place, True), rep)))
+    return rows
 
 
 if __name__ == "__main__":

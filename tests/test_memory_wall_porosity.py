@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pytest
 
-from apf_companion.perception import ObstacleMemory
+from apf_companion.perception import ObstacleMemory, PerceptionFrontEnd, PerceptionParams
 from apf_companion.perception.geometry import scan_to_points_ned
 from apf_companion.perception.types import Pose, RangeScan, ScanFrame
 from sim.world import World
@@ -25,35 +25,54 @@ WALL = World.from_obstacles(walls_ne_m=[[[10.0, -20.0], [10.0, 20.0]]], wall_thi
 PASSABLE_M = 2.0 * (0.25 + 0.1)  # collision radius + a 0.1 m margin, both sides
 
 
-def _observe(memory: ObstacleMemory, pos_ne: tuple[float, float], t_s: float) -> None:
+def _scan(pos_ne: tuple[float, float], t_s: float) -> RangeScan:
     ranges = WALL.window_ranges_m(pos_ne, SECTORS_RAD, math.radians(2.5))
     ranges = np.where(ranges > 8.0, np.inf, ranges)
-    scan = RangeScan(
+    return RangeScan(
         t_s=t_s, frame=ScanFrame.LOCAL_NED, bearings_rad=SECTORS_RAD, ranges_m=ranges, range_min_m=0.2, range_max_m=8.0
     )
+
+
+def _observe(memory: ObstacleMemory, pos_ne: tuple[float, float], t_s: float) -> None:
+    """The sector points alone (no surface fill), as measured for issue 7."""
+    scan = _scan(pos_ne, t_s)
     pose = Pose(t_s=t_s, pos_ned_m=np.array([pos_ne[0], pos_ne[1], -5.0]), yaw_rad=0.0)
     memory.clear_observed(scan, pose)
     memory.add(scan_to_points_ned(scan, pose), t_s)
 
 
-def _largest_gap_m(memory: ObstacleMemory, t_s: float, east_m: float, reach_m: float) -> float:
+def _largest_gap_m(points: np.ndarray, east_m: float, reach_m: float) -> float:
     """Largest gap between neighbouring remembered wall points within ``reach_m`` of ``east_m`` along the wall."""
-    pts = memory.points(t_s)
-    on_wall = (np.abs(pts[:, 0] - 10.0) < 0.5) & (np.abs(pts[:, 1] - east_m) <= reach_m)
-    along = np.sort(pts[on_wall, 1])
+    on_wall = (np.abs(points[:, 0] - 10.0) < 0.5) & (np.abs(points[:, 1] - east_m) <= reach_m)
+    along = np.sort(points[on_wall, 1])
     assert along.size >= 2
     return float(np.diff(along).max())
 
 
 def _fly_along(face_distance_m: float, reach_m: float) -> float:
-    """Worst largest gap while flying along the wall at 0.2 m per scan (2 m/s at 10 Hz)."""
+    """Worst largest gap while flying along the wall at 0.2 m per scan (2 m/s at 10 Hz), sector points only."""
     memory = ObstacleMemory(expiry_s=10.0, merge_radius_m=0.2)
     worst = 0.0
     for k in range(80):
         east = -8.0 + 0.2 * k
         _observe(memory, (9.9 - face_distance_m, east), 0.1 * k)
         if k >= 20:
-            worst = max(worst, _largest_gap_m(memory, 0.1 * k, east, reach_m))
+            worst = max(worst, _largest_gap_m(memory.points(0.1 * k), east, reach_m))
+    return worst
+
+
+def _fly_along_service(face_distance_m: float, reach_m: float, *, surface_fill: bool = True) -> float:
+    """The same flight through the service's perception front end (poses, scans, surface fill as configured)."""
+    front = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=10.0, surface_fill=surface_fill))
+    front.on_attitude(0.0)
+    worst = 0.0
+    for k in range(80):
+        east, t_s = -8.0 + 0.2 * k, 0.1 * k
+        pos_ne = (9.9 - face_distance_m, east)
+        assert front.on_local_position(1000 + 100 * k, (pos_ne[0], pos_ne[1], -5.0), t_s) is not None
+        front.on_scan(_scan(pos_ne, t_s))
+        if k >= 20:
+            worst = max(worst, _largest_gap_m(front.points(t_s), east, reach_m))
     return worst
 
 
@@ -67,6 +86,14 @@ def test_remembered_wall_gaps_three_metres_along_at_one_metre() -> None:
     assert 0.3 < gap < PASSABLE_M  # measured 0.54 m
 
 
-@pytest.mark.xfail(strict=True, reason="porous wall: 0.80 m gaps 3 m along when 0.5 m from it (sector sampling)")
-def test_remembered_wall_has_no_passable_gap_within_three_metres_when_close() -> None:
-    assert _fly_along(0.5, reach_m=3.0) < PASSABLE_M
+def test_sector_points_alone_leave_a_passable_gap_three_metres_along_when_close() -> None:
+    gap = _fly_along(0.5, reach_m=3.0)
+    assert gap > PASSABLE_M  # measured 0.80 m: the sampling problem surface fill closes
+    assert _fly_along_service(0.5, reach_m=3.0, surface_fill=False) > PASSABLE_M  # the service without fill
+
+
+@pytest.mark.parametrize("face_distance_m", [0.5, 1.0, 2.0])
+def test_remembered_wall_has_no_passable_gap_within_three_metres_with_surface_fill(face_distance_m: float) -> None:
+    gap = _fly_along_service(face_distance_m, reach_m=3.0)
+    assert gap < PASSABLE_M  # measured 0.22-0.24 m
+    assert gap <= 2.0 * 0.2 + 1e-9  # no worse than two merge radii

@@ -16,7 +16,7 @@ from apf_companion.perception.cdr import (
     parse_laserscan_cdr,
 )
 from apf_companion.perception.frontend import PerceptionCounters, PerceptionFrontEnd, PerceptionParams
-from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned
+from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned, surface_fill_points
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     points_from_obstacle_distance_3d,
@@ -65,4 +65,5 @@ __all__ = [
     "scan_from_distance_sensor",
     "scan_from_obstacle_distance",
     "scan_to_points_ned",
+    "surface_fill_points",
 ]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -26,7 +27,7 @@ import numpy as np
 
 from apf_companion.errors import ConfigError, ProtocolError
 from apf_companion.perception.cdr import decode_laserscan_cdr
-from apf_companion.perception.geometry import scan_to_points_ned
+from apf_companion.perception.geometry import scan_to_points_ned, surface_fill_points
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     DistanceSensorLike,
@@ -60,6 +61,17 @@ class PerceptionParams:
     memory_expiry_s: float = 5.0
     merge_radius_m: float = 0.2
     max_points: int = 2000
+    surface_fill: bool = True  # points along chords between adjacent returns on one surface (geometry.py)
+    surface_fill_spacing_m: float = 0.2
+    surface_fill_max_gap_m: float = 1.5
+    surface_fill_line_tol_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        # Checked here, not at the first scan: the on_* methods must not raise.
+        fill = (self.surface_fill_spacing_m, self.surface_fill_max_gap_m, self.surface_fill_line_tol_m)
+        if not all(math.isfinite(v) for v in fill) or min(fill[:2]) <= 0.0 or fill[2] < 0.0:
+            msg = f"surface fill spacing/max gap must be finite and > 0, line tolerance >= 0, got {fill}"
+            raise ConfigError(msg)
 
 
 @dataclass(slots=True)
@@ -231,6 +243,15 @@ class PerceptionFrontEnd:
         if scan.counts.valid + scan.counts.free == 0:
             return  # nothing usable: no news about the surroundings, ranges stay as fresh as they were
         points = scan_to_points_ned(scan, pose)
+        if self.params.surface_fill:
+            fill = surface_fill_points(
+                scan,
+                pose,
+                spacing_m=self.params.surface_fill_spacing_m,
+                max_gap_m=self.params.surface_fill_max_gap_m,
+                line_tol_m=self.params.surface_fill_line_tol_m,
+            )
+            points = np.concatenate([points, fill])  # measured returns first: the memory's merge keeps them
         if points.shape[0]:
             rel = points[:, :2] - pose.pos_ned_m[:2]
             limit = self.params.max_range_m
