@@ -11,13 +11,17 @@ import asyncio
 import os
 import socket
 from collections.abc import Callable
+from typing import Protocol
 
 import pytest
+
+from apf_companion.service import ServiceClock
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 HANG_S = 30.0  # wall seconds: only reached when something hangs
 POLL_S = 0.01  # how often ``until`` looks again
+TICK_S = 1e-6  # resolution of SimulatorClock
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -36,6 +40,71 @@ async def until(condition: Callable[[], object], timeout_s: float = HANG_S, what
     except TimeoutError:
         msg = f"{what}: not within {timeout_s} s"
         raise AssertionError(msg) from None
+
+
+class _HasSimTime(Protocol):
+    @property
+    def t_s(self) -> float: ...
+
+
+class SimulatorClock(ServiceClock):
+    """Service time that IS the simulator's time, for a service flying the in-process simulator.
+
+    The default ``ServiceClock`` is wall time times ``time_scale``. On a loaded machine the simulator falls
+    behind its speed-up (it re-bases rather than burst to catch up) while wall time runs on, so the service
+    would see the vehicle crawl: pose ages, progress timeouts and takeover deadlines would all be off by the
+    lag. With this clock both sides share one time base and a loaded machine only makes the flight slower.
+
+    Until ``follow(sim)`` (the service opens before the simulator that connects to it) time stands still.
+    """
+
+    def __init__(self, speedup: float) -> None:
+        super().__init__(time_scale=speedup)
+        self._sim: _HasSimTime | None = None
+        self._offset_s = 0.0
+        self._last_s = 0.0
+
+    def follow(self, sim: _HasSimTime) -> None:
+        """From now on, advance with ``sim.t_s`` (continuing from the current reading)."""
+        self._offset_s = self.now() - sim.t_s
+        self._sim = sim
+
+    def now(self) -> float:
+        """Simulated seconds, strictly increasing from one reading to the next.
+
+        The simulator's time moves in physics steps, so two messages read within one step would get the same
+        receive stamp, and the navigator refuses a pose no newer than the last one. Like a real clock with
+        microsecond resolution, a repeated reading moves on by ``TICK_S``; readings stay within a few
+        milliseconds of the simulator's time (the next physics step overtakes them).
+        """
+        if self._sim is not None:
+            self._last_s = max(self._sim.t_s + self._offset_s, self._last_s + TICK_S)
+        return self._last_s
+
+    async def sleep(self, dt_s: float) -> None:
+        """Until simulated time has advanced by ``dt_s`` (however long that takes on the wall clock)."""
+        until_s = self.now() + dt_s
+        while (left_s := until_s - self.now()) > 0:
+            await asyncio.sleep(self.to_wall(left_s))
+        await asyncio.sleep(0)
+
+
+async def until_sim_time(clock: ServiceClock, t_s: float, hang_s: float = HANG_S) -> None:
+    """Wait until ``clock`` (a ``SimulatorClock``, or any service clock) reaches ``t_s``."""
+    await until(lambda: clock.now() >= t_s, hang_s, f"simulated time {t_s:.1f} s")
+
+
+@pytest.fixture
+def simulator_yields_every_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An in-process simulator that is behind schedule yields to the event loop after every physics step.
+
+    By default it catches up in bursts of ``STEPS_PER_YIELD`` (25) steps between yields. A service in the
+    same event loop handles about one pose per loop pass, so on a loaded machine, where the simulator is
+    always behind, it falls further behind the vehicle every pass: heartbeats are read seconds (simulated)
+    late (LINK_LOST) and setpoints act on old poses (crashes). One step per pass keeps both in step; the
+    simulator just runs slower. (The simulator owns this constant; see docs/testing.md.)
+    """
+    monkeypatch.setattr("sim.vehicle.simulator.STEPS_PER_YIELD", 1)
 
 
 @pytest.fixture
