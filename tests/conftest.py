@@ -11,11 +11,15 @@ import asyncio
 import os
 import socket
 from collections.abc import Callable
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import pytest
 
 from apf_companion.service import ServiceClock
+from sim.vehicle import testing as sim_testing
+
+if TYPE_CHECKING:
+    from sim.vehicle import Simulator
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -92,6 +96,71 @@ class SimulatorClock(ServiceClock):
 async def until_sim_time(clock: ServiceClock, t_s: float, hang_s: float = HANG_S) -> None:
     """Wait until ``clock`` (a ``SimulatorClock``, or any service clock) reaches ``t_s``."""
     await until(lambda: clock.now() >= t_s, hang_s, f"simulated time {t_s:.1f} s")
+
+
+async def wait_for(sim: Simulator, predicate: Callable[[Simulator], bool], *, timeout_s: float = HANG_S) -> None:
+    """``sim.vehicle.testing.wait_for`` with a hang-only wall deadline: for conditions that stay true once met."""
+    await sim_testing.wait_for(sim, predicate, timeout_s=timeout_s)
+
+
+async def wait_sim_time(sim: Simulator, t_s: float, *, timeout_s: float = HANG_S) -> None:
+    """``sim.vehicle.testing.wait_sim_time`` with a hang-only wall deadline."""
+    await sim_testing.wait_sim_time(sim, t_s, timeout_s=timeout_s)
+
+
+class StepWatch:
+    """Looks at an in-process simulator after every physics step, so nothing between two polls is missed.
+
+    Polling ``sim.vehicle`` from the test's task sees the vehicle only when that task runs; on a loaded machine
+    the simulator may have run many steps meanwhile, past a state that lasts a second or two of simulated time
+    (a velocity before GUID_TIMEOUT). ``first`` and ``sample_at`` are exact in simulated time instead.
+    """
+
+    def __init__(self, sim: Simulator, sample: Callable[[Simulator], object]) -> None:
+        self._sim = sim
+        self._sample = sample
+        self.t_s: list[float] = []
+        self.samples: list[object] = []
+        self._waiters: list[tuple[Callable[[Simulator], bool], float, asyncio.Future[tuple[float, bool]]]] = []
+        step = sim.engine.step
+
+        def step_and_watch() -> None:
+            step()
+            self._after_step()
+
+        sim.engine.step = step_and_watch  # type: ignore[method-assign]
+
+    def _after_step(self) -> None:
+        t_s = self._sim.t_s
+        self.t_s.append(t_s)
+        self.samples.append(self._sample(self._sim))
+        for predicate, deadline_s, fut in self._waiters:
+            if fut.done():
+                continue
+            if predicate(self._sim):
+                fut.set_result((t_s, True))
+            elif t_s >= deadline_s:
+                fut.set_result((t_s, False))
+        self._waiters = [w for w in self._waiters if not w[2].done()]
+
+    async def first(self, predicate: Callable[[Simulator], bool], *, within_s: float, hang_s: float = HANG_S) -> float:
+        """Simulated time of the first step (from now) where ``predicate`` holds; fails after ``within_s`` sim s."""
+        if predicate(self._sim):
+            return self._sim.t_s
+        fut: asyncio.Future[tuple[float, bool]] = asyncio.get_running_loop().create_future()
+        self._waiters.append((predicate, self._sim.t_s + within_s, fut))
+        async with asyncio.timeout(hang_s):
+            t_s, met = await fut
+        assert met, f"not within {within_s} simulated s (at {t_s:.2f} s)"
+        return t_s
+
+    def sample_at(self, t_s: float) -> object:
+        """The sample of the first step at or after simulated time ``t_s`` (that step must have run)."""
+        for t, sample in zip(self.t_s, self.samples, strict=True):
+            if t >= t_s - 1e-9:
+                return sample
+        msg = f"no step at or after {t_s} s yet (last {self.t_s[-1] if self.t_s else None})"
+        raise AssertionError(msg)
 
 
 @pytest.fixture
