@@ -105,6 +105,17 @@ async def _publish_until_received(
         raise AssertionError(msg) from None
 
 
+async def _subscriptions_known(sub_side: ZenohLink, pub_side: ZenohLink) -> None:
+    """Return once ``pub_side`` knows every subscription ``sub_side`` declared so far.
+
+    A probe subscription is declared last and probed until a sample arrives; declarations travel in order, so
+    the earlier ones have arrived too. Probing on the subscription under test instead would leave retried
+    warm-up samples in flight that land in it later and upset its counts.
+    """
+    probe = await sub_side.subscribe("apf/probe/ready")
+    await _publish_until_received(pub_side, probe, "apf/probe/ready", b"?", "text/plain")
+
+
 async def publish_each(pub: ZenohLink, sub: ZenohSubscription, items: list[tuple[str, bytes]]) -> None:
     """Publish ``(key, payload)`` one at a time, each once ``sub`` has received the previous one.
 
@@ -139,7 +150,7 @@ async def test_recv_timeout(pair: tuple[ZenohLink, ZenohLink]) -> None:
 async def test_latest_wins_per_key(pair: tuple[ZenohLink, ZenohLink]) -> None:
     a, b = pair
     sub = await a.subscribe("apf/sensors/*/ranges", overflow=Overflow.LATEST_PER_KEY, capacity=4)
-    await _publish_until_received(b, sub, "apf/sensors/warmup/ranges", b"w", "text/plain")
+    await _subscriptions_known(a, b)
     items = [
         (f"apf/sensors/{side}/ranges", f"{side[0].upper()}{i}".encode())
         for i in range(50)
@@ -157,7 +168,7 @@ async def test_latest_wins_per_key(pair: tuple[ZenohLink, ZenohLink]) -> None:
 async def test_latest_wins_key_bound(pair: tuple[ZenohLink, ZenohLink]) -> None:
     a, b = pair
     sub = await a.subscribe("apf/k/*", overflow=Overflow.LATEST_PER_KEY, capacity=3)
-    await _publish_until_received(b, sub, "apf/k/warmup", b"w", "text/plain")
+    await _subscriptions_known(a, b)
     await publish_each(b, sub, [(f"apf/k/{i}", b"x") for i in range(6)])
     assert sub.pending() == 3
     assert sub.stats.dropped == 3
@@ -168,7 +179,7 @@ async def test_latest_wins_key_bound(pair: tuple[ZenohLink, ZenohLink]) -> None:
 async def test_fifo_keeps_order_and_drops_oldest(pair: tuple[ZenohLink, ZenohLink]) -> None:
     a, b = pair
     sub = await a.subscribe(DEFAULT_GOAL_KEY, overflow=Overflow.FIFO, capacity=5)
-    await _publish_until_received(b, sub, DEFAULT_GOAL_KEY, b"warmup", "application/json")
+    await _subscriptions_known(a, b)
     await publish_each(b, sub, [(DEFAULT_GOAL_KEY, str(i).encode()) for i in range(20)])
     assert sub.stats.dropped == 15
     out = [(await sub.recv(timeout=HANG_S)).payload for _ in range(5)]
