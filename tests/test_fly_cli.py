@@ -26,6 +26,7 @@ def _types_in_tlog(path: Path) -> set[str]:
         seen.add(msg.get_type())
 
 
+@pytest.mark.slow
 def test_fly_paper_scenario_one_command(tmp_path: Path) -> None:
     out = tmp_path / "out"
     result = tmp_path / "r.json"

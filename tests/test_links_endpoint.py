@@ -52,9 +52,28 @@ def test_parse_rejects_with_a_clear_message(text: str, fragment: str) -> None:
         parse_endpoint(text)
 
 
-def test_str_round_trips() -> None:
-    for text in ("udpin:127.0.0.1:14550", "tcp:127.0.0.1:5760", "serial:/dev/ttyACM0:57600"):
-        assert parse_endpoint(str(parse_endpoint(text))) == parse_endpoint(text)
+@pytest.mark.parametrize("kind", [*EndpointKind])
+def test_str_round_trips_for_every_kind(kind: EndpointKind) -> None:
+    text = "serial:/dev/ttyACM0:57600" if kind is EndpointKind.SERIAL else f"{kind.value}:127.0.0.1:5760"
+    ep = parse_endpoint(text)
+    assert ep.kind is kind
+    assert parse_endpoint(str(ep)) == ep
+
+
+@pytest.mark.parametrize("kind", [*EndpointKind])
+def test_only_listening_kinds_take_port_zero_and_an_empty_host(kind: EndpointKind) -> None:
+    assert kind.listens == (kind in (EndpointKind.UDPIN, EndpointKind.TCPIN))
+    if kind is EndpointKind.SERIAL:
+        return
+    assert parse_endpoint(f"{kind.value}:127.0.0.1:5760").listens == kind.listens
+    if kind.listens:
+        assert parse_endpoint(f"{kind.value}:127.0.0.1:0").port == 0
+        assert parse_endpoint(f"{kind.value}://:5760").host == ANY_IPV4
+    else:
+        with pytest.raises(ConfigError, match=r"outside 1\.\.65535"):
+            parse_endpoint(f"{kind.value}:127.0.0.1:0")
+        with pytest.raises(ConfigError, match="needs a host"):
+            parse_endpoint(f"{kind.value}://:5760")
 
 
 @given(st.text(max_size=40))

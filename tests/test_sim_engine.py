@@ -18,10 +18,11 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from apf_companion.autopilot import MASK_POSITION, MASK_VELOCITY, Autopilot, CopterMode
 from apf_companion.errors import ConfigError
+from apf_companion.links import MavlinkLink
 from sim.vehicle import EngineConfig, SpawnConfig, VehicleEngine
 from sim.world import World, load_world
 
-from .conftest import free_port
+from .conftest import HANG_S, free_port
 
 GCS = m.MAVLink(None, srcSystem=255, srcComponent=190)
 
@@ -195,14 +196,19 @@ async def test_cli_writes_result_on_sigterm(tmp_path: Path) -> None:
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
     assert proc.stdout is not None
+    gcs = await MavlinkLink.open(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
     try:
-        async with asyncio.timeout(20.0):
+        async with asyncio.timeout(HANG_S):
             line = await proc.stdout.readline()
             assert line.startswith(b"apf-sim vehicle ready: profile=px4 world=paper-field:reference:30")
-            await asyncio.sleep(0.5)
+            # Half a simulated second has passed once the vehicle says so (however slow the machine is).
+            await gcs.recv_match(
+                type=("ATTITUDE", "LOCAL_POSITION_NED"), condition=lambda msg: msg.time_boot_ms > 600, timeout=HANG_S
+            )
             proc.send_signal(signal.SIGTERM)
             out, err = await proc.communicate()
     finally:
+        await gcs.aclose()
         if proc.returncode is None:
             proc.kill()
             await proc.wait()
@@ -223,7 +229,7 @@ async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
         "--speedup", "inf", "--link", f"udpout:127.0.0.1:{port}", "--result-json", str(result),
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
-    async with asyncio.timeout(20.0):
+    async with asyncio.timeout(HANG_S):
         _, err = await proc.communicate()
     assert proc.returncode == 0, err.decode()
     res = json.loads(result.read_text())
@@ -234,6 +240,6 @@ async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
         "--link", f"udpout:127.0.0.1:{port}",
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
-    async with asyncio.timeout(20.0):
+    async with asyncio.timeout(HANG_S):
         _, err = await bad.communicate()
     assert bad.returncode == 2 and b"GUID_TIMEOUT 99 not in [0.1, 5]" in err

@@ -17,11 +17,11 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 from apf_companion.autopilot import CopterMode
 from apf_companion.links import MavlinkLink
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
-from sim.vehicle.testing import command_long, wait_for
+from sim.vehicle.testing import command_long
 
-from .conftest import free_port
+from .conftest import HANG_S, free_port, wait_for
 
-pytestmark = pytest.mark.interop
+pytestmark = [pytest.mark.interop, pytest.mark.usefixtures("simulator_yields_every_step")]
 
 
 @pytest.mark.parametrize("profile", ["px4", "ardupilot"])
@@ -36,11 +36,11 @@ async def test_mavsdk_discovers_and_reads_position_velocity(profile: str) -> Non
         config = mavsdk_asyncio.Configuration.create_with_component_type(mavsdk_asyncio.ComponentType.GROUND_STATION)
         async with mavsdk_asyncio.Mavsdk(config) as sdk:
             await sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
-            system = await sdk.first_autopilot(timeout_s=5.0)
+            system = await sdk.first_autopilot(timeout_s=HANG_S)
             assert system is not None, "MAVSDK did not discover the simulator as an autopilot"
             assert await system.autopilot_type() == (1 if profile == "px4" else 2)
             tel = telemetry.TelemetryAsync(system)
-            async with asyncio.timeout(5.0):
+            async with asyncio.timeout(HANG_S):
                 async for pv in tel.subscribe_position_velocity_ned():
                     if not math.isnan(pv.position.north_m):
                         break
@@ -48,11 +48,11 @@ async def test_mavsdk_discovers_and_reads_position_velocity(profile: str) -> Non
             assert pv.position.down_m == pytest.approx(-5.0, abs=1e-3)
             assert pv.velocity.north_m_s == pytest.approx(0.0, abs=1e-3)
             # requests that need our COMMAND_ACKs: a message rate, then a mode change (RTL) that moves it
-            async with asyncio.timeout(5.0):
+            async with asyncio.timeout(HANG_S):
                 await tel.set_rate_position_velocity_ned(20.0)
                 await action.ActionAsync(system).return_to_launch()
-            await wait_for(sim, lambda s: s.vehicle.mode in ("RTL", "AUTO.RTL"), timeout_s=5.0)
-            async with asyncio.timeout(5.0):
+            await wait_for(sim, lambda s: s.vehicle.mode in ("RTL", "AUTO.RTL"))
+            async with asyncio.timeout(HANG_S):
                 async for pv in tel.subscribe_position_velocity_ned():
                     if pv.velocity.north_m_s < -0.2:  # flying home (south-west) or climbing first
                         break
@@ -100,11 +100,11 @@ async def test_mavproxy_headless_sees_heartbeat_and_mode(tmp_path: Path) -> None
                 return
 
     try:
-        async with asyncio.timeout(12.0):
+        async with asyncio.timeout(HANG_S):  # MAVProxy starts slowly on a loaded machine
             await read_until("Detected vehicle 1:1")
             await read_until("Mode GUIDED")
-            await ctl.recv_match(type="HEARTBEAT", timeout=3.0)
-            ack = await command_long(ctl, m.MAV_CMD_DO_SET_MODE, 1, CopterMode.LOITER)
+            await ctl.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            ack = await command_long(ctl, m.MAV_CMD_DO_SET_MODE, 1, CopterMode.LOITER, timeout=HANG_S)
             assert ack.result == m.MAV_RESULT_ACCEPTED
             await read_until("Mode LOITER")
         assert "online system 1" in lines
@@ -113,7 +113,7 @@ async def test_mavproxy_headless_sees_heartbeat_and_mode(tmp_path: Path) -> None
         if proc.returncode is None:
             proc.terminate()
             try:
-                async with asyncio.timeout(5.0):
+                async with asyncio.timeout(HANG_S):
                     await proc.wait()
             except TimeoutError:
                 proc.kill()

@@ -21,7 +21,9 @@ from sim.vehicle.sensor_only import SensorOnlyConfig, SensorSimulator
 from sim.vehicle.testing import simulator_with_client
 from sim.world import World
 
-from .conftest import free_port
+from .conftest import HANG_S, free_port
+
+pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
 
 YAW_DEG = 30.0
 FREE_CM = 801
@@ -53,8 +55,8 @@ def expected_sectors() -> list[int]:
 async def test_obstacle_distance_matches_hand_geometry() -> None:
     spawn = SpawnConfig(pos_ne_m=(0.0, 0.0), yaw_deg=YAW_DEG, airborne=True, alt_m=5.0)
     async with simulator_with_client(world=hand_world(), spawn=spawn, speedup=5.0) as (_sim, gcs):
-        od = await gcs.recv_match(type="OBSTACLE_DISTANCE", timeout=3.0)
-        od2 = await gcs.recv_match(type="OBSTACLE_DISTANCE", timeout=3.0)
+        od = await gcs.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)
+        od2 = await gcs.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)
         assert od.frame == m.MAV_FRAME_BODY_FRD
         assert (od.increment, od.increment_f, od.angle_offset) == (5, 5.0, 0.0)
         assert (od.min_distance, od.max_distance) == (20, 800)
@@ -70,7 +72,7 @@ async def test_distance_sensor_and_obstacle_distance_3d() -> None:
     async with simulator_with_client(world=hand_world(), spawn=spawn, sensor=sensor, speedup=5.0) as (_sim, gcs):
         readings: dict[int, int] = {}
         while len(readings) < 8:
-            ds = await gcs.recv_match(type="DISTANCE_SENSOR", timeout=3.0)
+            ds = await gcs.recv_match(type="DISTANCE_SENSOR", timeout=HANG_S)
             assert ds.id == ds.orientation
             assert ds.horizontal_fov == pytest.approx(math.radians(45.0))
             readings[ds.orientation] = ds.current_distance
@@ -78,7 +80,7 @@ async def test_distance_sensor_and_obstacle_distance_3d() -> None:
         assert readings == {0: FREE_CM, 1: 400, 2: FREE_CM, 3: FREE_CM, 4: 250, 5: FREE_CM, 6: FREE_CM, 7: FREE_CM}
         pts: dict[int, tuple[float, float, float]] = {}
         while len(pts) < 2:
-            o3 = await gcs.recv_match(type="OBSTACLE_DISTANCE_3D", timeout=3.0)
+            o3 = await gcs.recv_match(type="OBSTACLE_DISTANCE_3D", timeout=HANG_S)
             assert o3.frame == m.MAV_FRAME_BODY_FRD
             pts[o3.obstacle_id] = (o3.x, o3.y, o3.z)
         r = 4.0 / math.sqrt(2)
@@ -133,7 +135,7 @@ async def test_zenoh_output(encoding: str) -> None:
         sub_link = await ZenohLink.open(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",)))
         try:
             sub = await sub_link.subscribe(out.key)
-            sample = await sub.recv(timeout=10.0)
+            sample = await sub.recv(timeout=HANG_S)
             if encoding == "json":
                 assert sample.encoding.startswith("application/json")
                 scan = decode_scan_json(sample.payload, t_s=0.0)
@@ -177,14 +179,14 @@ async def test_sensor_only_follows_an_external_autopilot() -> None:
         )
     )
     try:
-        od = await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=5.0)
+        od = await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)
         assert list(od.distances) == expected_sectors()
         assert od.time_usec % 1000 == 0  # the autopilot's time_boot_ms of the pose used
         assert (od.get_srcSystem(), od.get_srcComponent()) == (1, 1)
         assert sensor.sysid == 1
         # the sensor asked the autopilot for 20 Hz position and attitude
         await asyncio.sleep(0.3)
-        t = [(await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=2.0)).time_usec for _ in range(3)]
+        t = [(await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)).time_usec for _ in range(3)]
         assert t == sorted(t)
         res = sensor.result()
         assert res["scans"] >= 4 and not res["collided"]

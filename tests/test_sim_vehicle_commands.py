@@ -17,7 +17,11 @@ from apf_companion.autopilot import PX4_HOLD, PX4_OFFBOARD, PX4_TAKEOFF, CopterM
 from apf_companion.errors import LinkTimeout
 from apf_companion.links import MavlinkLink
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
-from sim.vehicle.testing import command_int, command_long, simulator_with_client, wait_for
+from sim.vehicle.testing import command_int, command_long, simulator_with_client
+
+from .conftest import HANG_S, wait_for
+
+pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
 
 ACCEPTED = m.MAV_RESULT_ACCEPTED
 FAILED = m.MAV_RESULT_FAILED
@@ -26,7 +30,7 @@ UNSUPPORTED = m.MAV_RESULT_UNSUPPORTED
 
 
 async def heartbeat(link: MavlinkLink, condition: Callable[[Any], bool] | None = None) -> Any:
-    return await link.recv_match(type="HEARTBEAT", condition=condition, timeout=3.0)
+    return await link.recv_match(type="HEARTBEAT", condition=condition, timeout=HANG_S)
 
 
 @pytest.mark.parametrize(
@@ -53,7 +57,7 @@ async def test_default_rates_in_sim_time() -> None:
     async with simulator_with_client(speedup=20.0) as (_sim, gcs):
         stamps: dict[str, list[int]] = {"LOCAL_POSITION_NED": [], "ATTITUDE": [], "GLOBAL_POSITION_INT": []}
         while min(len(v) for v in stamps.values()) < 6:
-            msg = await gcs.recv_match(type=tuple(stamps), timeout=3.0)
+            msg = await gcs.recv_match(type=tuple(stamps), timeout=HANG_S)
             stamps[msg.get_type()].append(msg.time_boot_ms)
         assert {
             b - a for a, b in zip(stamps["LOCAL_POSITION_NED"][1:], stamps["LOCAL_POSITION_NED"][2:], strict=False)
@@ -115,7 +119,7 @@ async def test_set_mode_command_and_message_ardupilot() -> None:
         assert (await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, CopterMode.AUTO)).result == FAILED
         assert (await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 0, CopterMode.LOITER)).result == UNSUPPORTED
         gcs.send(gcs.mav.set_mode_encode(1, m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, CopterMode.LOITER))
-        ack = await gcs.recv_match(type="COMMAND_ACK", timeout=2.0)
+        ack = await gcs.recv_match(type="COMMAND_ACK", timeout=HANG_S)
         assert (ack.command, ack.result) == (m.MAVLINK_MSG_ID_SET_MODE, ACCEPTED)
         await heartbeat(gcs, lambda h: h.custom_mode == CopterMode.LOITER)
         ack = await command_int(gcs, m.MAV_CMD_DO_SET_MODE, params=(1, CopterMode.BRAKE, 0, 0))
@@ -147,7 +151,7 @@ async def test_takeoff_and_land_ardupilot() -> None:
         assert (await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, CopterMode.GUIDED)).result == ACCEPTED
         assert (await command_long(gcs, m.MAV_CMD_COMPONENT_ARM_DISARM, 1)).result == ACCEPTED
         assert (await command_long(gcs, m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 4)).result == ACCEPTED
-        state = await gcs.recv_match(type="EXTENDED_SYS_STATE", timeout=2.0)
+        state = await gcs.recv_match(type="EXTENDED_SYS_STATE", timeout=HANG_S)
         assert state.landed_state in (m.MAV_LANDED_STATE_TAKEOFF, m.MAV_LANDED_STATE_ON_GROUND)
         await wait_for(sim, lambda s: s.vehicle.pos_ned_m[2] < -3.95)
         await gcs.recv_match(
@@ -191,47 +195,45 @@ async def test_message_interval_and_requests() -> None:
     async with simulator_with_client(speedup=10.0) as (sim, gcs):
         lpn = m.MAVLINK_MSG_ID_LOCAL_POSITION_NED
         assert (await command_long(gcs, m.MAV_CMD_SET_MESSAGE_INTERVAL, lpn, 20_000)).result == ACCEPTED
-        t = [(await gcs.recv_match(type="LOCAL_POSITION_NED", timeout=2.0)).time_boot_ms for _ in range(6)]
+        t = [(await gcs.recv_match(type="LOCAL_POSITION_NED", timeout=HANG_S)).time_boot_ms for _ in range(6)]
         assert {b - a for a, b in itertools.pairwise(t[1:])} == {20}
         ack = await command_long(gcs, m.MAV_CMD_GET_MESSAGE_INTERVAL, lpn)
         assert ack.result == ACCEPTED
-        iv = await gcs.recv_match(type="MESSAGE_INTERVAL", timeout=2.0)
+        iv = await gcs.recv_match(type="MESSAGE_INTERVAL", timeout=HANG_S)
         assert (iv.message_id, iv.interval_us) == (lpn, 20_000)
         assert (await command_long(gcs, m.MAV_CMD_SET_MESSAGE_INTERVAL, lpn, -1)).result == ACCEPTED
-        await asyncio.sleep(0.05)
-        while gcs.recv_nowait() is not None:
-            pass
-        t0 = sim.t_s
+        t0 = sim.t_s  # the stream was off before this: frames still in flight are stamped earlier
         await wait_for(sim, lambda s: s.t_s > t0 + 1.0)
         got = []
         while (msg := gcs.recv_nowait()) is not None:
-            got.append(msg.get_type())
+            if msg.get_type() in ("LOCAL_POSITION_NED", "ATTITUDE") and msg.time_boot_ms > t0 * 1000.0:
+                got.append(msg.get_type())
         assert "LOCAL_POSITION_NED" not in got and "ATTITUDE" in got
         # ArduPilot DENIES a message id it cannot send (GCS_Common.cpp set_message_interval)
         assert (await command_long(gcs, m.MAV_CMD_SET_MESSAGE_INTERVAL, 12345, 1000)).result == m.MAV_RESULT_DENIED
 
         ack = await command_long(gcs, m.MAV_CMD_REQUEST_MESSAGE, m.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         assert ack.result == ACCEPTED
-        ver = await gcs.recv_match(type="AUTOPILOT_VERSION", timeout=2.0)
+        ver = await gcs.recv_match(type="AUTOPILOT_VERSION", timeout=HANG_S)
         assert ver.capabilities & m.MAV_PROTOCOL_CAPABILITY_MAVLINK2
         assert ver.capabilities & m.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
         ack = await command_long(gcs, m.MAV_CMD_REQUEST_MESSAGE, m.MAVLINK_MSG_ID_HOME_POSITION)
         assert ack.result == ACCEPTED
-        home = await gcs.recv_match(type="HOME_POSITION", timeout=2.0)
+        home = await gcs.recv_match(type="HOME_POSITION", timeout=HANG_S)
         assert (home.latitude, home.longitude, home.altitude) == (-353632620, 1491652370, 584000)
         assert (await command_long(gcs, m.MAV_CMD_REQUEST_MESSAGE, 9999)).result == FAILED
         assert (await command_long(gcs, m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1)).result == ACCEPTED
-        await gcs.recv_match(type="AUTOPILOT_VERSION", timeout=2.0)
+        await gcs.recv_match(type="AUTOPILOT_VERSION", timeout=HANG_S)
 
 
 async def test_timesync_and_mission_count() -> None:
     async with simulator_with_client(speedup=1.0) as (sim, gcs):
         gcs.send(gcs.mav.timesync_encode(0, 123456789))
-        ts = await gcs.recv_match(type="TIMESYNC", timeout=2.0)
+        ts = await gcs.recv_match(type="TIMESYNC", timeout=HANG_S)
         assert ts.ts1 == 123456789
         assert 0 < ts.tc1 <= sim.t_s * 1e9  # our simulated clock in ns
         gcs.send(gcs.mav.mission_request_list_encode(1, 1))
-        count = await gcs.recv_match(type="MISSION_COUNT", timeout=2.0)
+        count = await gcs.recv_match(type="MISSION_COUNT", timeout=HANG_S)
         assert (count.count, count.target_system) == (0, 255)
 
 
@@ -240,7 +242,7 @@ async def test_parameters() -> None:
         gcs.send(gcs.mav.param_request_list_encode(1, 1))
         values = {}
         while True:
-            pv = await gcs.recv_match(type="PARAM_VALUE", timeout=2.0)
+            pv = await gcs.recv_match(type="PARAM_VALUE", timeout=HANG_S)
             values[pv.param_id] = (pv.param_value, pv.param_index, pv.param_count)
             if len(values) == pv.param_count:
                 break
@@ -248,26 +250,26 @@ async def test_parameters() -> None:
         assert values["SIM_RNG_MAX"][0] == 8.0
         assert sorted(v[1] for v in values.values()) == list(range(len(values)))
         gcs.send(gcs.mav.param_request_read_encode(1, 1, b"", values["WPNAV_SPEED"][1]))
-        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=2.0)
+        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=HANG_S)
         assert (pv.param_id, pv.param_value) == ("WPNAV_SPEED", 500.0)
         gcs.send(gcs.mav.param_set_encode(1, 1, b"GUID_TIMEOUT", 1.5, m.MAV_PARAM_TYPE_REAL32))
-        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=2.0)
+        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=HANG_S)
         assert (pv.param_id, pv.param_value) == ("GUID_TIMEOUT", 1.5)
         gcs.send(gcs.mav.param_set_encode(1, 1, b"GUID_TIMEOUT", 99.0, m.MAV_PARAM_TYPE_REAL32))
-        text = await gcs.recv_match(type="STATUSTEXT", timeout=2.0)
+        text = await gcs.recv_match(type="STATUSTEXT", timeout=HANG_S)
         assert text.text == "GUID_TIMEOUT 99 not in [0.1, 5]"
-        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=2.0)
+        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=HANG_S)
         assert pv.param_value == 1.5  # refused: the old value
         gcs.send(gcs.mav.param_request_read_encode(1, 1, b"NO_SUCH_PARAM", -1))
         gcs.send(gcs.mav.param_request_read_encode(1, 1, b"GUID_TIMEOUT", -1))
-        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=2.0)
+        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=HANG_S)
         assert pv.param_id == "GUID_TIMEOUT"  # the unknown one got no answer
 
 
 async def test_px4_parameters() -> None:
     async with simulator_with_client(profile="px4", params={"COM_OF_LOSS_T": 0.5}) as (_sim, gcs):
         gcs.send(gcs.mav.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1))
-        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=2.0)
+        pv = await gcs.recv_match(type="PARAM_VALUE", timeout=HANG_S)
         assert pv.param_value == 0.5
         gcs.send(gcs.mav.param_request_read_encode(1, 1, b"GUID_TIMEOUT", -1))
         with pytest.raises(LinkTimeout):
@@ -281,7 +283,7 @@ async def test_two_links_and_tlog_read_back(tmp_path: Path) -> None:
         assert gcs2.local_address is not None
         tcp = f"tcp:127.0.0.1:{gcs2.local_address[1]}"
         async with simulator_with_client(links=[tcp], tlog_path=tlog) as (_sim, gcs):
-            hb2 = await gcs2.recv_match(type="HEARTBEAT", timeout=5.0)
+            hb2 = await gcs2.recv_match(type="HEARTBEAT", timeout=HANG_S)
             assert hb2.get_srcSystem() == 1
             assert (await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, CopterMode.GUIDED)).result == ACCEPTED
             # telemetry and STATUSTEXT go to every link; the ACK only to the link that asked

@@ -1,5 +1,10 @@
 """Setpoints over loopback: every frame and type_mask combination, the GUIDED velocity timeout, the PX4 OFFBOARD
-start rule and COM_OF_LOSS_T failsafe, global setpoints, collisions."""
+start rule and COM_OF_LOSS_T failsafe, global setpoints, collisions.
+
+States that last only a while (a velocity until GUID_TIMEOUT) are observed after every physics step
+(``StepWatch``), and setpoint streams are sent on simulated time from the same hook, so a loaded machine
+cannot make the test look too late or send too seldom.
+"""
 
 from __future__ import annotations
 
@@ -25,8 +30,12 @@ from apf_companion.autopilot import (
 )
 from apf_companion.links import MavlinkLink
 from sim.vehicle import Simulator, SpawnConfig
-from sim.vehicle.testing import command_long, simulator_with_client, wait_for, wait_sim_time
+from sim.vehicle.testing import command_long, simulator_with_client
 from sim.world import World
+
+from .conftest import HANG_S, StepWatch, wait_for, wait_sim_time
+
+pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
 
 MASK_VEL_ACCEL = 0x0C07  # velocity + acceleration, no yaw
 MASK_VEL_YAW_RATE = 0x05C7  # velocity + yaw rate
@@ -62,11 +71,13 @@ def sp_local(
 
 
 async def echo(link: MavlinkLink, mask: int) -> Any:
-    return await link.recv_match(type="POSITION_TARGET_LOCAL_NED", condition=lambda e: e.type_mask == mask, timeout=3.0)
+    return await link.recv_match(
+        type="POSITION_TARGET_LOCAL_NED", condition=lambda e: e.type_mask == mask, timeout=HANG_S
+    )
 
 
 async def texts_until(link: MavlinkLink, needle: str) -> str:
-    msg = await link.recv_match(type="STATUSTEXT", condition=lambda t: needle in t.text, timeout=3.0)
+    msg = await link.recv_match(type="STATUSTEXT", condition=lambda t: needle in t.text, timeout=HANG_S)
     return str(msg.text)
 
 
@@ -95,11 +106,12 @@ async def test_position_frames(
 async def test_body_frame_velocity_and_yaw_are_heading_relative() -> None:
     spawn = SpawnConfig(yaw_deg=90.0, airborne=True)
     async with simulator_with_client(spawn=spawn, params=ARDU, speedup=10.0) as (sim, gcs):
+        watch = StepWatch(sim, lambda s: s.vehicle.vel_ned_m_s.copy())
         sp_local(gcs, m.MAV_FRAME_BODY_NED, MASK_VELOCITY, vel=(1.0, 0.0, 0.0))
         e = await echo(gcs, ECHO_VEL_ACCEL)
         np.testing.assert_allclose([e.vx, e.vy, e.vz], [0.0, 1.0, 0.0], atol=1e-6)
-        await wait_for(sim, lambda s: abs(s.vehicle.vel_ned_m_s[1] - 1.0) < 0.02)
-        assert abs(sim.vehicle.vel_ned_m_s[0]) < 0.02
+        t_s = await watch.first(lambda s: abs(s.vehicle.vel_ned_m_s[1] - 1.0) < 0.02, within_s=3.0)
+        assert abs(watch.sample_at(t_s)[0]) < 0.02  # type: ignore[index]
         # yaw in a body frame is relative to the current heading: +90 deg from east = south
         sp_local(gcs, m.MAV_FRAME_BODY_NED, MASK_POSITION_YAW, pos=(0.0, 0.0, 0.0), yaw=math.pi / 2)
         e = await echo(gcs, MASK_POSITION)
@@ -124,6 +136,7 @@ async def test_body_frame_velocity_and_yaw_are_heading_relative() -> None:
 async def test_accepted_type_masks(mask: int, check: str) -> None:
     spawn = SpawnConfig(airborne=True, alt_m=5.0)
     async with simulator_with_client(spawn=spawn, params=ARDU, speedup=10.0) as (sim, gcs):
+        watch = StepWatch(sim, lambda s: None)
         pos, vel, acc = (4.0, 0.0, -5.0), (0.5, 0.0, 0.0), (0.5, 0.0, 0.0)
         if check == "vel":
             vel = (1.0, 0.0, 0.0)
@@ -132,10 +145,10 @@ async def test_accepted_type_masks(mask: int, check: str) -> None:
         assert not any("ignored" in t.text for t in sim.engine.statustexts)
         if check == "pos":
             await wait_for(sim, lambda s: s.vehicle.pos_ned_m[0] > 3.0)
-        elif check == "vel":
-            await wait_for(sim, lambda s: abs(s.vehicle.vel_ned_m_s[0] - 1.0) < 0.02)
+        elif check == "vel":  # until GUID_TIMEOUT (3 s)
+            await watch.first(lambda s: abs(s.vehicle.vel_ned_m_s[0] - 1.0) < 0.02, within_s=3.0)
         elif check == "acc":
-            await wait_for(sim, lambda s: s.vehicle.vel_ned_m_s[0] > 0.5)  # accelerating north
+            await watch.first(lambda s: s.vehicle.vel_ned_m_s[0] > 0.5, within_s=3.0)  # accelerating north
         elif check == "yaw":
             await wait_for(sim, lambda s: abs(s.vehicle.yaw_rad - 1.0) < 0.01)
         else:
@@ -211,7 +224,9 @@ async def test_global_int_setpoint() -> None:
         # wait until the vehicle has settled (GLOBAL_POSITION_INT is checked to 3e-7 deg, about 3 cm)
         await wait_for(sim, lambda s: bool(np.allclose(s.vehicle.pos_ned_m, [10.0, 5.0, -7.0], atol=0.01)))
         t_ms = round(sim.t_s * 1000)
-        gpi = await gcs.recv_match(type="GLOBAL_POSITION_INT", condition=lambda g: g.time_boot_ms >= t_ms, timeout=2.0)
+        gpi = await gcs.recv_match(
+            type="GLOBAL_POSITION_INT", condition=lambda g: g.time_boot_ms >= t_ms, timeout=HANG_S
+        )
         assert gpi.lat == pytest.approx((lat0 + dlat) * 1e7, abs=3)
         assert gpi.lon == pytest.approx((lon0 + dlon) * 1e7, abs=3)
         assert gpi.relative_alt == pytest.approx(7000, abs=60)
@@ -220,47 +235,51 @@ async def test_global_int_setpoint() -> None:
 
 async def test_guided_velocity_timeout_and_position_held() -> None:
     async with simulator_with_client(spawn=SpawnConfig(airborne=True), params={"GUID_TIMEOUT": 3.0}) as (sim, gcs):
+        watch = StepWatch(sim, lambda s: (s.vehicle.vel_ned_m_s.copy(), s.vehicle.pos_ned_m.copy()))
         sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_VELOCITY, vel=(1.0, 0.0, 0.0))
         await echo(gcs, ECHO_VEL_ACCEL)
         t_rx = sim.engine.last_setpoint_t_s
         assert t_rx is not None
-        await wait_sim_time(sim, t_rx + 2.9)
-        assert sim.vehicle.vel_ned_m_s[0] == pytest.approx(1.0, abs=0.02)  # still flying at 1 m/s
         await wait_sim_time(sim, t_rx + 3.0 + 1.5)
-        assert abs(sim.vehicle.vel_ned_m_s[0]) < 0.02  # stopped after GUID_TIMEOUT
-        stop_n = float(sim.vehicle.pos_ned_m[0])
+        vel, _ = watch.sample_at(t_rx + 2.9)  # type: ignore[misc]
+        assert vel[0] == pytest.approx(1.0, abs=0.02)  # still flying at 1 m/s
+        vel, pos = watch.sample_at(t_rx + 3.0 + 1.5)  # type: ignore[misc]
+        assert abs(vel[0]) < 0.02  # stopped after GUID_TIMEOUT
+        stop_n = float(pos[0])
         assert 2.5 < stop_n < 3.5
         # a position target is held indefinitely
         sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(0.0, 2.0, -5.0))
         await echo(gcs, MASK_POSITION)
         t_rx = sim.engine.last_setpoint_t_s
         assert t_rx is not None
-        await wait_sim_time(sim, t_rx + 12.0, timeout_s=15.0)
+        await wait_sim_time(sim, t_rx + 12.0)
         np.testing.assert_allclose(sim.vehicle.pos_ned_m, [0.0, 2.0, -5.0], atol=0.02)
         assert sim.vehicle.mode == "GUIDED"
 
 
 async def test_guided_timeout_follows_param() -> None:
     async with simulator_with_client(spawn=SpawnConfig(airborne=True), params={"GUID_TIMEOUT": 1.0}) as (sim, gcs):
+        watch = StepWatch(sim, lambda s: s.vehicle.vel_ned_m_s.copy())
         sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_VELOCITY, vel=(0.0, 1.0, 0.0))
         await echo(gcs, ECHO_VEL_ACCEL)
         t_rx = sim.engine.last_setpoint_t_s
         assert t_rx is not None
-        await wait_sim_time(sim, t_rx + 0.9)
-        assert sim.vehicle.vel_ned_m_s[1] > 0.8
         await wait_sim_time(sim, t_rx + 2.5)
-        assert abs(sim.vehicle.vel_ned_m_s[1]) < 0.02
+        assert watch.sample_at(t_rx + 0.9)[1] > 0.8  # type: ignore[index]
+        assert abs(watch.sample_at(t_rx + 2.5)[1]) < 0.02  # type: ignore[index]
 
 
 async def stream(sim: Simulator, gcs: MavlinkLink, rate_hz: float, until_t_s: float) -> None:
-    """Send a hover setpoint at ``rate_hz`` of simulated time until ``until_t_s``."""
-    next_t = sim.t_s
-    while sim.t_s < until_t_s:
-        if sim.t_s >= next_t:
+    """Send a hover setpoint at ``rate_hz`` of simulated time until ``until_t_s`` (sent from the physics step)."""
+    next_t = [sim.t_s]
+
+    def send(s: Simulator) -> None:
+        if next_t[0] <= s.t_s < until_t_s:
             sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(0.0, 0.0, -5.0))
-            next_t += 1.0 / rate_hz
-        due = min(next_t, until_t_s)
-        assert await sim.wait_until(lambda s, due=due: s.t_s >= due, timeout_s=2.0, poll_s=0.001)
+            next_t[0] += 1.0 / rate_hz
+
+    send(sim)
+    await StepWatch(sim, send).first(lambda s: s.t_s >= until_t_s, within_s=until_t_s - sim.t_s + 1.0)
 
 
 async def test_px4_offboard_needs_a_setpoint_newer_than_com_of_loss_t() -> None:
@@ -294,7 +313,7 @@ async def test_px4_offboard_loss_failsafe() -> None:
         assert last is not None
         text = await texts_until(gcs, "Failsafe")
         assert text == "Failsafe: offboard signal lost, Hold"
-        hb = await gcs.recv_match(type="HEARTBEAT", condition=lambda h: h.custom_mode != 6 << 16, timeout=2.0)
+        hb = await gcs.recv_match(type="HEARTBEAT", condition=lambda h: h.custom_mode != 6 << 16, timeout=HANG_S)
         assert hb.custom_mode == PX4_HOLD.to_custom_mode()
         assert hb.system_status == m.MAV_STATE_CRITICAL
         t_fs = next(s.t_s for s in sim.engine.statustexts if s.text.startswith("Failsafe"))
@@ -328,7 +347,7 @@ async def test_collision_crashes_and_freezes() -> None:
         sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(10.0, 0.0, -5.0))
         text = await texts_until(gcs, "Crash")
         assert text.startswith("Crash: hit cylinder 0 clearance 0.2")
-        hb = await gcs.recv_match(type="HEARTBEAT", timeout=2.0)
+        hb = await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
         assert hb.system_status == m.MAV_STATE_EMERGENCY
         assert not hb.base_mode & m.MAV_MODE_FLAG_SAFETY_ARMED
         res = sim.result()

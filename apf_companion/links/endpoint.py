@@ -26,11 +26,18 @@ DEFAULT_BAUD = 57600
 
 
 class EndpointKind(enum.Enum):
+    """The five kinds of link; each has one transport class (``apf_companion.links.transports.TRANSPORTS``)."""
+
     UDPIN = "udpin"
     UDPOUT = "udpout"
     TCP = "tcp"
     TCPIN = "tcpin"
     SERIAL = "serial"
+
+    @property
+    def listens(self) -> bool:
+        """Waits for peers (udpin, tcpin): may bind port 0 (any free port) and an empty host (all interfaces)."""
+        return self in (EndpointKind.UDPIN, EndpointKind.TCPIN)
 
 
 _SCHEMES: dict[str, EndpointKind] = {
@@ -62,7 +69,7 @@ class Endpoint:
     @property
     def listens(self) -> bool:
         """True for the kinds that wait for peers (udpin, tcpin)."""
-        return self.kind in (EndpointKind.UDPIN, EndpointKind.TCPIN)
+        return self.kind.listens
 
 
 def _parse_baud(text: str, original: str) -> int:
@@ -97,7 +104,7 @@ def _parse_host_port(kind: EndpointKind, rest: str, original: str) -> Endpoint:
         raise ConfigError(msg)
     host = host.strip("[]")
     if not host:
-        if kind in (EndpointKind.UDPOUT, EndpointKind.TCP):
+        if not kind.listens:
             msg = f"endpoint {original!r}: {kind.value} needs a host to send to"
             raise ConfigError(msg)
         host = "0.0.0.0"  # MAVSDK's "udpin://:14540" means every interface
@@ -107,7 +114,7 @@ def _parse_host_port(kind: EndpointKind, rest: str, original: str) -> Endpoint:
         msg = f"endpoint {original!r}: port {port_text!r} is not an integer"
         raise ConfigError(msg) from err
     # Port 0 = "any free port" is only meaningful when we listen.
-    low = 0 if kind in (EndpointKind.UDPIN, EndpointKind.TCPIN) else 1
+    low = 0 if kind.listens else 1
     if not low <= port <= 65535:
         msg = f"endpoint {original!r}: port {port} outside {low}..65535"
         raise ConfigError(msg)

@@ -1,11 +1,14 @@
 """An asyncio MAVLink 2 link: pymavlink's parser and encoder fed from asyncio transports, no blocking calls.
 
-One ``MavlinkLink`` owns one endpoint (UDP in/out, TCP client/server, serial). Incoming bytes go through a
-pymavlink ``MAVLink`` parser per peer with robust parsing on, so junk becomes counted bad frames instead of
-exceptions; good messages land in a bounded queue (oldest dropped and counted on overflow). Outgoing messages are
-packed with this link's system/component ids and a running sequence number and written to every connected peer
-(a ``udpin``/``tcpin`` link replies to all peers it has heard from, like pymavlink's ``udpin``). A ``tcp:`` client
-reconnects with exponential backoff. Every frame in and out can be recorded to a ``.tlog``.
+One ``MavlinkLink`` owns one endpoint. The bytes travel through the ``Transport`` for its kind (UDP in/out,
+TCP client/server, serial: ``apf_companion.links.transports.TRANSPORTS``); incoming bytes go through a
+pymavlink ``MAVLink`` parser per peer with robust parsing on (``Receiver``), so junk becomes counted bad
+frames instead of exceptions, and good messages land in a bounded queue (oldest dropped and counted on
+overflow). Outgoing messages are packed with this link's system/component ids and a running sequence number
+and written to every connected peer (a ``udpin``/``tcpin`` link replies to all peers it has heard from, like
+pymavlink's ``udpin``). A ``tcp:`` client reconnects with exponential backoff. Every frame in and out can be
+recorded to a ``.tlog``. The link's background tasks (the transport's receive loop, one task per TCP client)
+run in one ``asyncio.TaskGroup``, owned by one supervisor task and ended by ``aclose``.
 """
 
 from __future__ import annotations
@@ -14,39 +17,20 @@ import asyncio
 import contextlib
 import importlib
 import logging
-import os
-import time
-from collections import OrderedDict
 from collections.abc import AsyncIterator, Callable
-from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType, TracebackType
 from typing import Any
 
 from apf_companion.errors import LinkError, LinkTimeout
-from apf_companion.links.endpoint import Endpoint, EndpointKind, parse_endpoint
+from apf_companion.links.endpoint import Endpoint, parse_endpoint
+from apf_companion.links.receiver import LinkStats, Receiver
 from apf_companion.links.tlog import TlogWriter
+from apf_companion.links.transports import TRANSPORTS
+
+__all__ = ["LinkStats", "MavlinkLink", "load_dialect"]
 
 log = logging.getLogger(__name__)
-
-MAX_UDP_PEERS = 16  # udpin replies to at most this many recent peers
-TCP_BACKOFF_MIN_S = 0.2
-TCP_BACKOFF_MAX_S = 5.0
-MAX_WRITE_BUFFER_B = 1 << 20  # stop queueing to a stalled TCP peer beyond this
-
-
-@dataclass(slots=True)
-class LinkStats:
-    """Link health counters (monotonically increasing)."""
-
-    packets_received: int = 0
-    packets_sent: int = 0
-    bad_frames: int = 0
-    bytes_received: int = 0
-    bytes_sent: int = 0
-    send_dropped: int = 0  # no peer connected, or the peer is stalled
-    rx_dropped: int = 0  # receive queue overflow (oldest dropped)
-    reconnects: int = 0
 
 
 def load_dialect(name: str) -> ModuleType:
@@ -75,19 +59,11 @@ class MavlinkLink:
         self.dialect = load_dialect(dialect)
         self.mav: Any = self.dialect.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
         self.stats = LinkStats()
-        self._queue: asyncio.Queue[Any] = asyncio.Queue(maxsize=rx_queue_size)
-        self._parsers: dict[object, Any] = {}
         self._tlog = TlogWriter(tlog_path) if tlog_path is not None else None
-        self._udp: asyncio.DatagramTransport | None = None
-        self._udp_peers: OrderedDict[tuple[str, int], None] = OrderedDict()
-        self._tcp_writers: dict[object, asyncio.StreamWriter] = {}
-        self._server: asyncio.Server | None = None
-        self._serial: Any = None
-        self._serial_fd: int | None = None
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._connected = asyncio.Event()
+        self._receiver = Receiver(self.dialect, self.stats, queue_size=rx_queue_size, tlog=self._tlog)
+        self._transport = TRANSPORTS[endpoint.kind](endpoint, self._receiver)
+        self._supervisor: asyncio.Task[None] | None = None
         self._closed = False
-        self.local_address: tuple[str, int] | None = None
 
     # ----------------------------------------------------------------------------------------- lifecycle
     @classmethod
@@ -116,63 +92,34 @@ class MavlinkLink:
             rx_queue_size=rx_queue_size,
         )
         try:
-            await link._start()
-        except OSError as err:
+            await link._transport.open()
+        except BaseException as err:
             await link.aclose()
+            if not isinstance(err, OSError):
+                raise
             msg = f"cannot open MAVLink endpoint {ep}: {err}"
             raise LinkError(msg) from err
+        link._supervisor = asyncio.get_running_loop().create_task(link._supervise(), name=f"mavlink[{ep}]")
         return link
 
-    async def _start(self) -> None:
-        loop = asyncio.get_running_loop()
-        ep = self.endpoint
-        if ep.kind is EndpointKind.UDPIN:
-            self._udp, _ = await loop.create_datagram_endpoint(
-                lambda: _UdpProtocol(self), local_addr=(ep.host, ep.port)
-            )
-            self.local_address = self._udp.get_extra_info("sockname")[:2]
-        elif ep.kind is EndpointKind.UDPOUT:
-            self._udp, _ = await loop.create_datagram_endpoint(
-                lambda: _UdpProtocol(self), remote_addr=(ep.host, ep.port)
-            )
-            self.local_address = self._udp.get_extra_info("sockname")[:2]
-            self._connected.set()
-        elif ep.kind is EndpointKind.TCPIN:
-            self._server = await asyncio.start_server(self._serve_tcp_client, ep.host, ep.port)
-            self.local_address = self._server.sockets[0].getsockname()[:2]
-        elif ep.kind is EndpointKind.TCP:
-            self._spawn(self._tcp_client_loop())
-        else:
-            self._open_serial()
-
-    def _spawn(self, coro: Any) -> None:
-        task: asyncio.Task[None] = asyncio.get_running_loop().create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+    async def _supervise(self) -> None:
+        """Own the link's background tasks: the transport's receive loop and whatever it starts."""
+        try:
+            async with asyncio.TaskGroup() as tasks:
+                tasks.create_task(self._transport.run(tasks), name=f"mavlink[{self.endpoint}].receive")
+        except Exception:  # a bug in a transport: say so loudly; the link then sends and receives nothing
+            log.exception("mavlink.link_failed", extra={"endpoint": str(self.endpoint)})
 
     async def aclose(self) -> None:
         """Close every socket, stop background tasks and flush the tlog. Safe to call twice."""
         if self._closed:
             return
         self._closed = True
-        for task in list(self._tasks):
-            task.cancel()
-        for task in list(self._tasks):
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
-        for writer in list(self._tcp_writers.values()):
-            writer.close()
-        self._tcp_writers.clear()
-        if self._server is not None:
-            self._server.close()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(self._server.wait_closed(), 1.0)
-        if self._udp is not None:
-            self._udp.close()
-        if self._serial is not None:
-            if self._serial_fd is not None:
-                asyncio.get_running_loop().remove_reader(self._serial_fd)
-            self._serial.close()
+        if self._supervisor is not None:
+            self._supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._supervisor
+        await self._transport.aclose()
         if self._tlog is not None:
             self._tlog.close()
 
@@ -185,59 +132,30 @@ class MavlinkLink:
         await self.aclose()
 
     @property
+    def local_address(self) -> tuple[str, int] | None:
+        """The bound (host, port) of a UDP or ``tcpin`` link (port 0 in the endpoint = the port picked)."""
+        return self._transport.local_address
+
+    @property
     def is_connected(self) -> bool:
-        """tcp: connected now; udpin/tcpin: at least one peer; udpout/serial: always."""
-        if self.endpoint.kind is EndpointKind.UDPIN:
-            return bool(self._udp_peers)
-        if self.endpoint.kind in (EndpointKind.TCP, EndpointKind.TCPIN):
-            return bool(self._tcp_writers)
-        return not self._closed
+        """tcp: connected now; udpin/tcpin: at least one peer; udpout/serial: open."""
+        return not self._closed and self._transport.is_connected
 
     async def wait_connected(self, timeout: float) -> None:
-        """Wait until ``is_connected``. Raises LinkTimeout after ``timeout`` seconds."""
+        """Wait until a peer is connected. Raises LinkTimeout after ``timeout`` seconds."""
         try:
             async with asyncio.timeout(timeout):
-                await self._connected.wait()
+                await self._receiver.connected.wait()
         except TimeoutError as err:
             msg = f"{self.endpoint}: no peer connected within {timeout:.1f} s"
             raise LinkTimeout(msg) from err
 
     # ----------------------------------------------------------------------------------------- receive
-    def _on_bytes(self, data: bytes, peer: object, *, datagram: bool) -> None:
-        self.stats.bytes_received += len(data)
-        parser = self._parsers.get(peer)
-        if parser is None:
-            parser = self.dialect.MAVLink(None)
-            parser.robust_parsing = True
-            self._parsers[peer] = parser
-        try:
-            msgs = parser.parse_buffer(data) or []
-        except Exception:  # pymavlink can still raise on pathological input; never let it reach the loop
-            log.debug("mavlink.parse_error", exc_info=True)
-            msgs = []
-            self.stats.bad_frames += 1
-            self._parsers.pop(peer, None)
-        for msg in msgs:
-            if msg.get_type() == "BAD_DATA":
-                self.stats.bad_frames += 1
-                continue
-            self.stats.packets_received += 1
-            if self._tlog is not None:
-                self._tlog.write(bytes(msg.get_msgbuf()))
-            if self._queue.full():
-                self._queue.get_nowait()
-                self.stats.rx_dropped += 1
-            self._queue.put_nowait(msg)
-        if datagram and parser.buf_len() > 0:
-            # A datagram ends on a frame boundary: leftover bytes are a truncated frame, not a prefix of the next.
-            self.stats.bad_frames += 1
-            self._parsers.pop(peer, None)
-
     async def recv(self, timeout: float | None = None) -> Any:
         """The next good message. Raises LinkTimeout if none arrives within ``timeout`` seconds."""
         try:
             async with asyncio.timeout(timeout):
-                return await self._queue.get()
+                return await self._receiver.queue.get()
         except TimeoutError as err:
             msg = f"{self.endpoint}: no message within {timeout} s"
             raise LinkTimeout(msg) from err
@@ -245,7 +163,7 @@ class MavlinkLink:
     def recv_nowait(self) -> Any | None:
         """The next queued message, or None."""
         try:
-            return self._queue.get_nowait()
+            return self._receiver.queue.get_nowait()
         except asyncio.QueueEmpty:
             return None
 
@@ -262,23 +180,20 @@ class MavlinkLink:
             LinkTimeout: nothing matched within ``timeout`` seconds.
         """
         types = (type,) if isinstance(type, str) else type
-        deadline = time.monotonic() + timeout
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                msg = f"{self.endpoint}: no {types or 'message'} within {timeout} s"
-                raise LinkTimeout(msg)
-            msg_ = await self.recv(timeout=remaining)
-            if types is not None and msg_.get_type() not in types:
-                continue
-            if condition is not None and not condition(msg_):
-                continue
-            return msg_
+        try:
+            async with asyncio.timeout(timeout):
+                while True:
+                    msg = await self._receiver.queue.get()
+                    if (types is None or msg.get_type() in types) and (condition is None or condition(msg)):
+                        return msg
+        except TimeoutError as err:
+            text = f"{self.endpoint}: no {types or 'message'} within {timeout} s"
+            raise LinkTimeout(text) from err
 
     async def messages(self) -> AsyncIterator[Any]:
         """Every good message as it arrives (an endless async generator; break or cancel to stop)."""
         while True:
-            yield await self._queue.get()
+            yield await self._receiver.queue.get()
 
     # ----------------------------------------------------------------------------------------- send
     def send(self, msg: Any) -> None:
@@ -292,136 +207,7 @@ class MavlinkLink:
 
     def send_bytes(self, data: bytes) -> None:
         """Write raw bytes to every connected peer (counted as dropped when there is none)."""
-        if self._closed:
-            self.stats.send_dropped += 1
-            return
-        kind = self.endpoint.kind
-        sent = False
-        if kind is EndpointKind.UDPIN and self._udp is not None:
-            for addr in self._udp_peers:
-                self._udp.sendto(data, addr)
-                sent = True
-        elif kind is EndpointKind.UDPOUT and self._udp is not None:
-            self._udp.sendto(data)
-            sent = True
-        elif kind in (EndpointKind.TCP, EndpointKind.TCPIN):
-            for writer in self._tcp_writers.values():
-                if writer.transport.get_write_buffer_size() < MAX_WRITE_BUFFER_B:
-                    writer.write(data)
-                    sent = True
-        elif kind is EndpointKind.SERIAL and self._serial_fd is not None:
-            try:
-                os.write(self._serial_fd, data)
-                sent = True
-            except (BlockingIOError, OSError):
-                sent = False
-        if sent:
+        if not self._closed and self._transport.send(data):
             self.stats.bytes_sent += len(data)
         else:
             self.stats.send_dropped += 1
-
-    # ----------------------------------------------------------------------------------------- UDP
-    def _udp_peer_heard(self, addr: tuple[str, int]) -> None:
-        self._udp_peers[addr] = None
-        self._udp_peers.move_to_end(addr)
-        while len(self._udp_peers) > MAX_UDP_PEERS:
-            self._udp_peers.popitem(last=False)
-        self._connected.set()
-
-    # ----------------------------------------------------------------------------------------- TCP
-    async def _pump_stream(self, reader: asyncio.StreamReader, key: object) -> None:
-        while True:
-            data = await reader.read(65536)
-            if not data:
-                return
-            self._on_bytes(data, key, datagram=False)
-
-    async def _run_tcp_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """One TCP peer (a tcpin client or our tcp: connection): register it, read until it ends, forget it."""
-        key = object()
-        self._tcp_writers[key] = writer
-        self._connected.set()
-        try:
-            await self._pump_stream(reader, key)
-        except (ConnectionError, OSError):
-            pass
-        finally:
-            self._tcp_writers.pop(key, None)
-            self._parsers.pop(key, None)
-            if not self._tcp_writers:
-                self._connected.clear()
-            writer.close()
-
-    async def _serve_tcp_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)  # so aclose cancels it
-        try:
-            await self._run_tcp_connection(reader, writer)
-        finally:
-            if task is not None:
-                self._tasks.discard(task)
-
-    async def _tcp_client_loop(self) -> None:
-        ep = self.endpoint
-        backoff = TCP_BACKOFF_MIN_S
-        first = True
-        while True:
-            try:
-                reader, writer = await asyncio.open_connection(ep.host, ep.port)
-            except OSError as err:
-                log.debug("mavlink.tcp_connect_failed", extra={"endpoint": str(ep), "error": str(err)})
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, TCP_BACKOFF_MAX_S)
-                continue
-            if not first:
-                self.stats.reconnects += 1
-            first = False
-            backoff = TCP_BACKOFF_MIN_S
-            log.info("mavlink.tcp_connected", extra={"endpoint": str(ep)})
-            await self._run_tcp_connection(reader, writer)
-            log.warning("mavlink.tcp_disconnected", extra={"endpoint": str(ep)})
-            await asyncio.sleep(backoff)
-
-    # ----------------------------------------------------------------------------------------- serial
-    def _open_serial(self) -> None:
-        try:
-            import serial  # pyserial: only needed for serial endpoints
-        except ImportError as err:
-            msg = "serial endpoints need pyserial (pip install pyserial)"
-            raise LinkError(msg) from err
-        try:
-            port = serial.Serial(self.endpoint.device, self.endpoint.baud, timeout=0, write_timeout=0)
-        except (serial.SerialException, OSError) as err:
-            raise OSError(str(err)) from err
-        self._serial = port
-        self._serial_fd = port.fileno()
-        os.set_blocking(self._serial_fd, False)
-        asyncio.get_running_loop().add_reader(self._serial_fd, self._on_serial_readable)
-        self._connected.set()
-
-    def _on_serial_readable(self) -> None:
-        assert self._serial_fd is not None
-        try:
-            data = os.read(self._serial_fd, 4096)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            log.warning("mavlink.serial_read_failed", exc_info=True)
-            return
-        if data:
-            self._on_bytes(data, "serial", datagram=False)
-
-
-class _UdpProtocol(asyncio.DatagramProtocol):
-    def __init__(self, link: MavlinkLink) -> None:
-        self.link = link
-
-    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        if self.link.endpoint.kind is EndpointKind.UDPIN:
-            self.link._udp_peer_heard(addr)
-        self.link._on_bytes(data, addr, datagram=True)
-
-    def error_received(self, exc: Exception) -> None:
-        # ICMP port-unreachable from a udpout peer that is not up yet: normal while the other end starts.
-        self.link.stats.send_dropped += 1
