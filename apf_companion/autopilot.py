@@ -10,6 +10,35 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+__all__ = [
+    "ACC_IGNORE",
+    "COMP_AUTOPILOT",
+    "COMP_OBSTACLE_AVOIDANCE",
+    "COMP_ONBOARD_COMPUTER",
+    "COMP_PATHPLANNER",
+    "MASK_ACCELERATION",
+    "MASK_POSITION",
+    "MASK_POSITION_YAW",
+    "MASK_POS_VEL",
+    "MASK_POS_VEL_ACCEL",
+    "MASK_POS_VEL_YAW",
+    "MASK_VELOCITY",
+    "POS_IGNORE",
+    "PX4_HOLD",
+    "PX4_LAND",
+    "PX4_OFFBOARD",
+    "PX4_POSCTL",
+    "PX4_TAKEOFF",
+    "VEL_IGNORE",
+    "YAW_ALL_IGNORE",
+    "Autopilot",
+    "CopterMode",
+    "Px4AutoSubMode",
+    "Px4MainMode",
+    "Px4Mode",
+    "TypeMask",
+]
+
 
 class Autopilot(enum.Enum):
     """Which autopilot firmware the companion talks to; each has its own mode rules."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+__all__ = ["ApfCompanionError", "CommandRejected", "ConfigError", "LinkError", "LinkTimeout", "ProtocolError"]
+
 
 class ApfCompanionError(Exception):
     """Root of all apf-companion errors."""

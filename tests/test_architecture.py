@@ -1,4 +1,4 @@
-"""The README's dependency arrows hold: service -> perception/links -> planning; sim -> public API only."""
+"""The dependency arrows of docs/architecture.md hold: service -> perception/links -> planning; sim -> public API."""
 
 from __future__ import annotations
 
@@ -48,3 +48,34 @@ def test_planning_core_is_pure(path: Path) -> None:
 def test_perception_does_not_import_the_service(path: Path) -> None:
     bad = {m for m in imported_modules(path) if m.startswith(("apf_companion.service", "apf_companion.cli"))}
     assert not bad, f"{path} imports {bad}"
+
+
+def _public_names(module: str) -> set[str] | None:
+    """``__all__`` of an apf_companion module, read from its source (None when it has none)."""
+    rel = Path(*module.split("."))
+    path = ROOT / (str(rel) + ".py")
+    if not path.exists():
+        path = ROOT / rel / "__init__.py"
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
+            return {ast.literal_eval(e) for e in node.value.elts}  # type: ignore[attr-defined]
+    return None
+
+
+@pytest.mark.parametrize("path", sources("sim"), ids=lambda p: str(p.relative_to(ROOT)))
+def test_sim_uses_only_the_public_api(path: Path) -> None:
+    """sim imports from apf_companion only names a module exports in ``__all__``, never private modules or names."""
+    bad: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            bad += [a.name for a in node.names if a.name.startswith("apf_companion") and "._" in a.name]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("apf_companion"):
+            module = node.module or ""
+            if any(part.startswith("_") for part in module.split(".")):
+                bad.append(module)
+                continue
+            public = _public_names(module)
+            for alias in node.names:
+                if alias.name.startswith("_") or public is None or alias.name not in public:
+                    bad.append(f"{module}.{alias.name}")
+    assert not bad, f"{path} imports non-public apf_companion names: {bad}"
