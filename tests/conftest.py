@@ -11,7 +11,7 @@ import asyncio
 import os
 import socket
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
 
 import pytest
 
@@ -108,7 +108,10 @@ async def wait_sim_time(sim: Simulator, t_s: float, *, timeout_s: float = HANG_S
     await sim_testing.wait_sim_time(sim, t_s, timeout_s=timeout_s)
 
 
-class StepWatch:
+_SampleT = TypeVar("_SampleT")
+
+
+class StepWatch(Generic[_SampleT]):
     """Looks at an in-process simulator after every physics step, so nothing between two polls is missed.
 
     Polling ``sim.vehicle`` from the test's task sees the vehicle only when that task runs; on a loaded machine
@@ -116,11 +119,11 @@ class StepWatch:
     (a velocity before GUID_TIMEOUT). ``first`` and ``sample_at`` are exact in simulated time instead.
     """
 
-    def __init__(self, sim: Simulator, sample: Callable[[Simulator], object]) -> None:
+    def __init__(self, sim: Simulator, sample: Callable[[Simulator], _SampleT]) -> None:
         self._sim = sim
         self._sample = sample
         self.t_s: list[float] = []
-        self.samples: list[object] = []
+        self.samples: list[_SampleT] = []
         self._waiters: list[tuple[Callable[[Simulator], bool], float, asyncio.Future[tuple[float, bool]]]] = []
         step = sim.engine.step
 
@@ -154,7 +157,7 @@ class StepWatch:
         assert met, f"not within {within_s} simulated s (at {t_s:.2f} s)"
         return t_s
 
-    def sample_at(self, t_s: float) -> object:
+    def sample_at(self, t_s: float) -> _SampleT:
         """The sample of the first step at or after simulated time ``t_s`` (that step must have run)."""
         for t, sample in zip(self.t_s, self.samples, strict=True):
             if t >= t_s - 1e-9:

@@ -192,7 +192,7 @@ async def test_tcpin_parses_each_client_on_its_own() -> None:
             for (_, writer), chunk in zip(conns * 2, (a[:7], b[:7], a[7:], b[7:]), strict=True):
                 writer.write(chunk)
                 sent += len(chunk)
-                await until(lambda n=sent: server.stats.bytes_received == n, HANG_S, f"{sent} bytes at the server")
+                await until(lambda: server.stats.bytes_received == sent, HANG_S, f"{sent} bytes at the server")  # noqa: B023
             senders = {(await server.recv(timeout=HANG_S)).get_srcSystem() for _ in range(2)}
             assert senders == {2, 3}
             assert server.stats.bad_frames == 0

@@ -103,7 +103,7 @@ def test_every_consumed_message_has_a_case() -> None:
 def test_decode_gives_the_typed_record(name: str, build: Any, kind: type[Any], fields: dict[str, Any]) -> None:
     rec = decode(_wire(build, src=(1, 1)))
     assert type(rec) is kind
-    assert rec.src == Source(1, 1)
+    assert rec is not None and rec.src == Source(1, 1)
     for key, want in fields.items():
         assert getattr(rec, key) == pytest.approx(want), key
     assert dataclasses.is_dataclass(rec)

@@ -11,6 +11,7 @@ import ast
 import inspect
 import math
 import textwrap
+from typing import Any
 
 import numpy as np
 import pytest
@@ -118,7 +119,13 @@ def test_spacing_and_max_gap_parameters() -> None:
     assert _on_chord_of_adjacent_returns(scan, pose, short, 0.5)
     assert surface_fill_points(scan, pose, max_gap_m=0.1).shape == (0, 3)
     assert surface_fill_points(scan, pose, line_tol_m=0.0).shape == (0, 3)  # returns are never exactly collinear
-    for kwargs in ({"spacing_m": 0.0}, {"spacing_m": math.nan}, {"max_gap_m": -1.0}, {"line_tol_m": -0.1}):
+    bad: tuple[dict[str, Any], ...] = (
+        {"spacing_m": 0.0},
+        {"spacing_m": math.nan},
+        {"max_gap_m": -1.0},
+        {"line_tol_m": -0.1},
+    )
+    for kwargs in bad:
         with pytest.raises(ConfigError):
             surface_fill_points(scan, pose, **kwargs)
 
@@ -191,7 +198,12 @@ def test_degenerate_scans_give_no_points() -> None:
         ([0.0, 0.0, 0.0, 0.0], [1.0, 2.0, 3.0, 4.0]),  # no increment
     ):
         scan = RangeScan(
-            t_s=0.0, frame=ScanFrame.LOCAL_NED, bearings_rad=bearings, ranges_m=ranges, range_min_m=0.0, range_max_m=9.0
+            t_s=0.0,
+            frame=ScanFrame.LOCAL_NED,
+            bearings_rad=np.array(bearings),
+            ranges_m=np.array(ranges),
+            range_min_m=0.0,
+            range_max_m=9.0,
         )
         assert surface_fill_points(scan, pose).shape == (0, 3)
 
@@ -301,7 +313,14 @@ def _scans(draw: st.DrawFn) -> tuple[RangeScan, Pose]:
     rnd = np.array(draw(st.lists(st.floats(0.2, 9.0), min_size=n, max_size=n)))
     ranges = np.choose(kinds, [on_line, rnd, np.full(n, np.inf), np.full(n, np.nan)]) if n else np.zeros(0)
     frame = draw(st.sampled_from(list(ScanFrame)))
-    scan = RangeScan(t_s=0.0, frame=frame, bearings_rad=bearings, ranges_m=ranges, range_min_m=0.0, range_max_m=9.0)
+    scan = RangeScan(
+        t_s=0.0,
+        frame=frame,
+        bearings_rad=np.array(bearings),
+        ranges_m=np.array(ranges),
+        range_min_m=0.0,
+        range_max_m=9.0,
+    )
     pos = draw(st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(-50.0, 0.0)))
     pose = Pose(t_s=0.0, pos_ned_m=np.array(pos), yaw_rad=draw(st.floats(-4.0, 4.0)))
     return scan, pose

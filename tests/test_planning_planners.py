@@ -336,6 +336,7 @@ def test_step_is_a_row_of_step_batch(name: str, dim: int, monkeypatch: pytest.Mo
             assert row.next_point_m is None and np.all(np.isnan(batch.next_points_m[a]))
         elif name == "capf":
             # CAPF sums forces over the padded obstacle axis in the batch: equal up to summation order.
+            assert row.next_point_m is not None
             np.testing.assert_allclose(single.next_point_m, row.next_point_m, rtol=1e-12, atol=1e-12)
         else:
             np.testing.assert_array_equal(single.next_point_m, row.next_point_m)

@@ -173,7 +173,8 @@ async def test_px4_setpoint_rules() -> None:
         assert (await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, 6)).result == ACCEPTED  # OFFBOARD
         for _ in range(30):
             sp_local(gcs, m.MAV_FRAME_LOCAL_NED, 0x0C38, pos=(3.0, 0.0, -5.0))
-            await wait_for(sim, lambda s, t=sim.t_s: s.t_s >= t + 0.1)
+            t0_s = sim.t_s
+            await wait_for(sim, lambda s: s.t_s >= t0_s + 0.1)  # noqa: B023
         assert sim.vehicle.mode == "OFFBOARD"
         assert sim.vehicle.pos_ned_m[0] > 2.0
         assert not any("type_mask" in t.text for t in sim.engine.statustexts)

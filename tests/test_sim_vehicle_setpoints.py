@@ -111,7 +111,7 @@ async def test_body_frame_velocity_and_yaw_are_heading_relative() -> None:
         e = await echo(gcs, ECHO_VEL_ACCEL)
         np.testing.assert_allclose([e.vx, e.vy, e.vz], [0.0, 1.0, 0.0], atol=1e-6)
         t_s = await watch.first(lambda s: abs(s.vehicle.vel_ned_m_s[1] - 1.0) < 0.02, within_s=3.0)
-        assert abs(watch.sample_at(t_s)[0]) < 0.02  # type: ignore[index]
+        assert abs(watch.sample_at(t_s)[0]) < 0.02
         # yaw in a body frame is relative to the current heading: +90 deg from east = south
         sp_local(gcs, m.MAV_FRAME_BODY_NED, MASK_POSITION_YAW, pos=(0.0, 0.0, 0.0), yaw=math.pi / 2)
         e = await echo(gcs, MASK_POSITION)
@@ -241,9 +241,9 @@ async def test_guided_velocity_timeout_and_position_held() -> None:
         t_rx = sim.engine.last_setpoint_t_s
         assert t_rx is not None
         await wait_sim_time(sim, t_rx + 3.0 + 1.5)
-        vel, _ = watch.sample_at(t_rx + 2.9)  # type: ignore[misc]
+        vel, _ = watch.sample_at(t_rx + 2.9)
         assert vel[0] == pytest.approx(1.0, abs=0.02)  # still flying at 1 m/s
-        vel, pos = watch.sample_at(t_rx + 3.0 + 1.5)  # type: ignore[misc]
+        vel, pos = watch.sample_at(t_rx + 3.0 + 1.5)
         assert abs(vel[0]) < 0.02  # stopped after GUID_TIMEOUT
         stop_n = float(pos[0])
         assert 2.5 < stop_n < 3.5
@@ -265,8 +265,8 @@ async def test_guided_timeout_follows_param() -> None:
         t_rx = sim.engine.last_setpoint_t_s
         assert t_rx is not None
         await wait_sim_time(sim, t_rx + 2.5)
-        assert watch.sample_at(t_rx + 0.9)[1] > 0.8  # type: ignore[index]
-        assert abs(watch.sample_at(t_rx + 2.5)[1]) < 0.02  # type: ignore[index]
+        assert watch.sample_at(t_rx + 0.9)[1] > 0.8
+        assert abs(watch.sample_at(t_rx + 2.5)[1]) < 0.02
 
 
 async def stream(sim: Simulator, gcs: MavlinkLink, rate_hz: float, until_t_s: float) -> None:

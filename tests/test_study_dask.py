@@ -10,12 +10,16 @@ import re
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
 from sim.study import executors
 from sim.study.cli import register
 from tests.conftest import free_port
+
+if TYPE_CHECKING:
+    from distributed import LocalCluster
 
 distributed = pytest.importorskip("distributed", reason="dask.distributed not installed (pip install '.[dask]')")
 
@@ -80,7 +84,7 @@ def quiet_dask() -> Iterator[None]:
 
 
 @pytest.fixture(scope="module")
-def loopback_cluster(quiet_dask: None) -> Iterator[distributed.LocalCluster]:
+def loopback_cluster(quiet_dask: None) -> Iterator[LocalCluster]:
     with distributed.LocalCluster(
         n_workers=2,
         threads_per_worker=1,
@@ -93,7 +97,7 @@ def loopback_cluster(quiet_dask: None) -> Iterator[distributed.LocalCluster]:
 
 
 def test_running_scheduler_by_address_gives_the_serial_table(
-    loopback_cluster: distributed.LocalCluster,
+    loopback_cluster: LocalCluster,
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     caplog: pytest.LogCaptureFixture,
@@ -121,7 +125,7 @@ def test_dask_local_workers_run_single_threaded_blas() -> None:
 
 
 def test_remote_cluster_refuses_workers_option(
-    loopback_cluster: distributed.LocalCluster, capsys: pytest.CaptureFixture[str]
+    loopback_cluster: LocalCluster, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert _run([*_STUDY, "--dask", loopback_cluster.scheduler_address, "--workers", "2"]) == 2
     assert "a remote Dask cluster has its own workers" in capsys.readouterr().err
@@ -141,7 +145,7 @@ def test_no_scheduler_is_a_clear_error(monkeypatch: pytest.MonkeyPatch, capsys: 
 
 
 def test_sweep_on_a_running_scheduler_writes_the_serial_table(
-    loopback_cluster: distributed.LocalCluster, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    loopback_cluster: LocalCluster, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from sim.sweep_cli import register as register_sweep
 

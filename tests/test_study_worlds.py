@@ -152,6 +152,7 @@ def test_world_study_same_with_one_and_two_workers() -> None:
         assert np.array_equal(a.records.iterations, b.records.iterations)
         assert a.records.path_m is not None and b.records.path_m is not None
         assert np.array_equal(a.records.path_m, b.records.path_m)
+        assert a.records.clearance_m is not None and b.records.clearance_m is not None
         assert np.array_equal(a.records.clearance_m, b.records.clearance_m)
     # Noise varies per trial: not every trial of a world ends the same.
     assert len({float(x) for x in serial[1].records.path_m}) > 1  # type: ignore[union-attr]

@@ -125,7 +125,7 @@ async def publish_each(pub: ZenohLink, sub: ZenohSubscription, items: list[tuple
     for key, payload in items:
         before = sub.stats.received
         pub.publish(key, payload, encoding="text/plain")
-        await until(lambda n=before: sub.stats.received > n, HANG_S, f"sample {key}={payload!r} received")
+        await until(lambda: sub.stats.received > before, HANG_S, f"sample {key}={payload!r} received")  # noqa: B023
 
 
 async def test_pub_sub_round_trip(pair: tuple[ZenohLink, ZenohLink]) -> None:
