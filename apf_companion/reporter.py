@@ -29,7 +29,7 @@ from apf_companion.status import (
     system_status_for,
 )
 
-__all__ = ["AutopilotView", "LatencyWindow", "ReporterParams", "ServiceCounters", "StatusReporter"]
+__all__ = ["AutopilotView", "FaultLog", "LatencyWindow", "ReporterParams", "ServiceCounters", "StatusReporter"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +48,24 @@ class ServiceCounters:
     bad_goals: int = 0
     commands_for_us: int = 0
     mode_requests: int = 0
+    handler_errors: int = 0  # an exception escaped a handler / cycle / report: caught, the task goes on
+
+
+class FaultLog:
+    """Exceptions caught at a task's top (the task survives): counted in ``handler_errors``, logged once per
+    (task, exception type) so a flood of hostile frames cannot flood the log."""
+
+    def __init__(self, counters: ServiceCounters) -> None:
+        self.counters = counters
+        self.kinds: dict[str, int] = {}
+
+    def caught(self, task: str, err: Exception) -> None:
+        self.counters.handler_errors += 1
+        kind = f"{task}:{type(err).__name__}"
+        n = self.kinds.get(kind, 0)
+        self.kinds[kind] = n + 1
+        if n == 0:
+            log.error("task.exception", extra={"task": task, "error": f"{type(err).__name__}: {err}"}, exc_info=err)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -175,7 +193,7 @@ class StatusReporter:
     # ---- records -----------------------------------------------------------------------------------------------
     def counts(self) -> dict[str, int]:
         """Every edge counter: the service's, perception's and the setpoints / STATUSTEXTs sent."""
-        sent = {"setpoints_sent": self.outbox.setpoints_sent, "statustexts_sent": self.outbox.statustexts_sent}
+        sent = self.outbox.counts()
         return dataclasses.asdict(self.counters) | dataclasses.asdict(self.perception.counters) | sent
 
     def status_dict(self, now_s: float) -> dict[str, Any]:
