@@ -17,7 +17,7 @@ from apf_companion.links import MavlinkLink
 from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
-from apf_companion.perception import PerceptionParams
+from apf_companion.perception import PerceptionParams, PoseLimits
 from apf_companion.planning import PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
@@ -96,6 +96,7 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         step_m=float(planner.params.step_m),
         target_guard_m=rho_l_m if config.planner.name.startswith("cr-") else 0.0,
         clearance_m=rho_l_m,
+        reset_hold_s=config.safety.reset_hold_s,
     )
 
 
@@ -122,12 +123,20 @@ def build_outbox(config: ServiceConfig, link: MavlinkLink | None, now_s: Callabl
 
 
 def perception_params(config: ServiceConfig) -> PerceptionParams:
-    s = config.sensors
+    s, z = config.sensors, config.safety
     return PerceptionParams(
         max_range_m=s.max_range_m,
         memory_expiry_s=s.memory_expiry_s,
         merge_radius_m=s.merge_radius_m,
         max_points=s.max_points,
+        pose_limits=PoseLimits(
+            max_speed_m_s=z.max_speed_m_s,
+            max_accel_m_s2=z.max_accel_m_s2,
+            noise_m=z.pose_noise_m,
+            max_abs_position_m=z.max_abs_position_m,
+            time_jump_s=z.pose_time_jump_s,
+            reset_samples=z.pose_reset_samples,
+        ),
     )
 
 

@@ -43,6 +43,7 @@ __all__ = ["AutopilotHandlers", "HandlerParams", "mode_is_ours"]
 log = logging.getLogger(__name__)
 
 NOT_A_VEHICLE = frozenset({mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GCS})  # their HEARTBEATs
+REBOOTING = frozenset({mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT})  # HEARTBEAT.system_status
 DEG_E7 = 1e-7
 MM = 1e-3
 
@@ -138,6 +139,8 @@ class AutopilotHandlers:
         if rec.type in NOT_A_VEHICLE:
             return
         first = not self.heard or not self.navigator.link_alive(now_s)
+        if (self.heard and first) or rec.system_status in REBOOTING:
+            self.perception.gate.note_reboot()  # boot evidence: a pose may start a new time base
         self.heard = True
         self.custom_mode = rec.custom_mode
         self.base_mode = rec.base_mode
@@ -150,6 +153,9 @@ class AutopilotHandlers:
 
     def _on_local_position(self, rec: LocalPositionNed, now_s: float) -> None:
         pose = self.perception.on_local_position(rec.time_boot_ms, (rec.x, rec.y, rec.z), now_s)
+        reset = self.perception.take_reset()
+        if reset is not None:
+            self.navigator.position_reset(now_s, reset)
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose()
 

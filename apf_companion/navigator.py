@@ -126,6 +126,7 @@ class NavigatorParams:
         clearance_m: The clearance the planner keeps (its rho_l). Within ``clearance_m + 2 step_m`` of a
             remembered obstacle the feed-forward speed falls linearly to ``SLOW_FRACTION`` of cruise at
             ``clearance_m``, so the vehicle turns at the bacteria points there without swinging wide (0 = off).
+        reset_hold_s: After a position reset (``position_reset``) hold this long before navigating [s].
     """
 
     dim: int = 2
@@ -143,6 +144,7 @@ class NavigatorParams:
     step_m: float = 0.4
     target_guard_m: float = 0.0
     clearance_m: float = 0.0
+    reset_hold_s: float = 2.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -410,6 +412,7 @@ class Navigator:
         self._hold = _Hold()
         self._legs = _Legs(params, self._steps)
         self._last_hb_s: float | None = None
+        self._hold_until_s = -math.inf  # a position reset holds until then
         self._pending: list[StateChange] = []
 
     # ---- inputs ------------------------------------------------------------------------------------------------
@@ -459,6 +462,15 @@ class Navigator:
         self.suspended = False
         self._legs.leg = None
         self._steps.target = None
+
+    def position_reset(self, now_s: float, reason: str) -> None:
+        """The pose re-anchored (a sustained new position: EKF reset, reboot): the old step and hold point are in
+        the old frame. Hold at the new position for ``reset_hold_s`` (a STATUSTEXT says why), then go on."""
+        self._steps.target = None
+        self._hold.reset()
+        self._hold_until_s = now_s + self.params.reset_hold_s
+        if self.route is not None and self.state in (State.NAVIGATING, State.HOLDING):
+            self._change(now_s, State.HOLDING, f"{reason}: holding")
 
     def clear_route(self, now_s: float, reason: str) -> None:
         """Forget the goal (operator stop): IDLE, send nothing."""
@@ -575,6 +587,8 @@ class Navigator:
             return blocked
         if not (inp.pose_ok and inp.ranges_ok):
             return self._hold_stale(inp)
+        if inp.now_s < self._hold_until_s:
+            return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=True), self._distance_to_goal())
         self._hold.anchor = None
         self._change(inp.now_s, State.NAVIGATING, "inputs fresh again: navigating")
         return self._fly(inp)

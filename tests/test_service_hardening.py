@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -17,7 +18,7 @@ from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
 from apf_companion.outbox import FLOAT32_MAX, Outbox
 from apf_companion.setpoint import Setpoint, SetpointKind
-from tests.test_service_mavlink import rig, until
+from tests.test_service_mavlink import ScriptedAutopilot, fast_config, rig, until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -59,6 +60,10 @@ async def test_3e38_pose_mid_flight_does_not_end_the_service() -> None:
         hb0 = len(ap.of_type("HEARTBEAT"))
         await until(lambda: len(ap.of_type("HEARTBEAT")) >= hb0 + 2, 5.0, "the service is still alive")
         assert svc.outbox.send_errors == 0
+        assert svc.perception.counters.out_of_bounds_poses >= 20
+        assert svc.navigator.pose is not None and abs(svc.navigator.pose.pos_ned_m[0]) < 1e3
+        assert all(abs(m.x) < 1e3 and abs(m.y) < 1e3 for _, m in ap.setpoints())
+        assert all(abs(m.value) < 1e3 for m in ap.of_type("NAMED_VALUE_FLOAT"))
 
 
 async def test_an_exception_in_a_handler_is_counted_and_survived() -> None:
@@ -79,3 +84,76 @@ async def test_an_exception_in_a_handler_is_counted_and_survived() -> None:
         n = len(ap.setpoints())
         await until(lambda: len(ap.setpoints()) > n + 5, 5.0, "still sending setpoints")
         assert svc.navigator.state is State.NAVIGATING
+
+
+async def test_hostile_poses_never_become_a_setpoint_origin(monkeypatch: pytest.MonkeyPatch) -> None:
+    """1 km jumps, 1e30, a pose stamped 9 s ahead, one 10 s back, one at the goal: all rejected and counted; the
+    genuine stream goes on, no setpoint leaves the corridor to the goal, and no ARRIVED from a spoofed pose."""
+    booted_ms = 60_000  # the scripted autopilot booted a minute ago: a pose 10.5 s back fits in time_boot_ms
+    monkeypatch.setattr(ScriptedAutopilot, "boot_ms", lambda self: int((time.monotonic() - self.t0) * 1e3) + booted_ms)
+    route = Route.point(30.0, 0.0, -5.0, source="test")
+    async with rig(route=route) as (svc, ap):
+        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
+        mav, n0 = ap.link.mav, len(ap.setpoints())
+        hostile = [
+            (0, (ap.pos[0] + 1000.0, 0.0, -5.0)),
+            (0, (1e30, 1e30, -5.0)),
+            (9000, (ap.pos[0], 50.0, -5.0)),  # stamped 9 s ahead, 50 m aside
+            (-10_500, (ap.pos[0], 10.6, -5.0)),  # 10 s back without reboot evidence
+            (0, (30.0, 0.0, -5.0)),  # at the goal
+        ]
+        for _ in range(3):
+            for dt_ms, pos in hostile:
+                ap.link.send(mav.local_position_ned_encode(ap.boot_ms() + dt_ms, *pos, 0, 0, 0))
+                await asyncio.sleep(0.03)
+        c = svc.perception.counters
+        await until(lambda: c.implausible_poses >= 6 and c.pose_time_jumps >= 6, 5.0, "hostile poses counted")
+        assert c.out_of_bounds_poses >= 3 and c.pose_resets == 0
+        n1 = len(ap.setpoints())
+        await until(lambda: len(ap.setpoints()) > n1 + 5, 5.0, "the genuine stream still drives the cycle")
+        assert svc.navigator.state is State.NAVIGATING
+        for _, m in ap.setpoints()[n0:]:
+            assert abs(m.y) < 1.0 and -1.0 < m.x < 31.0, (m.x, m.y)
+        status = svc.reporter.status_dict(svc.clock.now())["counters"]
+        assert status["implausible_poses"] >= 6 and status["pose_time_jumps"] >= 6
+
+
+async def test_a_sustained_new_position_is_accepted_after_a_hold_and_a_statustext() -> None:
+    """An EKF reset: every pose from now on is 20 m east. Rejected until ``pose_reset_samples`` consistent ones,
+    then the service holds at the new position for ``reset_hold_s`` and says so before it navigates on."""
+    route = Route.point(30.0, 0.0, -5.0, source="test")
+    cfg = fast_config(safety={"pose_reset_samples": 5, "reset_hold_s": 1.0})
+    async with rig(cfg, route) as (svc, ap):
+        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
+        ap.follow_setpoints = False
+        ap.pos = [ap.pos[0], ap.pos[1] + 20.0, ap.pos[2]]
+        await until(lambda: svc.perception.counters.pose_resets == 1, 5.0, "re-anchored")
+        assert svc.perception.counters.implausible_poses >= 4
+        await until(lambda: any("reset" in m.text for m in ap.of_type("STATUSTEXT")), 3.0, "announced")
+        text = next(m.text for m in ap.of_type("STATUSTEXT") if "reset" in m.text)
+        assert "HOLDING" in text
+        t_reset = next(t for t, m in ap.received if m.get_type() == "STATUSTEXT" and "reset" in m.text)
+        await until(lambda: svc.navigator.state is State.NAVIGATING, 5.0, "navigating after the hold")
+        after = [(t, m) for t, m in ap.setpoints() if t > t_reset]
+        holds = [m for t, m in after if t < t_reset + 0.8]
+        assert holds and all(m.vx == 0 and m.vy == 0 and abs(m.y - ap.pos[1]) < 0.5 for m in holds)
+
+
+async def test_do_reposition_with_infinite_altitude_is_refused() -> None:
+    route = Route.point(30.0, 0.0, -5.0, source="test")
+    async with rig(route=route) as (svc, ap):
+        await until(lambda: len(ap.setpoints()) > 5, 10.0, "flying")
+        port = svc.link.local_address[1]  # type: ignore[union-attr,index]
+        gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+        try:
+            for z in (math.inf, -math.inf):
+                gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, 0, 50000, z))
+                ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+                assert ack.result == mavlink.MAV_RESULT_DENIED
+            assert svc.counters.bad_goals == 2
+            assert svc.navigator.route is not None and svc.navigator.route.source == "test"
+            gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, 0, 50000, math.nan))
+            ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+            assert ack.result == mavlink.MAV_RESULT_ACCEPTED  # NaN: keep the altitude
+        finally:
+            await gcs.aclose()

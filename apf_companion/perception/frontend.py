@@ -37,6 +37,7 @@ from apf_companion.perception.mavlink_ranges import (
     scan_from_obstacle_distance,
 )
 from apf_companion.perception.memory import ObstacleMemory
+from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
 from apf_companion.perception.schema import decode_scan_json
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
@@ -47,7 +48,6 @@ log = logging.getLogger(__name__)
 SCAN_DEFER_S = 0.25  # a scan newer than the newest pose waits this long at most for the next pose [s]
 SCAN_DEFER_MAX = 8  # and at most this many scans wait
 POSE_HISTORY_LEN = 200  # poses kept to place scans (10 s at 20 Hz)
-REBOOT_JUMP_MS = 10_000  # time_boot_ms this far back is an autopilot reboot, not a reordered datagram
 STAMP_PLAUSIBLE_S = 5.0  # a stamp older than this (or in the future) is on another clock: use receive time
 UNIX_USEC = 10**15  # OBSTACLE_DISTANCE.time_usec at or above this is UNIX time, not time since boot
 
@@ -60,6 +60,7 @@ class PerceptionParams:
     memory_expiry_s: float = 5.0
     merge_radius_m: float = 0.2
     max_points: int = 2000
+    pose_limits: PoseLimits = dataclasses.field(default_factory=PoseLimits)
 
 
 @dataclass(slots=True)
@@ -69,6 +70,10 @@ class PerceptionCounters:
     poses: int = 0
     bad_poses: int = 0  # NaN / non-finite LOCAL_POSITION_NED or ATTITUDE
     stale_poses: int = 0  # time_boot_ms not newer than the last one (frozen or reordered)
+    out_of_bounds_poses: int = 0  # a coordinate beyond [safety] max_abs_position_m
+    implausible_poses: int = 0  # further than the vehicle can move since the last pose
+    pose_time_jumps: int = 0  # time_boot_ms forward beyond the receive clock, or far back without reboot evidence
+    pose_resets: int = 0  # re-anchored on a sustained new position / time base (EKF reset, reboot)
     scans: int = 0
     bad_scans: int = 0  # ProtocolError from a decoder (malformed message / payload)
     invalid_sectors: int = 0  # readings classified invalid (below min, zero, out of range)
@@ -91,7 +96,8 @@ class PerceptionFrontEnd:
         self.counters = PerceptionCounters()
         self.deferred: collections.deque[RangeScan] = collections.deque()
         self._yaw_rad: float | None = None
-        self._last_pose_boot_ms: int | None = None
+        self.gate = PoseGate(params.pose_limits)
+        self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
         self._ranges_t_s: float | None = None
 
@@ -120,26 +126,38 @@ class PerceptionFrontEnd:
         """A LOCAL_POSITION_NED received at ``now_s``: the new pose (history updated, waiting scans placed), or
         None when it is stale, non-finite or no heading is known yet."""
         self.counters.poses += 1
-        last = self._last_pose_boot_ms
-        if last is not None and time_boot_ms <= last:
-            # Frozen or reordered: it must not look fresh. (A reboot restarts near 0: accept a large jump back.)
-            if last - time_boot_ms < REBOOT_JUMP_MS:
-                self.counters.stale_poses += 1
-                return None
-            self.history.clear()
         if self._yaw_rad is None:
             return None  # no ATTITUDE yet: body-frame ranges could not be placed
+        verdict = self.gate.check(time_boot_ms, pos_ned_m, now_s)
+        if verdict is Verdict.RESET:
+            self._reset(f"position reset to {pos_ned_m[0]:.1f} {pos_ned_m[1]:.1f} {pos_ned_m[2]:.1f}")
+        elif verdict is not Verdict.ACCEPT:
+            counter = _REJECTED[verdict]
+            setattr(self.counters, counter, getattr(self.counters, counter) + 1)
+            return None
         try:
             pose = Pose(t_s=now_s, pos_ned_m=np.array(pos_ned_m, dtype=np.float64), yaw_rad=self._yaw_rad)
         except ConfigError:
             self.counters.bad_poses += 1
             return None
-        self._last_pose_boot_ms = time_boot_ms
         self._boot_offset_s = now_s - time_boot_ms / 1000.0
         self.history.add(pose)
         if self.deferred:
             self._place_deferred()  # before the cycle this pose triggers
         return pose
+
+    def _reset(self, reason: str) -> None:
+        """The gate re-anchored: poses and remembered points are in the old frame; forget them."""
+        self.counters.pose_resets += 1
+        self.history.clear()
+        self.memory.clear()
+        self.reset_reason = reason
+        log.warning("pose.reset", extra={"reason": reason})
+
+    def take_reset(self) -> str | None:
+        """The reason of a re-anchor since the last call, or None."""
+        reason, self.reset_reason = self.reset_reason, None
+        return reason
 
     def scan_time(self, boot_ms: int | None, now_s: float) -> float:
         """Service time of a measurement stamped with autopilot boot time (receive time if unknown)."""
@@ -251,3 +269,13 @@ class PerceptionFrontEnd:
         """Obstacle points already placed in local NED, measured at ``t_s`` (a perfect sensor in tests and
         closed-loop simulations; the service itself feeds scans)."""
         self._remember(points_ned_m, t_s)
+
+
+_REJECTED = {
+    Verdict.NON_FINITE: "bad_poses",
+    Verdict.OUT_OF_BOUNDS: "out_of_bounds_poses",
+    Verdict.STALE: "stale_poses",
+    Verdict.TIME_JUMP: "pose_time_jumps",
+    Verdict.JUMP: "implausible_poses",
+}
+"""The counter of each rejecting verdict."""
