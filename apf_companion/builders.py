@@ -97,6 +97,8 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         target_guard_m=rho_l_m if config.planner.name.startswith("cr-") else 0.0,
         clearance_m=rho_l_m,
         reset_hold_s=config.safety.reset_hold_s,
+        silent_horizon_s=config.safety.guid_timeout_s,
+        silent_drift_m=config.safety.silent_drift_m,
     )
 
 

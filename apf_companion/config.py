@@ -350,7 +350,7 @@ class SafetyConfig:
     pose_reset_samples: int = 10
     reset_hold_s: float = 2.0
     guid_timeout_s: float = 3.0
-    silent_drift_m: float = 0.3
+    silent_drift_m: float = 1.0
     clear_scans: int = 3
     sectors: int = 16
     sector_max_age_s: float = 1.0

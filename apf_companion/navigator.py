@@ -39,7 +39,7 @@ import numpy.typing as npt
 
 from apf_companion.goal import Route
 from apf_companion.perception import Pose
-from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate
+from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity
 
 __all__ = [
     "CycleOutput",
@@ -127,6 +127,9 @@ class NavigatorParams:
             remembered obstacle the feed-forward speed falls linearly to ``SLOW_FRACTION`` of cruise at
             ``clearance_m``, so the vehicle turns at the bacteria points there without swinging wide (0 = off).
         reset_hold_s: After a position reset (``position_reset``) hold this long before navigating [s].
+        silent_horizon_s, silent_drift_m: Safe when silent: the last setpoint's feed-forward may carry the vehicle
+            at most ``silent_drift_m`` past its position over ``silent_horizon_s`` (GUID_TIMEOUT), never towards a
+            remembered obstacle (``apf_companion.setpoint.silent_safe_velocity``).
     """
 
     dim: int = 2
@@ -145,6 +148,8 @@ class NavigatorParams:
     target_guard_m: float = 0.0
     clearance_m: float = 0.0
     reset_hold_s: float = 2.0
+    silent_horizon_s: float = 3.0
+    silent_drift_m: float = 1.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -256,7 +261,22 @@ class _StepTracker:
             self.target = None
             self.counters.dropped_targets += 1
             return None
-        return navigate(pos, target, cruise_speed_m_s=self.approach_speed(gap, nearest_m), dim=p.dim)
+        return self.setpoint(pos, target, self.approach_speed(gap, nearest_m), obstacles)
+
+    def setpoint(self, pos: FloatArray, target: FloatArray, speed_m_s: float, obstacles: FloatArray) -> Setpoint:
+        """Fly to ``target`` at ``speed_m_s``, with the feed-forward cut to what is safe if nothing follows."""
+        p = self.p
+        sp = navigate(pos, target, cruise_speed_m_s=speed_m_s, dim=p.dim)
+        vel = silent_safe_velocity(
+            target,
+            sp.vel_ned_m_s,
+            obstacles,
+            horizon_s=p.silent_horizon_s,
+            max_drift_m=p.silent_drift_m,
+            clearance_m=p.clearance_m,
+            dim=p.dim,
+        )
+        return dataclasses.replace(sp, vel_ned_m_s=vel)
 
     def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
         """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower
@@ -660,7 +680,7 @@ class Navigator:
             self._steps.set(target, inp.now_s)
             gap = float(np.linalg.norm((target - pos)[:dim]))
             speed = self._steps.approach_speed(gap, inp.nearest_m)
-            sp = navigate(pos, target, cruise_speed_m_s=speed, dim=dim)
+            sp = self._steps.setpoint(pos, target, speed, obstacles)
         return self._out(inp, sp, dist, decision=reason, n_obstacles=n)
 
     # ---- helpers -----------------------------------------------------------------------------------------------

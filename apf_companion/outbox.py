@@ -71,6 +71,7 @@ class Outbox:
         self._now_s = now_s
         self._start_s = now_s()
         self.setpoints_sent = 0
+        self.last_setpoint: Setpoint | None = None  # the newest one that went out
         self.statustexts_sent = 0
         self.clamped_values = 0  # report values clamped into float32's range
         self.unsendable = 0  # setpoints / commands with a value float32 cannot carry: not sent
@@ -128,6 +129,8 @@ class Outbox:
             )
         )
         self.setpoints_sent += int(sent)
+        if sent:
+            self.last_setpoint = sp
 
     def heartbeat(self, system_status: int) -> None:
         self._send(
