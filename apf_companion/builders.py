@@ -139,6 +139,10 @@ def perception_params(config: ServiceConfig) -> PerceptionParams:
             time_jump_s=z.pose_time_jump_s,
             reset_samples=z.pose_reset_samples,
         ),
+        clear_scans=z.clear_scans,
+        clear_span_s=z.clear_span_s,
+        sectors=z.sectors if s.require_ranges else 0,
+        sector_max_age_s=z.sector_max_age_s,
     )
 
 

@@ -336,6 +336,8 @@ class SafetyConfig:
             the velocity feed-forward is at most this over ``guid_timeout_s`` [m].
         clear_scans: Scans from the sensor that saw a remembered obstacle that must see through it, in a row,
             before it is forgotten.
+        clear_span_s: ... and those scans must span at least this long (a flood of scans is one piece of
+            evidence) [s].
         sectors: Directions (equal azimuth sectors) whose freshness is tracked; 0 = off.
         sector_max_age_s: A sector without a reading for this long is unknown: no motion towards it [s].
         resume_after_link_lost: When the autopilot's heartbeat returns, fly on to the goal (only in GUIDED /
@@ -352,6 +354,7 @@ class SafetyConfig:
     guid_timeout_s: float = 3.0
     silent_drift_m: float = 1.0
     clear_scans: int = 3
+    clear_span_s: float = 0.3
     sectors: int = 16
     sector_max_age_s: float = 1.0
     resume_after_link_lost: bool = True
@@ -371,6 +374,7 @@ class SafetyConfig:
             raise _fail("safety.clear_scans", "an integer in [1, 100]", self.clear_scans)
         if not isinstance(self.sectors, int) or not (self.sectors == 0 or 4 <= self.sectors <= 360):
             raise _fail("safety.sectors", "0 or an integer in [4, 360]", self.sectors)
+        _check_range("safety.clear_span_s", self.clear_span_s, 0.0, 60.0)
         _check_range("safety.sector_max_age_s", self.sector_max_age_s, 0.05, 60.0)
 
 

@@ -87,6 +87,8 @@ class ObstacleView(Protocol):
     @property
     def ranges_t_s(self) -> float | None: ...
 
+    def direction_fresh(self, bearing_ned_rad: float, now_s: float) -> bool: ...
+
 
 class DecisionLike(Protocol):
     @property
@@ -201,6 +203,7 @@ class _Counters:
     rejected_poses: int = 0
     goals: int = 0
     dropped_targets: int = 0
+    unknown_direction_holds: int = 0  # a step towards a sector without recent ranges: held instead
 
 
 @dataclass(slots=True)
@@ -644,8 +647,22 @@ class Navigator:
         tracked = self._steps.track(pos, obstacles, inp.now_s, inp.nearest_m)
         n = int(obstacles.shape[0])
         if tracked is not None:
-            return self._out(inp, tracked, dist, decision=Decision.TRACKING.value, n_obstacles=n)
-        return self._plan(inp, pos, leg, dist, obstacles)
+            out = self._out(inp, tracked, dist, decision=Decision.TRACKING.value, n_obstacles=n)
+        else:
+            out = self._plan(inp, pos, leg, dist, obstacles)
+        return self._known_direction(out, pos)
+
+    def _known_direction(self, out: CycleOutput, pos: FloatArray) -> CycleOutput:
+        """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle."""
+        sp = out.setpoint
+        if sp is None or sp.kind is not SetpointKind.NAVIGATE:
+            return out
+        d = np.asarray(sp.pos_ned_m) - pos
+        if math.hypot(d[0], d[1]) < 1e-9 or self.obstacles.direction_fresh(math.atan2(d[1], d[0]), out.t_s):
+            return out
+        self.counters.unknown_direction_holds += 1
+        self._steps.target = None
+        return dataclasses.replace(out, setpoint=hold(pos))
 
     def _plan(self, inp: _Inputs, pos: FloatArray, leg: _Leg, dist: float, obstacles: FloatArray) -> CycleOutput:
         """Plan the next step from the bacteria point just reached (the paper's path), else from the pose."""

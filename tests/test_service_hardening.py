@@ -8,7 +8,9 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from typing import Any
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -157,3 +159,57 @@ async def test_do_reposition_with_infinite_altitude_is_refused() -> None:
             assert ack.result == mavlink.MAV_RESULT_ACCEPTED  # NaN: keep the altitude
         finally:
             await gcs.aclose()
+
+
+def _near_count(svc: Any, north_m: float, east_m: float) -> int:
+    pts = svc.perception.points(svc.clock.now())
+    return int(np.count_nonzero(np.hypot(pts[:, 0] - north_m, pts[:, 1] - east_m) < 0.5))
+
+
+async def test_a_flood_of_all_free_scans_does_not_erase_a_remembered_obstacle() -> None:
+    """The genuine 72-sector scan sees an obstacle 3 m ahead every 100 ms; 600 "all free" scans from the same
+    ids in between, and DISTANCE_SENSOR "free" beams from another sensor, never clear it."""
+    async with rig() as (svc, ap):
+        ap.ranges_cm = [300] + [801] * 71  # forward (north at yaw 0): an obstacle at 3 m
+        await until(lambda: _near_count(svc, 3.0, 0.0) > 0, 5.0, "obstacle remembered")
+        mav, lowest = ap.link.mav, 1
+        for k in range(600):
+            ms = ap.boot_ms()
+            ap.link.send(mav.obstacle_distance_encode(ms * 1000, 0, [801] * 72, 0, 20, 800, 5.0, 0.0, 12))
+            ap.link.send(mav.distance_sensor_encode(ms, 20, 800, 801, 0, 1, 0, 0))  # forward beam: free
+            if k % 20 == 0:
+                await asyncio.sleep(0.01)
+                lowest = min(lowest, _near_count(svc, 3.0, 0.0))
+        await until(lambda: svc.perception.counters.clears_refused > 0, 3.0, "foreign clears refused")
+        assert lowest >= 1 and _near_count(svc, 3.0, 0.0) >= 1
+        # Once the obstacle is really gone, the same sensor clears it after clear_scans over clear_span_s.
+        ap.ranges_cm = None
+        await until(lambda: _near_count(svc, 3.0, 0.0) == 0, 5.0, "cleared by consistent evidence")
+
+
+async def test_one_forward_beam_does_not_keep_the_service_moving_sideways() -> None:
+    """The 72-sector source stops; a forward DISTANCE_SENSOR beam keeps reporting free (ranges stay "fresh"
+    globally). The goal is east (sideways at yaw 0): no step may go there once its sector is unknown."""
+    route = Route.point(0.0, 30.0, -5.0, source="test")
+    async with rig(route=route) as (svc, ap):
+        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying east")
+        ap.send_ranges = False
+        stop = time.monotonic()
+
+        async def beam() -> None:
+            while True:
+                ap.link.send(ap.link.mav.distance_sensor_encode(ap.boot_ms(), 20, 800, 801, 0, 1, 0, 0))
+                await asyncio.sleep(0.05)
+
+        task = asyncio.create_task(beam())
+        try:
+            max_age_s = svc.config.safety.sector_max_age_s
+            await until(lambda: svc.navigator.counters.unknown_direction_holds > 5, 5.0, "held at the unknown side")
+            east = ap.pos[1]
+            await asyncio.sleep(0.5)
+            late = [m for t, m in ap.setpoints() if t > stop + max_age_s + 0.3]
+            assert late and all(m.vx == 0 and m.vy == 0 for m in late)
+            assert svc.navigator.ranges_fresh(svc.clock.now())  # globally the beam keeps ranges "fresh"
+            assert ap.pos[1] == pytest.approx(east, abs=0.05)  # not moving sideways
+        finally:
+            task.cancel()

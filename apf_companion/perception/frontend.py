@@ -26,7 +26,7 @@ import numpy as np
 
 from apf_companion.errors import ConfigError, ProtocolError
 from apf_companion.perception.cdr import decode_laserscan_cdr
-from apf_companion.perception.geometry import scan_to_points_ned
+from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     DistanceSensorLike,
@@ -39,6 +39,7 @@ from apf_companion.perception.mavlink_ranges import (
 from apf_companion.perception.memory import ObstacleMemory
 from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
 from apf_companion.perception.schema import decode_scan_json
+from apf_companion.perception.sectors import SectorFreshness
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
 __all__ = ["SCAN_DEFER_MAX", "SCAN_DEFER_S", "PerceptionCounters", "PerceptionFrontEnd", "PerceptionParams"]
@@ -61,6 +62,10 @@ class PerceptionParams:
     merge_radius_m: float = 0.2
     max_points: int = 2000
     pose_limits: PoseLimits = dataclasses.field(default_factory=PoseLimits)
+    clear_scans: int = 1  # scans of the sensor that saw a point that must see through it before it is forgotten
+    clear_span_s: float = 0.0  # ... spread over at least this long [s]
+    sectors: int = 0  # azimuth sectors whose freshness is tracked (0 = off)
+    sector_max_age_s: float = 1.0
 
 
 @dataclass(slots=True)
@@ -80,6 +85,7 @@ class PerceptionCounters:
     unknown_sectors: int = 0
     scans_without_pose: int = 0
     scans_deferred_too_long: int = 0  # placed with the newest pose: more than SCAN_DEFER_MAX scans waited
+    clears_refused: int = 0  # a scan saw through a point another sensor saw: not cleared
 
 
 class PerceptionFrontEnd:
@@ -97,6 +103,8 @@ class PerceptionFrontEnd:
         self.deferred: collections.deque[RangeScan] = collections.deque()
         self._yaw_rad: float | None = None
         self.gate = PoseGate(params.pose_limits)
+        self.sectors = SectorFreshness(params.sectors, params.sector_max_age_s)
+        self._sensor_ids: dict[str, int] = {}
         self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
         self._ranges_t_s: float | None = None
@@ -113,6 +121,10 @@ class PerceptionFrontEnd:
 
     def __len__(self) -> int:
         return len(self.memory)
+
+    def direction_fresh(self, bearing_ned_rad: float, now_s: float) -> bool:
+        """The azimuth sector of ``bearing_ned_rad`` (local NED) has a recent reading (``[safety] sectors``)."""
+        return self.sectors.fresh(bearing_ned_rad, now_s)
 
     # ---- poses ---------------------------------------------------------------------------------------------
     def on_attitude(self, yaw_rad: float) -> None:
@@ -151,6 +163,7 @@ class PerceptionFrontEnd:
         self.counters.pose_resets += 1
         self.history.clear()
         self.memory.clear()
+        self.sectors.clear()
         self.reset_reason = reason
         log.warning("pose.reset", extra={"reason": reason})
 
@@ -189,7 +202,9 @@ class PerceptionFrontEnd:
             self._bad("OBSTACLE_DISTANCE_3D", err)
             return
         self.counters.scans += 1
-        self._remember(points, t)
+        rel = np.asarray(points, dtype=np.float64).reshape(-1, 3) - pose.pos_ned_m
+        self.sectors.note(np.arctan2(rel[:, 1], rel[:, 0]), t)
+        self._remember(points, t, self._sensor_ids.setdefault("mavlink:obstacle_distance_3d", len(self._sensor_ids)))
 
     def on_scan_payload(self, encoding: str, payload: bytes, now_s: float) -> None:
         """A zenoh scan: ROS 2 LaserScan CDR, or ``apf.range_scan/1`` JSON (stamped with boot time, if given)."""
@@ -253,21 +268,28 @@ class PerceptionFrontEnd:
             rel = points[:, :2] - pose.pos_ned_m[:2]
             limit = self.params.max_range_m
             points = points[np.einsum("ij,ij->i", rel, rel) <= limit * limit]
-        self.memory.clear_observed(scan, pose)
-        self._remember(points, scan.t_s)
+        p = self.params
+        sensor = self._sensor_ids.setdefault(scan.source, len(self._sensor_ids))
+        refused = self.memory.clears_refused
+        self.memory.clear_observed(scan, pose, sensor=sensor, clear_scans=p.clear_scans, clear_span_s=p.clear_span_s)
+        self.counters.clears_refused += self.memory.clears_refused - refused
+        bearings = scan_bearings_ned_rad(scan, pose)
+        self.sectors.note(bearings[~np.isnan(scan.ranges_m)], scan.t_s)
+        self._remember(points, scan.t_s, sensor)
 
-    def _remember(self, points: FloatArray, t_s: float) -> None:
+    def _remember(self, points: FloatArray, t_s: float, sensor: int = -1) -> None:
         """The one write to the obstacle memory: a usable scan measured at ``t_s`` (possibly no points: all free
         is news too, it keeps the ranges fresh)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if pts.shape[0]:
-            self.memory.add(pts, t_s)
+            self.memory.add(pts, t_s, sensor)
         if self._ranges_t_s is None or t_s > self._ranges_t_s:
             self._ranges_t_s = t_s
 
     def remember(self, points_ned_m: FloatArray, t_s: float) -> None:
         """Obstacle points already placed in local NED, measured at ``t_s`` (a perfect sensor in tests and
-        closed-loop simulations; the service itself feeds scans)."""
+        closed-loop simulations; the service itself feeds scans): every direction counts as measured."""
+        self.sectors.note_all(t_s)
         self._remember(points_ned_m, t_s)
 
 
