@@ -99,6 +99,7 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         reset_hold_s=config.safety.reset_hold_s,
         silent_horizon_s=config.safety.guid_timeout_s,
         silent_drift_m=config.safety.silent_drift_m,
+        resume_after_link_lost=config.safety.resume_after_link_lost,
     )
 
 

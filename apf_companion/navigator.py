@@ -18,8 +18,11 @@ States (the README's Service section has the diagram):
 - ARRIVED: within ``arrival_radius_m`` of the last waypoint: hold where it is (while the pose is fresh).
 - STUCK: the planner found no greedy move for ``random_walk_budget`` cycles in a row, or no progress for
   ``progress_timeout_s``: hold and report. A new goal restarts.
-- LINK_LOST: no autopilot HEARTBEAT for ``heartbeat_timeout_s``: send nothing; the goal is dropped, so motion
-  only resumes after a new goal once the link is back (state IDLE).
+- LINK_LOST: no autopilot HEARTBEAT for ``heartbeat_timeout_s``: send nothing. The goal is kept (packet loss
+  never drops it): when the heartbeat returns, the autopilot's mode is checked first: still GUIDED / OFFBOARD ->
+  HOLDING, and NAVIGATING once the inputs are fresh; another mode (the pilot or a failsafe took over) -> the goal
+  is dropped (IDLE). With ``resume_after_link_lost`` false the goal is dropped at once and motion only resumes
+  after a new goal (IDLE once the link is back).
 
 Each state has one handler (``_HANDLERS``, keyed by ``State``). The navigator reads the configuration only as a
 frozen ``NavigatorParams`` and the obstacles only through ``ObstacleView`` (the perception front end writes them).
@@ -132,6 +135,9 @@ class NavigatorParams:
         silent_horizon_s, silent_drift_m: Safe when silent: the last setpoint's feed-forward may carry the vehicle
             at most ``silent_drift_m`` past its position over ``silent_horizon_s`` (GUID_TIMEOUT), never towards a
             remembered obstacle (``apf_companion.setpoint.silent_safe_velocity``).
+        resume_after_link_lost: LINK_LOST keeps the goal; when the heartbeat returns with the autopilot still in
+            GUIDED / OFFBOARD the service holds, then navigates on once the inputs are fresh. False: the goal is
+            dropped (IDLE once the link is back; motion only after a new goal).
     """
 
     dim: int = 2
@@ -152,6 +158,7 @@ class NavigatorParams:
     reset_hold_s: float = 2.0
     silent_horizon_s: float = 3.0
     silent_drift_m: float = 1.0
+    resume_after_link_lost: bool = True
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -451,7 +458,7 @@ class Navigator:
     def autopilot_heartbeat(self, now_s: float, *, mode_ok: bool) -> None:
         """An autopilot HEARTBEAT; ``mode_ok`` = its custom_mode is GUIDED (ArduPilot) / OFFBOARD (PX4)."""
         self._last_hb_s = now_s
-        if self.engaged and not mode_ok and self.state in _ENGAGED_STATES:
+        if self.engaged and not mode_ok and (self.state in _ENGAGED_STATES or self.state is State.LINK_LOST):
             # The pilot (or a failsafe) took the vehicle: never fight it; wait for a new goal.
             self._drop_route(now_s, State.IDLE, "autopilot left guided control: goal dropped")
         self.mode_ok = mode_ok
@@ -537,7 +544,7 @@ class Navigator:
             out = self._link_dead(now_s)
         else:
             if self.state is State.LINK_LOST:
-                self._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
+                self._link_back(now_s)
             inp = self._inputs(now_s)
             out = _HANDLERS[self.state](self, inp)
         if out.setpoint is not None:
@@ -561,8 +568,23 @@ class Navigator:
 
     def _link_dead(self, now_s: float) -> CycleOutput:
         if self._last_hb_s is not None and self.state is not State.LINK_LOST:
-            self._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
+            if self.params.resume_after_link_lost and self.route is not None:
+                self._steps.target = None
+                self._hold.reset()
+                self._change(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending, goal kept")
+            else:
+                self._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
         return CycleOutput(t_s=now_s, state=self.state, setpoint=None)
+
+    def _link_back(self, now_s: float) -> None:
+        """The heartbeat is back (its mode was checked in ``autopilot_heartbeat``: a mode that is not ours while
+        engaged has dropped the goal). Hold first; ``_on_holding`` navigates on once the inputs are fresh."""
+        if self.route is None:
+            self._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
+        elif self.engaged and self.mode_ok:
+            self._change(now_s, State.HOLDING, "autopilot heartbeat back, guided: resuming when inputs are fresh")
+        else:
+            self._change(now_s, State.NAVIGATING, "autopilot heartbeat back: taking over again for the goal")
 
     def _silent(self, inp: _Inputs) -> CycleOutput:
         return CycleOutput(t_s=inp.now_s, state=self.state, setpoint=None, nearest_obstacle_m=inp.nearest_m)

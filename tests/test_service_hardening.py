@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.autopilot import MASK_POS_VEL
+from apf_companion.autopilot import MASK_POS_VEL, CopterMode
 from apf_companion.goal import Route
 from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
@@ -213,3 +213,39 @@ async def test_one_forward_beam_does_not_keep_the_service_moving_sideways() -> N
             assert ap.pos[1] == pytest.approx(east, abs=0.05)  # not moving sideways
         finally:
             task.cancel()
+
+
+async def test_link_lost_then_heartbeat_back_resumes_the_kept_goal() -> None:
+    """LINK_LOST: silence, goal kept. Heartbeat back in GUIDED: a HOLDING, then NAVIGATING with fresh inputs."""
+    route = Route.point(30.0, 0.0, -5.0, source="test")
+    async with rig(route=route) as (svc, ap):
+        await until(lambda: svc.navigator.engaged and len(ap.setpoints()) > 10, 10.0, "flying in GUIDED")
+        ap.send_heartbeat = False
+        await until(lambda: svc.navigator.state is State.LINK_LOST, 4.0, "link lost")
+        t_lost = time.monotonic()
+        await asyncio.sleep(0.5)
+        assert not [m for t, m in ap.setpoints() if t > t_lost + 0.2]
+        assert svc.navigator.route is not None and svc.navigator.route.source == "test"
+        ap.send_heartbeat = True
+        await until(lambda: svc.navigator.state is State.NAVIGATING, 5.0, "navigating again")
+        texts = [m.text for t, m in ap.received if t > t_lost and m.get_type() == "STATUSTEXT"]
+        assert texts and "HOLDING" in texts[0] and "heartbeat back" in texts[0]
+        n = len(ap.setpoints())
+        await until(lambda: len(ap.setpoints()) > n + 5 and ap.pos[0] > 2.0, 10.0, "moving towards the goal")
+
+
+async def test_heartbeat_back_in_loiter_drops_the_goal_and_sends_nothing() -> None:
+    route = Route.point(30.0, 0.0, -5.0, source="test")
+    async with rig(route=route) as (svc, ap):
+        await until(lambda: svc.navigator.engaged and len(ap.setpoints()) > 10, 10.0, "flying in GUIDED")
+        n_modes = len([m for m in ap.of_type("COMMAND_LONG") if m.command == 176])
+        ap.send_heartbeat = False
+        await until(lambda: svc.navigator.state is State.LINK_LOST, 4.0, "link lost")
+        ap.custom_mode = int(CopterMode.LOITER)  # the pilot took the vehicle during the outage
+        ap.send_heartbeat = True
+        await until(lambda: svc.navigator.state is State.IDLE, 4.0, "idle")
+        t_back = time.monotonic()
+        await asyncio.sleep(0.5)
+        assert svc.navigator.route is None
+        assert not [m for t, m in ap.setpoints() if t > t_back]
+        assert len([m for m in ap.of_type("COMMAND_LONG") if m.command == 176]) == n_modes  # no new takeover
