@@ -155,7 +155,7 @@ class AutopilotHandlers:
         pose = self.perception.on_local_position(rec.time_boot_ms, (rec.x, rec.y, rec.z), now_s)
         reset = self.perception.take_reset()
         if reset is not None:
-            self.navigator.position_reset(now_s, reset)
+            self.navigator.recovery.position_reset(now_s, reset)
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose()
 

@@ -51,6 +51,7 @@ __all__ = [
     "NavigatorParams",
     "ObstacleView",
     "PlannerLike",
+    "Recovery",
     "State",
     "StateChange",
 ]
@@ -233,6 +234,14 @@ class _Inputs:
     ranges_ok: bool
 
 
+def _into_unknown(view: ObstacleView, sp: Setpoint | None, pos: FloatArray, now_s: float) -> bool:
+    """``sp`` steps towards an azimuth sector without recent ranges (``ObstacleView.direction_fresh``)."""
+    if sp is None or sp.kind is not SetpointKind.NAVIGATE:
+        return False
+    d = np.asarray(sp.pos_ned_m) - pos
+    return math.hypot(d[0], d[1]) >= 1e-9 and not view.direction_fresh(math.atan2(d[1], d[0]), now_s)
+
+
 class _StepTracker:
     """The bacteria point being flown to, and the feed-forward speed towards it."""
 
@@ -287,6 +296,14 @@ class _StepTracker:
             dim=p.dim,
         )
         return dataclasses.replace(sp, vel_ned_m_s=vel)
+
+    def known_direction(self, out: CycleOutput, pos: FloatArray, view: ObstacleView) -> CycleOutput:
+        """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle."""
+        if not _into_unknown(view, out.setpoint, pos, out.t_s):
+            return out
+        self.counters.unknown_direction_holds += 1
+        self.target = None
+        return dataclasses.replace(out, setpoint=hold(pos))
 
     def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
         """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower
@@ -405,6 +422,49 @@ def _near(points: FloatArray, pos: FloatArray, dim: int, reach_m: float) -> Floa
     return np.asarray(points[keep], dtype=np.float64)
 
 
+class Recovery:
+    """What the navigator keeps through a lost link or a position reset, and how it resumes (docs/hardening.md)."""
+
+    def __init__(self, nav: Navigator) -> None:
+        self.nav = nav
+        self.hold_until_s = -math.inf  # a position reset holds until then
+
+    def holding(self, now_s: float) -> bool:
+        return now_s < self.hold_until_s
+
+    def position_reset(self, now_s: float, reason: str) -> None:
+        """The old step and hold point are in the old frame: hold at the new position (a STATUSTEXT says why)."""
+        nav = self.nav
+        nav._steps.target = None
+        nav._hold.reset()
+        self.hold_until_s = now_s + nav.params.reset_hold_s
+        if nav.route is not None and nav.state in (State.NAVIGATING, State.HOLDING):
+            nav._change(now_s, State.HOLDING, f"{reason}: holding")
+
+    def link_dead(self, now_s: float) -> None:
+        """No heartbeat: silence. The goal is kept (``resume_after_link_lost``), the step and hold forgotten."""
+        nav = self.nav
+        if nav._last_hb_s is None or nav.state is State.LINK_LOST:
+            return
+        if nav.params.resume_after_link_lost and nav.route is not None:
+            nav._steps.target = None
+            nav._hold.reset()
+            nav._change(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending, goal kept")
+        else:
+            nav._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
+
+    def link_back(self, now_s: float) -> None:
+        """The heartbeat is back; its mode was checked in ``autopilot_heartbeat`` (a mode not ours while engaged
+        dropped the goal). Hold first: ``_on_holding`` navigates on once the inputs are fresh."""
+        nav = self.nav
+        if nav.route is None:
+            nav._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
+        elif nav.engaged and nav.mode_ok:
+            nav._change(now_s, State.HOLDING, "autopilot heartbeat back, guided: resuming when inputs are fresh")
+        else:
+            nav._change(now_s, State.NAVIGATING, "autopilot heartbeat back: taking over again for the goal")
+
+
 class Navigator:
     """The decision core. Feed it inputs, call ``cycle(now_s)`` at the cycle rate.
 
@@ -442,7 +502,7 @@ class Navigator:
         self._hold = _Hold()
         self._legs = _Legs(params, self._steps)
         self._last_hb_s: float | None = None
-        self._hold_until_s = -math.inf  # a position reset holds until then
+        self.recovery = Recovery(self)  # link loss and position resets (``recovery.position_reset``)
         self._pending: list[StateChange] = []
 
     # ---- inputs ------------------------------------------------------------------------------------------------
@@ -493,15 +553,6 @@ class Navigator:
         self._legs.leg = None
         self._steps.target = None
 
-    def position_reset(self, now_s: float, reason: str) -> None:
-        """The pose re-anchored (a sustained new position: EKF reset, reboot): the old step and hold point are in
-        the old frame. Hold at the new position for ``reset_hold_s`` (a STATUSTEXT says why), then go on."""
-        self._steps.target = None
-        self._hold.reset()
-        self._hold_until_s = now_s + self.params.reset_hold_s
-        if self.route is not None and self.state in (State.NAVIGATING, State.HOLDING):
-            self._change(now_s, State.HOLDING, f"{reason}: holding")
-
     def clear_route(self, now_s: float, reason: str) -> None:
         """Forget the goal (operator stop): IDLE, send nothing."""
         self._drop_route(now_s, State.IDLE, reason)
@@ -541,10 +592,11 @@ class Navigator:
         """Run one cycle at service time ``now_s``: update the state and decide the setpoint (or silence)."""
         self.counters.cycles += 1
         if not self.link_alive(now_s):
-            out = self._link_dead(now_s)
+            self.recovery.link_dead(now_s)
+            out = CycleOutput(t_s=now_s, state=self.state, setpoint=None)
         else:
             if self.state is State.LINK_LOST:
-                self._link_back(now_s)
+                self.recovery.link_back(now_s)
             inp = self._inputs(now_s)
             out = _HANDLERS[self.state](self, inp)
         if out.setpoint is not None:
@@ -565,26 +617,6 @@ class Navigator:
             self.counters.stale_range_cycles += 1
         nearest = None if self.pose is None else _nearest_m(points, self.pose.pos_ned_m, self.dim)
         return _Inputs(now_s, points, nearest, pose_ok, ranges_ok)
-
-    def _link_dead(self, now_s: float) -> CycleOutput:
-        if self._last_hb_s is not None and self.state is not State.LINK_LOST:
-            if self.params.resume_after_link_lost and self.route is not None:
-                self._steps.target = None
-                self._hold.reset()
-                self._change(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending, goal kept")
-            else:
-                self._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
-        return CycleOutput(t_s=now_s, state=self.state, setpoint=None)
-
-    def _link_back(self, now_s: float) -> None:
-        """The heartbeat is back (its mode was checked in ``autopilot_heartbeat``: a mode that is not ours while
-        engaged has dropped the goal). Hold first; ``_on_holding`` navigates on once the inputs are fresh."""
-        if self.route is None:
-            self._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
-        elif self.engaged and self.mode_ok:
-            self._change(now_s, State.HOLDING, "autopilot heartbeat back, guided: resuming when inputs are fresh")
-        else:
-            self._change(now_s, State.NAVIGATING, "autopilot heartbeat back: taking over again for the goal")
 
     def _silent(self, inp: _Inputs) -> CycleOutput:
         return CycleOutput(t_s=inp.now_s, state=self.state, setpoint=None, nearest_obstacle_m=inp.nearest_m)
@@ -632,7 +664,7 @@ class Navigator:
             return blocked
         if not (inp.pose_ok and inp.ranges_ok):
             return self._hold_stale(inp)
-        if inp.now_s < self._hold_until_s:
+        if self.recovery.holding(inp.now_s):
             return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=True), self._distance_to_goal())
         self._hold.anchor = None
         self._change(inp.now_s, State.NAVIGATING, "inputs fresh again: navigating")
@@ -672,19 +704,7 @@ class Navigator:
             out = self._out(inp, tracked, dist, decision=Decision.TRACKING.value, n_obstacles=n)
         else:
             out = self._plan(inp, pos, leg, dist, obstacles)
-        return self._known_direction(out, pos)
-
-    def _known_direction(self, out: CycleOutput, pos: FloatArray) -> CycleOutput:
-        """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle."""
-        sp = out.setpoint
-        if sp is None or sp.kind is not SetpointKind.NAVIGATE:
-            return out
-        d = np.asarray(sp.pos_ned_m) - pos
-        if math.hypot(d[0], d[1]) < 1e-9 or self.obstacles.direction_fresh(math.atan2(d[1], d[0]), out.t_s):
-            return out
-        self.counters.unknown_direction_holds += 1
-        self._steps.target = None
-        return dataclasses.replace(out, setpoint=hold(pos))
+        return self._steps.known_direction(out, pos, self.obstacles)
 
     def _plan(self, inp: _Inputs, pos: FloatArray, leg: _Leg, dist: float, obstacles: FloatArray) -> CycleOutput:
         """Plan the next step from the bacteria point just reached (the paper's path), else from the pose."""

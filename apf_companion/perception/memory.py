@@ -245,9 +245,24 @@ class ObstacleMemory:
             The scan's sensor; a point it sees through is removed once ``clear_scans`` scans of the sensor that
             saw the point (or of any sensor, for points added with -1) saw through it over ``clear_span_s``.
         """
-        n = self._t.size
-        if n == 0 or len(scan) == 0:
+        if self._t.size == 0 or len(scan) == 0:
             return 0
+        cleared = self._seen_through(scan, pose, beam_half_width_rad, margin_m, vertical_window_m)
+        ours = cleared & ((self._src == sensor) | (self._src < 0))
+        self.clears_refused += int(np.count_nonzero(cleared & ~ours))
+        first = ours & (self._free_n == 0)
+        self._free_t0[first] = scan.t_s
+        self._free_n[ours] += 1
+        gone = ours & (self._free_n >= clear_scans) & (scan.t_s - self._free_t0 >= clear_span_s)
+        removed = int(np.count_nonzero(gone))
+        if removed:
+            self._keep(~gone)
+        return removed
+
+    def _seen_through(
+        self, scan: RangeScan, pose: Pose, beam_half_width_rad: float | None, margin_m: float, vertical_window_m: float
+    ) -> npt.NDArray[np.bool_]:
+        """Which remembered points ``scan`` sees through (see ``clear_observed``)."""
         bearings = np.mod(scan_bearings_ned_rad(scan, pose), _TWO_PI)
         order = np.argsort(bearings)
         b_sorted = bearings[order]
@@ -270,13 +285,4 @@ class ObstacleMemory:
             & (dist_m < reach[beam] - margin_m)
             & (np.abs(rel[:, 2]) <= vertical_window_m)
         )
-        ours = cleared & ((self._src == sensor) | (self._src < 0))
-        self.clears_refused += int(np.count_nonzero(cleared & ~ours))
-        first = ours & (self._free_n == 0)
-        self._free_t0[first] = scan.t_s
-        self._free_n[ours] += 1
-        gone = ours & (self._free_n >= clear_scans) & (scan.t_s - self._free_t0 >= clear_span_s)
-        removed = int(np.count_nonzero(gone))
-        if removed:
-            self._keep(~gone)
-        return removed
+        return np.asarray(cleared, dtype=np.bool_)
