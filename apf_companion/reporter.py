@@ -23,6 +23,10 @@ from apf_companion.perception import PerceptionFrontEnd
 from apf_companion.status import (
     NVF_GOAL_DISTANCE,
     NVF_NEAREST_OBSTACLE,
+    NVI_ERRORS,
+    NVI_REJECTED_LINK,
+    NVI_REJECTED_POSES,
+    NVI_REJECTED_SCANS,
     encode_status_json,
     severity_for,
     statustext_for,
@@ -181,6 +185,20 @@ class StatusReporter:
         ):
             if value is not None and math.isfinite(value):
                 self.outbox.named_value_float(name, value)
+        for name, count in self.rejected().items():
+            self.outbox.named_value_int(name, count)
+
+    def rejected(self) -> dict[str, int]:
+        """The rejected-input totals sent as NAMED_VALUE_INT (docs/hardening.md): poses, scans / memory clears,
+        link input (foreign, undecodable, bad goals) and errors caught or values not sendable."""
+        c, p, o = self.counters, self.perception.counters, self.outbox
+        pose = p.bad_poses + p.stale_poses + p.out_of_bounds_poses + p.implausible_poses + p.pose_time_jumps
+        return {
+            NVI_REJECTED_POSES: pose,
+            NVI_REJECTED_SCANS: p.bad_scans + p.clears_refused,
+            NVI_REJECTED_LINK: c.foreign_messages + c.undecodable_messages + c.bad_goals,
+            NVI_ERRORS: c.handler_errors + o.send_errors + o.unsendable,
+        }
 
     def _publish_status(self, now_s: float) -> None:
         if self.zenoh is None or self.params.dry_run:
@@ -212,7 +230,8 @@ class StatusReporter:
             "loop_latency_ms": self.latency.summary(),
             "decision": None if out is None else out.decision,
             "autopilot": {"mode_ok": nav.mode_ok, "armed": self.autopilot.armed, "link_alive": nav.link_alive(now_s)},
-            "counters": self.counts(),
+            "counters": self.counts() | {f"nav_{k}": v for k, v in nav.counts().items()},
+            "rejected": self.rejected(),
         }
 
     def _pose_dict(self, now_s: float) -> dict[str, float] | None:

@@ -249,3 +249,21 @@ async def test_heartbeat_back_in_loiter_drops_the_goal_and_sends_nothing() -> No
         assert svc.navigator.route is None
         assert not [m for t, m in ap.setpoints() if t > t_back]
         assert len([m for m in ap.of_type("COMMAND_LONG") if m.command == 176]) == n_modes  # no new takeover
+
+
+async def test_rejected_input_is_in_named_value_int_and_the_status() -> None:
+    async with rig() as (svc, ap):
+        await until(lambda: svc.navigator.pose is not None, 5.0, "pose")
+        mav = ap.link.mav
+        for _ in range(5):
+            ap.link.send(mav.local_position_ned_encode(ap.boot_ms(), 500.0, 0.0, -5.0, 0, 0, 0))  # a jump
+        ap.link.send_bytes(b"\xfd\x09\x00\x00\x00garbage" * 3)
+
+        def nvi(name: str) -> int:
+            got = [m.value for m in ap.of_type("NAMED_VALUE_INT") if m.name == name]
+            return got[-1] if got else -1
+
+        await until(lambda: nvi("APF_RJPOSE") >= 5, 5.0, "rejected poses reported")
+        status = svc.reporter.status_dict(svc.clock.now())
+        assert status["rejected"]["APF_RJPOSE"] >= 5 and status["counters"]["implausible_poses"] >= 5
+        assert "nav_unknown_direction_holds" in status["counters"] and nvi("APF_ERRORS") == 0
