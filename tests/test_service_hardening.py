@@ -228,8 +228,12 @@ async def test_link_lost_then_heartbeat_back_resumes_the_kept_goal() -> None:
         assert svc.navigator.route is not None and svc.navigator.route.source == "test"
         ap.send_heartbeat = True
         await until(lambda: svc.navigator.state is State.NAVIGATING, 5.0, "navigating again")
-        texts = [m.text for t, m in ap.received if t > t_lost and m.get_type() == "STATUSTEXT"]
-        assert texts and "HOLDING" in texts[0] and "heartbeat back" in texts[0]
+
+        def texts() -> list[str]:
+            return [m.text for t, m in ap.received if t > t_lost and m.get_type() == "STATUSTEXT"]
+
+        await until(lambda: bool(texts()), 3.0, "the resume is announced")
+        assert "HOLDING" in texts()[0] and "heartbeat back" in texts()[0]
         n = len(ap.setpoints())
         await until(lambda: len(ap.setpoints()) > n + 5 and ap.pos[0] > 2.0, 10.0, "moving towards the goal")
 
