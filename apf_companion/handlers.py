@@ -30,6 +30,7 @@ from apf_companion.links.messages import (
     LocalPositionNed,
     ObstacleDistance,
     ObstacleDistance3d,
+    Odometry,
     Record,
     Source,
 )
@@ -159,6 +160,9 @@ class AutopilotHandlers:
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose()
 
+    def _on_odometry(self, rec: Odometry, now_s: float) -> None:
+        self.perception.gate.note_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate
+
     def _on_attitude(self, rec: Attitude, now_s: float) -> None:
         self.perception.on_attitude(rec.yaw)
 
@@ -229,5 +233,6 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     ObstacleDistance: AutopilotHandlers._on_obstacle_distance,
     DistanceSensor: AutopilotHandlers._on_distance_sensor,
     ObstacleDistance3d: AutopilotHandlers._on_obstacle_distance_3d,
+    Odometry: AutopilotHandlers._on_odometry,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

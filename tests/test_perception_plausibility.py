@@ -50,3 +50,24 @@ def test_a_reboot_needs_boot_evidence() -> None:
     gate.note_reboot()  # evidence that the stream then contradicts lapses
     assert gate.check(250, (0.0, 0.0, -5.0), 60.45) is Verdict.ACCEPT
     assert gate.check(10, (0.0, 0.0, -5.0), 60.5) is Verdict.STALE
+
+
+def test_an_announced_estimator_reset_re_anchors_at_once() -> None:
+    gate = PoseGate(PoseLimits(reset_samples=10))
+    gate.note_reset_counter(4)
+    stream(gate, 0, (0.0, 0.0, -5.0), 5)
+    gate.note_reset_counter(4)  # unchanged: no evidence
+    assert gate.check(250, (0.0, 20.0, -5.0), 0.25) is Verdict.JUMP
+    gate.note_reset_counter(5)  # ODOMETRY.reset_counter moved: the next jump is the reset
+    assert gate.check(300, (0.0, 20.0, -5.0), 0.3) is Verdict.RESET
+    assert gate.check(350, (0.0, 20.0, -5.0), 0.35) is Verdict.ACCEPT
+    assert gate.check(400, (0.0, 60.0, -5.0), 0.4) is Verdict.JUMP  # the evidence was used up
+
+
+def test_reset_evidence_lapses_after_reset_samples_poses() -> None:
+    gate = PoseGate(PoseLimits(reset_samples=3))
+    gate.note_reset_counter(0)
+    stream(gate, 0, (0.0, 0.0, -5.0), 2)
+    gate.note_reset_counter(1)
+    stream(gate, 100, (0.0, 0.0, -5.0), 3)  # a reset too small to see: the window closes
+    assert gate.check(250, (0.0, 20.0, -5.0), 0.25) is Verdict.JUMP

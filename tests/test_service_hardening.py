@@ -271,3 +271,28 @@ async def test_rejected_input_is_in_named_value_int_and_the_status() -> None:
         status = svc.reporter.status_dict(svc.clock.now())
         assert status["rejected"]["APF_RJPOSE"] >= 5 and status["counters"]["implausible_poses"] >= 5
         assert "nav_unknown_direction_holds" in status["counters"] and nvi("APF_ERRORS") == 0
+
+
+async def test_an_odometry_reset_counter_change_re_anchors_at_the_first_jump() -> None:
+    route = Route.point(30.0, 0.0, -5.0, source="test")
+    cfg = fast_config(safety={"pose_reset_samples": 50, "reset_hold_s": 0.5})
+    async with rig(cfg, route) as (svc, ap):
+        await until(lambda: svc.navigator.engaged and len(ap.setpoints()) > 10, 10.0, "flying in GUIDED")
+        mav, cov = ap.link.mav, [math.nan] * 21
+
+        def odometry(counter: int) -> None:
+            ap.link.send(
+                mav.odometry_encode(
+                    ap.boot_ms() * 1000, 1, 12, *ap.pos, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, cov, cov, reset_counter=counter
+                )
+            )
+
+        odometry(7)
+        await asyncio.sleep(0.1)
+        ap.follow_setpoints = False
+        odometry(8)  # the estimator announces a reset, then the poses jump 20 m east
+        await asyncio.sleep(0.05)
+        ap.pos = [ap.pos[0], ap.pos[1] + 20.0, ap.pos[2]]
+        await until(lambda: svc.perception.counters.pose_resets == 1, 3.0, "re-anchored")
+        assert svc.perception.counters.implausible_poses <= 2  # not the 50 consistent samples
+        await until(lambda: any("reset" in m.text for m in ap.of_type("STATUSTEXT")), 3.0, "announced")

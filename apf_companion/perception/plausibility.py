@@ -16,7 +16,8 @@ A rejected pose that is finite and in bounds is a candidate for a real EKF reset
 ``reset_samples`` candidates in a row that are consistent with each other (each a plausible move in plausible time
 from the previous one) and with no accepted pose in between, the gate re-anchors on them (``RESET``): the caller
 must hold and announce it before motion resumes. Interleaved genuine poses restart the count, so a spoofed stream
-beside the real one never takes over.
+beside the real one never takes over. Where the autopilot streams ODOMETRY, a change of its ``reset_counter`` is
+direct evidence: a jump within the next ``reset_samples`` poses re-anchors at once (``note_reset_counter``).
 """
 
 from __future__ import annotations
@@ -71,6 +72,15 @@ class PoseGate:
         self.vel_m_s = np.zeros(3)
         self._track: list[_Fix] = []
         self._reboot_evidence = False
+        self._reset_counter: int | None = None
+        self._reset_window = 0  # poses left in which a jump is the announced estimator reset
+
+    def note_reset_counter(self, counter: int) -> None:
+        """The estimator's reset counter (ODOMETRY.reset_counter): a change is reset evidence, and the next
+        ``reset_samples`` poses may re-anchor at once (a jump then is the reset, not a spoof)."""
+        if self._reset_counter is not None and counter != self._reset_counter:
+            self._reset_window = self.limits.reset_samples
+        self._reset_counter = counter
 
     def note_reboot(self) -> None:
         """The autopilot rebooted (HEARTBEAT after a silence longer than the link timeout, or MAV_STATE_BOOT):
@@ -89,6 +99,9 @@ class PoseGate:
         if last is None or (self._reboot_evidence and boot_ms < last.boot_ms):
             return self._anchor(fix, Verdict.ACCEPT if last is None else Verdict.RESET)
         verdict = self._versus(last, fix, self.vel_m_s)
+        self._reset_window = max(0, self._reset_window - 1)
+        if verdict is Verdict.JUMP and self._reset_window > 0:
+            return self._anchor(fix, Verdict.RESET)
         if verdict is Verdict.ACCEPT:
             dt = (boot_ms - last.boot_ms) / 1000.0
             self.vel_m_s = (p - last.pos) / dt
@@ -137,4 +150,5 @@ class PoseGate:
         self.vel_m_s = np.zeros(3)
         self._track.clear()
         self._reboot_evidence = False
+        self._reset_window = 0
         return verdict
