@@ -76,7 +76,7 @@ class Attitude:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Odometry:
-    """Only what the pose gate uses: the estimator's reset counter (uint8, wraps; PX4 streams ODOMETRY)."""
+    """Only what the pose gate uses: the estimator's reset counter (uint8, wraps)."""
 
     src: Source
     time_usec: int
