@@ -17,7 +17,7 @@ from apf_companion.links import MavlinkLink
 from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
-from apf_companion.perception import PerceptionParams
+from apf_companion.perception import PerceptionParams, PoseLimits
 from apf_companion.planning import PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
@@ -96,6 +96,10 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         step_m=float(planner.params.step_m),
         target_guard_m=rho_l_m if config.planner.name.startswith("cr-") else 0.0,
         clearance_m=rho_l_m,
+        reset_hold_s=config.safety.reset_hold_s,
+        silent_horizon_s=config.safety.guid_timeout_s,
+        silent_drift_m=config.safety.silent_drift_m,
+        resume_after_link_lost=config.safety.resume_after_link_lost,
     )
 
 
@@ -122,7 +126,7 @@ def build_outbox(config: ServiceConfig, link: MavlinkLink | None, now_s: Callabl
 
 
 def perception_params(config: ServiceConfig) -> PerceptionParams:
-    s = config.sensors
+    s, z = config.sensors, config.safety
     return PerceptionParams(
         max_range_m=s.max_range_m,
         memory_expiry_s=s.memory_expiry_s,
@@ -132,6 +136,18 @@ def perception_params(config: ServiceConfig) -> PerceptionParams:
         surface_fill_spacing_m=s.surface_fill_spacing_m,
         surface_fill_max_gap_m=s.surface_fill_max_gap_m,
         surface_fill_line_tol_m=s.surface_fill_line_tol_m,
+        pose_limits=PoseLimits(
+            max_speed_m_s=z.max_speed_m_s,
+            max_accel_m_s2=z.max_accel_m_s2,
+            noise_m=z.pose_noise_m,
+            max_abs_position_m=z.max_abs_position_m,
+            time_jump_s=z.pose_time_jump_s,
+            reset_samples=z.pose_reset_samples,
+        ),
+        clear_scans=z.clear_scans,
+        clear_span_s=z.clear_span_s,
+        sectors=z.sectors if s.require_ranges else 0,
+        sector_max_age_s=z.sector_max_age_s,
     )
 
 

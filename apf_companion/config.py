@@ -31,6 +31,7 @@ __all__ = [
     "GoalConfig",
     "LinkConfig",
     "PlannerConfig",
+    "SafetyConfig",
     "SensorsConfig",
     "ServiceConfig",
     "StatusConfig",
@@ -334,6 +335,66 @@ class StatusConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class SafetyConfig:
+    """``[safety]``: the hardening gates and limits (docs/hardening.md).
+
+    Attributes:
+        max_speed_m_s: A pose further from the last one than this speed allows is rejected [m/s].
+        max_accel_m_s2: ... or further than the last velocity plus this acceleration allows [m/s^2].
+        pose_noise_m: Position noise allowed on top of the motion limits [m].
+        max_abs_position_m: A pose coordinate beyond this (from the EKF origin) is rejected [m].
+        pose_time_jump_s: A pose stamped this much further ahead than its receive time allows is rejected [s].
+        pose_reset_samples: Consistent rejected poses in a row that re-anchor (a real EKF reset).
+        reset_hold_s: After a re-anchor, hold this long (and announce it) before navigating [s].
+        guid_timeout_s: How long the autopilot keeps following the last setpoint's velocity when the setpoints
+            stop (ArduCopter GUID_TIMEOUT, default 3 s) [s].
+        silent_drift_m: The most the last setpoint may carry the vehicle past its position if nothing follows:
+            the velocity feed-forward is at most this over ``guid_timeout_s`` [m].
+        clear_scans: Scans from the sensor that saw a remembered obstacle that must see through it, in a row,
+            before it is forgotten.
+        clear_span_s: ... and those scans must span at least this long (a flood of scans is one piece of
+            evidence) [s].
+        sectors: Directions (equal azimuth sectors) whose freshness is tracked; 0 = off.
+        sector_max_age_s: A sector without a reading for this long is unknown: no motion towards it [s].
+        resume_after_link_lost: When the autopilot's heartbeat returns, fly on to the goal (only in GUIDED /
+            OFFBOARD, with fresh inputs); False: hold and wait for a new goal.
+    """
+
+    max_speed_m_s: float = 15.0
+    max_accel_m_s2: float = 10.0
+    pose_noise_m: float = 0.3
+    max_abs_position_m: float = 10_000.0
+    pose_time_jump_s: float = 1.0
+    pose_reset_samples: int = 10
+    reset_hold_s: float = 2.0
+    guid_timeout_s: float = 3.0
+    silent_drift_m: float = 1.0
+    clear_scans: int = 3
+    clear_span_s: float = 0.3
+    sectors: int = 16
+    sector_max_age_s: float = 1.0
+    resume_after_link_lost: bool = True
+
+    def __post_init__(self) -> None:
+        _check_range("safety.max_speed_m_s", self.max_speed_m_s, 0.1, 100.0)
+        _check_range("safety.max_accel_m_s2", self.max_accel_m_s2, 0.1, 100.0)
+        _check_range("safety.pose_noise_m", self.pose_noise_m, 0.0, 10.0)
+        _check_range("safety.max_abs_position_m", self.max_abs_position_m, 10.0, 1e7)
+        _check_range("safety.pose_time_jump_s", self.pose_time_jump_s, 0.05, 60.0)
+        if not isinstance(self.pose_reset_samples, int) or not 2 <= self.pose_reset_samples <= 1000:
+            raise _fail("safety.pose_reset_samples", "an integer in [2, 1000]", self.pose_reset_samples)
+        _check_range("safety.reset_hold_s", self.reset_hold_s, 0.0, 60.0)
+        _check_range("safety.guid_timeout_s", self.guid_timeout_s, 0.1, 60.0)
+        _check_range("safety.silent_drift_m", self.silent_drift_m, 0.0, 10.0)
+        if not isinstance(self.clear_scans, int) or not 1 <= self.clear_scans <= 100:
+            raise _fail("safety.clear_scans", "an integer in [1, 100]", self.clear_scans)
+        if not isinstance(self.sectors, int) or not (self.sectors == 0 or 4 <= self.sectors <= 360):
+            raise _fail("safety.sectors", "0 or an integer in [4, 360]", self.sectors)
+        _check_range("safety.clear_span_s", self.clear_span_s, 0.0, 60.0)
+        _check_range("safety.sector_max_age_s", self.sector_max_age_s, 0.05, 60.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class ServiceConfig:
     """The whole configuration (top-level keys plus one section per table).
 
@@ -356,6 +417,7 @@ class ServiceConfig:
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     zenoh: ZenohSection = field(default_factory=ZenohSection)
     status: StatusConfig = field(default_factory=StatusConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
     base_dir: Path = field(default_factory=Path.cwd)
     """Directory relative paths (goal.route, link.tlog) are resolved against (the config file's)."""
 
@@ -382,6 +444,7 @@ _SECTIONS: dict[str, type[Any]] = {
     "sensors": SensorsConfig,
     "zenoh": ZenohSection,
     "status": StatusConfig,
+    "safety": SafetyConfig,
 }
 _TOP_LEVEL = ("dry_run", "exit_when_done", "max_flight_s")
 

@@ -216,7 +216,10 @@ def local_goal_from_reposition(
     Raises:
         RepositionError: with the MAV_RESULT to answer (UNSUPPORTED=3, DENIED=2, TEMPORARILY_REJECTED=1).
     """
-    z_keep = not math.isfinite(z)
+    if math.isinf(z):
+        # MAV_CMD_DO_REPOSITION (common.xml): only NaN means "keep the current altitude"; +-inf is not a height.
+        raise RepositionError(2, f"DO_REPOSITION altitude {z} is not a number (NaN keeps the altitude)")
+    z_keep = math.isnan(z)
     if frame == MAV_FRAME_LOCAL_NED:
         north_m, east_m = x * 1e-4, y * 1e-4
         down_m = None if z_keep else float(z)

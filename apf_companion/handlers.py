@@ -30,6 +30,7 @@ from apf_companion.links.messages import (
     LocalPositionNed,
     ObstacleDistance,
     ObstacleDistance3d,
+    Odometry,
     Record,
     Source,
 )
@@ -43,6 +44,7 @@ __all__ = ["AutopilotHandlers", "HandlerParams", "mode_is_ours"]
 log = logging.getLogger(__name__)
 
 NOT_A_VEHICLE = frozenset({mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GCS})  # their HEARTBEATs
+REBOOTING = frozenset({mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT})  # HEARTBEAT.system_status
 DEG_E7 = 1e-7
 MM = 1e-3
 
@@ -138,6 +140,8 @@ class AutopilotHandlers:
         if rec.type in NOT_A_VEHICLE:
             return
         first = not self.heard or not self.navigator.link_alive(now_s)
+        if (self.heard and first) or rec.system_status in REBOOTING:
+            self.perception.gate.note_reboot()  # boot evidence: a pose may start a new time base
         self.heard = True
         self.custom_mode = rec.custom_mode
         self.base_mode = rec.base_mode
@@ -150,8 +154,14 @@ class AutopilotHandlers:
 
     def _on_local_position(self, rec: LocalPositionNed, now_s: float) -> None:
         pose = self.perception.on_local_position(rec.time_boot_ms, (rec.x, rec.y, rec.z), now_s)
+        reset = self.perception.take_reset()
+        if reset is not None:
+            self.navigator.recovery.position_reset(now_s, reset)
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose()
+
+    def _on_odometry(self, rec: Odometry, now_s: float) -> None:
+        self.perception.gate.note_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate
 
     def _on_attitude(self, rec: Attitude, now_s: float) -> None:
         self.perception.on_attitude(rec.yaw)
@@ -223,5 +233,6 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     ObstacleDistance: AutopilotHandlers._on_obstacle_distance,
     DistanceSensor: AutopilotHandlers._on_distance_sensor,
     ObstacleDistance3d: AutopilotHandlers._on_obstacle_distance_3d,
+    Odometry: AutopilotHandlers._on_odometry,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

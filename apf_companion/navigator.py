@@ -18,8 +18,11 @@ States (the README's Service section has the diagram):
 - ARRIVED: within ``arrival_radius_m`` of the last waypoint: hold where it is (while the pose is fresh).
 - STUCK: the planner found no greedy move for ``random_walk_budget`` cycles in a row, or no progress for
   ``progress_timeout_s``: hold and report. A new goal restarts.
-- LINK_LOST: no autopilot HEARTBEAT for ``heartbeat_timeout_s``: send nothing; the goal is dropped, so motion
-  only resumes after a new goal once the link is back (state IDLE).
+- LINK_LOST: no autopilot HEARTBEAT for ``heartbeat_timeout_s``: send nothing. The goal is kept (packet loss
+  never drops it): when the heartbeat returns, the autopilot's mode is checked first: still GUIDED / OFFBOARD ->
+  HOLDING, and NAVIGATING once the inputs are fresh; another mode (the pilot or a failsafe took over) -> the goal
+  is dropped (IDLE). With ``resume_after_link_lost`` false the goal is dropped at once and motion only resumes
+  after a new goal (IDLE once the link is back).
 
 Each state has one handler (``_HANDLERS``, keyed by ``State``). The navigator reads the configuration only as a
 frozen ``NavigatorParams`` and the obstacles only through ``ObstacleView`` (the perception front end writes them).
@@ -39,7 +42,7 @@ import numpy.typing as npt
 
 from apf_companion.goal import Route
 from apf_companion.perception import Pose
-from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate
+from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity
 
 __all__ = [
     "CycleOutput",
@@ -48,6 +51,7 @@ __all__ = [
     "NavigatorParams",
     "ObstacleView",
     "PlannerLike",
+    "Recovery",
     "State",
     "StateChange",
 ]
@@ -86,6 +90,8 @@ class ObstacleView(Protocol):
 
     @property
     def ranges_t_s(self) -> float | None: ...
+
+    def direction_fresh(self, bearing_ned_rad: float, now_s: float) -> bool: ...
 
 
 class DecisionLike(Protocol):
@@ -126,6 +132,13 @@ class NavigatorParams:
         clearance_m: The clearance the planner keeps (its rho_l). Within ``clearance_m + 2 step_m`` of a
             remembered obstacle the feed-forward speed falls linearly to ``SLOW_FRACTION`` of cruise at
             ``clearance_m``, so the vehicle turns at the bacteria points there without swinging wide (0 = off).
+        reset_hold_s: After a position reset (``position_reset``) hold this long before navigating [s].
+        silent_horizon_s, silent_drift_m: Safe when silent: the last setpoint's feed-forward may carry the vehicle
+            at most ``silent_drift_m`` past its position over ``silent_horizon_s`` (GUID_TIMEOUT), never towards a
+            remembered obstacle (``apf_companion.setpoint.silent_safe_velocity``).
+        resume_after_link_lost: LINK_LOST keeps the goal; when the heartbeat returns with the autopilot still in
+            GUIDED / OFFBOARD the service holds, then navigates on once the inputs are fresh. False: the goal is
+            dropped (IDLE once the link is back; motion only after a new goal).
     """
 
     dim: int = 2
@@ -143,6 +156,10 @@ class NavigatorParams:
     step_m: float = 0.4
     target_guard_m: float = 0.0
     clearance_m: float = 0.0
+    reset_hold_s: float = 2.0
+    silent_horizon_s: float = 3.0
+    silent_drift_m: float = 1.0
+    resume_after_link_lost: bool = True
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -194,6 +211,7 @@ class _Counters:
     rejected_poses: int = 0
     goals: int = 0
     dropped_targets: int = 0
+    unknown_direction_holds: int = 0  # a step towards a sector without recent ranges: held instead
 
 
 @dataclass(slots=True)
@@ -214,6 +232,14 @@ class _Inputs:
     nearest_m: float | None
     pose_ok: bool
     ranges_ok: bool
+
+
+def _into_unknown(view: ObstacleView, sp: Setpoint | None, pos: FloatArray, now_s: float) -> bool:
+    """``sp`` steps towards an azimuth sector without recent ranges (``ObstacleView.direction_fresh``)."""
+    if sp is None or sp.kind is not SetpointKind.NAVIGATE:
+        return False
+    d = np.asarray(sp.pos_ned_m) - pos
+    return math.hypot(d[0], d[1]) >= 1e-9 and not view.direction_fresh(math.atan2(d[1], d[0]), now_s)
 
 
 class _StepTracker:
@@ -254,7 +280,30 @@ class _StepTracker:
             self.target = None
             self.counters.dropped_targets += 1
             return None
-        return navigate(pos, target, cruise_speed_m_s=self.approach_speed(gap, nearest_m), dim=p.dim)
+        return self.setpoint(pos, target, self.approach_speed(gap, nearest_m), obstacles)
+
+    def setpoint(self, pos: FloatArray, target: FloatArray, speed_m_s: float, obstacles: FloatArray) -> Setpoint:
+        """Fly to ``target`` at ``speed_m_s``, with the feed-forward cut to what is safe if nothing follows."""
+        p = self.p
+        sp = navigate(pos, target, cruise_speed_m_s=speed_m_s, dim=p.dim)
+        vel = silent_safe_velocity(
+            target,
+            sp.vel_ned_m_s,
+            obstacles,
+            horizon_s=p.silent_horizon_s,
+            max_drift_m=p.silent_drift_m,
+            clearance_m=p.clearance_m,
+            dim=p.dim,
+        )
+        return dataclasses.replace(sp, vel_ned_m_s=vel)
+
+    def known_direction(self, out: CycleOutput, pos: FloatArray, view: ObstacleView) -> CycleOutput:
+        """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle."""
+        if not _into_unknown(view, out.setpoint, pos, out.t_s):
+            return out
+        self.counters.unknown_direction_holds += 1
+        self.target = None
+        return dataclasses.replace(out, setpoint=hold(pos))
 
     def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
         """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower
@@ -373,6 +422,49 @@ def _near(points: FloatArray, pos: FloatArray, dim: int, reach_m: float) -> Floa
     return np.asarray(points[keep], dtype=np.float64)
 
 
+class Recovery:
+    """What the navigator keeps through a lost link or a position reset, and how it resumes (docs/hardening.md)."""
+
+    def __init__(self, nav: Navigator) -> None:
+        self.nav = nav
+        self.hold_until_s = -math.inf  # a position reset holds until then
+
+    def holding(self, now_s: float) -> bool:
+        return now_s < self.hold_until_s
+
+    def position_reset(self, now_s: float, reason: str) -> None:
+        """The old step and hold point are in the old frame: hold at the new position (a STATUSTEXT says why)."""
+        nav = self.nav
+        nav._steps.target = None
+        nav._hold.reset()
+        self.hold_until_s = now_s + nav.params.reset_hold_s
+        if nav.route is not None and nav.state in (State.NAVIGATING, State.HOLDING):
+            nav._change(now_s, State.HOLDING, f"{reason}: holding")
+
+    def link_dead(self, now_s: float) -> None:
+        """No heartbeat: silence. The goal is kept (``resume_after_link_lost``), the step and hold forgotten."""
+        nav = self.nav
+        if nav._last_hb_s is None or nav.state is State.LINK_LOST:
+            return
+        if nav.params.resume_after_link_lost and nav.route is not None:
+            nav._steps.target = None
+            nav._hold.reset()
+            nav._change(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending, goal kept")
+        else:
+            nav._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
+
+    def link_back(self, now_s: float) -> None:
+        """The heartbeat is back; its mode was checked in ``autopilot_heartbeat`` (a mode not ours while engaged
+        dropped the goal). Hold first: ``_on_holding`` navigates on once the inputs are fresh."""
+        nav = self.nav
+        if nav.route is None:
+            nav._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
+        elif nav.engaged and nav.mode_ok:
+            nav._change(now_s, State.HOLDING, "autopilot heartbeat back, guided: resuming when inputs are fresh")
+        else:
+            nav._change(now_s, State.NAVIGATING, "autopilot heartbeat back: taking over again for the goal")
+
+
 class Navigator:
     """The decision core. Feed it inputs, call ``cycle(now_s)`` at the cycle rate.
 
@@ -410,6 +502,7 @@ class Navigator:
         self._hold = _Hold()
         self._legs = _Legs(params, self._steps)
         self._last_hb_s: float | None = None
+        self.recovery = Recovery(self)  # link loss and position resets (``recovery.position_reset``)
         self._pending: list[StateChange] = []
 
     # ---- inputs ------------------------------------------------------------------------------------------------
@@ -425,7 +518,7 @@ class Navigator:
     def autopilot_heartbeat(self, now_s: float, *, mode_ok: bool) -> None:
         """An autopilot HEARTBEAT; ``mode_ok`` = its custom_mode is GUIDED (ArduPilot) / OFFBOARD (PX4)."""
         self._last_hb_s = now_s
-        if self.engaged and not mode_ok and self.state in _ENGAGED_STATES:
+        if self.engaged and not mode_ok and (self.state in _ENGAGED_STATES or self.state is State.LINK_LOST):
             # The pilot (or a failsafe) took the vehicle: never fight it; wait for a new goal.
             self._drop_route(now_s, State.IDLE, "autopilot left guided control: goal dropped")
         self.mode_ok = mode_ok
@@ -499,10 +592,11 @@ class Navigator:
         """Run one cycle at service time ``now_s``: update the state and decide the setpoint (or silence)."""
         self.counters.cycles += 1
         if not self.link_alive(now_s):
-            out = self._link_dead(now_s)
+            self.recovery.link_dead(now_s)
+            out = CycleOutput(t_s=now_s, state=self.state, setpoint=None)
         else:
             if self.state is State.LINK_LOST:
-                self._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
+                self.recovery.link_back(now_s)
             inp = self._inputs(now_s)
             out = _HANDLERS[self.state](self, inp)
         if out.setpoint is not None:
@@ -523,11 +617,6 @@ class Navigator:
             self.counters.stale_range_cycles += 1
         nearest = None if self.pose is None else _nearest_m(points, self.pose.pos_ned_m, self.dim)
         return _Inputs(now_s, points, nearest, pose_ok, ranges_ok)
-
-    def _link_dead(self, now_s: float) -> CycleOutput:
-        if self._last_hb_s is not None and self.state is not State.LINK_LOST:
-            self._drop_route(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending")
-        return CycleOutput(t_s=now_s, state=self.state, setpoint=None)
 
     def _silent(self, inp: _Inputs) -> CycleOutput:
         return CycleOutput(t_s=inp.now_s, state=self.state, setpoint=None, nearest_obstacle_m=inp.nearest_m)
@@ -575,6 +664,8 @@ class Navigator:
             return blocked
         if not (inp.pose_ok and inp.ranges_ok):
             return self._hold_stale(inp)
+        if self.recovery.holding(inp.now_s):
+            return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=True), self._distance_to_goal())
         self._hold.anchor = None
         self._change(inp.now_s, State.NAVIGATING, "inputs fresh again: navigating")
         return self._fly(inp)
@@ -610,8 +701,10 @@ class Navigator:
         tracked = self._steps.track(pos, obstacles, inp.now_s, inp.nearest_m)
         n = int(obstacles.shape[0])
         if tracked is not None:
-            return self._out(inp, tracked, dist, decision=Decision.TRACKING.value, n_obstacles=n)
-        return self._plan(inp, pos, leg, dist, obstacles)
+            out = self._out(inp, tracked, dist, decision=Decision.TRACKING.value, n_obstacles=n)
+        else:
+            out = self._plan(inp, pos, leg, dist, obstacles)
+        return self._steps.known_direction(out, pos, self.obstacles)
 
     def _plan(self, inp: _Inputs, pos: FloatArray, leg: _Leg, dist: float, obstacles: FloatArray) -> CycleOutput:
         """Plan the next step from the bacteria point just reached (the paper's path), else from the pose."""
@@ -646,7 +739,7 @@ class Navigator:
             self._steps.set(target, inp.now_s)
             gap = float(np.linalg.norm((target - pos)[:dim]))
             speed = self._steps.approach_speed(gap, inp.nearest_m)
-            sp = navigate(pos, target, cruise_speed_m_s=speed, dim=dim)
+            sp = self._steps.setpoint(pos, target, speed, obstacles)
         return self._out(inp, sp, dist, decision=reason, n_obstacles=n)
 
     # ---- helpers -----------------------------------------------------------------------------------------------

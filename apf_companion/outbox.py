@@ -2,12 +2,18 @@
 
 Silent (nothing on the wire) in a dry run or without a link. ``time_boot_ms`` of outgoing messages counts from the
 outbox's creation on the service clock.
+
+Never raises on a value (docs/hardening.md, "never crash on data"): a float field that float32 cannot represent
+(|v| > 3.4e38, which pymavlink's ``struct.pack`` refuses) is clamped in a report (NAMED_VALUE_FLOAT, counted in
+``clamped_values``) and makes a setpoint or command unsendable (skipped, counted in ``unsendable``); any packing
+or sending error is counted in ``send_errors`` and logged once per kind.
 """
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -16,7 +22,11 @@ from apf_companion.autopilot import PX4_OFFBOARD, Autopilot, CopterMode
 from apf_companion.links import MavlinkLink
 from apf_companion.setpoint import Setpoint, encode_setpoint
 
-__all__ = ["STREAM_INTERVALS", "Outbox"]
+__all__ = ["FLOAT32_MAX", "STREAM_INTERVALS", "Outbox", "float32_ok"]
+
+log = logging.getLogger(__name__)
+
+FLOAT32_MAX = 3.4028234663852886e38  # MAVLink float fields are IEEE float32
 
 STATUSTEXT_BYTES = 50  # one STATUSTEXT's text field
 GLOBAL_POSITION_INTERVAL_US = 200_000.0  # GLOBAL_POSITION_INT at 5 Hz: only the takeoff and DO_REPOSITION use it
@@ -24,6 +34,16 @@ UINT32_MASK = 0xFFFFFFFF
 
 STREAM_INTERVALS: tuple[int, ...] = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE)
 """Messages requested at ``link.telemetry_rate_hz`` (SET_MESSAGE_INTERVAL) once the autopilot is heard."""
+
+
+def float32_ok(values: Iterable[float]) -> bool:
+    """Every value fits a MAVLink float field (finite or NaN, |v| <= float32 max; inf is left to the caller)."""
+    return all(not (abs(v) > FLOAT32_MAX and math.isfinite(v)) for v in values)
+
+
+def clamp_float32(value: float) -> float:
+    """``value`` clamped into float32's finite range (NaN stays NaN)."""
+    return value if math.isnan(value) else max(-FLOAT32_MAX, min(FLOAT32_MAX, value))
 
 
 class Outbox:
@@ -51,7 +71,12 @@ class Outbox:
         self._now_s = now_s
         self._start_s = now_s()
         self.setpoints_sent = 0
+        self.last_setpoint: Setpoint | None = None  # the newest one that went out
         self.statustexts_sent = 0
+        self.clamped_values = 0  # report values clamped into float32's range
+        self.unsendable = 0  # setpoints / commands with a value float32 cannot carry: not sent
+        self.send_errors = 0  # packing or sending raised: counted, logged once per kind
+        self._logged: set[str] = set()
 
     @property
     def silent(self) -> bool:
@@ -64,23 +89,48 @@ class Outbox:
         if self.silent:
             return False
         assert self.link is not None
-        self.link.send(encode(self.link.mav))
+        try:
+            self.link.send(encode(self.link.mav))
+        except Exception as err:  # a value pymavlink cannot pack, a closed socket: never fatal
+            self.send_errors += 1
+            kind = type(err).__name__
+            if kind not in self._logged:
+                self._logged.add(kind)
+                log.warning("outbox.send_failed", extra={"error": f"{kind}: {err}"})
+            return False
         return True
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "setpoints_sent": self.setpoints_sent,
+            "statustexts_sent": self.statustexts_sent,
+            "clamped_values": self.clamped_values,
+            "unsendable": self.unsendable,
+            "send_errors": self.send_errors,
+        }
 
     def command_long(self, command: int, *params: float) -> None:
         p = [*params, *([0.0] * (7 - len(params)))]
+        if not float32_ok(p):
+            self.unsendable += 1
+            return
         self._send(lambda mav: mav.command_long_encode(*self.target, command, 0, *p))
 
     def ack(self, command: int, result: int, target_system: int, target_component: int) -> None:
         self._send(lambda mav: mav.command_ack_encode(command, result, 0, 0, target_system, target_component))
 
     def setpoint(self, sp: Setpoint) -> None:
+        if not float32_ok((*sp.pos_ned_m, *sp.vel_ned_m_s)):
+            self.unsendable += 1
+            return
         sent = self._send(
             lambda mav: encode_setpoint(
                 mav, sp, time_boot_ms=self.boot_ms(), target_system=self.target[0], target_component=self.target[1]
             )
         )
         self.setpoints_sent += int(sent)
+        if sent:
+            self.last_setpoint = sp
 
     def heartbeat(self, system_status: int) -> None:
         self._send(
@@ -100,7 +150,16 @@ class Outbox:
 
     def named_value_float(self, name: str, value: float) -> None:
         t = self.boot_ms()
-        self._send(lambda mav: mav.named_value_float_encode(t, name.encode(), float(value)))
+        v = clamp_float32(float(value))
+        self.clamped_values += int(v != value)
+        self._send(lambda mav: mav.named_value_float_encode(t, name.encode(), v))
+
+    def named_value_int(self, name: str, value: int) -> None:
+        """NAMED_VALUE_INT (int32 on the wire: saturated)."""
+        t = self.boot_ms()
+        v = max(-(2**31), min(2**31 - 1, int(value)))
+        self.clamped_values += int(v != value)
+        self._send(lambda mav: mav.named_value_int_encode(t, name.encode(), v))
 
     def set_mode(self, profile: Autopilot) -> None:
         """DO_SET_MODE for GUIDED (ArduCopter) / OFFBOARD (PX4)."""

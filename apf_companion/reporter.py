@@ -23,13 +23,17 @@ from apf_companion.perception import PerceptionFrontEnd
 from apf_companion.status import (
     NVF_GOAL_DISTANCE,
     NVF_NEAREST_OBSTACLE,
+    NVI_ERRORS,
+    NVI_REJECTED_LINK,
+    NVI_REJECTED_POSES,
+    NVI_REJECTED_SCANS,
     encode_status_json,
     severity_for,
     statustext_for,
     system_status_for,
 )
 
-__all__ = ["AutopilotView", "LatencyWindow", "ReporterParams", "ServiceCounters", "StatusReporter"]
+__all__ = ["AutopilotView", "FaultLog", "LatencyWindow", "ReporterParams", "ServiceCounters", "StatusReporter"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +52,24 @@ class ServiceCounters:
     bad_goals: int = 0
     commands_for_us: int = 0
     mode_requests: int = 0
+    handler_errors: int = 0  # an exception escaped a handler / cycle / report: caught, the task goes on
+
+
+class FaultLog:
+    """Exceptions caught at a task's top (the task survives): counted in ``handler_errors``, logged once per
+    (task, exception type) so a flood of hostile frames cannot flood the log."""
+
+    def __init__(self, counters: ServiceCounters) -> None:
+        self.counters = counters
+        self.kinds: dict[str, int] = {}
+
+    def caught(self, task: str, err: Exception) -> None:
+        self.counters.handler_errors += 1
+        kind = f"{task}:{type(err).__name__}"
+        n = self.kinds.get(kind, 0)
+        self.kinds[kind] = n + 1
+        if n == 0:
+            log.error("task.exception", extra={"task": task, "error": f"{type(err).__name__}: {err}"}, exc_info=err)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -163,6 +185,20 @@ class StatusReporter:
         ):
             if value is not None and math.isfinite(value):
                 self.outbox.named_value_float(name, value)
+        for name, count in self.rejected().items():
+            self.outbox.named_value_int(name, count)
+
+    def rejected(self) -> dict[str, int]:
+        """The rejected-input totals sent as NAMED_VALUE_INT (docs/hardening.md): poses, scans / memory clears,
+        link input (foreign, undecodable, bad goals) and errors caught or values not sendable."""
+        c, p, o = self.counters, self.perception.counters, self.outbox
+        pose = p.bad_poses + p.stale_poses + p.out_of_bounds_poses + p.implausible_poses + p.pose_time_jumps
+        return {
+            NVI_REJECTED_POSES: pose,
+            NVI_REJECTED_SCANS: p.bad_scans + p.clears_refused,
+            NVI_REJECTED_LINK: c.foreign_messages + c.undecodable_messages + c.bad_goals,
+            NVI_ERRORS: c.handler_errors + o.send_errors + o.unsendable,
+        }
 
     def _publish_status(self, now_s: float) -> None:
         if self.zenoh is None or self.params.dry_run:
@@ -175,7 +211,7 @@ class StatusReporter:
     # ---- records -----------------------------------------------------------------------------------------------
     def counts(self) -> dict[str, int]:
         """Every edge counter: the service's, perception's and the setpoints / STATUSTEXTs sent."""
-        sent = {"setpoints_sent": self.outbox.setpoints_sent, "statustexts_sent": self.outbox.statustexts_sent}
+        sent = self.outbox.counts()
         return dataclasses.asdict(self.counters) | dataclasses.asdict(self.perception.counters) | sent
 
     def status_dict(self, now_s: float) -> dict[str, Any]:
@@ -194,7 +230,8 @@ class StatusReporter:
             "loop_latency_ms": self.latency.summary(),
             "decision": None if out is None else out.decision,
             "autopilot": {"mode_ok": nav.mode_ok, "armed": self.autopilot.armed, "link_alive": nav.link_alive(now_s)},
-            "counters": self.counts(),
+            "counters": self.counts() | {f"nav_{k}": v for k, v in nav.counts().items()},
+            "rejected": self.rejected(),
         }
 
     def _pose_dict(self, now_s: float) -> dict[str, float] | None:

@@ -53,7 +53,7 @@ from apf_companion.links.messages import DECODERS, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
-from apf_companion.reporter import ServiceCounters, StatusReporter
+from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
 from apf_companion.setpoint import SetpointKind
 from apf_companion.takeover import Action, ActionKind, TakeoverController, TakeoverInputs
 
@@ -90,6 +90,8 @@ _OUTCOME_OF_STATE = {State.ARRIVED: Outcome.ARRIVED, State.STUCK: Outcome.STUCK,
 def outcome_now(navigator: Navigator, *, goals: int, flown_s: float | None, max_s: float) -> Outcome | None:
     """How the flight ended, if it has: a final state, a dropped goal, or ``max_s`` of flight (0 = no limit)."""
     outcome = _OUTCOME_OF_STATE.get(navigator.state)
+    if outcome is Outcome.LINK_LOST and navigator.route is not None:
+        outcome = None  # the goal is kept: the flight goes on when the heartbeat returns
     if outcome is None and navigator.state is State.IDLE and goals > 0 and navigator.route is None:
         outcome = Outcome.ERROR  # the goal was dropped: takeover failed or the pilot took over
     if outcome is None and max_s > 0 and flown_s is not None and flown_s > max_s:
@@ -175,6 +177,7 @@ class CompanionService:
         self.navigator = build_navigator(config, self.planner, self.perception)
         self.outbox = build_outbox(config, link, self.clock.now)
         self.counters = ServiceCounters()
+        self.faults = FaultLog(self.counters)
         self.handlers = AutopilotHandlers(
             handler_params(config),
             perception=self.perception,
@@ -323,15 +326,16 @@ class CompanionService:
     async def _rx(self) -> None:
         assert self.link is not None
         async for msg in self.link.messages():
-            rec = decode(msg)
-            if rec is None:
-                self.handlers.undecoded(msg.get_type() in DECODERS, source(msg))
-                continue
             try:
+                rec = decode(msg)
+                if rec is None:
+                    self.handlers.undecoded(msg.get_type() in DECODERS, source(msg))
+                    continue
                 self.handlers.handle(rec, self.clock.now())
-            except ApfCompanionError as err:
-                # Bad input is counted where it is classified; anything else here is logged and survived.
-                log.warning("rx.rejected", extra={"type": type(rec).__name__, "error": str(err)})
+            except Exception as err:
+                # Bad input is counted where it is classified; anything that still escapes a handler is counted
+                # and logged here, and the loop goes on (no value on the wire may end the service).
+                self.faults.caught("rx", err)
             if self._new_pose.is_set():
                 await asyncio.sleep(0)  # let the cycle run before more input is processed
 
@@ -365,7 +369,10 @@ class CompanionService:
             else:
                 trigger = None
             last_cycle = now
-            self.run_cycle(now, trigger)
+            try:
+                self.run_cycle(now, trigger)
+            except Exception as err:
+                self.faults.caught("cycle", err)
 
     def run_cycle(self, now: float, trigger_wall: float | None = None) -> CycleOutput:
         """One navigator cycle at ``now``: send its setpoint, report its changes, end the run if it is done."""
@@ -413,12 +420,20 @@ class CompanionService:
     async def _status_loop(self) -> None:
         while True:
             now = self.clock.now()
-            await self.clock.sleep(self.reporter.due(now) - now)
+            try:
+                due = self.reporter.due(now)
+            except Exception as err:
+                self.faults.caught("status", err)
+                due = now + 1.0
+            await self.clock.sleep(due - now)
 
     async def _takeover_loop(self) -> None:
         while True:
             await self.clock.sleep(self.takeover.controller.poll_interval_s)
-            self.takeover.step(self.clock.now())
+            try:
+                self.takeover.step(self.clock.now())
+            except Exception as err:
+                self.faults.caught("takeover", err)
 
 
 class TakeoverDriver:
@@ -492,12 +507,15 @@ class ZenohInputs:
         zc, svc = self.section, self.service
         async for sample in self.zenoh.samples():
             now = svc.clock.now()
-            if sample.key_expr == zc.goal_key:
-                self._goal(sample.payload, now)
-            elif sample.key_expr == zc.sensor_key:
-                svc.perception.on_scan_payload(sample.encoding, sample.payload, now)
-            else:
-                svc.counters.foreign_messages += 1
+            try:
+                if sample.key_expr == zc.goal_key:
+                    self._goal(sample.payload, now)
+                elif sample.key_expr == zc.sensor_key:
+                    svc.perception.on_scan_payload(sample.encoding, sample.payload, now)
+                else:
+                    svc.counters.foreign_messages += 1
+            except Exception as err:
+                svc.faults.caught("zenoh", err)
 
     def _goal(self, payload: bytes, now: float) -> None:
         try:

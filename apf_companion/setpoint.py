@@ -19,7 +19,15 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY
 
-__all__ = ["MAV_FRAME_LOCAL_NED", "Setpoint", "SetpointKind", "encode_setpoint", "hold", "navigate"]
+__all__ = [
+    "MAV_FRAME_LOCAL_NED",
+    "Setpoint",
+    "SetpointKind",
+    "encode_setpoint",
+    "hold",
+    "navigate",
+    "silent_safe_velocity",
+]
 
 MAV_FRAME_LOCAL_NED: int = mavlink.MAV_FRAME_LOCAL_NED
 _VALID_MASKS = frozenset({MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY})
@@ -85,6 +93,48 @@ def navigate(pos_ned_m: npt.ArrayLike, next_ned_m: npt.ArrayLike, *, cruise_spee
     norm = float(np.linalg.norm(step))
     vel = step * (cruise_speed_m_s / norm) if norm > 1e-9 else np.zeros(3)
     return Setpoint(pos_ned_m=_vec3(there), vel_ned_m_s=_vec3(vel), type_mask=MASK_POS_VEL, kind=SetpointKind.NAVIGATE)
+
+
+def silent_safe_velocity(
+    target_ned_m: npt.ArrayLike,
+    vel_ned_m_s: npt.ArrayLike,
+    obstacles_ned_m: npt.ArrayLike,
+    *,
+    horizon_s: float,
+    max_drift_m: float,
+    clearance_m: float,
+    dim: int,
+) -> tuple[float, float, float]:
+    """The velocity feed-forward that stays safe if this is the last setpoint the autopilot receives.
+
+    ArduCopter GUIDED (ArduCopter/mode_guided.cpp ``posvel_control_run`` / ``set_destination_posvel``) advances the
+    position target along the velocity target every loop and zeroes the velocity only after GUID_TIMEOUT (3 s)
+    without an update (AC_PosControl.cpp ``input_pos_vel_accel_xy`` -> ``update_pos_vel_accel_xy``): the vehicle
+    drifts ``|v| * GUID_TIMEOUT`` past the setpoint's position. PX4 (PositionControl.cpp ``_positionControl``:
+    ``vel_sp = vel_ff + K_p (pos_sp - pos)``) settles ``|v| / MPC_XY_P`` past it until the offboard-loss failsafe.
+    So the speed is cut until that drift (over ``horizon_s``) is at most ``max_drift_m`` and the drift segment from
+    the target stays ``clearance_m`` from every remembered obstacle point; zero when the target itself is that
+    close. The direction is never changed.
+    """
+    v = np.asarray(vel_ned_m_s, dtype=np.float64).reshape(3).copy()
+    speed = float(np.linalg.norm(v[:dim]))
+    if speed <= 0.0:
+        return _vec3(v)
+    u = v[:dim] / speed
+    drift = min(speed * horizon_s, max_drift_m)
+    obs = np.asarray(obstacles_ned_m, dtype=np.float64).reshape(-1, 3)
+    if obs.shape[0] and drift > 0.0:
+        rel = obs[:, :dim] - np.asarray(target_ned_m, dtype=np.float64).reshape(3)[:dim]
+        along = rel @ u
+        perp_sq = np.maximum(np.einsum("ij,ij->i", rel, rel) - along * along, 0.0)
+        hit = perp_sq < clearance_m * clearance_m
+        entry = along[hit] - np.sqrt(clearance_m * clearance_m - perp_sq[hit])  # where the segment comes too close
+        exit_ = along[hit] + np.sqrt(clearance_m * clearance_m - perp_sq[hit])
+        blocking = entry[exit_ > 0.0]  # the part of the segment ahead of the target only
+        if blocking.size:
+            drift = min(drift, max(0.0, float(np.min(blocking))))
+    scale = min(1.0, drift / (speed * horizon_s))
+    return _vec3(v * scale)
 
 
 def encode_setpoint(mav: Any, sp: Setpoint, *, time_boot_ms: int, target_system: int, target_component: int) -> Any:

@@ -8,7 +8,11 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
      "goal": {"north_m": 22.0, "east_m": 22.0, "down_m": -5.0, "leg": 0, "legs": 1, "source": "cli"} | null,
      "distance_to_goal_m": 9.1 | null, "nearest_obstacle_m": 1.7 | null, "n_obstacles": 31,
      "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null, "decision": "GREEDY" | null,
-     "autopilot": {"mode_ok": true, "armed": true, "link_alive": true}, "counters": {...}}
+     "autopilot": {"mode_ok": true, "armed": true, "link_alive": true}, "counters": {...},
+     "rejected": {"APF_RJPOSE": 0, "APF_RJSCAN": 0, "APF_RJLINK": 0, "APF_ERRORS": 0}}
+
+``counters`` holds every edge, perception, outbox and (``nav_`` prefixed) navigator counter; ``rejected`` the
+totals also sent as NAMED_VALUE_INT (docs/hardening.md).
 """
 
 from __future__ import annotations
@@ -24,6 +28,10 @@ from apf_companion.navigator import State
 __all__ = [
     "NVF_GOAL_DISTANCE",
     "NVF_NEAREST_OBSTACLE",
+    "NVI_ERRORS",
+    "NVI_REJECTED_LINK",
+    "NVI_REJECTED_POSES",
+    "NVI_REJECTED_SCANS",
     "STATUS_SCHEMA",
     "encode_status_json",
     "severity_for",
@@ -34,6 +42,10 @@ __all__ = [
 STATUS_SCHEMA = "apf.status/1"
 NVF_GOAL_DISTANCE = "APF_DGOAL"  # NAMED_VALUE_FLOAT names: at most 10 characters
 NVF_NEAREST_OBSTACLE = "APF_DOBS"
+NVI_REJECTED_POSES = "APF_RJPOSE"  # NAMED_VALUE_INT: rejected-input totals (docs/hardening.md)
+NVI_REJECTED_SCANS = "APF_RJSCAN"
+NVI_REJECTED_LINK = "APF_RJLINK"
+NVI_ERRORS = "APF_ERRORS"
 
 _SEVERITY: dict[State, int] = {
     State.HOLDING: mavlink.MAV_SEVERITY_WARNING,

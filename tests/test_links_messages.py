@@ -20,6 +20,7 @@ from apf_companion.links.messages import (
     LocalPositionNed,
     ObstacleDistance,
     ObstacleDistance3d,
+    Odometry,
     Source,
     decode,
     source,
@@ -77,6 +78,14 @@ CASES: list[tuple[str, Any, type[Any], dict[str, Any]]] = [
         lambda m: m.obstacle_distance_3d_encode(8, 0, 12, 0, 1.0, 2.0, 0.5, 0.1, 20.0),
         ObstacleDistance3d,
         {"time_boot_ms": 8, "frame": 12, "x": 1.0, "y": 2.0, "z": 0.5, "max_distance": 20.0},
+    ),
+    (
+        "ODOMETRY",
+        lambda m: m.odometry_encode(
+            7_000, 1, 12, 1.0, 2.0, -5.0, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [NAN] * 21, [NAN] * 21, reset_counter=3
+        ),
+        Odometry,
+        {"time_usec": 7_000, "reset_counter": 3},
     ),
     (
         "COMMAND_LONG",

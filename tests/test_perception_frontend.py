@@ -41,8 +41,13 @@ def test_frozen_reordered_and_non_finite_poses_are_refused_and_a_reboot_is_accep
     assert p.counters.stale_poses == 2
     assert p.on_local_position(50_100, (math.nan, 0.0, -5.0), 1.3) is None
     assert p.counters.bad_poses == 1
-    assert p.on_local_position(300, (0.0, 0.0, -5.0), 1.4) is not None  # reboot: a large jump back
-    assert len(p.history) == 1
+    # A large jump back is a reboot only with boot evidence (HEARTBEAT after a silence, MAV_STATE_BOOT).
+    assert p.on_local_position(300, (0.0, 0.0, -5.0), 1.4) is None
+    assert p.counters.pose_time_jumps == 1
+    p.gate.note_reboot()
+    assert p.on_local_position(350, (0.0, 0.0, -5.0), 1.45) is not None
+    assert len(p.history) == 1 and p.counters.pose_resets == 1
+    assert p.take_reset() is not None and p.take_reset() is None
 
 
 def test_scan_stamps_map_boot_time_to_the_service_clock_and_implausible_ones_to_receipt() -> None:

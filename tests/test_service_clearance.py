@@ -35,9 +35,9 @@ def fly_closed_loop(world_seed: int, density: str, *, clearance: bool = True) ->
     perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=10.0, merge_radius_m=0.2))
     nav = build_navigator(cfg, planner, perception)
     if not clearance:
-        # The behaviour before the fix.
+        # The behaviour before the fix (and before the safe-when-silent cap on the feed-forward, issue 9).
         nav = Navigator(
-            params=dataclasses.replace(nav.params, clearance_m=0.0),
+            params=dataclasses.replace(nav.params, clearance_m=0.0, silent_drift_m=1e3),
             planner=planner,
             obstacles=perception,
             rng=nav.rng,

@@ -249,7 +249,8 @@ async def test_frozen_pose_holds_within_one_cycle() -> None:
 
 async def test_heartbeat_lost_means_silence() -> None:
     route = Route.point(30.0, 0.0, -5.0, source="test")
-    async with rig(route=route) as (svc, ap):
+    cfg = fast_config(safety={"resume_after_link_lost": False})  # resuming: test_service_hardening.py
+    async with rig(cfg, route) as (svc, ap):
         await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
         ap.send_heartbeat = False
         await until(lambda: svc.navigator.state is State.LINK_LOST, 4.0, "link lost")

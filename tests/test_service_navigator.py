@@ -81,7 +81,11 @@ def test_navigate_setpoint_is_one_step_with_feed_forward() -> None:
     sp = out.setpoint
     assert sp is not None and sp.kind is SetpointKind.NAVIGATE and out.decision == "GREEDY"
     assert math.isclose(math.dist(sp.pos_ned_m[:2], (0, 0)), 0.4, rel_tol=1e-9)
-    assert math.isclose(math.hypot(*sp.vel_ned_m_s[:2]), ServiceConfig().cycle.cruise_speed_m_s, rel_tol=1e-9)
+    # Cruise, cut to what is safe if this is the last setpoint: at most silent_drift_m over GUID_TIMEOUT.
+    safety = ServiceConfig().safety
+    cap = min(ServiceConfig().cycle.cruise_speed_m_s, safety.silent_drift_m / safety.guid_timeout_s)
+    assert math.isclose(math.hypot(*sp.vel_ned_m_s[:2]), cap, rel_tol=1e-9)
+    assert sp.vel_ned_m_s[1] == 0.0 and sp.vel_ned_m_s[0] > 0.0
     assert sp.vel_ned_m_s[2] == 0.0
 
 
@@ -144,7 +148,7 @@ def test_frozen_pose_timestamp_is_refused() -> None:
 
 
 def test_heartbeat_loss_goes_silent_and_needs_new_goal() -> None:
-    nav = make()
+    nav = make(config_from_mapping({"safety": {"resume_after_link_lost": False}}))
     feed(nav, 0.1, (0, 0, -5))
     nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
     assert nav.cycle(0.1).setpoint is not None
@@ -164,6 +168,41 @@ def test_heartbeat_loss_goes_silent_and_needs_new_goal() -> None:
     out = nav.cycle(t)
     assert out.state is State.IDLE and out.setpoint is None  # link back: no motion without a new goal
     assert nav.set_route(Route.point(1.0, 1.0, None, source="test"), t)
+
+
+def _lose_link(nav: Navigator, t: float, n: int = 40) -> float:
+    for _ in range(n):  # pose and ranges keep coming, the heartbeat does not
+        t += 0.1
+        nav.update_pose(Pose(t_s=t, pos_ned_m=np.zeros(3), yaw_rad=0.0))
+        scan(nav, np.zeros((0, 3)), t)
+        out = nav.cycle(t)
+    assert out.state is State.LINK_LOST and out.setpoint is None
+    return t
+
+
+def test_heartbeat_loss_keeps_the_goal_and_resumes_in_guided_with_fresh_inputs() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    assert nav.cycle(0.1).setpoint is not None
+    t = _lose_link(nav, 0.1)
+    assert nav.route is not None  # packet loss never drops the goal
+    t += 0.1
+    feed(nav, t, (0, 0, -5))  # heartbeat back, still GUIDED
+    out = nav.cycle(t)
+    assert [c.new for c in out.changes] == [State.HOLDING, State.NAVIGATING]
+    assert out.setpoint is not None and out.setpoint.kind is SetpointKind.NAVIGATE
+
+
+def test_heartbeat_back_in_another_mode_drops_the_goal() -> None:
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    nav.cycle(0.1)
+    t = _lose_link(nav, 0.1) + 0.1
+    nav.autopilot_heartbeat(t, mode_ok=False)  # the pilot / a failsafe took over meanwhile: never fight it
+    out = nav.cycle(t)
+    assert nav.state is State.IDLE and nav.route is None and out.setpoint is None
 
 
 def test_pilot_override_drops_goal() -> None:

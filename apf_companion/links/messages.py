@@ -27,6 +27,7 @@ __all__ = [
     "LocalPositionNed",
     "ObstacleDistance",
     "ObstacleDistance3d",
+    "Odometry",
     "Record",
     "Source",
     "decode",
@@ -71,6 +72,15 @@ class Attitude:
     roll: float  # [rad]
     pitch: float
     yaw: float  # [rad], 0 = north, clockwise positive
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Odometry:
+    """Only what the pose gate uses: the estimator's reset counter (uint8, wraps)."""
+
+    src: Source
+    time_usec: int
+    reset_counter: int
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -149,6 +159,7 @@ Record = (
     | ObstacleDistance
     | DistanceSensor
     | ObstacleDistance3d
+    | Odometry
     | CommandLong
     | CommandInt
 )
@@ -190,6 +201,10 @@ def _attitude(msg: Any) -> Attitude:
         pitch=float(msg.pitch),
         yaw=float(msg.yaw),
     )
+
+
+def _odometry(msg: Any) -> Odometry:
+    return Odometry(src=_src(msg), time_usec=int(msg.time_usec), reset_counter=int(msg.reset_counter))
 
 
 def _global_position_int(msg: Any) -> GlobalPositionInt:
@@ -275,6 +290,7 @@ DECODERS: dict[str, Callable[[Any], Record]] = {
     "OBSTACLE_DISTANCE": _obstacle_distance,
     "DISTANCE_SENSOR": _distance_sensor,
     "OBSTACLE_DISTANCE_3D": _obstacle_distance_3d,
+    "ODOMETRY": _odometry,
     "COMMAND_LONG": _command_long,
     "COMMAND_INT": _command_int,
 }

@@ -25,6 +25,7 @@ from apf_companion.perception.mavlink_ranges import (
 )
 from apf_companion.perception.memory import ObstacleMemory
 from apf_companion.perception.payload import ENCODING_CDR, ENCODING_JSON, decode_scan_payload
+from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
 from apf_companion.perception.schema import (
     GOAL_SCHEMA,
     SCAN_SCHEMA,
@@ -47,10 +48,13 @@ __all__ = [
     "PerceptionFrontEnd",
     "PerceptionParams",
     "Pose",
+    "PoseGate",
     "PoseHistory",
+    "PoseLimits",
     "RangeScan",
     "ScanFrame",
     "SectorCounts",
+    "Verdict",
     "decode_goal_json",
     "decode_laserscan_cdr",
     "decode_scan_json",

@@ -27,7 +27,7 @@ import numpy as np
 
 from apf_companion.errors import ConfigError, ProtocolError
 from apf_companion.perception.cdr import decode_laserscan_cdr
-from apf_companion.perception.geometry import scan_to_points_ned, surface_fill_points
+from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned, surface_fill_points
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     DistanceSensorLike,
@@ -38,7 +38,9 @@ from apf_companion.perception.mavlink_ranges import (
     scan_from_obstacle_distance,
 )
 from apf_companion.perception.memory import ObstacleMemory
+from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
 from apf_companion.perception.schema import decode_scan_json
+from apf_companion.perception.sectors import SectorFreshness
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
 __all__ = ["SCAN_DEFER_MAX", "SCAN_DEFER_S", "PerceptionCounters", "PerceptionFrontEnd", "PerceptionParams"]
@@ -48,7 +50,6 @@ log = logging.getLogger(__name__)
 SCAN_DEFER_S = 0.25  # a scan newer than the newest pose waits this long at most for the next pose [s]
 SCAN_DEFER_MAX = 8  # and at most this many scans wait
 POSE_HISTORY_LEN = 200  # poses kept to place scans (10 s at 20 Hz)
-REBOOT_JUMP_MS = 10_000  # time_boot_ms this far back is an autopilot reboot, not a reordered datagram
 STAMP_PLAUSIBLE_S = 5.0  # a stamp older than this (or in the future) is on another clock: use receive time
 UNIX_USEC = 10**15  # OBSTACLE_DISTANCE.time_usec at or above this is UNIX time, not time since boot
 
@@ -61,6 +62,11 @@ class PerceptionParams:
     memory_expiry_s: float = 5.0
     merge_radius_m: float = 0.2
     max_points: int = 2000
+    pose_limits: PoseLimits = dataclasses.field(default_factory=PoseLimits)
+    clear_scans: int = 1  # scans of the sensor that saw a point that must see through it before it is forgotten
+    clear_span_s: float = 0.0  # ... spread over at least this long [s]
+    sectors: int = 0  # azimuth sectors whose freshness is tracked (0 = off)
+    sector_max_age_s: float = 1.0
     surface_fill: bool = True  # points along chords between adjacent returns on one surface (geometry.py)
     surface_fill_spacing_m: float = 0.2
     surface_fill_max_gap_m: float = 1.5
@@ -81,12 +87,17 @@ class PerceptionCounters:
     poses: int = 0
     bad_poses: int = 0  # NaN / non-finite LOCAL_POSITION_NED or ATTITUDE
     stale_poses: int = 0  # time_boot_ms not newer than the last one (frozen or reordered)
+    out_of_bounds_poses: int = 0  # a coordinate beyond [safety] max_abs_position_m
+    implausible_poses: int = 0  # further than the vehicle can move since the last pose
+    pose_time_jumps: int = 0  # time_boot_ms forward beyond the receive clock, or far back without reboot evidence
+    pose_resets: int = 0  # re-anchored on a sustained new position / time base (EKF reset, reboot)
     scans: int = 0
     bad_scans: int = 0  # ProtocolError from a decoder (malformed message / payload)
     invalid_sectors: int = 0  # readings classified invalid (below min, zero, out of range)
     unknown_sectors: int = 0
     scans_without_pose: int = 0
     scans_deferred_too_long: int = 0  # placed with the newest pose: more than SCAN_DEFER_MAX scans waited
+    clears_refused: int = 0  # a scan saw through a point another sensor saw: not cleared
 
 
 class PerceptionFrontEnd:
@@ -103,7 +114,10 @@ class PerceptionFrontEnd:
         self.counters = PerceptionCounters()
         self.deferred: collections.deque[RangeScan] = collections.deque()
         self._yaw_rad: float | None = None
-        self._last_pose_boot_ms: int | None = None
+        self.gate = PoseGate(params.pose_limits)
+        self.sectors = SectorFreshness(params.sectors, params.sector_max_age_s)
+        self._sensor_ids: dict[str, int] = {}
+        self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
         self._ranges_t_s: float | None = None
 
@@ -120,6 +134,10 @@ class PerceptionFrontEnd:
     def __len__(self) -> int:
         return len(self.memory)
 
+    def direction_fresh(self, bearing_ned_rad: float, now_s: float) -> bool:
+        """The azimuth sector of ``bearing_ned_rad`` (local NED) has a recent reading (``[safety] sectors``)."""
+        return self.sectors.fresh(bearing_ned_rad, now_s)
+
     # ---- poses ---------------------------------------------------------------------------------------------
     def on_attitude(self, yaw_rad: float) -> None:
         """ATTITUDE.yaw: the heading the next poses carry."""
@@ -132,26 +150,39 @@ class PerceptionFrontEnd:
         """A LOCAL_POSITION_NED received at ``now_s``: the new pose (history updated, waiting scans placed), or
         None when it is stale, non-finite or no heading is known yet."""
         self.counters.poses += 1
-        last = self._last_pose_boot_ms
-        if last is not None and time_boot_ms <= last:
-            # Frozen or reordered: it must not look fresh. (A reboot restarts near 0: accept a large jump back.)
-            if last - time_boot_ms < REBOOT_JUMP_MS:
-                self.counters.stale_poses += 1
-                return None
-            self.history.clear()
         if self._yaw_rad is None:
             return None  # no ATTITUDE yet: body-frame ranges could not be placed
+        verdict = self.gate.check(time_boot_ms, pos_ned_m, now_s)
+        if verdict is Verdict.RESET:
+            self._reset(f"position reset to {pos_ned_m[0]:.1f} {pos_ned_m[1]:.1f} {pos_ned_m[2]:.1f}")
+        elif verdict is not Verdict.ACCEPT:
+            counter = _REJECTED[verdict]
+            setattr(self.counters, counter, getattr(self.counters, counter) + 1)
+            return None
         try:
             pose = Pose(t_s=now_s, pos_ned_m=np.array(pos_ned_m, dtype=np.float64), yaw_rad=self._yaw_rad)
         except ConfigError:
             self.counters.bad_poses += 1
             return None
-        self._last_pose_boot_ms = time_boot_ms
         self._boot_offset_s = now_s - time_boot_ms / 1000.0
         self.history.add(pose)
         if self.deferred:
             self._place_deferred()  # before the cycle this pose triggers
         return pose
+
+    def _reset(self, reason: str) -> None:
+        """The gate re-anchored: poses and remembered points are in the old frame; forget them."""
+        self.counters.pose_resets += 1
+        self.history.clear()
+        self.memory.clear()
+        self.sectors.clear()
+        self.reset_reason = reason
+        log.warning("pose.reset", extra={"reason": reason})
+
+    def take_reset(self) -> str | None:
+        """The reason of a re-anchor since the last call, or None."""
+        reason, self.reset_reason = self.reset_reason, None
+        return reason
 
     def scan_time(self, boot_ms: int | None, now_s: float) -> float:
         """Service time of a measurement stamped with autopilot boot time (receive time if unknown)."""
@@ -183,7 +214,9 @@ class PerceptionFrontEnd:
             self._bad("OBSTACLE_DISTANCE_3D", err)
             return
         self.counters.scans += 1
-        self._remember(points, t)
+        rel = np.asarray(points, dtype=np.float64).reshape(-1, 3) - pose.pos_ned_m
+        self.sectors.note(np.arctan2(rel[:, 1], rel[:, 0]), t)
+        self._remember(points, t, self._sensor_ids.setdefault("mavlink:obstacle_distance_3d", len(self._sensor_ids)))
 
     def on_scan_payload(self, encoding: str, payload: bytes, now_s: float) -> None:
         """A zenoh scan: ROS 2 LaserScan CDR, or ``apf.range_scan/1`` JSON (stamped with boot time, if given)."""
@@ -256,19 +289,36 @@ class PerceptionFrontEnd:
             rel = points[:, :2] - pose.pos_ned_m[:2]
             limit = self.params.max_range_m
             points = points[np.einsum("ij,ij->i", rel, rel) <= limit * limit]
-        self.memory.clear_observed(scan, pose)
-        self._remember(points, scan.t_s)
+        p = self.params
+        sensor = self._sensor_ids.setdefault(scan.source, len(self._sensor_ids))
+        refused = self.memory.clears_refused
+        self.memory.clear_observed(scan, pose, sensor=sensor, clear_scans=p.clear_scans, clear_span_s=p.clear_span_s)
+        self.counters.clears_refused += self.memory.clears_refused - refused
+        bearings = scan_bearings_ned_rad(scan, pose)
+        self.sectors.note(bearings[~np.isnan(scan.ranges_m)], scan.t_s)
+        self._remember(points, scan.t_s, sensor)
 
-    def _remember(self, points: FloatArray, t_s: float) -> None:
+    def _remember(self, points: FloatArray, t_s: float, sensor: int = -1) -> None:
         """The one write to the obstacle memory: a usable scan measured at ``t_s`` (possibly no points: all free
         is news too, it keeps the ranges fresh)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if pts.shape[0]:
-            self.memory.add(pts, t_s)
+            self.memory.add(pts, t_s, sensor)
         if self._ranges_t_s is None or t_s > self._ranges_t_s:
             self._ranges_t_s = t_s
 
     def remember(self, points_ned_m: FloatArray, t_s: float) -> None:
         """Obstacle points already placed in local NED, measured at ``t_s`` (a perfect sensor in tests and
-        closed-loop simulations; the service itself feeds scans)."""
+        closed-loop simulations; the service itself feeds scans): every direction counts as measured."""
+        self.sectors.note_all(t_s)
         self._remember(points_ned_m, t_s)
+
+
+_REJECTED = {
+    Verdict.NON_FINITE: "bad_poses",
+    Verdict.OUT_OF_BOUNDS: "out_of_bounds_poses",
+    Verdict.STALE: "stale_poses",
+    Verdict.TIME_JUMP: "pose_time_jumps",
+    Verdict.JUMP: "implausible_poses",
+}
+"""The counter of each rejecting verdict."""

@@ -9,6 +9,11 @@ Clearing (``clear_observed``): a beam that reports free space (+inf) or an obsta
 that nothing lies along it nearer than that; remembered points inside such a beam, more than ``margin_m``
 nearer than the reading and within ``vertical_window_m`` of the scan's height, are removed. Unknown and
 invalid beams (NaN) clear nothing ("unknown is not free").
+
+Clearing is hard to fake (docs/hardening.md): each point remembers the sensor that saw it, and only that sensor's
+scans clear it, and only after ``clear_scans`` scans spread over at least ``clear_span_s`` saw through it; a scan
+that sees it again (a merge) restarts the count. A flood of "all free" scans between two genuine scans of the
+obstacle clears nothing; scans from another sensor never clear it (``clears_refused``).
 """
 
 from __future__ import annotations
@@ -91,7 +96,18 @@ class ObstacleMemory:
         Capacity; when full, the points seen longest ago are dropped first (>= 1).
     """
 
-    __slots__ = ("_expiry_s", "_max_points", "_merge_radius_m", "_pts", "_t", "dropped_full")
+    __slots__ = (
+        "_expiry_s",
+        "_free_n",
+        "_free_t0",
+        "_max_points",
+        "_merge_radius_m",
+        "_pts",
+        "_src",
+        "_t",
+        "clears_refused",
+        "dropped_full",
+    )
 
     def __init__(self, *, expiry_s: float = 5.0, merge_radius_m: float = 0.2, max_points: int = 2000) -> None:
         _positive("expiry_s", expiry_s)
@@ -102,9 +118,9 @@ class ObstacleMemory:
         self._expiry_s = expiry_s
         self._merge_radius_m = merge_radius_m
         self._max_points = max_points
-        self._pts = np.empty((0, 3), dtype=np.float64)
-        self._t = np.empty(0, dtype=np.float64)
+        self.clear()
         self.dropped_full = 0
+        self.clears_refused = 0  # see-throughs by a sensor other than the one that saw the point
 
     def __len__(self) -> int:
         return int(self._t.size)
@@ -118,8 +134,19 @@ class ObstacleMemory:
         """Forget everything."""
         self._pts = np.empty((0, 3), dtype=np.float64)
         self._t = np.empty(0, dtype=np.float64)
+        self._src = np.empty(0, dtype=np.int64)  # the sensor that saw each point (-1: any may clear it)
+        self._free_n = np.empty(0, dtype=np.int64)  # scans of that sensor that saw through it since
+        self._free_t0 = np.empty(0, dtype=np.float64)  # the first of them
 
-    def add(self, points_ned_m: FloatArray, t_s: float) -> None:
+    def _keep(self, keep: npt.NDArray[np.bool_] | npt.NDArray[np.intp]) -> None:
+        """Keep the rows selected by a mask or an index array (every per-point array alike)."""
+        self._pts = self._pts[keep]
+        self._t = self._t[keep]
+        self._src = self._src[keep]
+        self._free_n = self._free_n[keep]
+        self._free_t0 = self._free_t0[keep]
+
+    def add(self, points_ned_m: FloatArray, t_s: float, sensor: int = -1) -> None:
         """Remember ``points_ned_m`` ((K, 3) float64, local NED [m]) as seen at ``t_s`` [s].
 
         Rows that are not finite or lie beyond 1e7 m are ignored. New points in the same cell of a grid with edge
@@ -155,17 +182,19 @@ class ObstacleMemory:
                 if stale_idx.size:
                     keep = np.ones(self._t.size, dtype=np.bool_)
                     keep[stale_idx] = False
-                    self._pts = self._pts[keep]
-                    self._t = self._t[keep]
+                    self._keep(keep)
+        k = pts.shape[0]
         self._pts = np.concatenate([self._pts, pts])
-        self._t = np.concatenate([self._t, np.full(pts.shape[0], float(t_s))])
+        self._t = np.concatenate([self._t, np.full(k, float(t_s))])
+        self._src = np.concatenate([self._src, np.full(k, sensor, dtype=np.int64)])
+        self._free_n = np.concatenate([self._free_n, np.zeros(k, dtype=np.int64)])
+        self._free_t0 = np.concatenate([self._free_t0, np.full(k, np.nan)])
         excess = self._t.size - self._max_points
         if excess > 0:
             # Stable sort: among equal times the older rows (earlier in the arrays) go first.
             order = np.argsort(self._t, kind="stable")[excess:]
             order.sort()
-            self._pts = self._pts[order]
-            self._t = self._t[order]
+            self._keep(order)
             self.dropped_full += excess
 
     def expire(self, now_s: float) -> int:
@@ -173,8 +202,7 @@ class ObstacleMemory:
         keep = self._t >= now_s - self._expiry_s
         removed = int(keep.size - np.count_nonzero(keep))
         if removed:
-            self._pts = self._pts[keep]
-            self._t = self._t[keep]
+            self._keep(keep)
         return removed
 
     def points(self, now_s: float) -> FloatArray:
@@ -195,6 +223,9 @@ class ObstacleMemory:
         beam_half_width_rad: float | None = None,
         margin_m: float = 0.3,
         vertical_window_m: float = 1.0,
+        sensor: int = -1,
+        clear_scans: int = 1,
+        clear_span_s: float = 0.0,
     ) -> int:
         """Remove remembered points that ``scan`` (taken at ``pose``) sees through; returns how many.
 
@@ -210,10 +241,28 @@ class ObstacleMemory:
             obstacle that produced the reading.
         vertical_window_m:
             Only points within this height of the vehicle are in the scan's plane [m].
+        sensor, clear_scans, clear_span_s:
+            The scan's sensor; a point it sees through is removed once ``clear_scans`` scans of the sensor that
+            saw the point (or of any sensor, for points added with -1) saw through it over ``clear_span_s``.
         """
-        n = self._t.size
-        if n == 0 or len(scan) == 0:
+        if self._t.size == 0 or len(scan) == 0:
             return 0
+        cleared = self._seen_through(scan, pose, beam_half_width_rad, margin_m, vertical_window_m)
+        ours = cleared & ((self._src == sensor) | (self._src < 0))
+        self.clears_refused += int(np.count_nonzero(cleared & ~ours))
+        first = ours & (self._free_n == 0)
+        self._free_t0[first] = scan.t_s
+        self._free_n[ours] += 1
+        gone = ours & (self._free_n >= clear_scans) & (scan.t_s - self._free_t0 >= clear_span_s)
+        removed = int(np.count_nonzero(gone))
+        if removed:
+            self._keep(~gone)
+        return removed
+
+    def _seen_through(
+        self, scan: RangeScan, pose: Pose, beam_half_width_rad: float | None, margin_m: float, vertical_window_m: float
+    ) -> npt.NDArray[np.bool_]:
+        """Which remembered points ``scan`` sees through (see ``clear_observed``)."""
         bearings = np.mod(scan_bearings_ned_rad(scan, pose), _TWO_PI)
         order = np.argsort(bearings)
         b_sorted = bearings[order]
@@ -236,8 +285,4 @@ class ObstacleMemory:
             & (dist_m < reach[beam] - margin_m)
             & (np.abs(rel[:, 2]) <= vertical_window_m)
         )
-        removed = int(np.count_nonzero(cleared))
-        if removed:
-            self._pts = self._pts[~cleared]
-            self._t = self._t[~cleared]
-        return removed
+        return np.asarray(cleared, dtype=np.bool_)

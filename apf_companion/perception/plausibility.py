@@ -1,0 +1,154 @@
+"""The pose plausibility gate: a LOCAL_POSITION_NED becomes a pose only if the vehicle could be there.
+
+A pose is rejected (and counted by the front end) when
+
+- a coordinate is non-finite or beyond ``max_abs_position_m`` of the EKF origin (``NON_FINITE``,
+  ``OUT_OF_BOUNDS``);
+- its ``time_boot_ms`` is not newer than the last accepted one (``STALE``: frozen or reordered datagrams), or goes
+  further forward than the receive clock allows (``TIME_JUMP``: more than ``time_jump_s`` beyond the receive-time
+  gap), or far back (``TIME_JUMP``: an autopilot reboot is accepted at once only with reboot evidence, see
+  ``note_reboot``);
+- it lies further from the last accepted pose than the vehicle can move in the time between them: the smaller of
+  ``max_speed_m_s * dt`` and ``|v| dt + a_max dt^2 / 2`` (v estimated from the last two accepted poses), plus
+  ``noise_m`` (``JUMP``).
+
+A rejected pose that is finite and in bounds is a candidate for a real EKF reset or an unannounced reboot: after
+``reset_samples`` candidates in a row that are consistent with each other (each a plausible move in plausible time
+from the previous one) and with no accepted pose in between, the gate re-anchors on them (``RESET``): the caller
+must hold and announce it before motion resumes. Interleaved genuine poses restart the count, so a spoofed stream
+beside the real one never takes over. Where the autopilot streams ODOMETRY, a change of its ``reset_counter`` is
+direct evidence: a jump within the next ``reset_samples`` poses re-anchors at once (``note_reset_counter``).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["PoseGate", "PoseLimits", "Verdict"]
+
+FloatArray = npt.NDArray[np.float64]
+REBOOT_JUMP_MS = 10_000  # time_boot_ms this far back is not a reordered datagram: a reboot (with evidence)
+
+
+class Verdict(enum.Enum):
+    ACCEPT = "accept"
+    RESET = "reset"  # re-anchored: a sustained new position / time base (EKF reset, reboot)
+    NON_FINITE = "non_finite"
+    OUT_OF_BOUNDS = "out_of_bounds"
+    STALE = "stale"
+    TIME_JUMP = "time_jump"
+    JUMP = "jump"
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PoseLimits:
+    """What the vehicle can do (``[safety]``; docs/hardening.md)."""
+
+    max_speed_m_s: float = 15.0
+    max_accel_m_s2: float = 10.0
+    noise_m: float = 0.3
+    max_abs_position_m: float = 10_000.0
+    time_jump_s: float = 1.0
+    reset_samples: int = 10
+
+
+@dataclass(slots=True)
+class _Fix:
+    boot_ms: int
+    pos: FloatArray
+    rx_s: float
+
+
+class PoseGate:
+    """Decides on each LOCAL_POSITION_NED (see the module docstring). Owns the last accepted fix."""
+
+    def __init__(self, limits: PoseLimits) -> None:
+        self.limits = limits
+        self.last: _Fix | None = None
+        self.vel_m_s = np.zeros(3)
+        self._track: list[_Fix] = []
+        self._reboot_evidence = False
+        self._reset_counter: int | None = None
+        self._reset_window = 0  # poses left in which a jump is the announced estimator reset
+
+    def note_reset_counter(self, counter: int) -> None:
+        """The estimator's reset counter (ODOMETRY.reset_counter): a change is reset evidence, and the next
+        ``reset_samples`` poses may re-anchor at once (a jump then is the reset, not a spoof)."""
+        if self._reset_counter is not None and counter != self._reset_counter:
+            self._reset_window = self.limits.reset_samples
+        self._reset_counter = counter
+
+    def note_reboot(self) -> None:
+        """The autopilot rebooted (HEARTBEAT after a silence longer than the link timeout, or MAV_STATE_BOOT):
+        the next pose may start a new time base."""
+        self._reboot_evidence = True
+
+    def check(self, boot_ms: int, pos: tuple[float, float, float], now_s: float) -> Verdict:
+        lim = self.limits
+        p = np.asarray(pos, dtype=np.float64)
+        if not np.all(np.isfinite(p)):
+            return Verdict.NON_FINITE
+        if float(np.max(np.abs(p))) > lim.max_abs_position_m:
+            return Verdict.OUT_OF_BOUNDS
+        fix = _Fix(boot_ms, p, now_s)
+        last = self.last
+        if last is None or (self._reboot_evidence and boot_ms < last.boot_ms):
+            return self._anchor(fix, Verdict.ACCEPT if last is None else Verdict.RESET)
+        verdict = self._versus(last, fix, self.vel_m_s)
+        self._reset_window = max(0, self._reset_window - 1)
+        if verdict is Verdict.JUMP and self._reset_window > 0:
+            return self._anchor(fix, Verdict.RESET)
+        if verdict is Verdict.ACCEPT:
+            dt = (boot_ms - last.boot_ms) / 1000.0
+            self.vel_m_s = (p - last.pos) / dt
+            self.last = fix
+            self._track.clear()
+            self._reboot_evidence = False  # the stream went on: no reboot after all
+            return verdict
+        if verdict is Verdict.STALE:
+            if last.boot_ms - boot_ms < REBOOT_JUMP_MS:
+                return verdict  # reordered or frozen: normal on a lossy link, never a reset candidate
+            verdict = Verdict.TIME_JUMP  # far back without boot evidence
+        return self._candidate(fix, verdict)
+
+    def _versus(self, ref: _Fix, fix: _Fix, vel_m_s: FloatArray) -> Verdict:
+        """Is ``fix`` a plausible successor of ``ref``?"""
+        lim = self.limits
+        dt = (fix.boot_ms - ref.boot_ms) / 1000.0
+        if dt <= 0.0:
+            return Verdict.STALE
+        if dt > (fix.rx_s - ref.rx_s) + lim.time_jump_s:
+            return Verdict.TIME_JUMP
+        speed = float(np.linalg.norm(vel_m_s))
+        reach = min(lim.max_speed_m_s * dt, speed * dt + 0.5 * lim.max_accel_m_s2 * dt * dt) + lim.noise_m
+        if float(np.linalg.norm(fix.pos - ref.pos)) > reach:
+            return Verdict.JUMP
+        return Verdict.ACCEPT
+
+    def _candidate(self, fix: _Fix, verdict: Verdict) -> Verdict:
+        track = self._track
+        if track and self._versus(track[-1], fix, np.zeros(3) if len(track) < 2 else self._track_vel()) is not (
+            Verdict.ACCEPT
+        ):
+            track.clear()
+        track.append(fix)
+        if len(track) >= self.limits.reset_samples:
+            return self._anchor(fix, Verdict.RESET)
+        return verdict
+
+    def _track_vel(self) -> FloatArray:
+        a, b = self._track[-2], self._track[-1]
+        dt = (b.boot_ms - a.boot_ms) / 1000.0
+        return (b.pos - a.pos) / dt if dt > 0 else np.zeros(3)
+
+    def _anchor(self, fix: _Fix, verdict: Verdict) -> Verdict:
+        self.last = fix
+        self.vel_m_s = np.zeros(3)
+        self._track.clear()
+        self._reboot_evidence = False
+        self._reset_window = 0
+        return verdict
