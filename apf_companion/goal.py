@@ -4,7 +4,7 @@ A ``Route`` is one or more waypoints in local NED; ``down`` may be NaN, meaning 
 has when that leg starts". A new goal from any source replaces the whole active route.
 
 Ground stations send MAV_CMD_DO_REPOSITION (192) as COMMAND_INT addressed to the companion's component.
-Interpretation by ``frame`` (decided here, documented in README, Service):
+Interpretation by ``frame`` (decided here, documented in docs/service.md):
 
 - MAV_FRAME_LOCAL_NED (1): ``x``, ``y`` are int32 north/east in metres * 1e4 (MAVLink's scaling of local
   positions in COMMAND_INT), ``z`` is down in metres (float). NaN ``z`` keeps the altitude.

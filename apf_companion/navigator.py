@@ -5,7 +5,7 @@ No sockets, no asyncio, no wall clock: the service feeds inputs stamped with its
 a setpoint is only ever computed from inputs fresh at ``now_s`` (pose younger than ``pose_max_age_s``, ranges
 younger than ``ranges_max_age_s``); nothing re-sends an old setpoint.
 
-States (the README's Service section has the diagram):
+States (docs/service.md has the diagram):
 
 - IDLE: no goal (or the pilot took the vehicle out of GUIDED/OFFBOARD). Sends nothing.
 - NAVIGATING: a goal and fresh inputs. Before the autopilot is in GUIDED/OFFBOARD it streams holds at the
@@ -378,7 +378,7 @@ class _Legs:
                 return None, dist
             leg = self._start(route, leg.index + 1, pos, now_s)
             dist = self.distance(pos, leg.target_ned_m)
-        # Progress bookkeeping (time-based give-up, notes.md decision 7).
+        # Progress bookkeeping (time-based give-up, docs/paper/notes.md decision 7).
         if dist < leg.best_dist_m - PROGRESS_EPS_M or math.isinf(leg.best_dist_m):
             leg.best_dist_m = dist
             leg.best_t_s = now_s

@@ -32,7 +32,7 @@ def test_empty_world_reaches_goal_in_about_68_iterations() -> None:
     cfg = _quiet(StudyConfig.reference())
     res = simulate(cfg, "cr-bapf", _world(np.zeros((0, 2))), np.random.default_rng(0), record=True)
     assert res.records.outcome[0] == Outcome.SUCCESS
-    # 26.87 m at ~0.4 m per move, plus the final iteration inside the goal circle (notes.md).
+    # 26.87 m at ~0.4 m per move, plus the final iteration inside the goal circle (docs/paper/notes.md).
     assert 66 <= res.records.iterations[0] <= 69
     assert math.isnan(res.records.safety_m[0])
     assert res.trace is not None
@@ -191,7 +191,7 @@ def test_safety_matches_recomputation_from_the_visited_positions() -> None:
 
 
 def test_engine_runs_in_3d() -> None:
-    # notes.md decision 6: the same rules in 3D (bacteria points on a sphere); the engine is dimension-generic.
+    # docs/paper/notes.md decision 6: the same rules in 3D (bacteria points on a sphere); the engine is dim-generic.
     from apf_companion.planning import PlannerParams
 
     cfg = dataclasses.replace(

@@ -3,7 +3,7 @@
 Adapters turn MAVLink (OBSTACLE_DISTANCE, DISTANCE_SENSOR, OBSTACLE_DISTANCE_3D) and zenoh (``apf.range_scan/1``
 JSON, ROS 2 LaserScan CDR) inputs into ``RangeScan`` values. ``scan_to_points_ned`` places them in local
 NED with the pose at measurement time (from a ``PoseHistory``), and an ``ObstacleMemory`` remembers the
-points with expiry. Conventions and schemas: README, Perception.
+points with expiry. Conventions and schemas: docs/perception.md.
 """
 
 from __future__ import annotations

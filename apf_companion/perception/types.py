@@ -1,6 +1,6 @@
 """Value types of the perception layer: poses, range scans, goal commands.
 
-Frames and angles (see the README's Perception section for the diagram):
+Frames and angles (see docs/perception.md for the diagram):
 
 - Positions are local NED (x north, y east, z down) in metres, relative to the autopilot's EKF origin.
 - Body-frame bearings are FRD: 0 = forward, clockwise positive seen from above (towards the right side).

@@ -1,7 +1,7 @@
 """CAPF: classical artificial potential field, Khatib-style (Khatib 1985), as this project defines it.
 
 The paper (Diab et al. 2023, DOI 10.1109/AERO55745.2023.10115857) compares against a "CAPF" but gives no formula
-(its reference, Mohanta 2016, could not be located); notes.md fixes this field:
+(its reference, Mohanta 2016, could not be located); docs/paper/notes.md fixes this field:
 
     U_att = k_att d^2 / 2,   d = |r - r_t|
     U_rep = sum_n eta (1/rho_n - 1/rho_0)^2 / 2   for rho_n < rho_0 (0 beyond), rho_n = |r - r_o^n| (FIRAS)

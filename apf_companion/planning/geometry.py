@@ -2,7 +2,7 @@
 
 2D: a ring of N_b points at angles k * 360 / N_b degrees, k = 1..N_b, in the world frame (angle measured from
 the frame's +x axis toward +y), as in the authors' code. 3D: N_b points spread evenly on a sphere by a Fibonacci
-lattice (notes.md decision 6). The radius is the movement step Delta r.
+lattice (docs/paper/notes.md decision 6). The radius is the movement step Delta r.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The paper's performance metrics (Section "Performance Metrics") and outcome bookkeeping.
 
 - R_s = N_s / N_m, Eq. (14), over all trials, with a Wilson score 95 % interval.
-- M_s, the mean number of iterations over successful trials (notes.md: iterations, including ones without a
+- M_s, the mean number of iterations over successful trials (docs/paper/notes.md: iterations, including ones without a
   move and the final one inside the goal circle).
 - S, Eq. (16): per successful trial, the mean over the obstacles detected during the run of the minimum
   distance from the visited positions; then averaged over successful trials.

@@ -4,7 +4,7 @@
   circles (paper Fig. "Successful and unsuccessful navigation").
 - ``rs_vs_mu.png``: R_s versus mu_o for BAPF and CR-BAPF* with 95 % intervals (needs ``--mu-sweep``).
 - ``abapf_mu.png``: mu_o,k of the chosen point versus step for A-BAPF in one successful run, under the
-  documented "paper" A-BAPF rule (``AbapfRule.PAPER``: the exact rule always gives mu_max, notes.md).
+  documented "paper" A-BAPF rule (``AbapfRule.PAPER``: the exact rule always gives mu_max, docs/paper/notes.md).
 - ``rs_per_planner.png``: R_s per planner and density with 95 % intervals, the paper's values marked.
 """
 

@@ -295,7 +295,7 @@ class Simulator:
         return self.engine.t_s
 
     def result(self) -> dict[str, Any]:
-        """The flight result (documented in README, Simulator)."""
+        """The flight result (documented in docs/simulator-usage.md)."""
         out = self.engine.result()
         out["wall_time_s"] = round(self.wall_time_s, 6)
         out["speedup"] = self.cfg.speedup if math.isfinite(self.cfg.speedup) else None

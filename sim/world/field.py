@@ -1,4 +1,4 @@
-"""The paper's random obstacle field (Diab et al. 2023, Sec. IV; project decisions in shared notes.md).
+"""The paper's random obstacle field (Diab et al. 2023, Sec. IV; project decisions in docs/paper/notes.md).
 
 Point obstacles uniformly distributed in a square: preset ``reference`` draws them in [5, 20]^2 m (the authors'
 published code), preset ``paper`` in [0, 30]^2 m (the paper's text). The agent starts at (3, 3) and the target
