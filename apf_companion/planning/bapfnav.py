@@ -1,0 +1,355 @@
+"""bapf-nav: the product planner. Bacteria points with real clearance, a swept move test and escape with memory.
+
+Each step tests the N_b bacteria points around the agent (the paper's candidates, ``geometry.bacteria_offsets``):
+
+1. Clearance. The straight move to a point is swept against every known obstacle point near the agent
+   (``clearance.segment_clearance_sq``): no move ends or passes closer than C = vehicle radius + safety margin
+   + noise_k * noise_std (``PlannerParams.clearance_m``). This is Eq. (13)'s +inf inside rho_l with rho_l = C,
+   applied along the whole move instead of at its end. An agent already inside C (noise pushed it there) may
+   only move so that it gets no closer along the way and ends farther out.
+2. Score. J_k = g(r_b,k) + sum_n a exp(-mu_c rho_o^n(r_b,k)) (+ a look-ahead penalty): the target term of
+   Eq. (1) ranks points by their distance to the goal g (exp is monotone, so the ranking by -log|J_t| = mu_t g^2
+   is the ranking by g; using g itself keeps the terms in metres), the clearance term has the form of Eq. (2)
+   (``potentials.obstacle_potential``) at product scale. A point passes when J_k < J_a, Eq. (6); the best
+   passing point is taken, not the first (the paper's first-passing rule grazes obstacles).
+3. Escape with memory. In DIRECT mode g is the straight-line distance. When no point passes (a local minimum of
+   the paper's field) the agent switches to ESCAPE: g becomes the geodesic distance to the goal on a grid of the
+   obstacles it has seen, inflated by C (``navfield.NavGrid``), which has no local minimum in front of a
+   concave obstacle. It leaves ESCAPE once closer to the goal than where the escape began (Bug2's leave rule),
+   so it cannot fall back into the same trap. The potential is recomputed when the descent stalls (new
+   obstacles) and every ``nav_replan_steps`` escape steps; blocked cells are remembered across recomputations.
+4. Stability. A turn of more than ``nav_hold_angle_deg`` from the previous move is taken only when it gains
+   ``nav_hold_ratio`` times what the best point within that angle gains (BendyRuler's OA_BR_CONT_ANGLE /
+   OA_BR_CONT_RATIO rule, applied to the score). In DIRECT mode each point also looks ahead: a probe of
+   ``nav_lookahead_m`` from the point towards the goal that comes closer than C costs
+   ``nav_lookahead_penalty_m``, so the side with an open view of the goal wins early.
+5. Give-up. No path on the remembered map, or no new closest approach to the goal for ``nav_patience_steps``
+   steps: ``DecisionReason.GAVE_UP`` (the caller reports STUCK), and no moves until the target changes.
+
+Moves are reported as GREEDY (a passing point on the planner's potential); ``NavState.mode`` says which
+potential. 3D: the candidates and the sweep are 3D; the escape potential is the horizontal geodesic distance
+combined with the vertical offset, sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
+from apf_companion.planning.decision import BatchDecision, DecisionReason
+from apf_companion.planning.navfield import NavGrid
+from apf_companion.planning.navstate import NavField, NavMode, NavState
+from apf_companion.planning.params import PlannerParams
+from apf_companion.planning.potentials import obstacle_potential
+from apf_companion.planning.stateful import AgentState, StatefulPlanner
+
+__all__ = ["BapfNavPlanner"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
+
+#: A new closest approach must beat the old one by this much [m] (noise-level jitter is no progress).
+_PROGRESS_EPS_M = 1e-6
+
+
+class BapfNavPlanner(StatefulPlanner):
+    """bapf-nav (module docstring)."""
+
+    name = "bapf-nav"
+
+    def __init__(self, params: PlannerParams) -> None:
+        super().__init__(params)
+        p = params
+        self.clearance_m = p.clearance_m
+        self._c2 = self.clearance_m**2
+        offsets = self.bacteria_offsets_m
+        self._units = offsets / p.step_m
+        self._grid = NavGrid(p.nav_cell_m, p.nav_grid_m)
+        self._cos_hold = math.cos(math.radians(p.nav_hold_angle_deg))
+        # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
+        soft_m = math.sqrt(7.0 / p.nav_clearance_decay_per_m2)  # exp(-7) < 1e-3: negligible beyond
+        self._reach_m = p.step_m + max(self.clearance_m + p.nav_lookahead_m, soft_m)
+        self._pad_m = 2.0 * p.step_m + self.clearance_m + 1.0
+
+    def initial_state(self, n_agents: int) -> NavState:
+        return NavState.empty(n_agents, self.params.dim)
+
+    # --- the step ---------------------------------------------------------------------------------------------
+
+    def _plan(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: AgentState,
+    ) -> BatchDecision:
+        assert isinstance(state, NavState)
+        p = self.params
+        n_agents = positions_m.shape[0]
+        changed = ~np.all(state.target_m == targets_m, axis=1)
+        if changed.any():
+            state.restart(np.flatnonzero(changed), targets_m[changed])
+        rel, valid = near_obstacles(positions_m, obstacles_m, obstacle_mask, self._reach_m)
+        offsets = self.bacteria_offsets_m
+        goal_vec = targets_m - positions_m
+        g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
+        self._progress(state, g0)
+
+        feasible = self._feasible(rel, valid)
+        clear_k, clear_0 = self._clearance_terms(rel, valid)
+        to_goal = goal_vec[:, None, :] - offsets[None, :, :]
+        g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
+        cost = g_k + clear_k + self._lookahead(rel, valid, to_goal, g_k)
+        cost0 = g0 + clear_0
+        active = state.mode != NavMode.GAVE_UP
+        passing = feasible & (cost < cost0[:, None]) & active[:, None]
+
+        # Escape: agents already escaping, and agents whose direct step found no passing point.
+        escaping = state.mode == NavMode.ESCAPE
+        trapped = (state.mode == NavMode.DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
+        if trapped.any():
+            rows = np.flatnonzero(trapped)
+            state.mode[rows] = NavMode.ESCAPE
+            state.hit_dist_m[rows] = g0[rows]
+            state.field[rows] = None
+            escaping = escaping | trapped
+        if escaping.any():
+            rows = np.flatnonzero(escaping)
+            self._escape_scores(
+                rows,
+                positions_m,
+                targets_m,
+                obstacles_m,
+                obstacle_mask,
+                state,
+                feasible,
+                clear_k,
+                clear_0,
+                cost,
+                cost0,
+                passing,
+            )
+
+        chosen = self._choose(cost, cost0, passing, state.prev_dir)
+        moved = chosen >= 0
+        reason = np.where(moved, DecisionReason.GREEDY, DecisionReason.LOCAL_MINIMUM).astype(np.int8)
+        reason[state.mode == NavMode.GAVE_UP] = DecisionReason.GAVE_UP
+        chosen[state.mode == NavMode.GAVE_UP] = -1
+        moved = chosen >= 0
+        next_points = np.full((n_agents, p.dim), np.nan)
+        next_points[moved] = positions_m[moved] + offsets[chosen[moved]]
+        state.prev_dir[moved] = self._units[chosen[moved]]
+        state.since_field[state.mode == NavMode.ESCAPE] += 1
+        return BatchDecision(
+            next_points_m=next_points,
+            reason=reason,
+            chosen_index=chosen.astype(np.int64),
+            mu_o_k=np.full(n_agents, np.nan),
+            n_passing=passing.sum(axis=1).astype(np.int64),
+            n_safe=feasible.sum(axis=1).astype(np.int64),
+        )
+
+    def _progress(self, state: NavState, g0: FloatArray) -> None:
+        """Closest approach, the escape's leave rule and the give-up by patience."""
+        improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
+        state.best_dist_m = np.where(improved, g0, state.best_dist_m)
+        state.since_best = np.where(improved, 0, state.since_best + 1).astype(np.int32)
+        leave = (state.mode == NavMode.ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m)
+        state.mode[leave] = NavMode.DIRECT
+        state.field[leave] = None
+        state.mode[state.since_best > self.params.nav_patience_steps] = NavMode.GAVE_UP
+
+    def _feasible(self, rel: FloatArray, valid: BoolArray) -> BoolArray:
+        """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out)."""
+        offsets = self.bacteria_offsets_m
+        seg2 = segment_clearance_sq(rel, valid, offsets)
+        d0 = np.min(np.where(valid, np.einsum("amd,amd->am", rel, rel), np.inf), axis=1, initial=np.inf)
+        ok = seg2 >= self._c2
+        inside = d0 < self._c2
+        if inside.any():
+            end = rel[:, None, :, :] - offsets[None, :, None, :]
+            end2 = np.min(np.where(valid[:, None, :], np.einsum("akmd,akmd->akm", end, end), np.inf), axis=2)
+            out = (seg2 >= d0[:, None]) & (end2 > d0[:, None])
+            ok = np.where(inside[:, None], out, ok)
+        return np.asarray(ok)
+
+    def _clearance_terms(self, rel: FloatArray, valid: BoolArray) -> tuple[FloatArray, FloatArray]:
+        """Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path."""
+        p = self.params
+        offsets = self.bacteria_offsets_m
+        n_agents = rel.shape[0]
+        if rel.shape[1] == 0 or p.nav_clearance_gain_m == 0.0:
+            return np.zeros((n_agents, offsets.shape[0])), np.zeros(n_agents)
+        r2 = np.einsum("amd,amd->am", rel, rel)
+        dot = np.einsum("amd,kd->akm", rel, offsets)
+        o2 = np.einsum("kd,kd->k", offsets, offsets)
+        end2 = np.maximum(r2[:, None, :] - 2.0 * dot + o2[None, :, None], 0.0)
+        kw = {"alpha_o": p.nav_clearance_gain_m, "mu_o_per_m2": p.nav_clearance_decay_per_m2}
+        at_points = np.where(valid[:, None, :], obstacle_potential(end2, **kw), 0.0).sum(axis=2)
+        at_agent = np.where(valid, obstacle_potential(r2, **kw), 0.0).sum(axis=1)
+        return at_points, at_agent
+
+    def _lookahead(self, rel: FloatArray, valid: BoolArray, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
+        """(A, K) penalty where the probe from the point towards the goal comes closer than the clearance."""
+        p = self.params
+        n_agents, n_points = g_k.shape
+        if p.nav_lookahead_m == 0.0 or p.nav_lookahead_penalty_m == 0.0 or rel.shape[1] == 0:
+            return np.zeros((n_agents, n_points))
+        length = np.minimum(g_k, p.nav_lookahead_m)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            vec = np.where(g_k[..., None] > 0.0, to_goal * (length / g_k)[..., None], 0.0)
+        starts = np.broadcast_to(self.bacteria_offsets_m, vec.shape)
+        blocked = segments_clearance_sq(rel, valid, starts, vec) < self._c2
+        return np.where(blocked, p.nav_lookahead_penalty_m, 0.0)
+
+    def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
+        """Best passing point, with the turn hysteresis; -1 where none passes."""
+        masked = np.where(passing, cost, np.inf)
+        best = np.argmin(masked, axis=1)
+        any_pass = passing.any(axis=1)
+        cos_turn = prev_dir @ self._units.T  # (A, K); 0 for no previous move
+        has_prev = np.any(prev_dir != 0.0, axis=1)
+        rows = np.arange(cost.shape[0])
+        sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
+        if sharp.any():
+            held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
+            alt = np.argmin(held, axis=1)
+            alt_ok = np.isfinite(held[rows, alt])
+            gain_best = cost0 - masked[rows, best]
+            gain_alt = cost0 - held[rows, alt]
+            keep = sharp & alt_ok & (gain_best < self.params.nav_hold_ratio * gain_alt)
+            best = np.where(keep, alt, best)
+        return np.where(any_pass, best, -1).astype(np.intp)
+
+    # --- escape -----------------------------------------------------------------------------------------------
+
+    def _escape_scores(
+        self,
+        rows: IntArray,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+        feasible: BoolArray,
+        clear_k: FloatArray,
+        clear_0: FloatArray,
+        cost: FloatArray,
+        cost0: FloatArray,
+        passing: BoolArray,
+    ) -> None:
+        """Replace the escaping rows' scores by the geodesic ones (in place), recomputing stale potentials."""
+        stale = np.array([state.field[r] is None for r in rows], dtype=bool)
+        stale |= state.since_field[rows] >= self.params.nav_replan_steps
+        if stale.any():
+            self._refresh(rows[stale], positions_m, targets_m, obstacles_m, obstacle_mask, state)
+        g_k, g0 = self._geodesic(rows, positions_m, targets_m, state)
+        ok: BoolArray = np.asarray(feasible[rows] & (g_k + clear_k[rows] < (g0 + clear_0[rows])[:, None]))
+        # Stalled on a potential that may be stale: recompute once with what is known now.
+        stalled = ~ok.any(axis=1) & ~stale
+        if stalled.any():
+            again = rows[stalled]
+            self._refresh(again, positions_m, targets_m, obstacles_m, obstacle_mask, state)
+            g_k[stalled], g0[stalled] = self._geodesic(again, positions_m, targets_m, state)
+            ok[stalled] = feasible[again] & (g_k[stalled] + clear_k[again] < (g0[stalled] + clear_0[again])[:, None])
+        # Still nothing: the grid lets the potential through a gap the sweep refuses (a diagonal between two
+        # free cells can cut an inflated obstacle). Mark the cells of the refused points that lead downhill as
+        # blocked (virtual obstacles, kept with the remembered cells) and recompute once.
+        dead = ~ok.any(axis=1)
+        if dead.any():
+            self._mark_dead_ends(rows[dead], positions_m, feasible[rows[dead]], g_k[dead], g0[dead], state)
+            again = rows[dead]
+            self._refresh(again, positions_m, targets_m, obstacles_m, obstacle_mask, state)
+            g_k[dead], g0[dead] = self._geodesic(again, positions_m, targets_m, state)
+            ok[dead] = feasible[again] & (g_k[dead] + clear_k[again] < (g0[dead] + clear_0[again])[:, None])
+        # Any feasible point down the potential (the clearance term may hold the agent on a plateau).
+        plain: BoolArray = np.asarray(feasible[rows] & (g_k < g0[:, None]))
+        has_ok = np.asarray(ok.any(axis=1))
+        ok = np.asarray(np.where(has_ok[:, None], ok, plain), dtype=np.bool_)
+        cost[rows] = g_k + clear_k[rows]
+        cost0[rows] = np.where(np.asarray(ok.any(axis=1)), g0 + clear_0[rows], np.inf)
+        passing[rows] = ok
+        no_path = ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1) & feasible[rows].any(axis=1)
+        state.mode[rows[no_path]] = NavMode.GAVE_UP
+
+    def _mark_dead_ends(
+        self,
+        rows: IntArray,
+        positions_m: FloatArray,
+        feasible: BoolArray,
+        g_k: FloatArray,
+        g0: FloatArray,
+        state: NavState,
+    ) -> None:
+        """Block the cells of refused points that the potential says lead downhill (not the agent's own cell)."""
+        grid = self._grid
+        n = grid.n
+        for i, r in enumerate(rows):
+            f = state.field[r]
+            refused = ~feasible[i] & (g_k[i] < g0[i])
+            if f is None or not refused.any():
+                continue
+            pts = positions_m[r, :2] + self.bacteria_offsets_m[refused, :2]
+            ci, cj = grid.cell_of(f.origin_m[None], pts[None])
+            own_i, own_j = grid.cell_of(f.origin_m[None], positions_m[r, :2][None, None])
+            ok = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n) & ~((ci == own_i[0, 0]) & (cj == own_j[0, 0]))
+            f.blocked[ci[ok] * n + cj[ok]] = True
+
+    def _refresh(
+        self,
+        rows: IntArray,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+    ) -> None:
+        """Recompute the potential of ``rows`` from the obstacles known now plus the cells remembered before."""
+        grid = self._grid
+        xy = positions_m[rows, :2]
+        goals = targets_m[rows, :2]
+        origins = grid.origins(xy, goals, self._pad_m)
+        old_blocked = np.zeros((rows.size, grid.size), dtype=bool)
+        side = grid.n * grid.cell_m
+        for i, r in enumerate(rows):
+            old = state.field[r]
+            if old is None:
+                continue
+            rel = xy[i] - old.origin_m
+            if np.all(rel >= self._pad_m) and np.all(rel <= side - self._pad_m):
+                origins[i] = old.origin_m  # the agent is well inside: keep the frame
+                old_blocked[i] = old.blocked
+            else:  # a new frame: carry the remembered cells over where the grids overlap
+                old_blocked[i] = grid.shift_blocked(old.blocked, old.origin_m, origins[i])
+        obs = obstacles_m[rows]
+        valid: BoolArray = np.asarray(np.isfinite(obs).all(axis=2))
+        if obstacle_mask is not None:
+            valid &= obstacle_mask[rows]
+        if self.params.dim == 3:
+            valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
+        blocked = grid.blocked(origins, np.where(valid[..., None], obs[:, :, :2], 0.0), valid, self.clearance_m)
+        blocked |= old_blocked
+        dist = grid.distances(origins, blocked, goals)
+        for i, r in enumerate(rows):
+            state.field[r] = NavField(origin_m=origins[i].copy(), blocked=blocked[i], dist_m=dist[i])
+        state.since_field[rows] = 0
+
+    def _geodesic(
+        self, rows: IntArray, positions_m: FloatArray, targets_m: FloatArray, state: NavState
+    ) -> tuple[FloatArray, FloatArray]:
+        """Potential at the points (R, K) and at the agents (R,) of ``rows`` (inf where unreachable)."""
+        offsets = self.bacteria_offsets_m
+        pts = positions_m[rows][:, None, :] + np.vstack([offsets, np.zeros((1, offsets.shape[1]))])[None]
+        values = np.empty(pts.shape[:2])
+        for i, r in enumerate(rows):
+            f = state.field[r]
+            values[i] = self._grid.sample(f.origin_m, f.dist_m, pts[i, :, :2])
+        if self.params.dim == 3:
+            dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
+            values = np.sqrt(values * values + dz * dz)
+        return values[:, :-1], values[:, -1]
