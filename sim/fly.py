@@ -60,7 +60,7 @@ PAPER_GOAL = (22.0, 22.0)
 class FlyOptions:
     """One flight (the CLI flags of ``apf-sim fly``)."""
 
-    planner: str = "cr-bapf*"
+    planner: str = "bapf-nav"
     profile: str = "ardupilot"
     seed: int = 0
     preset: str = "reference"
@@ -454,7 +454,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--planner", default="cr-bapf*", help="capf, bapf, a-bapf, cr-bapf, cr-bapf* (default)")
+    p.add_argument(
+        "--planner", default="bapf-nav", help="bapf-nav (default), bendyruler, capf, bapf, a-bapf, cr-bapf, cr-bapf*"
+    )
     p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
     p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
