@@ -212,7 +212,7 @@ class BapfNavPlanner(StatefulPlanner):
         masked = np.where(passing, cost, np.inf)
         best = np.argmin(masked, axis=1)
         any_pass = passing.any(axis=1)
-        cos_turn = prev_dir @ self._units.T  # (A, K); 0 for no previous move
+        cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)  # (A, K); 0 without a previous move
         has_prev = np.any(prev_dir != 0.0, axis=1)
         rows = np.arange(cost.shape[0])
         sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
@@ -220,8 +220,9 @@ class BapfNavPlanner(StatefulPlanner):
             held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
             alt = np.argmin(held, axis=1)
             alt_ok = np.isfinite(held[rows, alt])
-            gain_best = cost0 - masked[rows, best]
-            gain_alt = cost0 - held[rows, alt]
+            with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
+                gain_best = cost0 - masked[rows, best]
+                gain_alt = cost0 - held[rows, alt]
             keep = sharp & alt_ok & (gain_best < self.params.nav_hold_ratio * gain_alt)
             best = np.where(keep, alt, best)
         return np.where(any_pass, best, -1).astype(np.intp)

@@ -114,7 +114,7 @@ class BendyRulerPlanner(StatefulPlanner):
         # Probe order: increasing angle from the goal bearing (ties: lower index).
         with np.errstate(invalid="ignore", divide="ignore"):
             goal_unit = np.where(g0[:, None] > 0.0, goal_vec / g0[:, None], 0.0)
-        cos_goal = goal_unit @ self._units.T
+        cos_goal = np.einsum("ad,kd->ak", goal_unit, self._units)  # not @: BLAS rounding differs with A
         open_ = safe & (margin >= p.br_margin_max_m)
         first_open = np.argmax(np.where(open_, cos_goal, -np.inf), axis=1)
         widest = np.argmax(np.where(safe, margin, -np.inf), axis=1)
@@ -146,7 +146,7 @@ class BendyRulerPlanner(StatefulPlanner):
         if not has_prev.any():
             return chosen
         rows = np.arange(chosen.shape[0])
-        cos_prev = prev_dir @ self._units.T
+        cos_prev = np.einsum("ad,kd->ak", prev_dir, self._units)
         prev_k = np.argmax(cos_prev, axis=1)  # the probe closest to the previous bearing
         turn = cos_prev[rows, chosen] < self._cos_cont
         prev_ok = safe[rows, prev_k]

@@ -14,8 +14,9 @@ into segments at blocked cells by adding a large per-segment offset. One sweep r
 columns and both diagonals for all agents at once; sweeps repeat until nothing changes (a path with t turns
 needs about t + 1 sweeps). No Python loop runs over cells or obstacles.
 
-When the goal lies outside the grid, the boundary cells start at their straight-line distance to the goal (the
-space beyond the grid is unknown, so optimistically free).
+The space beyond the grid is unknown, so optimistically free: the boundary cells start at their straight-line
+distance to the goal, plus the grid's side when the goal lies inside the grid (a way out of the map and back is
+taken only when the map has no way in), so "no path" means the agent's own region is closed.
 """
 
 from __future__ import annotations
@@ -68,14 +69,15 @@ class NavGrid:
     def origins(self, positions_xy_m: FloatArray, goals_xy_m: FloatArray, pad_m: float) -> FloatArray:
         """(B, 2) lower corners of grids that hold the agent (and the goal when it fits, else the way to it).
 
-        The grid is centred between agent and goal; when they are farther apart than the grid allows (with
-        ``pad_m`` of room), it is centred ``side / 2 - pad`` from the agent towards the goal. Corners lie on the
-        lattice of multiples of the cell size, so grids of one agent overlap cell for cell (``shift_blocked``).
+        The grid is centred between agent and goal, but never farther than ``side / 2 - max(pad, side / 3)`` from
+        the agent: at least a third of the side stays behind it (a trap it has to back out of lies there).
+        Corners lie on the lattice of multiples of the cell size, so grids of one agent overlap cell for cell
+        (``shift_blocked``).
         """
         side = self.n * self.cell_m
         delta = goals_xy_m - positions_xy_m
         dist = np.sqrt(np.einsum("bd,bd->b", delta, delta))
-        half_room = max(side / 2.0 - pad_m, 0.0)
+        half_room = max(side / 2.0 - max(pad_m, side / 3.0), 0.0)
         reach = np.minimum(dist / 2.0, half_room)
         with np.errstate(invalid="ignore", divide="ignore"):
             unit = np.where(dist[:, None] > 0.0, delta / dist[:, None], 0.0)
@@ -167,8 +169,9 @@ class NavGrid:
         seeds = np.where(near.reshape(n_batch, -1) & ~blocked, euclid, np.inf)
         edge = np.zeros((n, n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
-        outside = ~inside[:, None] & edge.reshape(1, -1) & ~blocked
-        return np.where(outside, euclid, seeds)
+        detour = np.where(inside, self.n * h, 0.0)[:, None]
+        on_edge = edge.reshape(1, -1) & ~blocked
+        return np.minimum(seeds, np.where(on_edge, euclid + detour, np.inf))
 
     def _views(self, buf: npt.NDArray[_Scalar]) -> list[tuple[npt.NDArray[_Scalar], int, float]]:
         """(view, line axis, step cost) of the four line families on a (B, 3 n^2) buffer (class Notes)."""
