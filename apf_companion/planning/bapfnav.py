@@ -54,6 +54,8 @@ IntArray = npt.NDArray[np.intp]
 
 #: A new closest approach must beat the old one by this much [m] (noise-level jitter is no progress).
 _PROGRESS_EPS_M = 1e-6
+#: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
+_GROUP = 16
 
 
 class BapfNavPlanner(StatefulPlanner):
@@ -68,6 +70,7 @@ class BapfNavPlanner(StatefulPlanner):
         self._c2 = self.clearance_m**2
         offsets = self.bacteria_offsets_m
         self._units = offsets / p.step_m
+        self._o2 = np.einsum("kd,kd->k", offsets, offsets)
         self._grid = NavGrid(p.nav_cell_m, p.nav_grid_m)
         self._cos_hold = math.cos(math.radians(p.nav_hold_angle_deg))
         # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
@@ -94,17 +97,18 @@ class BapfNavPlanner(StatefulPlanner):
         changed = ~np.all(state.target_m == targets_m, axis=1)
         if changed.any():
             state.restart(np.flatnonzero(changed), targets_m[changed])
-        rel, valid = near_obstacles(positions_m, obstacles_m, obstacle_mask, self._reach_m)
         offsets = self.bacteria_offsets_m
         goal_vec = targets_m - positions_m
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
         self._progress(state, g0)
 
-        feasible = self._feasible(rel, valid)
-        clear_k, clear_0 = self._clearance_terms(rel, valid)
         to_goal = goal_vec[:, None, :] - offsets[None, :, :]
         g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
-        cost = g_k + clear_k + self._lookahead(rel, valid, to_goal, g_k)
+        direct = state.mode == NavMode.DIRECT
+        feasible, clear_k, clear_0, look_k = self._geometry(
+            positions_m, obstacles_m, obstacle_mask, to_goal, g_k, direct
+        )
+        cost = g_k + clear_k + look_k
         cost0 = g0 + clear_0
         active = state.mode != NavMode.GAVE_UP
         passing = feasible & (cost < cost0[:, None]) & active[:, None]
@@ -154,6 +158,37 @@ class BapfNavPlanner(StatefulPlanner):
             n_safe=feasible.sum(axis=1).astype(np.int64),
         )
 
+    def _geometry(
+        self,
+        positions_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        to_goal: FloatArray,
+        g_k: FloatArray,
+        direct: BoolArray,
+    ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
+        """Feasible moves (A, K), clearance terms (A, K) and (A,), look-ahead penalties (A, K; DIRECT agents).
+
+        Agents go in groups of ``_GROUP``, each with the obstacles near its own agents: the (M, A, K) work arrays
+        stay small (megabyte temporaries cost page faults on every call, several times the arithmetic), and a
+        group pays only for its own crowd. An agent's result does not depend on its group.
+        """
+        n_agents, n_points = g_k.shape
+        feasible = np.empty((n_agents, n_points), dtype=bool)
+        clear_k = np.empty((n_agents, n_points))
+        clear_0 = np.empty(n_agents)
+        look_k = np.zeros((n_agents, n_points))
+        for lo in range(0, n_agents, _GROUP):
+            g = slice(lo, min(lo + _GROUP, n_agents))
+            mask = None if obstacle_mask is None else obstacle_mask[g]
+            rel, valid = near_obstacles(positions_m[g], obstacles_m[g], mask, self._reach_m)
+            feasible[g] = self._feasible(rel, valid)
+            clear_k[g], clear_0[g] = self._clearance_terms(rel, valid)
+            rows = np.flatnonzero(direct[g])
+            if rows.size and rel.shape[1]:
+                look_k[lo + rows] = self._lookahead(rel[rows], valid[rows], to_goal[g][rows], g_k[g][rows])
+        return feasible, clear_k, clear_0, look_k
+
     def _progress(self, state: NavState, g0: FloatArray) -> None:
         """Closest approach, the escape's leave rule and the give-up by patience."""
         improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
@@ -166,33 +201,40 @@ class BapfNavPlanner(StatefulPlanner):
 
     def _feasible(self, rel: FloatArray, valid: BoolArray) -> BoolArray:
         """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out)."""
-        offsets = self.bacteria_offsets_m
-        seg2 = segment_clearance_sq(rel, valid, offsets)
-        d0 = np.min(np.where(valid, np.einsum("amd,amd->am", rel, rel), np.inf), axis=1, initial=np.inf)
+        seg2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
+        r2 = np.einsum("amd,amd->am", rel, rel)
+        d0 = np.min(np.where(valid, r2, np.inf), axis=1, initial=np.inf)
         ok = seg2 >= self._c2
         inside = d0 < self._c2
         if inside.any():
-            end = rel[:, None, :, :] - offsets[None, :, None, :]
-            end2 = np.min(np.where(valid[:, None, :], np.einsum("akmd,akmd->akm", end, end), np.inf), axis=2)
-            out = (seg2 >= d0[:, None]) & (end2 > d0[:, None])
+            end2 = self._end_dist_sq(rel, r2)
+            np.copyto(end2, np.inf, where=~valid.T[:, :, None])
+            out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
         return np.asarray(ok)
+
+    def _end_dist_sq(self, rel: FloatArray, r2: FloatArray) -> FloatArray:
+        """(M, A, K) squared distance from each obstacle to each bacteria point: |rel|^2 - 2 rel.o + |o|^2."""
+        offsets = self.bacteria_offsets_m
+        dot = np.ascontiguousarray(rel[:, :, 0].T)[:, :, None] * (-2.0 * offsets[:, 0])
+        for d in range(1, offsets.shape[1]):
+            dot += np.ascontiguousarray(rel[:, :, d].T)[:, :, None] * (-2.0 * offsets[:, d])
+        dot += r2.T[:, :, None]
+        dot += self._o2
+        return np.maximum(dot, 0.0, out=dot)
 
     def _clearance_terms(self, rel: FloatArray, valid: BoolArray) -> tuple[FloatArray, FloatArray]:
         """Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path."""
         p = self.params
-        offsets = self.bacteria_offsets_m
         n_agents = rel.shape[0]
         if rel.shape[1] == 0 or p.nav_clearance_gain_m == 0.0:
-            return np.zeros((n_agents, offsets.shape[0])), np.zeros(n_agents)
+            return np.zeros((n_agents, self._o2.shape[0])), np.zeros(n_agents)
         r2 = np.einsum("amd,amd->am", rel, rel)
-        dot = np.einsum("amd,kd->akm", rel, offsets)
-        o2 = np.einsum("kd,kd->k", offsets, offsets)
-        end2 = np.maximum(r2[:, None, :] - 2.0 * dot + o2[None, :, None], 0.0)
         kw = {"alpha_o": p.nav_clearance_gain_m, "mu_o_per_m2": p.nav_clearance_decay_per_m2}
-        at_points = np.where(valid[:, None, :], obstacle_potential(end2, **kw), 0.0).sum(axis=2)
+        terms = obstacle_potential(self._end_dist_sq(rel, r2), **kw)
+        np.copyto(terms, 0.0, where=~valid.T[:, :, None])
         at_agent = np.where(valid, obstacle_potential(r2, **kw), 0.0).sum(axis=1)
-        return at_points, at_agent
+        return np.add.reduce(terms, axis=0), at_agent
 
     def _lookahead(self, rel: FloatArray, valid: BoolArray, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
         """(A, K) penalty where the probe from the point towards the goal comes closer than the clearance."""
@@ -274,9 +316,15 @@ class BapfNavPlanner(StatefulPlanner):
         ok = np.asarray(np.where(has_ok[:, None], ok, plain), dtype=np.bool_)
         cost[rows] = g_k + clear_k[rows]
         cost0[rows] = np.where(np.asarray(ok.any(axis=1)), g0 + clear_0[rows], np.inf)
+        # Every feasible point is off the map's free cells: inside the inflated obstacles (noise put the agent
+        # there), the agent first backs out (least clearance term); from a free cell it is "no path": give up.
+        lost = feasible[rows].any(axis=1) & ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1)
+        inside = lost & ~np.isfinite(g0)
+        ok[inside] = feasible[rows[inside]]
+        cost[rows[inside]] = clear_k[rows[inside]]
+        cost0[rows[inside]] = np.inf
         passing[rows] = ok
-        no_path = ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1) & feasible[rows].any(axis=1)
-        state.mode[rows[no_path]] = NavMode.GAVE_UP
+        state.mode[rows[lost & ~inside]] = NavMode.GAVE_UP
 
     def _mark_dead_ends(
         self,

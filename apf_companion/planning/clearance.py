@@ -61,6 +61,20 @@ def point_clearance_sq(rel_m: FloatArray, valid: BoolArray) -> FloatArray:
     return np.asarray(np.min(d2, axis=1, initial=np.inf), dtype=np.float64)
 
 
+def _axes(rel_m: FloatArray) -> list[FloatArray]:
+    """The D coordinate planes of (A, M, D) points as contiguous (M, A) arrays.
+
+    Work arrays are laid out (obstacle, agent, point), so every ufunc runs along the contiguous axis of the N_b
+    points and reductions over obstacles combine whole (A, K) slices (numpy is slow on short inner axes).
+    """
+    return [np.ascontiguousarray(rel_m[:, :, d].T) for d in range(rel_m.shape[2])]
+
+
+def _invalid_to_inf(d2: FloatArray, valid: BoolArray) -> None:
+    """Set the (M, A, K) rows of padding obstacles to +inf, in place."""
+    np.copyto(d2, np.inf, where=~valid.T[:, :, None])
+
+
 def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatArray) -> FloatArray:
     """Squared distance from each straight move agent -> agent + offset_k to the nearest valid obstacle.
 
@@ -74,18 +88,26 @@ def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatAr
     -------
     (A, K) min over obstacles of the squared distance to the segment [0, offset_k] [m^2]; inf without obstacles.
     """
-    n_agents, width, _ = rel_m.shape
+    n_agents, width, dim = rel_m.shape
     if width == 0:
         return np.full((n_agents, offsets_m.shape[0]), np.inf)
+    axes = _axes(rel_m)
     o2 = np.einsum("kd,kd->k", offsets_m, offsets_m)
-    dot = np.einsum("amd,kd->akm", rel_m, offsets_m)  # (A, K, M)
-    t = dot / o2[None, :, None]
+    dot = axes[0][:, :, None] * offsets_m[:, 0]  # (M, A, K)
+    r2 = axes[0] * axes[0]
+    for d in range(1, dim):
+        dot += axes[d][:, :, None] * offsets_m[:, d]
+        r2 += axes[d] * axes[d]
+    t = dot / o2
     np.clip(t, 0.0, 1.0, out=t)
-    r2 = np.einsum("amd,amd->am", rel_m, rel_m)[:, None, :]
-    d2 = r2 - t * (2.0 * dot - t * o2[None, :, None])
+    # |rel - t o|^2 = r2 - t (2 dot - t o2), with the obstacles relative to the agent (no cancellation).
+    dot *= 2.0
+    dot -= t * o2
+    dot *= t
+    d2 = r2[:, :, None] - dot
     np.maximum(d2, 0.0, out=d2)
-    d2 = np.where(valid[:, None, :], d2, np.inf)
-    return np.asarray(np.min(d2, axis=2), dtype=np.float64)
+    _invalid_to_inf(d2, valid)
+    return np.asarray(np.minimum.reduce(d2, axis=0), dtype=np.float64)
 
 
 def segments_clearance_sq(
@@ -95,19 +117,27 @@ def segments_clearance_sq(
 
     ``starts_m`` and ``vectors_m`` are (A, K, D); zero-length vectors are points. Returns (A, K) [m^2].
     """
-    n_agents, width, _ = rel_m.shape
+    n_agents, width, dim = rel_m.shape
     n_seg = starts_m.shape[1]
     if width == 0:
         return np.full((n_agents, n_seg), np.inf)
-    rel = rel_m[:, None, :, :] - starts_m[:, :, None, :]  # (A, K, M, D)
-    v2 = np.einsum("akd,akd->ak", vectors_m, vectors_m)[:, :, None]
-    dot = np.einsum("akmd,akd->akm", rel, vectors_m)
+    axes = _axes(rel_m)
+    r2 = np.zeros((width, n_agents, n_seg))
+    dot = np.zeros((width, n_agents, n_seg))
+    for d in range(dim):
+        rel = axes[d][:, :, None] - starts_m[:, :, d]  # (M, A, K): obstacle minus segment start
+        r2 += rel * rel
+        rel *= vectors_m[:, :, d]
+        dot += rel
+    v2 = np.einsum("akd,akd->ak", vectors_m, vectors_m)
     with np.errstate(invalid="ignore", divide="ignore"):
         t = dot / v2
     t[~(t > 0.0)] = 0.0  # also NaN from a zero-length vector: the segment is its start point
     np.minimum(t, 1.0, out=t)
-    r2 = np.einsum("akmd,akmd->akm", rel, rel)
-    d2 = r2 - t * (2.0 * dot - t * v2)
-    np.maximum(d2, 0.0, out=d2)
-    d2 = np.where(valid[:, None, :], d2, np.inf)
-    return np.asarray(np.min(d2, axis=2), dtype=np.float64)
+    dot *= 2.0
+    dot -= t * v2
+    dot *= t
+    r2 -= dot
+    np.maximum(r2, 0.0, out=r2)
+    _invalid_to_inf(r2, valid)
+    return np.asarray(np.minimum.reduce(r2, axis=0), dtype=np.float64)
