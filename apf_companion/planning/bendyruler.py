@@ -13,15 +13,16 @@ copied). What those documents say:
 - OA_BR_CONT_ANGLE: BendyRuler resists changing the current bearing if the change is over this angle.
 
 This project's reading, with the bacteria directions as the probes (the same sensing and step as the other rows):
-a probe along bearing k is a "ruler" of ``br_lookahead_m`` from the agent, bent at its end towards the goal for
-a second ruler of the same length (hence "bendy"); its margin is the smallest distance from an obstacle to
-either ruler. Probes are tried in order of increasing angle from the goal bearing; the first whose margin is at
-least ``br_margin_max_m`` is sufficiently open. If none is, the probe with the largest margin is taken, and then
-a change of bearing by more than ``br_cont_angle_deg`` from the previous move is made only when the new margin is
-at least ``br_cont_ratio`` times the previous bearing's margin (or the previous bearing is no longer safe): without
-that restriction to the no-open-probe case, a previous bearing away from the goal would be kept for ever. The agent
-then moves ``step_m`` along the chosen bearing, provided that step keeps vehicle radius + safety margin;
-otherwise it does not move (LOCAL_MINIMUM). It has no memory beyond the last bearing and no give-up rule.
+a probe along bearing k is a "ruler" of ``br_lookahead_m`` from the agent, followed at its end by a second ruler
+of the same length, bent towards the goal or straight on, whichever is more open (hence "bendy"); its margin is
+the smallest distance from an obstacle to the first ruler and the chosen second one. Probes are tried in order of
+increasing angle from the goal bearing; the first whose margin is at least ``br_margin_max_m`` is sufficiently
+open. If none is, the probe with the largest margin is taken, and then a change of bearing by more than
+``br_cont_angle_deg`` from the previous move is made only when the new margin is at least ``br_cont_ratio`` times
+the previous bearing's margin (or the previous bearing is no longer safe): without that restriction to the
+no-open-probe case, a previous bearing away from the goal would be kept for ever. The agent then moves
+``step_m`` along the chosen bearing, provided that step keeps vehicle radius + safety margin; otherwise it does
+not move (LOCAL_MINIMUM). It has no memory beyond the last bearing and no give-up rule.
 
 It is a comparison row for the study, not a port of ArduPilot and not flown by default.
 """
@@ -35,7 +36,7 @@ from typing import Self
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import near_obstacles, segments_clearance_sq
+from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner
@@ -44,6 +45,9 @@ __all__ = ["BendyRulerPlanner", "BendyRulerState"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+
+#: Agents per group of the probe geometry.
+_GROUP = 16
 
 
 @dataclass(slots=True)
@@ -93,23 +97,14 @@ class BendyRulerPlanner(StatefulPlanner):
         changed = ~np.all(state.target_m == targets_m, axis=1)
         state.target_m[changed] = targets_m[changed]
         state.prev_dir[changed] = 0.0
-        look = p.br_lookahead_m
-        rel, valid = near_obstacles(positions_m, obstacles_m, obstacle_mask, 2.0 * look + p.br_margin_max_m)
         goal_vec = targets_m - positions_m
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
-        # Ruler 1: along each bearing (no longer than the way to the goal); ruler 2: from its end to the goal.
-        len1 = np.clip(g0, p.step_m, look)
-        ruler1 = self._units[None, :, :] * len1[:, None, None]
-        to_goal = goal_vec[:, None, :] - ruler1
-        dist2 = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ruler2 = np.where(dist2[..., None] > 0.0, to_goal * (np.minimum(dist2, look) / dist2)[..., None], 0.0)
-        zeros = np.zeros_like(ruler1)
-        m1 = segments_clearance_sq(rel, valid, zeros, ruler1)
-        m2 = segments_clearance_sq(rel, valid, ruler1, ruler2)
-        margin = np.sqrt(np.minimum(m1, m2))
-        step_vec = np.broadcast_to(self.bacteria_offsets_m, ruler1.shape)
-        safe = np.sqrt(segments_clearance_sq(rel, valid, zeros, step_vec)) >= self._floor_m
+        margin = np.empty((n_agents, self._units.shape[0]))
+        safe = np.empty(margin.shape, dtype=bool)
+        for lo in range(0, n_agents, _GROUP):  # small work arrays (see bapfnav._geometry)
+            g = slice(lo, min(lo + _GROUP, n_agents))
+            mask = None if obstacle_mask is None else obstacle_mask[g]
+            margin[g], safe[g] = self._probe(positions_m[g], obstacles_m[g], mask, goal_vec[g], g0[g])
 
         # Probe order: increasing angle from the goal bearing (ties: lower index).
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -137,6 +132,35 @@ class BendyRulerPlanner(StatefulPlanner):
             n_passing=open_.sum(axis=1).astype(np.int64),
             n_safe=safe.sum(axis=1).astype(np.int64),
         )
+
+    def _probe(
+        self,
+        positions_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        goal_vec: FloatArray,
+        g0: FloatArray,
+    ) -> tuple[FloatArray, BoolArray]:
+        """Margins of the bent rulers (A, K) [m] and which first steps keep radius + safety margin (A, K)."""
+        p = self.params
+        look = p.br_lookahead_m
+        rel, valid = near_obstacles(positions_m, obstacles_m, obstacle_mask, 2.0 * look + p.br_margin_max_m)
+        # Ruler 1: along each bearing (no longer than the way to the goal); ruler 2: from its end to the goal.
+        len1 = np.clip(g0, p.step_m, look)
+        ruler1 = self._units[None, :, :] * len1[:, None, None]
+        to_goal = goal_vec[:, None, :] - ruler1
+        dist2 = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ruler2 = np.where(dist2[..., None] > 0.0, to_goal * (np.minimum(dist2, look) / dist2)[..., None], 0.0)
+        zeros = np.zeros_like(ruler1)
+        m1 = segments_clearance_sq(rel, valid, zeros, ruler1)
+        # The bend: from the end of ruler 1 towards the goal, or straight on; the more open of the two counts.
+        m2 = np.maximum(
+            segments_clearance_sq(rel, valid, ruler1, ruler2), segments_clearance_sq(rel, valid, ruler1, ruler1)
+        )
+        margin = np.sqrt(np.minimum(m1, m2))
+        step2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
+        return margin, np.sqrt(step2) >= self._floor_m
 
     def _continuity(
         self, chosen: npt.NDArray[np.intp], margin: FloatArray, safe: BoolArray, prev_dir: FloatArray

@@ -141,7 +141,7 @@ class PlannerParams:
     nav_grid_m: float = 16.0
     nav_replan_steps: int = 25
     nav_patience_steps: int = 300
-    br_lookahead_m: float = 2.0
+    br_lookahead_m: float = 1.2
     br_margin_max_m: float = 0.6
     br_cont_ratio: float = 1.5
     br_cont_angle_deg: float = 75.0
