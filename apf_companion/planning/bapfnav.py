@@ -54,6 +54,13 @@ IntArray = npt.NDArray[np.intp]
 
 #: A new closest approach must beat the old one by this much [m] (noise-level jitter is no progress).
 _PROGRESS_EPS_M = 1e-6
+# NavMode codes as int8 scalars: comparing an array with an IntEnum member costs enum machinery on every call.
+_DIRECT = np.int8(NavMode.DIRECT)
+_ESCAPE = np.int8(NavMode.ESCAPE)
+_GAVE_UP = np.int8(NavMode.GAVE_UP)
+_GREEDY_CODE = np.int8(DecisionReason.GREEDY)
+_LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
+_GAVE_UP_CODE = np.int8(DecisionReason.GAVE_UP)
 #: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
 _GROUP = 16
 
@@ -104,21 +111,21 @@ class BapfNavPlanner(StatefulPlanner):
 
         to_goal = goal_vec[:, None, :] - offsets[None, :, :]
         g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
-        direct = state.mode == NavMode.DIRECT
+        direct = state.mode == _DIRECT
         feasible, clear_k, clear_0, look_k = self._geometry(
             positions_m, obstacles_m, obstacle_mask, to_goal, g_k, direct
         )
         cost = g_k + clear_k + look_k
         cost0 = g0 + clear_0
-        active = state.mode != NavMode.GAVE_UP
+        active = state.mode != _GAVE_UP
         passing = feasible & (cost < cost0[:, None]) & active[:, None]
 
         # Escape: agents already escaping, and agents whose direct step found no passing point.
-        escaping = state.mode == NavMode.ESCAPE
-        trapped = (state.mode == NavMode.DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
+        escaping = state.mode == _ESCAPE
+        trapped = (state.mode == _DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
         if trapped.any():
             rows = np.flatnonzero(trapped)
-            state.mode[rows] = NavMode.ESCAPE
+            state.mode[rows] = _ESCAPE
             state.hit_dist_m[rows] = g0[rows]
             state.field[rows] = None
             escaping = escaping | trapped
@@ -141,14 +148,15 @@ class BapfNavPlanner(StatefulPlanner):
 
         chosen = self._choose(cost, cost0, passing, state.prev_dir)
         moved = chosen >= 0
-        reason = np.where(moved, DecisionReason.GREEDY, DecisionReason.LOCAL_MINIMUM).astype(np.int8)
-        reason[state.mode == NavMode.GAVE_UP] = DecisionReason.GAVE_UP
-        chosen[state.mode == NavMode.GAVE_UP] = -1
+        gave_up = state.mode == _GAVE_UP
+        reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
+        reason[gave_up] = _GAVE_UP_CODE
+        chosen[gave_up] = -1
         moved = chosen >= 0
         next_points = np.full((n_agents, p.dim), np.nan)
         next_points[moved] = positions_m[moved] + offsets[chosen[moved]]
         state.prev_dir[moved] = self._units[chosen[moved]]
-        state.since_field[state.mode == NavMode.ESCAPE] += 1
+        state.since_field[state.mode == _ESCAPE] += 1
         return BatchDecision(
             next_points_m=next_points,
             reason=reason,
@@ -194,10 +202,10 @@ class BapfNavPlanner(StatefulPlanner):
         improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
         state.best_dist_m = np.where(improved, g0, state.best_dist_m)
         state.since_best = np.where(improved, 0, state.since_best + 1).astype(np.int32)
-        leave = (state.mode == NavMode.ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m)
-        state.mode[leave] = NavMode.DIRECT
+        leave = (state.mode == _ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m)
+        state.mode[leave] = _DIRECT
         state.field[leave] = None
-        state.mode[state.since_best > self.params.nav_patience_steps] = NavMode.GAVE_UP
+        state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
     def _feasible(self, rel: FloatArray, valid: BoolArray) -> BoolArray:
         """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out)."""
@@ -324,7 +332,7 @@ class BapfNavPlanner(StatefulPlanner):
         cost[rows[inside]] = clear_k[rows[inside]]
         cost0[rows[inside]] = np.inf
         passing[rows] = ok
-        state.mode[rows[lost & ~inside]] = NavMode.GAVE_UP
+        state.mode[rows[lost & ~inside]] = _GAVE_UP
 
     def _mark_dead_ends(
         self,

@@ -99,7 +99,8 @@ def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatAr
         dot += axes[d][:, :, None] * offsets_m[:, d]
         r2 += axes[d] * axes[d]
     t = dot / o2
-    np.clip(t, 0.0, 1.0, out=t)
+    np.maximum(t, 0.0, out=t)
+    np.minimum(t, 1.0, out=t)
     # |rel - t o|^2 = r2 - t (2 dot - t o2), with the obstacles relative to the agent (no cancellation).
     dot *= 2.0
     dot -= t * o2
