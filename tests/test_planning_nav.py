@@ -370,3 +370,18 @@ def test_bendyruler_flies_straight_in_the_open_and_around_a_post() -> None:
         if np.linalg.norm(pos - [6.0, 0.0]) < 0.7:
             break
     assert np.linalg.norm(pos - [6.0, 0.0]) < 0.7
+
+
+def test_service_config_takes_the_product_parameters() -> None:
+    """``[planner.params]`` reaches bapf-nav through the service's validated config (typos are refused)."""
+    from apf_companion.config import config_from_mapping
+    from apf_companion.service import build_planner
+
+    cfg = config_from_mapping({"planner": {"params": {"vehicle_radius_m": 0.3, "safety_margin_m": 0.2}}})
+    planner = build_planner(cfg)
+    assert isinstance(planner, BapfNavPlanner)
+    assert planner.clearance_m == pytest.approx(0.3 + 0.2 + 2.5 * 0.1)
+    with pytest.raises(ConfigError, match="vehicle_radius_m"):
+        build_planner(config_from_mapping({"planner": {"params": {"vehicle_radius_m": -1.0}}}))
+    with pytest.raises(ConfigError, match="unknown planner parameter"):
+        build_planner(config_from_mapping({"planner": {"params": {"vehicle_radius": 0.3}}}))

@@ -51,7 +51,6 @@ from apf_companion.planning import (
     DecisionReason,
     PlannerName,
     RandomWalkRule,
-    StatefulPlanner,
     get_planner,
 )
 from sim.study import _worker
@@ -171,7 +170,8 @@ def simulate(
     best_goal_dist = np.full(n_trials, np.inf)
     since_best = np.zeros(n_trials, dtype=np.int32)
     targets = np.broadcast_to(target, (n_trials, dim))
-    state: AgentState | None = planner.initial_state(n_trials) if isinstance(planner, StatefulPlanner) else None
+    # Stateful planners (``StatefulPlanner``, or a wrapper that forwards ``initial_state``) get per-trial state.
+    state: AgentState | None = planner.initial_state(n_trials) if hasattr(planner, "initial_state") else None
 
     trace_pos: list[FloatArray] = []
     trace_reason: list[npt.NDArray[np.int8]] = []
