@@ -97,7 +97,8 @@ def test_no_move_ends_or_passes_within_the_clearance(
     dim: int, obstacles: list[tuple[float, float, float]], goal: tuple[float, float, float], steps: int
 ) -> None:
     """From a point outside the clearance, every move (several in a row) keeps radius + margins on its whole
-    segment, whatever the obstacles and the goal."""
+    segment, whatever the obstacles and the goal; only when no move keeps them (boxed in) is the noise margin
+    spent, never the radius + safety margin."""
     params = PlannerParams(dim=dim)
     planner = get_planner("bapf-nav", params)
     obs = np.asarray(obstacles, dtype=np.float64)[:, :dim]
@@ -112,7 +113,10 @@ def test_no_move_ends_or_passes_within_the_clearance(
         decision = planner.step(pos, target, obs)
         if decision.next_point_m is None:
             break
-        assert _segment_clearance(pos, decision.next_point_m, obs) >= clearance - 1e-9
+        swept = _segment_clearance(pos, decision.next_point_m, obs)
+        assert swept >= params.vehicle_radius_m + params.safety_margin_m - 1e-9
+        if decision.n_safe > 0:
+            assert swept >= clearance - 1e-9
         pos = decision.next_point_m
 
 
@@ -124,9 +128,12 @@ def test_from_inside_the_clearance_a_move_never_gets_closer(obstacles: list[tupl
     obs = np.vstack([[0.3, 0.0], np.asarray(obstacles)])  # one obstacle inside the 0.6 m clearance
     d0 = float(np.min(np.linalg.norm(obs, axis=1)))
     decision = get_planner("bapf-nav", params).step(np.zeros(2), np.array([20.0, 0.0]), obs)
-    if decision.next_point_m is not None:
+    if decision.next_point_m is not None and decision.n_safe > 0:
         assert _segment_clearance(np.zeros(2), decision.next_point_m, obs) >= d0 - 1e-9
         assert float(np.min(np.linalg.norm(obs - decision.next_point_m, axis=1))) > d0
+    elif decision.next_point_m is not None:  # boxed in: squeezes out, keeping radius + safety margin
+        swept = _segment_clearance(np.zeros(2), decision.next_point_m, obs)
+        assert swept >= params.vehicle_radius_m + params.safety_margin_m - 1e-9
 
 
 def test_hundreds_of_wall_points_are_respected() -> None:
@@ -138,6 +145,7 @@ def test_hundreds_of_wall_points_are_respected() -> None:
         d = planner.step(pos, np.array([10.0, 0.5]), wall)
         if d.next_point_m is None:
             break
+        assert d.n_safe > 0
         assert _segment_clearance(pos, d.next_point_m, wall) >= planner.params.clearance_m - 1e-9
         pos = d.next_point_m
 
@@ -268,6 +276,21 @@ def test_an_enclosed_goal_ends_in_a_bounded_give_up() -> None:
     assert again.reason is DecisionReason.GAVE_UP and again.next_point_m is None
     planner.reset()
     assert planner.step(pos, np.array([-5.0, 0.0]), ring).reason is DecisionReason.GREEDY
+
+
+def test_boxed_in_it_squeezes_out_keeping_radius_and_safety_margin() -> None:
+    """A ring of 7 points 0.7 m away (pockets like it occur in the study): no 0.4 m move keeps C = 0.6 m; it still
+    moves, through a gap, along the move that keeps the most."""
+    angles = 2.0 * np.pi * (np.arange(7) + 0.3) / 7.0
+    pocket = 0.7 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    planner = get_planner("bapf-nav")
+    d = planner.step(np.zeros(2), np.array([20.0, 20.0]), pocket)
+    assert d.n_safe == 0 and d.next_point_m is not None
+    swept = _segment_clearance(np.zeros(2), d.next_point_m, pocket)
+    assert swept >= planner.params.vehicle_radius_m + planner.params.safety_margin_m
+    assert swept == pytest.approx(
+        max(_segment_clearance(np.zeros(2), o, pocket) for o in planner.bacteria_offsets_m), abs=1e-9
+    )
 
 
 def test_a_new_target_starts_afresh() -> None:

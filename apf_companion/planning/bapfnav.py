@@ -6,7 +6,9 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    (``clearance.segment_clearance_sq``): no move ends or passes closer than C = vehicle radius + safety margin
    + noise_k * noise_std (``PlannerParams.clearance_m``). This is Eq. (13)'s +inf inside rho_l with rho_l = C,
    applied along the whole move instead of at its end. An agent already inside C (noise pushed it there) may
-   only move so that it gets no closer along the way and ends farther out.
+   only move so that it gets no closer along the way and ends farther out. Boxed in (no move keeps C, e.g. a
+   pocket between obstacles 0.6-0.8 m away), it squeezes out along the move that keeps the most clearance,
+   provided that is at least vehicle radius + safety margin: the noise margin is the only part ever spent.
 2. Score. J_k = g(r_b,k) + sum_n a exp(-mu_c rho_o^n(r_b,k)) (+ a look-ahead penalty): the target term of
    Eq. (1) ranks points by their distance to the goal g (exp is monotone, so the ranking by -log|J_t| = mu_t g^2
    is the ranking by g; using g itself keeps the terms in metres), the clearance term has the form of Eq. (2)
@@ -75,6 +77,7 @@ class BapfNavPlanner(StatefulPlanner):
         p = params
         self.clearance_m = p.clearance_m
         self._c2 = self.clearance_m**2
+        self._floor2 = (p.vehicle_radius_m + p.safety_margin_m) ** 2
         offsets = self.bacteria_offsets_m
         self._units = offsets / p.step_m
         self._o2 = np.einsum("kd,kd->k", offsets, offsets)
@@ -112,7 +115,7 @@ class BapfNavPlanner(StatefulPlanner):
         to_goal = goal_vec[:, None, :] - offsets[None, :, :]
         g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
         direct = state.mode == _DIRECT
-        feasible, clear_k, clear_0, look_k = self._geometry(
+        feasible, seg2, clear_k, clear_0, look_k = self._geometry(
             positions_m, obstacles_m, obstacle_mask, to_goal, g_k, direct
         )
         cost = g_k + clear_k + look_k
@@ -147,6 +150,15 @@ class BapfNavPlanner(StatefulPlanner):
             )
 
         chosen = self._choose(cost, cost0, passing, state.prev_dir)
+        # Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
+        # into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
+        # margin; never closer. Without this the agent would sit there until its patience ran out.
+        boxed = ~feasible.any(axis=1) & active
+        if boxed.any():
+            rows = np.flatnonzero(boxed)
+            room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
+            widest = np.argmax(room, axis=1)
+            chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
         moved = chosen >= 0
         gave_up = state.mode == _GAVE_UP
         reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
@@ -174,8 +186,9 @@ class BapfNavPlanner(StatefulPlanner):
         to_goal: FloatArray,
         g_k: FloatArray,
         direct: BoolArray,
-    ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
-        """Feasible moves (A, K), clearance terms (A, K) and (A,), look-ahead penalties (A, K; DIRECT agents).
+    ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Feasible moves (A, K), their swept squared clearance (A, K), clearance terms (A, K) and (A,), look-ahead
+        penalties (A, K; DIRECT agents).
 
         Agents go in groups of ``_GROUP``, each with the obstacles near its own agents: the (M, A, K) work arrays
         stay small (megabyte temporaries cost page faults on every call, several times the arithmetic), and a
@@ -183,6 +196,7 @@ class BapfNavPlanner(StatefulPlanner):
         """
         n_agents, n_points = g_k.shape
         feasible = np.empty((n_agents, n_points), dtype=bool)
+        seg2 = np.empty((n_agents, n_points))
         clear_k = np.empty((n_agents, n_points))
         clear_0 = np.empty(n_agents)
         look_k = np.zeros((n_agents, n_points))
@@ -190,12 +204,12 @@ class BapfNavPlanner(StatefulPlanner):
             g = slice(lo, min(lo + _GROUP, n_agents))
             mask = None if obstacle_mask is None else obstacle_mask[g]
             rel, valid = near_obstacles(positions_m[g], obstacles_m[g], mask, self._reach_m)
-            feasible[g] = self._feasible(rel, valid)
+            feasible[g], seg2[g] = self._feasible(rel, valid)
             clear_k[g], clear_0[g] = self._clearance_terms(rel, valid)
             rows = np.flatnonzero(direct[g])
             if rows.size and rel.shape[1]:
                 look_k[lo + rows] = self._lookahead(rel[rows], valid[rows], to_goal[g][rows], g_k[g][rows])
-        return feasible, clear_k, clear_0, look_k
+        return feasible, seg2, clear_k, clear_0, look_k
 
     def _progress(self, state: NavState, g0: FloatArray) -> None:
         """Closest approach, the escape's leave rule and the give-up by patience."""
@@ -207,8 +221,9 @@ class BapfNavPlanner(StatefulPlanner):
         state.field[leave] = None
         state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
-    def _feasible(self, rel: FloatArray, valid: BoolArray) -> BoolArray:
-        """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out)."""
+    def _feasible(self, rel: FloatArray, valid: BoolArray) -> tuple[BoolArray, FloatArray]:
+        """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out),
+        and the swept squared clearance of every move (A, K)."""
         seg2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
         r2 = np.einsum("amd,amd->am", rel, rel)
         d0 = np.min(np.where(valid, r2, np.inf), axis=1, initial=np.inf)
@@ -219,7 +234,7 @@ class BapfNavPlanner(StatefulPlanner):
             np.copyto(end2, np.inf, where=~valid.T[:, :, None])
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
-        return np.asarray(ok)
+        return np.asarray(ok), seg2
 
     def _end_dist_sq(self, rel: FloatArray, r2: FloatArray) -> FloatArray:
         """(M, A, K) squared distance from each obstacle to each bacteria point: |rel|^2 - 2 rel.o + |o|^2."""
