@@ -115,8 +115,9 @@ def test_no_move_ends_or_passes_within_the_clearance(
             break
         swept = _segment_clearance(pos, decision.next_point_m, obs)
         assert swept >= params.vehicle_radius_m + params.safety_margin_m - 1e-9
-        if decision.n_safe > 0:
-            assert swept >= clearance - 1e-9
+        if decision.n_safe > 0:  # a squeeze may have left the agent inside C: then it gets no closer
+            start = float(np.min(np.linalg.norm(obs - pos, axis=1)))
+            assert swept >= min(clearance, start) - 1e-9
         pos = decision.next_point_m
 
 

@@ -42,8 +42,8 @@ import numpy.typing as npt
 
 from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
 from apf_companion.planning.decision import BatchDecision, DecisionReason
-from apf_companion.planning.navfield import NavGrid
-from apf_companion.planning.navstate import NavField, NavMode, NavState
+from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.potentials import obstacle_potential
 from apf_companion.planning.stateful import AgentState, StatefulPlanner
@@ -81,12 +81,11 @@ class BapfNavPlanner(StatefulPlanner):
         offsets = self.bacteria_offsets_m
         self._units = offsets / p.step_m
         self._o2 = np.einsum("kd,kd->k", offsets, offsets)
-        self._grid = NavGrid(p.nav_cell_m, p.nav_grid_m)
+        self._escape = EscapeMaps(p, offsets, self.clearance_m)
         self._cos_hold = math.cos(math.radians(p.nav_hold_angle_deg))
         # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
         soft_m = math.sqrt(7.0 / p.nav_clearance_decay_per_m2)  # exp(-7) < 1e-3: negligible beyond
         self._reach_m = p.step_m + max(self.clearance_m + p.nav_lookahead_m, soft_m)
-        self._pad_m = 2.0 * p.step_m + self.clearance_m + 1.0
 
     def initial_state(self, n_agents: int) -> NavState:
         return NavState.empty(n_agents, self.params.dim)
@@ -309,30 +308,10 @@ class BapfNavPlanner(StatefulPlanner):
         cost0: FloatArray,
         passing: BoolArray,
     ) -> None:
-        """Replace the escaping rows' scores by the geodesic ones (in place), recomputing stale potentials."""
-        stale = np.array([state.field[r] is None for r in rows], dtype=bool)
-        stale |= state.since_field[rows] >= self.params.nav_replan_steps
-        if stale.any():
-            self._refresh(rows[stale], positions_m, targets_m, obstacles_m, obstacle_mask, state)
-        g_k, g0 = self._geodesic(rows, positions_m, targets_m, state)
-        ok: BoolArray = np.asarray(feasible[rows] & (g_k + clear_k[rows] < (g0 + clear_0[rows])[:, None]))
-        # Stalled on a potential that may be stale: recompute once with what is known now.
-        stalled = ~ok.any(axis=1) & ~stale
-        if stalled.any():
-            again = rows[stalled]
-            self._refresh(again, positions_m, targets_m, obstacles_m, obstacle_mask, state)
-            g_k[stalled], g0[stalled] = self._geodesic(again, positions_m, targets_m, state)
-            ok[stalled] = feasible[again] & (g_k[stalled] + clear_k[again] < (g0[stalled] + clear_0[again])[:, None])
-        # Still nothing: the grid lets the potential through a gap the sweep refuses (a diagonal between two
-        # free cells can cut an inflated obstacle). Mark the cells of the refused points that lead downhill as
-        # blocked (virtual obstacles, kept with the remembered cells) and recompute once.
-        dead = ~ok.any(axis=1)
-        if dead.any():
-            self._mark_dead_ends(rows[dead], positions_m, feasible[rows[dead]], g_k[dead], g0[dead], state)
-            again = rows[dead]
-            self._refresh(again, positions_m, targets_m, obstacles_m, obstacle_mask, state)
-            g_k[dead], g0[dead] = self._geodesic(again, positions_m, targets_m, state)
-            ok[dead] = feasible[again] & (g_k[dead] + clear_k[again] < (g0[dead] + clear_0[again])[:, None])
+        """Replace the escaping rows' scores by the geodesic ones (in place)."""
+        g_k, g0, ok = self._escape.potentials(
+            rows, positions_m, targets_m, obstacles_m, obstacle_mask, state, feasible, clear_k, clear_0
+        )
         # Any feasible point down the potential (the clearance term may hold the agent on a plateau).
         plain: BoolArray = np.asarray(feasible[rows] & (g_k < g0[:, None]))
         has_ok = np.asarray(ok.any(axis=1))
@@ -348,80 +327,3 @@ class BapfNavPlanner(StatefulPlanner):
         cost0[rows[inside]] = np.inf
         passing[rows] = ok
         state.mode[rows[lost & ~inside]] = _GAVE_UP
-
-    def _mark_dead_ends(
-        self,
-        rows: IntArray,
-        positions_m: FloatArray,
-        feasible: BoolArray,
-        g_k: FloatArray,
-        g0: FloatArray,
-        state: NavState,
-    ) -> None:
-        """Block the cells of refused points that the potential says lead downhill (not the agent's own cell)."""
-        grid = self._grid
-        n = grid.n
-        for i, r in enumerate(rows):
-            f = state.field[r]
-            refused = ~feasible[i] & (g_k[i] < g0[i])
-            if f is None or not refused.any():
-                continue
-            pts = positions_m[r, :2] + self.bacteria_offsets_m[refused, :2]
-            ci, cj = grid.cell_of(f.origin_m[None], pts[None])
-            own_i, own_j = grid.cell_of(f.origin_m[None], positions_m[r, :2][None, None])
-            ok = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n) & ~((ci == own_i[0, 0]) & (cj == own_j[0, 0]))
-            f.blocked[ci[ok] * n + cj[ok]] = True
-
-    def _refresh(
-        self,
-        rows: IntArray,
-        positions_m: FloatArray,
-        targets_m: FloatArray,
-        obstacles_m: FloatArray,
-        obstacle_mask: BoolArray | None,
-        state: NavState,
-    ) -> None:
-        """Recompute the potential of ``rows`` from the obstacles known now plus the cells remembered before."""
-        grid = self._grid
-        xy = positions_m[rows, :2]
-        goals = targets_m[rows, :2]
-        origins = grid.origins(xy, goals, self._pad_m)
-        old_blocked = np.zeros((rows.size, grid.size), dtype=bool)
-        side = grid.n * grid.cell_m
-        for i, r in enumerate(rows):
-            old = state.field[r]
-            if old is None:
-                continue
-            rel = xy[i] - old.origin_m
-            if np.all(rel >= self._pad_m) and np.all(rel <= side - self._pad_m):
-                origins[i] = old.origin_m  # the agent is well inside: keep the frame
-                old_blocked[i] = old.blocked
-            else:  # a new frame: carry the remembered cells over where the grids overlap
-                old_blocked[i] = grid.shift_blocked(old.blocked, old.origin_m, origins[i])
-        obs = obstacles_m[rows]
-        valid: BoolArray = np.asarray(np.isfinite(obs).all(axis=2))
-        if obstacle_mask is not None:
-            valid &= obstacle_mask[rows]
-        if self.params.dim == 3:
-            valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
-        blocked = grid.blocked(origins, np.where(valid[..., None], obs[:, :, :2], 0.0), valid, self.clearance_m)
-        blocked |= old_blocked
-        dist = grid.distances(origins, blocked, goals)
-        for i, r in enumerate(rows):
-            state.field[r] = NavField(origin_m=origins[i].copy(), blocked=blocked[i], dist_m=dist[i])
-        state.since_field[rows] = 0
-
-    def _geodesic(
-        self, rows: IntArray, positions_m: FloatArray, targets_m: FloatArray, state: NavState
-    ) -> tuple[FloatArray, FloatArray]:
-        """Potential at the points (R, K) and at the agents (R,) of ``rows`` (inf where unreachable)."""
-        offsets = self.bacteria_offsets_m
-        pts = positions_m[rows][:, None, :] + np.vstack([offsets, np.zeros((1, offsets.shape[1]))])[None]
-        values = np.empty(pts.shape[:2])
-        for i, r in enumerate(rows):
-            f = state.field[r]
-            values[i] = self._grid.sample(f.origin_m, f.dist_m, pts[i, :, :2])
-        if self.params.dim == 3:
-            dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
-            values = np.sqrt(values * values + dz * dz)
-        return values[:, :-1], values[:, -1]
