@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -409,3 +410,22 @@ def test_service_config_takes_the_product_parameters() -> None:
         build_planner(config_from_mapping({"planner": {"params": {"vehicle_radius_m": -1.0}}}))
     with pytest.raises(ConfigError, match="unknown planner parameter"):
         build_planner(config_from_mapping({"planner": {"params": {"vehicle_radius": 0.3}}}))
+
+
+def test_study_cli_runs_the_new_rows_noise_free(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``apf-sim study`` takes the two new planners and ``--noise-std 0``; rows without paper numbers show a dash."""
+    import json
+
+    from sim.cli import build_parser
+
+    argv = ["study", "--trials", "6", "--densities", "70-95", "--planners", "bapf-nav,bendyruler"]
+    argv += ["--noise-std", "0", "--workers", "1", "--no-progress", "--json", str(tmp_path / "s.json")]
+    args = build_parser().parse_args(argv)
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "noise std 0 m" in out
+    rows = [line for line in out.splitlines() if line.startswith("| bapf-nav") or line.startswith("| bendyruler")]
+    assert len(rows) == 2 and all("| – |" in row for row in rows)
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert doc["rules"]["noise_std_m"] == 0.0
+    assert [r["planner"] for r in doc["results"]] == ["bapf-nav", "bendyruler"]
