@@ -18,7 +18,7 @@ from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionParams, PoseLimits
-from apf_companion.planning import PlannerParams, get_planner
+from apf_companion.planning import PlannerName, PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
 
@@ -75,11 +75,18 @@ def build_planner(config: ServiceConfig) -> Any:
     return get_planner(pc.name, params)
 
 
+#: Planners whose bacteria points keep rho_l from every known obstacle (Eq. (13)'s +inf inside rho_l).
+_GUARDED_PLANNERS = frozenset({PlannerName.CR_BAPF, PlannerName.CR_BAPF_STAR})
+
+
 def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
-    """The navigator's view of the config and of ``planner`` (``build_planner``): its step, and its rho_l as the
-    clearance to keep (the bacteria-point guard of CR-BAPF / CR-BAPF*; the slow-down near obstacles for every
-    planner)."""
-    rho_l_m = float(planner.params.rho_l_m)
+    """The navigator's view of the config and of ``planner`` (``build_planner``): its step, and the clearance to
+    keep: a planner's own swept clearance where it has one (bapf-nav: radius + margin + noise margin), else rho_l.
+    The clearance drives the slow-down near obstacles for every planner and, for planners that promise it
+    (bapf-nav, CR-BAPF, CR-BAPF*), the re-check of a planned point against obstacles remembered since."""
+    own = getattr(planner, "clearance_m", None)
+    clearance_m = float(own) if own is not None else float(planner.params.rho_l_m)
+    guarded = own is not None or config.planner.name in _GUARDED_PLANNERS
     return NavigatorParams(
         dim=config.planner.dim,
         heartbeat_timeout_s=config.link.heartbeat_timeout_s,
@@ -94,8 +101,8 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         progress_timeout_s=config.planner.progress_timeout_s,
         dry_run=config.dry_run,
         step_m=float(planner.params.step_m),
-        target_guard_m=rho_l_m if config.planner.name.startswith("cr-") else 0.0,
-        clearance_m=rho_l_m,
+        target_guard_m=clearance_m if guarded else 0.0,
+        clearance_m=clearance_m,
         reset_hold_s=config.safety.reset_hold_s,
         silent_horizon_s=config.safety.guid_timeout_s,
         silent_drift_m=config.safety.silent_drift_m,

@@ -23,6 +23,7 @@ from typing import Any
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ConfigError
+from apf_companion.planning.registry import ALL_PLANNER_NAMES, DEFAULT_PLANNER
 
 __all__ = [
     "PLANNER_PRESETS",
@@ -41,7 +42,7 @@ __all__ = [
 ]
 
 PLANNER_PRESETS = ("default", "paper", "reference")
-_PLANNER_NAMES = ("capf", "bapf", "a-bapf", "cr-bapf", "cr-bapf*")
+_PLANNER_NAMES = ALL_PLANNER_NAMES
 
 
 def _fail(key: str, allowed: str, value: object) -> ConfigError:
@@ -138,17 +139,19 @@ class PlannerConfig:
     """``[planner]`` (+ optional ``[planner.params]``): which planner and its parameters.
 
     Attributes:
-        name: One of capf, bapf, a-bapf, cr-bapf, cr-bapf*.
+        name: One of bapf-nav (the product planner, default), capf, bapf, a-bapf, cr-bapf, cr-bapf* (the
+            paper's) or bendyruler (a comparison baseline).
         preset: Parameter preset: "default" (the paper's Table), "paper" or "reference" (notes.md).
         dim: 2 (plan north/east at the goal's altitude) or 3.
         seed: Seed of the random walk's generator (repeatable flights).
         random_walk_budget: Consecutive cycles without a greedy move (random walk or local minimum) after
             which the service gives up: STUCK.
         progress_timeout_s: No new best distance to the goal (by 0.1 m) for this long -> STUCK [s].
-        params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m), validated by the planner.
+        params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
+            safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner.
     """
 
-    name: str = "cr-bapf*"
+    name: str = str(DEFAULT_PLANNER)
     preset: str = "default"
     dim: int = 2
     seed: int = 0

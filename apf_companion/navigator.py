@@ -79,6 +79,8 @@ class Decision(enum.Enum):
     GREEDY = "GREEDY"
     RANDOM_WALK = "RANDOM_WALK"
     LOCAL_MINIMUM = "LOCAL_MINIMUM"
+    #: The planner gave up (bapf-nav: no path on the remembered map, or no progress for its patience).
+    GAVE_UP = "GAVE_UP"
     TRACKING = "TRACKING"
 
 
@@ -725,6 +727,8 @@ class Navigator:
                 self.counters.local_minimum += 1
         n = int(obstacles.shape[0])
         give_up = self._legs.give_up(leg, inp.now_s)
+        if reason == Decision.GAVE_UP.value:
+            give_up = "stuck: the planner gave up (no path on the remembered map, or no progress)"
         if give_up is not None:
             self._enter_hold_state(inp.now_s, State.STUCK, give_up)
             return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=True), dist, decision=reason, n_obstacles=n)

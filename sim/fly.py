@@ -70,7 +70,7 @@ EXPECTED_SPEED_M_S = 0.5
 class FlyOptions:
     """One flight (the CLI flags of ``apf-sim fly``)."""
 
-    planner: str = "cr-bapf*"
+    planner: str = "bapf-nav"
     profile: str = "ardupilot"
     dynamics: str = "simple"  # the simulator's vehicle response: simple | arducopter
     seed: int = 0
@@ -521,7 +521,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--planner", default="cr-bapf*", help="capf, bapf, a-bapf, cr-bapf, cr-bapf* (default)")
+    p.add_argument(
+        "--planner", default="bapf-nav", help="bapf-nav (default), bendyruler, capf, bapf, a-bapf, cr-bapf, cr-bapf*"
+    )
     p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
     p.add_argument(
         "--dynamics",

@@ -25,7 +25,7 @@ def test_defaults_are_documented_values() -> None:
     assert cfg.autopilot.profile is Autopilot.ARDUPILOT
     assert cfg.autopilot.arm is False and cfg.autopilot.takeoff_alt_m == 0.0
     assert cfg.dry_run is False
-    assert cfg.planner.name == "cr-bapf*"
+    assert cfg.planner.name == "bapf-nav"
 
 
 def test_deploy_example_loads_and_builds_its_planner() -> None:

@@ -45,7 +45,7 @@ def test_study_same_worlds_counts_per_world() -> None:
 
 
 def test_sweep_summary_has_study_rate_on_the_same_worlds() -> None:
-    base = FlyOptions(seed=2000, obstacles="low")
+    base = FlyOptions(seed=2000, obstacles="low", planner="cr-bapf*")
     fields = [np.asarray(paper_world(FlyOptions(seed=2000 + k, obstacles="low")).circles_ne_m) for k in range(3)]
     records: list[dict[str, Any]] = [{"outcome": "arrived"}, {"outcome": "collision"}, {"outcome": "arrived"}]
     study = _study_summary(base, records, fields, replications=6)

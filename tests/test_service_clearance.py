@@ -14,7 +14,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from apf_companion.config import ServiceConfig
+from apf_companion.config import PlannerConfig, ServiceConfig
 from apf_companion.goal import Route
 from apf_companion.navigator import Navigator, State
 from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, Pose
@@ -26,19 +26,23 @@ ALT_M = 5.0
 COLLISION_RADIUS_M = 0.25  # the simulator's
 
 
-def fly_closed_loop(world_seed: int, density: str, *, clearance: bool = True) -> tuple[State, float, float]:
-    """(final state, minimum clearance [m], flight time [s]) of one flight (3, 3) -> (22, 22)."""
+def fly_closed_loop(
+    world_seed: int, density: str, *, clearance: bool = True, planner: str = "cr-bapf*"
+) -> tuple[State, float, float]:
+    """(final state, minimum clearance [m], flight time [s]) of one flight (3, 3) -> (22, 22).
+
+    ``planner``: the grazes were CR-BAPF*'s (the default planner when this test was written)."""
     obstacles = np.asarray(paper_field("reference", density, np.random.default_rng(world_seed)).circles_ne_m)
     obs3 = np.hstack([obstacles, np.full((obstacles.shape[0], 1), -ALT_M)])
-    cfg = ServiceConfig()
-    planner = build_planner(cfg)
+    cfg = ServiceConfig(planner=PlannerConfig(name=planner))
+    built = build_planner(cfg)
     perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=10.0, merge_radius_m=0.2))
-    nav = build_navigator(cfg, planner, perception)
+    nav = build_navigator(cfg, built, perception)
     if not clearance:
         # The behaviour before the fix (and before the safe-when-silent cap on the feed-forward, issue 9).
         nav = Navigator(
             params=dataclasses.replace(nav.params, clearance_m=0.0, silent_drift_m=1e3),
-            planner=planner,
+            planner=built,
             obstacles=perception,
             rng=nav.rng,
         )
@@ -87,8 +91,16 @@ def test_without_the_slow_down_the_same_loop_grazes() -> None:
     assert min_clear < COLLISION_RADIUS_M
 
 
+@pytest.mark.parametrize(("seed", "density"), GRAZE_WORLDS)
+def test_bapf_nav_keeps_radius_and_margin_in_the_closed_loop(seed: int, density: str) -> None:
+    """The product planner in the same closed loop (navigator + the simulator's dynamics, no noise)."""
+    state, min_clear, _ = fly_closed_loop(seed, density, planner="bapf-nav")
+    assert state is State.ARRIVED
+    assert min_clear >= COLLISION_RADIUS_M + 0.1, min_clear  # radius + the default safety margin
+
+
 def test_slow_down_near_obstacles_scales_the_feed_forward() -> None:
-    cfg = ServiceConfig()
+    cfg = ServiceConfig(planner=PlannerConfig(name="cr-bapf*"))
     nav = build_navigator(cfg, build_planner(cfg), PerceptionFrontEnd(PerceptionParams()))
     cruise = cfg.cycle.cruise_speed_m_s
     rho_l = nav.params.clearance_m

@@ -7,17 +7,23 @@ CR-BAPF*, in 2D and 3D, batch-first::
     planner = get_planner("cr-bapf*", PlannerParams())
     decision = planner.step(position_m, target_m, obstacles_m, rng)
     batch = planner.step_batch(positions_m, targets_m, obstacles_m, obstacle_mask, rng)
+
+and the product planner ``bapf-nav`` (``bapfnav.py``, stateful: ``stateful.py``) with the ``bendyruler``
+comparison baseline (``bendyruler.py``).
 """
 
 from __future__ import annotations
 
 from apf_companion.planning.abapf import AbapfPlanner
 from apf_companion.planning.bapf import BapfPlanner
+from apf_companion.planning.bapfnav import BapfNavPlanner
 from apf_companion.planning.base import Planner
+from apf_companion.planning.bendyruler import BendyRulerPlanner, BendyRulerState
 from apf_companion.planning.capf import CapfPlanner
 from apf_companion.planning.crbapf import CrBapfPlanner, CrBapfStarPlanner
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.geometry import bacteria_offsets, bacteria_ring, bacteria_sphere
+from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import AbapfRule, AbapfSearch, PlannerParams, RandomWalkRule
 from apf_companion.planning.potentials import (
     agent_potential,
@@ -28,23 +34,42 @@ from apf_companion.planning.potentials import (
     target_potential,
     total_obstacle_potential,
 )
-from apf_companion.planning.registry import PLANNER_NAMES, get_planner
+from apf_companion.planning.registry import (
+    ALL_PLANNER_NAMES,
+    DEFAULT_PLANNER,
+    PAPER_PLANNER_NAMES,
+    PLANNER_NAMES,
+    PlannerName,
+    get_planner,
+)
+from apf_companion.planning.stateful import AgentState, StatefulPlanner
 
 __all__ = [
+    "ALL_PLANNER_NAMES",
+    "DEFAULT_PLANNER",
+    "PAPER_PLANNER_NAMES",
     "PLANNER_NAMES",
     "AbapfPlanner",
     "AbapfRule",
     "AbapfSearch",
+    "AgentState",
+    "BapfNavPlanner",
     "BapfPlanner",
     "BatchDecision",
+    "BendyRulerPlanner",
+    "BendyRulerState",
     "CapfPlanner",
     "CrBapfPlanner",
     "CrBapfStarPlanner",
     "Decision",
     "DecisionReason",
+    "NavMode",
+    "NavState",
     "Planner",
+    "PlannerName",
     "PlannerParams",
     "RandomWalkRule",
+    "StatefulPlanner",
     "agent_potential",
     "bacteria_offsets",
     "bacteria_ring",

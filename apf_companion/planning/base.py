@@ -55,6 +55,13 @@ class Planner(ABC):
         obstacles_m : (N, D) known obstacle points [m]; N may be 0.
         rng : source of the random walk (CR-BAPF* only; others ignore it).
         """
+        pos, tgt, obs = self._check_one(position_m, target_m, obstacles_m)
+        return self._step_batch(pos[None], tgt[None], obs[None], None, rng, None).row(0)
+
+    def _check_one(
+        self, position_m: npt.ArrayLike, target_m: npt.ArrayLike, obstacles_m: npt.ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``step``'s arguments as validated float64 arrays ((D,), (D,), (N, D))."""
         dim = self.params.dim
         pos = np.asarray(position_m, dtype=np.float64)
         tgt = np.asarray(target_m, dtype=np.float64)
@@ -65,7 +72,7 @@ class Planner(ABC):
             obs = obs.reshape(0, dim)
         if obs.ndim != 2 or obs.shape[1] != dim:
             raise ConfigError(f"obstacles_m must have shape (N, {dim}); got {obs.shape}")
-        return self._step_batch(pos[None], tgt[None], obs[None], None, rng, None).row(0)
+        return pos, tgt, obs
 
     def step_batch(
         self,
@@ -90,6 +97,23 @@ class Planner(ABC):
         walk_uniforms : optional (A,) floats in [0, 1) used for the random walk instead of ``rng`` (one per
             agent, used only where a walk is needed), so a caller can give each agent its own stream.
         """
+        pos, tgt, obs, mask = self._check_batch(positions_m, targets_m, obstacles_m, obstacle_mask)
+        n_agents = pos.shape[0]
+        uniforms = None
+        if walk_uniforms is not None:
+            uniforms = np.asarray(walk_uniforms, dtype=np.float64)
+            if uniforms.shape != (n_agents,):
+                raise ConfigError(f"walk_uniforms must have shape ({n_agents},); got {uniforms.shape}")
+        return self._step_batch(pos, tgt, obs, mask, rng, uniforms)
+
+    def _check_batch(
+        self,
+        positions_m: npt.ArrayLike,
+        targets_m: npt.ArrayLike,
+        obstacles_m: npt.ArrayLike,
+        obstacle_mask: npt.ArrayLike,
+    ) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+        """``step_batch``'s arrays, validated: (A, D), (A, D), (A, N, D) float64 and the (A, N) bool mask."""
         dim = self.params.dim
         pos = np.asarray(positions_m, dtype=np.float64)
         tgt = np.asarray(targets_m, dtype=np.float64)
@@ -106,12 +130,7 @@ class Planner(ABC):
                 f"obstacles_m must be (A, N, {dim}) and obstacle_mask (A, N) with A = {n_agents}; "
                 f"got {obs.shape}, {mask.shape}"
             )
-        uniforms = None
-        if walk_uniforms is not None:
-            uniforms = np.asarray(walk_uniforms, dtype=np.float64)
-            if uniforms.shape != (n_agents,):
-                raise ConfigError(f"walk_uniforms must have shape ({n_agents},); got {uniforms.shape}")
-        return self._step_batch(pos, tgt, obs, mask, rng, uniforms)
+        return pos, tgt, obs, mask
 
     @abstractmethod
     def _step_batch(

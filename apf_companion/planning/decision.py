@@ -32,6 +32,9 @@ class DecisionReason(enum.IntEnum):
     RANDOM_WALK = 1
     #: No move: no point passed (and no random-walk move was possible), or the CAPF gradient vanished.
     LOCAL_MINIMUM = 2
+    #: No move, and none will come: a stateful planner's give-up rule fired (bapf-nav: no path on the
+    #: remembered map, or no progress for ``nav_patience_steps``). The caller should report STUCK.
+    GAVE_UP = 3
 
 
 #: DecisionReason by int code (a tuple lookup is cheaper than the Enum call in the single-agent step).
@@ -65,6 +68,11 @@ class Decision:
         """True when the agent has a next point."""
         return self.next_point_m is not None
 
+    @property
+    def gave_up(self) -> bool:
+        """True when the planner's give-up rule fired (``DecisionReason.GAVE_UP``)."""
+        return self.reason is DecisionReason.GAVE_UP
+
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class BatchDecision:
@@ -90,7 +98,7 @@ class BatchDecision:
     @property
     def moved(self) -> npt.NDArray[np.bool_]:
         """(A,) True where the agent has a next point."""
-        return np.asarray(self.reason != DecisionReason.LOCAL_MINIMUM)
+        return np.asarray(self.reason < DecisionReason.LOCAL_MINIMUM)
 
     def row(self, index: int) -> Decision:
         """Agent ``index`` as a ``Decision``."""
@@ -98,7 +106,7 @@ class BatchDecision:
         chosen = int(self.chosen_index[index])
         mu = float(self.mu_o_k[index])
         return Decision(
-            next_point_m=None if reason is DecisionReason.LOCAL_MINIMUM else self.next_points_m[index].copy(),
+            next_point_m=None if reason >= DecisionReason.LOCAL_MINIMUM else self.next_points_m[index].copy(),
             reason=reason,
             chosen_index=chosen if chosen >= 0 else None,
             mu_o_k=None if mu != mu else mu,  # NaN: none

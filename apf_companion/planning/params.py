@@ -82,6 +82,31 @@ class PlannerParams:
     capf_eta : CAPF FIRAS repulsion gain, >= 0.
     capf_rho_0_m : CAPF repulsion influence distance [m], > 0.
     dim : 2 (ring of bacteria points) or 3 (sphere).
+
+    The product planners (``bapf-nav``, ``bendyruler``; the paper's five ignore these fields):
+
+    vehicle_radius_m : radius of the vehicle, the collision distance [m], > 0.
+    safety_margin_m : clearance kept beyond the radius [m], >= 0.
+    noise_std_m : known position / actuation noise, standard deviation per axis [m], >= 0.
+    noise_k : the noise margin is noise_k * noise_std_m [m], >= 0.
+    nav_clearance_gain_m : bapf-nav: gain of the clearance term of the score, Eq. (2) form, in metres of path, >= 0.
+    nav_clearance_decay_per_m2 : bapf-nav: decay of that term (mu_o of Eq. (2) at product scale) [1/m^2], > 0.
+    nav_lookahead_m : bapf-nav: length of the look-ahead probe from each candidate towards the goal [m], >= 0
+        (0 = off).
+    nav_lookahead_penalty_m : bapf-nav: score penalty of a candidate whose look-ahead probe is blocked [m], >= 0.
+    nav_hold_angle_deg : bapf-nav: a turn of more than this from the previous move is taken only when it gains
+        ``nav_hold_ratio`` times what the best candidate within the angle gains [deg], in [0, 180].
+    nav_hold_ratio : bapf-nav: see ``nav_hold_angle_deg``, >= 1.
+    nav_cell_m : bapf-nav: cell size of the navigation grid [m], > 0.
+    nav_grid_m : bapf-nav: side of the square navigation grid [m], >= 8 nav_cell_m and at most 4096 cells a side.
+    nav_replan_steps : bapf-nav: recompute the navigation potential every this many escape steps (new
+        obstacles), >= 1.
+    nav_patience_steps : bapf-nav: give up (STUCK) after this many steps without a new closest approach to the
+        target, >= 1.
+    br_lookahead_m : bendyruler: probe length OA_BR_LOOKAHEAD [m], > 0.
+    br_margin_max_m : bendyruler: clearance OA_MARGIN_MAX that makes a direction "sufficiently open" [m], > 0.
+    br_cont_ratio : bendyruler: OA_BR_CONT_RATIO, >= 1.
+    br_cont_angle_deg : bendyruler: OA_BR_CONT_ANGLE [deg], in [0, 180].
     """
 
     alpha_t: float = 1e4
@@ -102,6 +127,29 @@ class PlannerParams:
     capf_eta: float = 100.0
     capf_rho_0_m: float = 3.0
     dim: int = 2
+    vehicle_radius_m: float = 0.25
+    safety_margin_m: float = 0.1
+    noise_std_m: float = 0.1
+    noise_k: float = 2.5
+    nav_clearance_gain_m: float = 0.3
+    nav_clearance_decay_per_m2: float = 4.0
+    nav_lookahead_m: float = 1.2
+    nav_lookahead_penalty_m: float = 0.2
+    nav_hold_angle_deg: float = 75.0
+    nav_hold_ratio: float = 1.5
+    nav_cell_m: float = 0.3
+    nav_grid_m: float = 16.0
+    nav_replan_steps: int = 25
+    nav_patience_steps: int = 300
+    br_lookahead_m: float = 1.2
+    br_margin_max_m: float = 0.6
+    br_cont_ratio: float = 1.5
+    br_cont_angle_deg: float = 75.0
+
+    @property
+    def clearance_m(self) -> float:
+        """The clearance the product planners keep: vehicle radius + safety margin + noise_k * noise_std_m [m]."""
+        return self.vehicle_radius_m + self.safety_margin_m + self.noise_k * self.noise_std_m
 
     def __post_init__(self) -> None:
         positive = ("alpha_t", "mu_t_per_m2", "alpha_o", "mu_o_per_m2", "step_m", "capf_k_att", "capf_rho_0_m")
@@ -140,6 +188,36 @@ class PlannerParams:
                 raise _fail(name, getattr(self, name), allowed)
         if not isinstance(self.agent_repulsion, bool):
             raise _fail("agent_repulsion", self.agent_repulsion, "True or False")
+        self._check_product_fields()
+
+    def _check_product_fields(self) -> None:
+        """The fields of the product planners (bapf-nav, bendyruler)."""
+        for name in (
+            "vehicle_radius_m",
+            "nav_clearance_decay_per_m2",
+            "nav_cell_m",
+            "br_lookahead_m",
+            "br_margin_max_m",
+        ):
+            if _finite(name, getattr(self, name)) <= 0.0:
+                raise _fail(name, getattr(self, name), "a finite number > 0")
+        non_negative = ("safety_margin_m", "noise_std_m", "noise_k", "nav_clearance_gain_m", "nav_lookahead_m")
+        for name in (*non_negative, "nav_lookahead_penalty_m"):
+            if _finite(name, getattr(self, name)) < 0.0:
+                raise _fail(name, getattr(self, name), "a finite number >= 0")
+        for name in ("nav_hold_angle_deg", "br_cont_angle_deg"):
+            if not 0.0 <= _finite(name, getattr(self, name)) <= 180.0:
+                raise _fail(name, getattr(self, name), "a finite number in [0, 180]")
+        for name in ("nav_hold_ratio", "br_cont_ratio"):
+            if _finite(name, getattr(self, name)) < 1.0:
+                raise _fail(name, getattr(self, name), "a finite number >= 1")
+        cells = _finite("nav_grid_m", self.nav_grid_m) / self.nav_cell_m
+        if not 8.0 <= cells <= 4096.0:
+            raise _fail("nav_grid_m", self.nav_grid_m, f"a side of 8 to 4096 cells of nav_cell_m = {self.nav_cell_m!r}")
+        for name in ("nav_replan_steps", "nav_patience_steps"):
+            value: Any = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise _fail(name, value, "an int >= 1")
 
     @classmethod
     def paper(cls, **overrides: Any) -> PlannerParams:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning import PLANNER_NAMES, AbapfRule
+from apf_companion.planning import ALL_PLANNER_NAMES, AbapfRule
 from sim.study.config import (
     DEFAULT_DENSITIES,
     PRESET_NAMES,
@@ -95,8 +95,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     p.add_argument(
         "--planners",
-        default=",".join(PLANNER_NAMES),
-        help=f"comma-separated planners (default all: {','.join(PLANNER_NAMES)})",
+        default=",".join(ALL_PLANNER_NAMES),
+        help=f"comma-separated planners (default all: {','.join(ALL_PLANNER_NAMES)}; the last two are the product "
+        "planner and the BendyRuler-style baseline, which the paper does not have)",
     )
     p.add_argument("--seed", type=int, default=0, help="root seed (default 0)")
     p.add_argument(
@@ -121,6 +122,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         default=None,
         help="obstacle coordinates: continuous (default, both presets) or integer (the authors' README example "
         "randi([5 20], [N, 2]); repeated points count once)",
+    )
+    p.add_argument(
+        "--noise-std",
+        type=float,
+        default=None,
+        metavar="M",
+        help="position noise N(0, M^2) per axis added on every move [m] (default 0.1, the paper's; 0 = noise-free)",
     )
     p.add_argument(
         "--abapf-rule",
@@ -217,6 +225,8 @@ def _run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, chunk_trials=args.chunk_trials)
     if args.obstacles is not None:
         config = dataclasses.replace(config, obstacle_sampling=ObstacleSampling(args.obstacles))
+    if args.noise_std is not None:
+        config = dataclasses.replace(config, noise_std_m=args.noise_std)
     if args.abapf_rule is not None:
         params = dataclasses.replace(config.planner_params, abapf_rule=AbapfRule(args.abapf_rule))
         config = dataclasses.replace(config, planner_params=params)
@@ -254,6 +264,8 @@ def _run(args: argparse.Namespace) -> int:
 
     n_trials = sum(t.n_trials for t in all_tasks)
     variant = "" if config.obstacle_sampling is ObstacleSampling.CONTINUOUS else ", integer obstacle coordinates"
+    if args.noise_std is not None:
+        variant += f", noise std {config.noise_std_m:g} m"
     print(f"## apf-sim study: preset {config.preset}{variant}, seed {args.seed}, {args.trials} trials per cell\n")
     print(markdown_table(cells))
     if sweep_cells:

@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning import PLANNER_NAMES, PlannerParams
+from apf_companion.planning import ALL_PLANNER_NAMES, PlannerParams
 
 
 class DetectionRule(enum.Enum):
@@ -198,10 +198,10 @@ class StudyConfig:
 
 
 def check_planner_names(names: tuple[str, ...]) -> tuple[str, ...]:
-    """Validate planner names against ``PLANNER_NAMES``; return them unchanged."""
+    """Validate planner names against ``ALL_PLANNER_NAMES`` (the paper's five, bapf-nav, bendyruler)."""
     for name in names:
-        if name not in PLANNER_NAMES:
-            msg = f"planners: unknown {name!r}; choose from {', '.join(PLANNER_NAMES)}"
+        if name not in ALL_PLANNER_NAMES:
+            msg = f"planners: unknown {name!r}; choose from {', '.join(ALL_PLANNER_NAMES)}"
             raise ConfigError(msg)
     return names
 

@@ -14,8 +14,11 @@ One iteration of a trial, in the authors' order (notes.md; github M-DIAB/APF ``B
    entering the goal circle": the move that would follow cannot change any metric, so it is not computed);
 5. stuck rules: CAPF without a new best target distance for ``capf_patience`` iterations -> STUCK;
 6. plan: ``planner.step_batch`` on the known obstacles. A LOCAL_MINIMUM ends BAPF, CR-BAPF and A-BAPF
-   (notes.md, decision 3) and CAPF (vanishing gradient); for CR-BAPF* it ends the trial only under the
-   SAFE_SET random walk (an empty safe set is a fixed point), while under SINGLE_DRAW it is a no-move iteration;
+   (notes.md, decision 3), CAPF (vanishing gradient) and the bendyruler baseline (nothing changes until it
+   moves); for CR-BAPF* it ends the trial only under the SAFE_SET random walk (an empty safe set is a fixed
+   point), while under SINGLE_DRAW it is a no-move iteration; for bapf-nav it is a no-move iteration, and its
+   GAVE_UP (the planner's own give-up rule) is STUCK. Stateful planners (``StatefulPlanner``) get their
+   per-trial state, which follows the trials through the compaction;
 7. move: next point plus N(0, noise_std_m^2) per axis; no move, no noise.
 
 A trial still running after ``max_iterations`` is a TIMEOUT.
@@ -42,7 +45,14 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning import BatchDecision, DecisionReason, RandomWalkRule, get_planner
+from apf_companion.planning import (
+    AgentState,
+    BatchDecision,
+    DecisionReason,
+    PlannerName,
+    RandomWalkRule,
+    get_planner,
+)
 from sim.study import _worker
 from sim.study.config import Density, DetectionRule, StudyConfig
 from sim.study.metrics import Outcome, TrialRecords, safety_per_trial
@@ -75,7 +85,9 @@ ClearanceFn = Callable[[FloatArray, FloatArray], FloatArray]
 surfaces [m] (a point when start = end): world files, whose walls and cylinders the planners see only as surface
 sample points (``sim.study.worldstudy``)."""
 
-_STOPS_AT_LOCAL_MINIMUM = frozenset({"capf", "bapf", "a-bapf", "cr-bapf"})
+_STOPS_AT_LOCAL_MINIMUM = frozenset(
+    {PlannerName.CAPF, PlannerName.BAPF, PlannerName.A_BAPF, PlannerName.CR_BAPF, PlannerName.BENDYRULER}
+)
 """Planners whose trial ends at the first LOCAL_MINIMUM (notes.md, decision 3; CAPF: vanishing gradient)."""
 
 
@@ -83,6 +95,8 @@ def stops_at_local_minimum(planner_name: str, config: StudyConfig) -> bool:
     """Whether a LOCAL_MINIMUM decision ends a trial of ``planner_name`` (see module docstring, step 6)."""
     if planner_name in _STOPS_AT_LOCAL_MINIMUM:
         return True
+    if planner_name == PlannerName.BAPF_NAV:
+        return False
     return config.planner_params.random_walk == RandomWalkRule.SAFE_SET
 
 
@@ -168,6 +182,8 @@ def simulate(
     best_goal_dist = np.full(n_trials, np.inf)
     since_best = np.zeros(n_trials, dtype=np.int32)
     targets = np.broadcast_to(target, (n_trials, dim))
+    # Stateful planners (``StatefulPlanner``, or a wrapper that forwards ``initial_state``) get per-trial state.
+    state: AgentState | None = planner.initial_state(n_trials) if hasattr(planner, "initial_state") else None
 
     trace_pos: list[FloatArray] = []
     trace_reason: list[npt.NDArray[np.int8]] = []
@@ -212,7 +228,9 @@ def simulate(
         if planning.any():
             known = ever if cumulative else in_range
             sel = np.flatnonzero(planning)
-            if sel.size == a:  # the usual case: no gather copies
+            if state is not None:
+                bd = _step_stateful(planner, state, sel, a, pos, targets, obs_raw, known)
+            elif sel.size == a:  # the usual case: no gather copies
                 bd = planner.step_batch(pos, targets[:a], obs_raw, known, rng)
             else:
                 bd = planner.step_batch(pos[sel], targets[: sel.size], obs_raw[sel], known[sel], rng)
@@ -222,6 +240,7 @@ def simulate(
                 trace_mu[-1][ids[sel]] = np.asarray(bd.mu_o_k, dtype=np.float64)
             if stop_at_minimum:
                 finished[sel[reason == DecisionReason.LOCAL_MINIMUM]] = Outcome.STUCK
+            finished[sel[reason == DecisionReason.GAVE_UP]] = Outcome.STUCK
             next_pts = np.asarray(bd.next_points_m, dtype=np.float64)
             moves = ~np.isnan(next_pts[:, 0]) & (finished[sel] == _RUNNING)
             if moves.any():
@@ -248,6 +267,8 @@ def simulate(
             min_dist = min_dist[keep]
             best_goal_dist = best_goal_dist[keep]
             since_best = since_best[keep]
+            if state is not None:
+                state = state.take(keep)
 
     if ids.size:
         outcome[ids] = Outcome.TIMEOUT
@@ -272,6 +293,26 @@ def simulate(
             mu_o_k=np.stack(trace_mu) if trace_mu else np.zeros((0, n_trials)),
         )
     return SimulationResult(records=records, trace=trace, detected=detected_out)
+
+
+def _step_stateful(
+    planner: Any,
+    state: AgentState,
+    sel: npt.NDArray[np.intp],
+    a: int,
+    pos: FloatArray,
+    targets: FloatArray,
+    obs_raw: FloatArray,
+    known: BoolArray,
+) -> BatchDecision:
+    """``step_batch`` of a stateful planner on the planning rows ``sel`` of the ``a`` active trials."""
+    if sel.size == a:
+        out: BatchDecision = planner.step_batch(pos, targets[:a], obs_raw, known, state=state)
+        return out
+    sub = state.take(sel)
+    out = planner.step_batch(pos[sel], targets[: sel.size], obs_raw[sel], known[sel], state=sub)
+    state.put(sel, sub)
+    return out
 
 
 # --------------------------------------------------------------------------------------------- chunks

@@ -1,0 +1,329 @@
+"""bapf-nav: the product planner. Bacteria points with real clearance, a swept move test and escape with memory.
+
+Each step tests the N_b bacteria points around the agent (the paper's candidates, ``geometry.bacteria_offsets``):
+
+1. Clearance. The straight move to a point is swept against every known obstacle point near the agent
+   (``clearance.segment_clearance_sq``): no move ends or passes closer than C = vehicle radius + safety margin
+   + noise_k * noise_std (``PlannerParams.clearance_m``). This is Eq. (13)'s +inf inside rho_l with rho_l = C,
+   applied along the whole move instead of at its end. An agent already inside C (noise pushed it there) may
+   only move so that it gets no closer along the way and ends farther out. Boxed in (no move keeps C, e.g. a
+   pocket between obstacles 0.6-0.8 m away), it squeezes out along the move that keeps the most clearance,
+   provided that is at least vehicle radius + safety margin: the noise margin is the only part ever spent.
+2. Score. J_k = g(r_b,k) + sum_n a exp(-mu_c rho_o^n(r_b,k)) (+ a look-ahead penalty): the target term of
+   Eq. (1) ranks points by their distance to the goal g (exp is monotone, so the ranking by -log|J_t| = mu_t g^2
+   is the ranking by g; using g itself keeps the terms in metres), the clearance term has the form of Eq. (2)
+   (``potentials.obstacle_potential``) at product scale. A point passes when J_k < J_a, Eq. (6); the best
+   passing point is taken, not the first (the paper's first-passing rule grazes obstacles).
+3. Escape with memory. In DIRECT mode g is the straight-line distance. When no point passes (a local minimum of
+   the paper's field) the agent switches to ESCAPE: g becomes the geodesic distance to the goal on a grid of the
+   obstacles it has seen, inflated by C (``navfield.NavGrid``), which has no local minimum in front of a
+   concave obstacle. It leaves ESCAPE once closer to the goal than where the escape began (Bug2's leave rule),
+   so it cannot fall back into the same trap. The potential is recomputed when the descent stalls (new
+   obstacles) and every ``nav_replan_steps`` escape steps; blocked cells are remembered across recomputations.
+4. Stability. A turn of more than ``nav_hold_angle_deg`` from the previous move is taken only when it gains
+   ``nav_hold_ratio`` times what the best point within that angle gains (BendyRuler's OA_BR_CONT_ANGLE /
+   OA_BR_CONT_RATIO rule, applied to the score). In DIRECT mode each point also looks ahead: a probe of
+   ``nav_lookahead_m`` from the point towards the goal that comes closer than C costs
+   ``nav_lookahead_penalty_m``, so the side with an open view of the goal wins early.
+5. Give-up. No path on the remembered map, or no new closest approach to the goal for ``nav_patience_steps``
+   steps: ``DecisionReason.GAVE_UP`` (the caller reports STUCK), and no moves until the target changes.
+
+Moves are reported as GREEDY (a passing point on the planner's potential); ``NavState.mode`` says which
+potential. 3D: the candidates and the sweep are 3D; the escape potential is the horizontal geodesic distance
+combined with the vertical offset, sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
+from apf_companion.planning.decision import BatchDecision, DecisionReason
+from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navstate import NavMode, NavState
+from apf_companion.planning.params import PlannerParams
+from apf_companion.planning.potentials import obstacle_potential
+from apf_companion.planning.stateful import AgentState, StatefulPlanner
+
+__all__ = ["BapfNavPlanner"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
+
+#: A new closest approach must beat the old one by this much [m] (noise-level jitter is no progress).
+_PROGRESS_EPS_M = 1e-6
+# NavMode codes as int8 scalars: comparing an array with an IntEnum member costs enum machinery on every call.
+_DIRECT = np.int8(NavMode.DIRECT)
+_ESCAPE = np.int8(NavMode.ESCAPE)
+_GAVE_UP = np.int8(NavMode.GAVE_UP)
+_GREEDY_CODE = np.int8(DecisionReason.GREEDY)
+_LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
+_GAVE_UP_CODE = np.int8(DecisionReason.GAVE_UP)
+#: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
+_GROUP = 16
+
+
+class BapfNavPlanner(StatefulPlanner):
+    """bapf-nav (module docstring)."""
+
+    name = "bapf-nav"
+
+    def __init__(self, params: PlannerParams) -> None:
+        super().__init__(params)
+        p = params
+        self.clearance_m = p.clearance_m
+        self._c2 = self.clearance_m**2
+        self._floor2 = (p.vehicle_radius_m + p.safety_margin_m) ** 2
+        offsets = self.bacteria_offsets_m
+        self._units = offsets / p.step_m
+        self._o2 = np.einsum("kd,kd->k", offsets, offsets)
+        self._escape = EscapeMaps(p, offsets, self.clearance_m)
+        self._cos_hold = math.cos(math.radians(p.nav_hold_angle_deg))
+        # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
+        soft_m = math.sqrt(7.0 / p.nav_clearance_decay_per_m2)  # exp(-7) < 1e-3: negligible beyond
+        self._reach_m = p.step_m + max(self.clearance_m + p.nav_lookahead_m, soft_m)
+
+    def initial_state(self, n_agents: int) -> NavState:
+        return NavState.empty(n_agents, self.params.dim)
+
+    # --- the step ---------------------------------------------------------------------------------------------
+
+    def _plan(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: AgentState,
+    ) -> BatchDecision:
+        assert isinstance(state, NavState)
+        p = self.params
+        n_agents = positions_m.shape[0]
+        changed = ~np.all(state.target_m == targets_m, axis=1)
+        if changed.any():
+            state.restart(np.flatnonzero(changed), targets_m[changed])
+        offsets = self.bacteria_offsets_m
+        goal_vec = targets_m - positions_m
+        g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
+        self._progress(state, g0)
+
+        to_goal = goal_vec[:, None, :] - offsets[None, :, :]
+        g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
+        direct = state.mode == _DIRECT
+        feasible, seg2, clear_k, clear_0, look_k = self._geometry(
+            positions_m, obstacles_m, obstacle_mask, to_goal, g_k, direct
+        )
+        cost = g_k + clear_k + look_k
+        cost0 = g0 + clear_0
+        active = state.mode != _GAVE_UP
+        passing = feasible & (cost < cost0[:, None]) & active[:, None]
+
+        # Escape: agents already escaping, and agents whose direct step found no passing point.
+        escaping = state.mode == _ESCAPE
+        trapped = (state.mode == _DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
+        if trapped.any():
+            rows = np.flatnonzero(trapped)
+            state.mode[rows] = _ESCAPE
+            state.hit_dist_m[rows] = g0[rows]
+            state.field[rows] = None
+            escaping = escaping | trapped
+        if escaping.any():
+            rows = np.flatnonzero(escaping)
+            self._escape_scores(
+                rows,
+                positions_m,
+                targets_m,
+                obstacles_m,
+                obstacle_mask,
+                state,
+                feasible,
+                clear_k,
+                clear_0,
+                cost,
+                cost0,
+                passing,
+            )
+
+        chosen = self._choose(cost, cost0, passing, state.prev_dir)
+        # Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
+        # into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
+        # margin; never closer. Without this the agent would sit there until its patience ran out.
+        boxed = ~feasible.any(axis=1) & active
+        if boxed.any():
+            rows = np.flatnonzero(boxed)
+            room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
+            widest = np.argmax(room, axis=1)
+            chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
+        moved = chosen >= 0
+        gave_up = state.mode == _GAVE_UP
+        reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
+        reason[gave_up] = _GAVE_UP_CODE
+        chosen[gave_up] = -1
+        moved = chosen >= 0
+        next_points = np.full((n_agents, p.dim), np.nan)
+        next_points[moved] = positions_m[moved] + offsets[chosen[moved]]
+        state.prev_dir[moved] = self._units[chosen[moved]]
+        state.since_field[state.mode == _ESCAPE] += 1
+        return BatchDecision(
+            next_points_m=next_points,
+            reason=reason,
+            chosen_index=chosen.astype(np.int64),
+            mu_o_k=np.full(n_agents, np.nan),
+            n_passing=passing.sum(axis=1).astype(np.int64),
+            n_safe=feasible.sum(axis=1).astype(np.int64),
+        )
+
+    def _geometry(
+        self,
+        positions_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        to_goal: FloatArray,
+        g_k: FloatArray,
+        direct: BoolArray,
+    ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Feasible moves (A, K), their swept squared clearance (A, K), clearance terms (A, K) and (A,), look-ahead
+        penalties (A, K; DIRECT agents).
+
+        Agents go in groups of ``_GROUP``, each with the obstacles near its own agents: the (M, A, K) work arrays
+        stay small (megabyte temporaries cost page faults on every call, several times the arithmetic), and a
+        group pays only for its own crowd. An agent's result does not depend on its group.
+        """
+        n_agents, n_points = g_k.shape
+        feasible = np.empty((n_agents, n_points), dtype=bool)
+        seg2 = np.empty((n_agents, n_points))
+        clear_k = np.empty((n_agents, n_points))
+        clear_0 = np.empty(n_agents)
+        look_k = np.zeros((n_agents, n_points))
+        for lo in range(0, n_agents, _GROUP):
+            g = slice(lo, min(lo + _GROUP, n_agents))
+            mask = None if obstacle_mask is None else obstacle_mask[g]
+            rel, valid = near_obstacles(positions_m[g], obstacles_m[g], mask, self._reach_m)
+            feasible[g], seg2[g] = self._feasible(rel, valid)
+            clear_k[g], clear_0[g] = self._clearance_terms(rel, valid)
+            rows = np.flatnonzero(direct[g])
+            if rows.size and rel.shape[1]:
+                look_k[lo + rows] = self._lookahead(rel[rows], valid[rows], to_goal[g][rows], g_k[g][rows])
+        return feasible, seg2, clear_k, clear_0, look_k
+
+    def _progress(self, state: NavState, g0: FloatArray) -> None:
+        """Closest approach, the escape's leave rule and the give-up by patience."""
+        improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
+        state.best_dist_m = np.where(improved, g0, state.best_dist_m)
+        state.since_best = np.where(improved, 0, state.since_best + 1).astype(np.int32)
+        leave = (state.mode == _ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m)
+        state.mode[leave] = _DIRECT
+        state.field[leave] = None
+        state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
+
+    def _feasible(self, rel: FloatArray, valid: BoolArray) -> tuple[BoolArray, FloatArray]:
+        """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out),
+        and the swept squared clearance of every move (A, K)."""
+        seg2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
+        r2 = np.einsum("amd,amd->am", rel, rel)
+        d0 = np.min(np.where(valid, r2, np.inf), axis=1, initial=np.inf)
+        ok = seg2 >= self._c2
+        inside = d0 < self._c2
+        if inside.any():
+            end2 = self._end_dist_sq(rel, r2)
+            np.copyto(end2, np.inf, where=~valid.T[:, :, None])
+            out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
+            ok = np.where(inside[:, None], out, ok)
+        return np.asarray(ok), seg2
+
+    def _end_dist_sq(self, rel: FloatArray, r2: FloatArray) -> FloatArray:
+        """(M, A, K) squared distance from each obstacle to each bacteria point: |rel|^2 - 2 rel.o + |o|^2."""
+        offsets = self.bacteria_offsets_m
+        dot = np.ascontiguousarray(rel[:, :, 0].T)[:, :, None] * (-2.0 * offsets[:, 0])
+        for d in range(1, offsets.shape[1]):
+            dot += np.ascontiguousarray(rel[:, :, d].T)[:, :, None] * (-2.0 * offsets[:, d])
+        dot += r2.T[:, :, None]
+        dot += self._o2
+        return np.maximum(dot, 0.0, out=dot)
+
+    def _clearance_terms(self, rel: FloatArray, valid: BoolArray) -> tuple[FloatArray, FloatArray]:
+        """Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path."""
+        p = self.params
+        n_agents = rel.shape[0]
+        if rel.shape[1] == 0 or p.nav_clearance_gain_m == 0.0:
+            return np.zeros((n_agents, self._o2.shape[0])), np.zeros(n_agents)
+        r2 = np.einsum("amd,amd->am", rel, rel)
+        kw = {"alpha_o": p.nav_clearance_gain_m, "mu_o_per_m2": p.nav_clearance_decay_per_m2}
+        terms = obstacle_potential(self._end_dist_sq(rel, r2), **kw)
+        np.copyto(terms, 0.0, where=~valid.T[:, :, None])
+        at_agent = np.where(valid, obstacle_potential(r2, **kw), 0.0).sum(axis=1)
+        return np.add.reduce(terms, axis=0), at_agent
+
+    def _lookahead(self, rel: FloatArray, valid: BoolArray, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
+        """(A, K) penalty where the probe from the point towards the goal comes closer than the clearance."""
+        p = self.params
+        n_agents, n_points = g_k.shape
+        if p.nav_lookahead_m == 0.0 or p.nav_lookahead_penalty_m == 0.0 or rel.shape[1] == 0:
+            return np.zeros((n_agents, n_points))
+        length = np.minimum(g_k, p.nav_lookahead_m)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            vec = np.where(g_k[..., None] > 0.0, to_goal * (length / g_k)[..., None], 0.0)
+        starts = np.broadcast_to(self.bacteria_offsets_m, vec.shape)
+        blocked = segments_clearance_sq(rel, valid, starts, vec) < self._c2
+        return np.where(blocked, p.nav_lookahead_penalty_m, 0.0)
+
+    def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
+        """Best passing point, with the turn hysteresis; -1 where none passes."""
+        masked = np.where(passing, cost, np.inf)
+        best = np.argmin(masked, axis=1)
+        any_pass = passing.any(axis=1)
+        cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)  # (A, K); 0 without a previous move
+        has_prev = np.any(prev_dir != 0.0, axis=1)
+        rows = np.arange(cost.shape[0])
+        sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
+        if sharp.any():
+            held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
+            alt = np.argmin(held, axis=1)
+            alt_ok = np.isfinite(held[rows, alt])
+            with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
+                gain_best = cost0 - masked[rows, best]
+                gain_alt = cost0 - held[rows, alt]
+            keep = sharp & alt_ok & (gain_best < self.params.nav_hold_ratio * gain_alt)
+            best = np.where(keep, alt, best)
+        return np.where(any_pass, best, -1).astype(np.intp)
+
+    # --- escape -----------------------------------------------------------------------------------------------
+
+    def _escape_scores(
+        self,
+        rows: IntArray,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+        feasible: BoolArray,
+        clear_k: FloatArray,
+        clear_0: FloatArray,
+        cost: FloatArray,
+        cost0: FloatArray,
+        passing: BoolArray,
+    ) -> None:
+        """Replace the escaping rows' scores by the geodesic ones (in place)."""
+        g_k, g0, ok = self._escape.potentials(
+            rows, positions_m, targets_m, obstacles_m, obstacle_mask, state, feasible, clear_k, clear_0
+        )
+        # Any feasible point down the potential (the clearance term may hold the agent on a plateau).
+        plain: BoolArray = np.asarray(feasible[rows] & (g_k < g0[:, None]))
+        has_ok = np.asarray(ok.any(axis=1))
+        ok = np.asarray(np.where(has_ok[:, None], ok, plain), dtype=np.bool_)
+        cost[rows] = g_k + clear_k[rows]
+        cost0[rows] = np.where(np.asarray(ok.any(axis=1)), g0 + clear_0[rows], np.inf)
+        # Every feasible point is off the map's free cells: inside the inflated obstacles (noise put the agent
+        # there), the agent first backs out (least clearance term); from a free cell it is "no path": give up.
+        lost = feasible[rows].any(axis=1) & ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1)
+        inside = lost & ~np.isfinite(g0)
+        ok[inside] = feasible[rows[inside]]
+        cost[rows[inside]] = clear_k[rows[inside]]
+        cost0[rows[inside]] = np.inf
+        passing[rows] = ok
+        state.mode[rows[lost & ~inside]] = _GAVE_UP

@@ -1,0 +1,144 @@
+"""Clearance geometry of the product planners: which obstacles are near, and how close a straight move passes.
+
+Every function works on a batch of A agents with obstacles relative to each agent (obstacle minus agent), so no
+large coordinates are subtracted and the arrays stay small: the prefilter keeps only the obstacles within reach
+of one move (step + clearance), usually a handful even when hundreds of points are remembered. The sweep test is
+exact for a straight segment (closest point of the segment to each obstacle point), not an endpoint test.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["near_obstacles", "point_clearance_sq", "segment_clearance_sq", "segments_clearance_sq"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+def near_obstacles(
+    positions_m: FloatArray, obstacles_m: FloatArray, mask: BoolArray | None, reach_m: float
+) -> tuple[FloatArray, BoolArray]:
+    """Obstacles within ``reach_m`` of each agent, relative to it, gathered to the smallest common width.
+
+    Parameters
+    ----------
+    positions_m : (A, D) agents [m].
+    obstacles_m : (A, N, D) obstacle points [m]; rows where ``mask`` is False are ignored (may be non-finite).
+    mask : (A, N) known obstacles, or None for all.
+    reach_m : keep obstacles at most this far away [m].
+
+    Returns
+    -------
+    rel : (A, M, D) obstacle minus agent [m] (zero rows where ``valid`` is False).
+    valid : (A, M) which rows of ``rel`` are real; M = the largest count over the agents (0 if none).
+    """
+    n_agents, n_obs, dim = obstacles_m.shape
+    if n_obs == 0:
+        return np.zeros((n_agents, 0, dim)), np.zeros((n_agents, 0), dtype=bool)
+    rel = obstacles_m - positions_m[:, None, :]
+    with np.errstate(invalid="ignore"):
+        d2 = np.einsum("and,and->an", rel, rel)
+        within = d2 <= reach_m * reach_m
+    if mask is not None:
+        within &= mask
+    counts = within.sum(axis=1)
+    width = int(counts.max())
+    if width == 0:
+        return np.zeros((n_agents, 0, dim)), np.zeros((n_agents, 0), dtype=bool)
+    # One agent: its indices directly; a batch: stable argsort puts each row's near obstacles first.
+    idx = np.flatnonzero(within[0])[None, :] if n_agents == 1 else np.argsort(~within, axis=1, kind="stable")[:, :width]
+    valid = np.take_along_axis(within, idx, axis=1)
+    gathered = np.take_along_axis(rel, idx[:, :, None], axis=1)
+    gathered = np.where(valid[:, :, None], gathered, 0.0)
+    return gathered, valid
+
+
+def point_clearance_sq(rel_m: FloatArray, valid: BoolArray) -> FloatArray:
+    """(A,) squared distance from each agent to its nearest valid obstacle (inf if none) [m^2]."""
+    d2 = np.where(valid, np.einsum("amd,amd->am", rel_m, rel_m), np.inf)
+    return np.asarray(np.min(d2, axis=1, initial=np.inf), dtype=np.float64)
+
+
+def _axes(rel_m: FloatArray) -> list[FloatArray]:
+    """The D coordinate planes of (A, M, D) points as contiguous (M, A) arrays.
+
+    Work arrays are laid out (obstacle, agent, point), so every ufunc runs along the contiguous axis of the N_b
+    points and reductions over obstacles combine whole (A, K) slices (numpy is slow on short inner axes).
+    """
+    return [np.ascontiguousarray(rel_m[:, :, d].T) for d in range(rel_m.shape[2])]
+
+
+def _invalid_to_inf(d2: FloatArray, valid: BoolArray) -> None:
+    """Set the (M, A, K) rows of padding obstacles to +inf, in place."""
+    np.copyto(d2, np.inf, where=~valid.T[:, :, None])
+
+
+def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatArray) -> FloatArray:
+    """Squared distance from each straight move agent -> agent + offset_k to the nearest valid obstacle.
+
+    Parameters
+    ----------
+    rel_m : (A, M, D) obstacles relative to the agents (``near_obstacles``).
+    valid : (A, M).
+    offsets_m : (K, D) the moves (bacteria offsets), all of non-zero length.
+
+    Returns
+    -------
+    (A, K) min over obstacles of the squared distance to the segment [0, offset_k] [m^2]; inf without obstacles.
+    """
+    n_agents, width, dim = rel_m.shape
+    if width == 0:
+        return np.full((n_agents, offsets_m.shape[0]), np.inf)
+    axes = _axes(rel_m)
+    o2 = np.einsum("kd,kd->k", offsets_m, offsets_m)
+    dot = axes[0][:, :, None] * offsets_m[:, 0]  # (M, A, K)
+    r2 = axes[0] * axes[0]
+    for d in range(1, dim):
+        dot += axes[d][:, :, None] * offsets_m[:, d]
+        r2 += axes[d] * axes[d]
+    t = dot / o2
+    np.maximum(t, 0.0, out=t)
+    np.minimum(t, 1.0, out=t)
+    # |rel - t o|^2 = r2 - t (2 dot - t o2), with the obstacles relative to the agent (no cancellation).
+    dot *= 2.0
+    dot -= t * o2
+    dot *= t
+    d2 = r2[:, :, None] - dot
+    np.maximum(d2, 0.0, out=d2)
+    _invalid_to_inf(d2, valid)
+    return np.asarray(np.minimum.reduce(d2, axis=0), dtype=np.float64)
+
+
+def segments_clearance_sq(
+    rel_m: FloatArray, valid: BoolArray, starts_m: FloatArray, vectors_m: FloatArray
+) -> FloatArray:
+    """Like ``segment_clearance_sq`` for per-agent segments start_ak -> start_ak + vector_ak (relative to the agent).
+
+    ``starts_m`` and ``vectors_m`` are (A, K, D); zero-length vectors are points. Returns (A, K) [m^2].
+    """
+    n_agents, width, dim = rel_m.shape
+    n_seg = starts_m.shape[1]
+    if width == 0:
+        return np.full((n_agents, n_seg), np.inf)
+    axes = _axes(rel_m)
+    r2 = np.zeros((width, n_agents, n_seg))
+    dot = np.zeros((width, n_agents, n_seg))
+    for d in range(dim):
+        rel = axes[d][:, :, None] - starts_m[:, :, d]  # (M, A, K): obstacle minus segment start
+        r2 += rel * rel
+        rel *= vectors_m[:, :, d]
+        dot += rel
+    v2 = np.einsum("akd,akd->ak", vectors_m, vectors_m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = dot / v2
+    t[~(t > 0.0)] = 0.0  # also NaN from a zero-length vector: the segment is its start point
+    np.minimum(t, 1.0, out=t)
+    dot *= 2.0
+    dot -= t * v2
+    dot *= t
+    r2 -= dot
+    np.maximum(r2, 0.0, out=r2)
+    _invalid_to_inf(r2, valid)
+    return np.asarray(np.minimum.reduce(r2, axis=0), dtype=np.float64)

@@ -1,0 +1,82 @@
+"""Per-agent memory of bapf-nav (``BapfNavPlanner``): mode, progress, last move, and the navigation potential."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, fields
+from typing import Self
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["NavField", "NavMode", "NavState"]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class NavMode(enum.IntEnum):
+    """What drives an agent's choice (``NavState.mode``)."""
+
+    #: Straight-line distance to the target (Eq. (1)) plus clearance: the paper's greedy bacteria step.
+    DIRECT = 0
+    #: Geodesic distance on the remembered map: escaping a concave obstacle, until closer than where it began.
+    ESCAPE = 1
+    #: Gave up (no path on the remembered map, or no progress): no moves until the target changes.
+    GAVE_UP = 2
+
+
+@dataclass(slots=True)
+class NavField:
+    """One agent's navigation potential: grid corner, remembered blocked cells and the distances to the goal."""
+
+    origin_m: FloatArray  # (2,) lower corner (north, east) [m]
+    blocked: npt.NDArray[np.bool_]  # (n^2,)
+    dist_m: FloatArray  # (n^2,) geodesic distance to the goal [m]; inf where blocked or unreachable
+
+
+@dataclass(slots=True)
+class NavState:
+    """Rows of agents (see ``stateful.AgentState``). ``field`` is an object array of ``NavField`` or None."""
+
+    target_m: FloatArray  # (A, D) target the memory belongs to (NaN: none yet)
+    mode: npt.NDArray[np.int8]  # (A,) NavMode
+    hit_dist_m: FloatArray  # (A,) straight-line distance to the target where the escape began [m]
+    best_dist_m: FloatArray  # (A,) closest approach to the target so far [m]
+    since_best: npt.NDArray[np.int32]  # (A,) steps since the closest approach improved
+    since_field: npt.NDArray[np.int32]  # (A,) escape steps since the potential was computed
+    prev_dir: FloatArray  # (A, D) unit direction of the last move (zeros: none)
+    field: npt.NDArray[np.object_]  # (A,) NavField | None
+
+    @classmethod
+    def empty(cls, n_agents: int, dim: int) -> NavState:
+        return cls(
+            target_m=np.full((n_agents, dim), np.nan),
+            mode=np.zeros(n_agents, dtype=np.int8),
+            hit_dist_m=np.full(n_agents, np.inf),
+            best_dist_m=np.full(n_agents, np.inf),
+            since_best=np.zeros(n_agents, dtype=np.int32),
+            since_field=np.zeros(n_agents, dtype=np.int32),
+            prev_dir=np.zeros((n_agents, dim)),
+            field=np.full(n_agents, None, dtype=object),
+        )
+
+    def __len__(self) -> int:
+        return int(self.mode.shape[0])
+
+    def take(self, rows: npt.NDArray[np.intp] | npt.NDArray[np.bool_]) -> Self:
+        return type(self)(**{f.name: getattr(self, f.name)[rows].copy() for f in fields(self)})
+
+    def put(self, rows: npt.NDArray[np.intp], other: Self) -> None:
+        for f in fields(self):
+            getattr(self, f.name)[rows] = getattr(other, f.name)
+
+    def restart(self, rows: npt.NDArray[np.intp], targets_m: FloatArray) -> None:
+        """Forget everything about ``rows`` (a new target)."""
+        self.target_m[rows] = targets_m
+        self.mode[rows] = NavMode.DIRECT
+        self.hit_dist_m[rows] = np.inf
+        self.best_dist_m[rows] = np.inf
+        self.since_best[rows] = 0
+        self.since_field[rows] = 0
+        self.prev_dir[rows] = 0.0
+        self.field[rows] = None

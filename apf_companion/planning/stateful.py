@@ -1,0 +1,113 @@
+"""Planners with memory: per-agent state that the caller owns in batches, and the planner owns for ``step``.
+
+``step_batch(..., state=S)`` reads and updates ``S`` in place (row a is agent a); the caller keeps ``S`` with its
+agents: ``S.take(rows)`` when agents leave the batch, ``S.put(rows, sub)`` after planning a subset. Without
+``state`` every agent starts fresh (its first step). ``step`` keeps one agent's state inside the planner, so a
+caller written for the stateless planners (``planner.step(position, target, obstacles, rng)``) works unchanged;
+``reset()`` forgets it, and a new target starts afresh by itself.
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from typing import Protocol, Self
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.planning.base import Planner
+from apf_companion.planning.decision import BatchDecision, Decision
+from apf_companion.planning.params import PlannerParams
+
+__all__ = ["AgentState", "StatefulPlanner"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+class AgentState(Protocol):
+    """Per-agent planner memory, row a = agent a."""
+
+    def __len__(self) -> int: ...
+
+    def take(self, rows: npt.NDArray[np.intp] | BoolArray) -> Self:
+        """A copy of the given rows (index array or bool mask)."""
+        ...
+
+    def put(self, rows: npt.NDArray[np.intp], other: Self) -> None:
+        """Write ``other``'s rows into ``rows`` of this state."""
+        ...
+
+
+class StatefulPlanner(Planner):
+    """A planner whose decision depends on the agent's history (``AgentState``)."""
+
+    def __init__(self, params: PlannerParams) -> None:
+        super().__init__(params)
+        self._own: AgentState | None = None
+
+    def reset(self) -> None:
+        """Forget the single-agent state of ``step`` (a new flight)."""
+        self._own = None
+
+    @abstractmethod
+    def initial_state(self, n_agents: int) -> AgentState:
+        """The state of ``n_agents`` agents before their first step."""
+
+    @abstractmethod
+    def _plan(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: AgentState,
+    ) -> BatchDecision:
+        """The algorithm on validated arrays; updates ``state`` in place."""
+
+    def step(
+        self,
+        position_m: npt.ArrayLike,
+        target_m: npt.ArrayLike,
+        obstacles_m: npt.ArrayLike,
+        rng: np.random.Generator | None = None,
+    ) -> Decision:
+        """One agent's step, with the planner's own memory of this agent (``reset()`` forgets it)."""
+        pos, tgt, obs = self._check_one(position_m, target_m, obstacles_m)
+        if self._own is None:
+            self._own = self.initial_state(1)
+        return self._plan(pos[None], tgt[None], obs[None], None, self._own).row(0)
+
+    def step_batch(
+        self,
+        positions_m: npt.ArrayLike,
+        targets_m: npt.ArrayLike,
+        obstacles_m: npt.ArrayLike,
+        obstacle_mask: npt.ArrayLike,
+        rng: np.random.Generator | None = None,
+        *,
+        walk_uniforms: npt.ArrayLike | None = None,
+        state: AgentState | None = None,
+    ) -> BatchDecision:
+        """A step of A agents; ``state`` (A rows, updated in place) carries their memory between calls.
+
+        ``rng`` and ``walk_uniforms`` are accepted for the common interface; these planners draw nothing.
+        """
+        pos, tgt, obs, mask = self._check_batch(positions_m, targets_m, obstacles_m, obstacle_mask)
+        st = state if state is not None else self.initial_state(pos.shape[0])
+        if len(st) != pos.shape[0]:
+            from apf_companion.errors import ConfigError
+
+            raise ConfigError(f"state has {len(st)} rows for {pos.shape[0]} agents")
+        return self._plan(pos, tgt, obs, mask, st)
+
+    def _step_batch(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        rng: np.random.Generator | None,
+        walk_uniforms: FloatArray | None,
+    ) -> BatchDecision:
+        return self._plan(positions_m, targets_m, obstacles_m, obstacle_mask, self.initial_state(positions_m.shape[0]))

@@ -1,0 +1,435 @@
+"""bapf-nav and the bendyruler baseline: clearance, escape, give-up, batch equality, determinism, study rows."""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from apf_companion.errors import ConfigError
+from apf_companion.planning import (
+    ALL_PLANNER_NAMES,
+    BapfNavPlanner,
+    BendyRulerPlanner,
+    DecisionReason,
+    NavMode,
+    NavState,
+    PlannerName,
+    PlannerParams,
+    StatefulPlanner,
+    get_planner,
+)
+from apf_companion.planning.navfield import NavGrid
+from sim.study.config import Density, StudyConfig
+from sim.study.engine import SerialExecutor, run_study, simulate
+from sim.study.metrics import Outcome, summarize
+from sim.study.worlds import WorldBatch, draw_worlds
+from sim.world.files import example_world_path, load_world
+
+PRODUCT = ("bapf-nav", "bendyruler")
+
+
+def _segment_clearance(p: np.ndarray, q: np.ndarray, obstacles: np.ndarray) -> float:
+    """Exact min distance from the segment p -> q to the points (reference, one obstacle at a time)."""
+    v = q - p
+    best = math.inf
+    for o in obstacles:
+        t = min(1.0, max(0.0, float(np.dot(o - p, v) / np.dot(v, v))))
+        best = min(best, float(np.linalg.norm(p + t * v - o)))
+    return best
+
+
+# --- names and parameters -----------------------------------------------------------------------------------
+
+
+def test_names_are_defined_once_and_strings_still_work() -> None:
+    assert tuple(ALL_PLANNER_NAMES[-2:]) == PRODUCT
+    assert isinstance(get_planner("bapf-nav"), BapfNavPlanner)
+    assert isinstance(get_planner(PlannerName.BENDYRULER), BendyRulerPlanner)
+    with pytest.raises(ConfigError, match="bapf-nav"):
+        get_planner("bapf-nvа")
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("vehicle_radius_m", 0.0),
+        ("safety_margin_m", -0.1),
+        ("noise_std_m", math.nan),
+        ("noise_k", -1.0),
+        ("nav_hold_ratio", 0.5),
+        ("nav_hold_angle_deg", 200.0),
+        ("nav_cell_m", 0.0),
+        ("nav_grid_m", 1.0),
+        ("nav_patience_steps", 0),
+        ("nav_replan_steps", 2.5),
+        ("br_cont_ratio", 0.9),
+        ("br_margin_max_m", 0.0),
+    ],
+)
+def test_product_parameters_are_validated(field: str, value: object) -> None:
+    with pytest.raises(ConfigError, match=field):
+        PlannerParams(**{field: value})  # type: ignore[arg-type]
+
+
+def test_clearance_is_radius_plus_margins() -> None:
+    p = PlannerParams(vehicle_radius_m=0.3, safety_margin_m=0.2, noise_std_m=0.1, noise_k=2.0)
+    assert p.clearance_m == pytest.approx(0.7)
+
+
+# --- the sweep ----------------------------------------------------------------------------------------------
+
+_coords = st.floats(min_value=-1.6, max_value=1.6, allow_nan=False)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    dim=st.sampled_from([2, 3]),
+    obstacles=st.lists(st.tuples(_coords, _coords, _coords), min_size=1, max_size=40),
+    goal=st.tuples(st.floats(-30, 30), st.floats(-30, 30), st.floats(-5, 5)),
+    steps=st.integers(1, 4),
+)
+def test_no_move_ends_or_passes_within_the_clearance(
+    dim: int, obstacles: list[tuple[float, float, float]], goal: tuple[float, float, float], steps: int
+) -> None:
+    """From a point outside the clearance, every move (several in a row) keeps radius + margins on its whole
+    segment, whatever the obstacles and the goal; only when no move keeps them (boxed in) is the noise margin
+    spent, never the radius + safety margin."""
+    params = PlannerParams(dim=dim)
+    planner = get_planner("bapf-nav", params)
+    obs = np.asarray(obstacles, dtype=np.float64)[:, :dim]
+    pos = np.zeros(dim)
+    target = np.asarray(goal, dtype=np.float64)[:dim]
+    clearance = params.clearance_m
+    if np.min(np.linalg.norm(obs - pos, axis=1)) < clearance:
+        obs = obs[np.linalg.norm(obs - pos, axis=1) >= clearance]
+        if obs.shape[0] == 0:
+            return
+    for _ in range(steps):
+        decision = planner.step(pos, target, obs)
+        if decision.next_point_m is None:
+            break
+        swept = _segment_clearance(pos, decision.next_point_m, obs)
+        assert swept >= params.vehicle_radius_m + params.safety_margin_m - 1e-9
+        if decision.n_safe > 0:  # a squeeze may have left the agent inside C: then it gets no closer
+            start = float(np.min(np.linalg.norm(obs - pos, axis=1)))
+            assert swept >= min(clearance, start) - 1e-9
+        pos = decision.next_point_m
+
+
+@settings(max_examples=80, deadline=None)
+@given(obstacles=st.lists(st.tuples(_coords, _coords), min_size=1, max_size=20))
+def test_from_inside_the_clearance_a_move_never_gets_closer(obstacles: list[tuple[float, float]]) -> None:
+    """Noise may put the agent inside the clearance: its next move gets no closer anywhere and ends farther out."""
+    params = PlannerParams()
+    obs = np.vstack([[0.3, 0.0], np.asarray(obstacles)])  # one obstacle inside the 0.6 m clearance
+    d0 = float(np.min(np.linalg.norm(obs, axis=1)))
+    decision = get_planner("bapf-nav", params).step(np.zeros(2), np.array([20.0, 0.0]), obs)
+    if decision.next_point_m is not None and decision.n_safe > 0:
+        assert _segment_clearance(np.zeros(2), decision.next_point_m, obs) >= d0 - 1e-9
+        assert float(np.min(np.linalg.norm(obs - decision.next_point_m, axis=1))) > d0
+    elif decision.next_point_m is not None:  # boxed in: squeezes out, keeping radius + safety margin
+        swept = _segment_clearance(np.zeros(2), decision.next_point_m, obs)
+        assert swept >= params.vehicle_radius_m + params.safety_margin_m - 1e-9
+
+
+def test_hundreds_of_wall_points_are_respected() -> None:
+    """A dense wall of 400 points across the way: the planner slides along it at the clearance, never closer."""
+    wall = np.stack([np.full(400, 5.0), np.linspace(-20.0, 20.0, 400)], axis=1)
+    planner = get_planner("bapf-nav")
+    pos = np.zeros(2)
+    for _ in range(60):
+        d = planner.step(pos, np.array([10.0, 0.5]), wall)
+        if d.next_point_m is None:
+            break
+        assert d.n_safe > 0
+        assert _segment_clearance(pos, d.next_point_m, wall) >= planner.params.clearance_m - 1e-9
+        pos = d.next_point_m
+
+
+# --- the navigation potential -------------------------------------------------------------------------------
+
+
+def _dijkstra(grid: NavGrid, origin: np.ndarray, blocked: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    n, h = grid.n, grid.cell_m
+    blk = blocked.copy()
+    gi, gj = (int(v) for v in np.floor((goal - origin) / h))
+    inside = 0 <= gi < n and 0 <= gj < n
+    if inside:
+        blk[gi * n + gj] = False
+    dist = np.full(n * n, np.inf)
+    heap: list[tuple[float, int]] = []
+    for i in range(n):
+        for j in range(n):
+            near = inside and abs(i - gi) <= 1 and abs(j - gj) <= 1
+            edge = i in (0, n - 1) or j in (0, n - 1)
+            if not blk[i * n + j] and (near or edge):
+                v = math.hypot(origin[0] + (i + 0.5) * h - goal[0], origin[1] + (j + 0.5) * h - goal[1])
+                if edge and not near:
+                    v += n * h if inside else 0.0
+                elif edge and near:
+                    v = min(v, v + (n * h if inside else 0.0))
+                dist[i * n + j] = v
+                heap.append((v, i * n + j))
+    heapq.heapify(heap)
+    while heap:
+        v, c = heapq.heappop(heap)
+        if v > dist[c]:
+            continue
+        i, j = divmod(c, n)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                ii, jj = i + di, j + dj
+                if (di or dj) and 0 <= ii < n and 0 <= jj < n and not blk[ii * n + jj]:
+                    nv = v + h * (math.sqrt(2.0) if di and dj else 1.0)
+                    if nv < dist[ii * n + jj] - 1e-12:
+                        dist[ii * n + jj] = nv
+                        heapq.heappush(heap, (nv, ii * n + jj))
+    return dist
+
+
+@pytest.mark.parametrize("goal", [(10.0, 9.0), (40.0, -3.0)], ids=["goal-inside", "goal-outside"])
+def test_sweeps_equal_dijkstra(goal: tuple[float, float]) -> None:
+    grid = NavGrid(0.5, 12.0)
+    rng = np.random.default_rng(3)
+    origins = np.zeros((3, 2))
+    obs = rng.uniform(0.0, 12.0, size=(3, 40, 2))
+    blocked = grid.blocked(origins, obs, np.ones((3, 40), dtype=bool), 0.8)
+    goals = np.tile(goal, (3, 1))
+    dist = grid.distances(origins, blocked, goals)
+    for b in range(3):
+        ref = _dijkstra(grid, origins[b], blocked[b], goals[b])
+        assert np.array_equal(np.isfinite(ref), np.isfinite(dist[b]))
+        finite = np.isfinite(ref)
+        np.testing.assert_allclose(dist[b][finite], ref[finite], atol=1e-7)
+
+
+# --- escape and give-up on worlds ---------------------------------------------------------------------------
+
+
+def _fly_world(name: str, dim: int = 2, max_steps: int = 1500) -> tuple[str, np.ndarray, float]:
+    """Fly a bundled world with a simulated 8 m range scanner (72 rays) and a remembered point cloud (no noise).
+
+    Returns (how it ended, final position, lowest clearance to the remembered points)."""
+    world = load_world(example_world_path(name))
+    params = PlannerParams(dim=dim)
+    planner = get_planner("bapf-nav", params)
+    start = np.array(world.start_ne_m if world.start_ne_m is not None else (3.0, 3.0), dtype=np.float64)
+    goal = np.array(world.goal_ne_m if world.goal_ne_m is not None else (22.0, 22.0), dtype=np.float64)
+    pos = np.concatenate([start, [5.0]])[:dim]
+    target = np.concatenate([goal, [5.0]])[:dim]
+    bearings = np.radians(np.arange(0.0, 360.0, 5.0))
+    memory: dict[tuple[int, int], np.ndarray] = {}
+    lowest = math.inf
+    for _ in range(max_steps):
+        if np.linalg.norm(pos[:2] - goal) <= 0.7:
+            return "arrived", pos, lowest
+        ranges = world.ray_cast_m(pos[:2], bearings)
+        hit = ranges <= 8.0
+        pts = pos[:2] + ranges[hit, None] * np.stack([np.cos(bearings[hit]), np.sin(bearings[hit])], axis=1)
+        for q in pts:
+            memory.setdefault((round(q[0] / 0.1), round(q[1] / 0.1)), q)
+        cloud = np.array(list(memory.values())) if memory else np.zeros((0, 2))
+        if dim == 3:
+            cloud = np.concatenate([cloud, np.full((cloud.shape[0], 1), 5.0)], axis=1)
+        d = planner.step(pos, target, cloud)
+        if d.reason is DecisionReason.GAVE_UP:
+            return "gave-up", pos, lowest
+        if d.next_point_m is not None:
+            if cloud.shape[0]:
+                lowest = min(lowest, _segment_clearance(pos, d.next_point_m, cloud))
+            pos = d.next_point_m
+    return "running", pos, lowest
+
+
+@pytest.mark.parametrize("name", ["u-trap", "wall", "corridor"])
+def test_escape_reaches_the_goal_of_each_bundled_world(name: str) -> None:
+    outcome, _, lowest = _fly_world(name)
+    assert outcome == "arrived"
+    assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+def test_escape_in_3d_on_the_u_trap() -> None:
+    outcome, _, _ = _fly_world("u-trap", dim=3)
+    assert outcome == "arrived"
+
+
+def test_an_enclosed_goal_ends_in_a_bounded_give_up() -> None:
+    """The goal inside a closed ring of points: no path on the remembered map -> GAVE_UP, not an endless walk."""
+    angles = np.linspace(0.0, 2.0 * np.pi, 120, endpoint=False)
+    ring = np.array([10.0, 10.0]) + 2.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    planner = get_planner("bapf-nav", PlannerParams(nav_patience_steps=200))
+    assert isinstance(planner, StatefulPlanner)
+    pos = np.zeros(2)
+    steps = 0
+    while steps < 400:
+        steps += 1
+        d = planner.step(pos, np.array([10.0, 10.0]), ring)
+        if d.reason is DecisionReason.GAVE_UP:
+            break
+        if d.next_point_m is not None:
+            pos = d.next_point_m
+    assert steps <= 200 + 100  # patience + the way there
+    again = planner.step(pos, np.array([10.0, 10.0]), ring)
+    assert again.reason is DecisionReason.GAVE_UP and again.next_point_m is None
+    planner.reset()
+    assert planner.step(pos, np.array([-5.0, 0.0]), ring).reason is DecisionReason.GREEDY
+
+
+def test_boxed_in_it_squeezes_out_keeping_radius_and_safety_margin() -> None:
+    """A ring of 7 points 0.7 m away (pockets like it occur in the study): no 0.4 m move keeps C = 0.6 m; it still
+    moves, through a gap, along the move that keeps the most."""
+    angles = 2.0 * np.pi * (np.arange(7) + 0.3) / 7.0
+    pocket = 0.7 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    planner = get_planner("bapf-nav")
+    d = planner.step(np.zeros(2), np.array([20.0, 20.0]), pocket)
+    assert d.n_safe == 0 and d.next_point_m is not None
+    swept = _segment_clearance(np.zeros(2), d.next_point_m, pocket)
+    assert swept >= planner.params.vehicle_radius_m + planner.params.safety_margin_m
+    assert swept == pytest.approx(
+        max(_segment_clearance(np.zeros(2), o, pocket) for o in planner.bacteria_offsets_m), abs=1e-9
+    )
+
+
+def test_a_new_target_starts_afresh() -> None:
+    planner = get_planner("bapf-nav")
+    assert isinstance(planner, StatefulPlanner)
+    state = planner.initial_state(1)
+    assert isinstance(state, NavState)
+    state.mode[0] = NavMode.GAVE_UP
+    state.target_m[0] = (1.0, 1.0)
+    d = planner.step_batch(
+        np.zeros((1, 2)), np.array([[5.0, 0.0]]), np.zeros((1, 0, 2)), np.zeros((1, 0), bool), state=state
+    )
+    assert d.reason[0] == DecisionReason.GREEDY and state.mode[0] == NavMode.DIRECT
+
+
+# --- batch == single ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", PRODUCT)
+@pytest.mark.parametrize("dim", [2, 3])
+def test_step_equals_step_batch_rows_over_a_run(name: str, dim: int) -> None:
+    """Five agents stepped together (one state object) and one by one (each planner's own memory) agree."""
+    rng = np.random.default_rng(7)
+    n_agents, n_obs = 5, 60
+    params = PlannerParams(dim=dim)
+    obstacles = rng.uniform(4.0, 16.0, size=(n_agents, n_obs, dim))
+    mask = rng.random((n_agents, n_obs)) < 0.9
+    pos = np.full((n_agents, dim), 2.0)
+    target = np.full((n_agents, dim), 18.0)
+    batch_planner = get_planner(name, params)
+    state = batch_planner.initial_state(n_agents)  # type: ignore[attr-defined]
+    singles = [get_planner(name, params) for _ in range(n_agents)]
+    pos_single = pos.copy()
+    for _ in range(40):
+        bd = batch_planner.step_batch(pos, target, obstacles, mask, state=state)  # type: ignore[call-arg]
+        for a in range(n_agents):
+            d = singles[a].step(pos_single[a], target[a], obstacles[a][mask[a]])
+            row = bd.row(a)
+            assert d.reason is row.reason and d.chosen_index == row.chosen_index
+            if d.next_point_m is not None:
+                assert row.next_point_m is not None
+                np.testing.assert_array_equal(d.next_point_m, row.next_point_m)
+                pos_single[a] = d.next_point_m
+        moved = bd.moved
+        pos[moved] = bd.next_points_m[moved]
+        np.testing.assert_array_equal(pos, pos_single)
+
+
+# --- the study ----------------------------------------------------------------------------------------------
+
+
+def _fields(density: Density, n: int, seed: int) -> WorldBatch:
+    cfg = StudyConfig.reference()
+    return draw_worlds(np.random.default_rng(seed), n, density, cfg.obstacle_box_m, 2, cfg.obstacle_sampling)
+
+
+@pytest.mark.parametrize("density", [Density(n_low=45, n_high=70), Density(n_low=70, n_high=95)])
+def test_random_fields_terminate_without_collisions_when_noise_free(density: Density) -> None:
+    cfg = dataclasses.replace(StudyConfig.reference(), noise_std_m=0.0)
+    res = simulate(cfg, "bapf-nav", _fields(density, 60, 11), np.random.default_rng(0))
+    s = summarize(res.records)
+    assert s.timeout == 0 and s.collision == 0
+    assert s.R_s >= 0.95
+
+
+def test_give_up_is_a_stuck_outcome_in_the_study() -> None:
+    angles = np.linspace(0.0, 2.0 * np.pi, 90, endpoint=False)
+    ring = np.array([22.0, 22.0]) + 2.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    worlds = WorldBatch(obstacles_m=ring[None], mask=np.ones((1, 90), dtype=bool))
+    cfg = dataclasses.replace(StudyConfig.reference(), noise_std_m=0.0)
+    res = simulate(cfg, "bapf-nav", worlds, np.random.default_rng(0))
+    assert res.records.outcome[0] == Outcome.STUCK
+    assert res.records.iterations[0] < cfg.max_iterations
+
+
+def test_same_seed_same_table_with_one_and_two_workers() -> None:
+    cfg = dataclasses.replace(StudyConfig.reference(), chunk_trials=15)
+    densities = (Density(n_low=70, n_high=95),)
+    serial = run_study(cfg, PRODUCT, densities, 30, seed=4, executor=SerialExecutor())
+    pooled = run_study(cfg, PRODUCT, densities, 30, seed=4, workers=2)
+    for a, b in zip(serial, pooled, strict=True):
+        assert a.planner_name == b.planner_name
+        for field in ("outcome", "iterations", "safety_m", "n_detected"):
+            np.testing.assert_array_equal(getattr(a.records, field), getattr(b.records, field))
+
+
+# --- the baseline -------------------------------------------------------------------------------------------
+
+
+def test_bendyruler_flies_straight_in_the_open_and_around_a_post() -> None:
+    planner = get_planner("bendyruler")
+    d = planner.step(np.zeros(2), np.array([10.0, 0.0]), np.zeros((0, 2)))
+    assert d.next_point_m is not None
+    np.testing.assert_allclose(d.next_point_m, np.array([0.4, 0.0]), atol=1e-12)
+    pos = np.zeros(2)
+    post = np.array([[3.0, 0.0]])
+    for _ in range(40):
+        d = planner.step(pos, np.array([6.0, 0.0]), post)
+        assert d.next_point_m is not None
+        assert _segment_clearance(pos, d.next_point_m, post) >= 0.35 - 1e-9
+        pos = d.next_point_m
+        if np.linalg.norm(pos - [6.0, 0.0]) < 0.7:
+            break
+    assert np.linalg.norm(pos - [6.0, 0.0]) < 0.7
+
+
+def test_service_config_takes_the_product_parameters() -> None:
+    """``[planner.params]`` reaches bapf-nav through the service's validated config (typos are refused)."""
+    from apf_companion.config import config_from_mapping
+    from apf_companion.service import build_planner
+
+    cfg = config_from_mapping({"planner": {"params": {"vehicle_radius_m": 0.3, "safety_margin_m": 0.2}}})
+    planner = build_planner(cfg)
+    assert isinstance(planner, BapfNavPlanner)
+    assert planner.clearance_m == pytest.approx(0.3 + 0.2 + 2.5 * 0.1)
+    with pytest.raises(ConfigError, match="vehicle_radius_m"):
+        build_planner(config_from_mapping({"planner": {"params": {"vehicle_radius_m": -1.0}}}))
+    with pytest.raises(ConfigError, match="unknown planner parameter"):
+        build_planner(config_from_mapping({"planner": {"params": {"vehicle_radius": 0.3}}}))
+
+
+def test_study_cli_runs_the_new_rows_noise_free(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``apf-sim study`` takes the two new planners and ``--noise-std 0``; rows without paper numbers show a dash."""
+    import json
+
+    from sim.cli import build_parser
+
+    argv = ["study", "--trials", "6", "--densities", "70-95", "--planners", "bapf-nav,bendyruler"]
+    argv += ["--noise-std", "0", "--workers", "1", "--no-progress", "--json", str(tmp_path / "s.json")]
+    args = build_parser().parse_args(argv)
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "noise std 0 m" in out
+    rows = [line for line in out.splitlines() if line.startswith("| bapf-nav") or line.startswith("| bendyruler")]
+    assert len(rows) == 2 and all("| – |" in row for row in rows)
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert doc["rules"]["noise_std_m"] == 0.0
+    assert [r["planner"] for r in doc["results"]] == ["bapf-nav", "bendyruler"]
