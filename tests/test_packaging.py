@@ -69,9 +69,6 @@ def test_wheel_builds_cleanly_and_runs(tmp_path: Path) -> None:
     )
     world_dir = Path(where.stdout.strip())
     assert world_dir.is_relative_to(target)  # the wheel's copy, not the checkout
-    assert sorted(p.name for p in (world_dir / "examples").glob("*.toml")) == [
-        "corridor.toml",
-        "forest.toml",
-        "u-trap.toml",
-        "wall.toml",
-    ]
+    bundled = sorted(p.name for p in (ROOT / "sim" / "world" / "examples").glob("*.toml"))
+    assert len(bundled) >= 10  # the four first worlds and the six adversarial ones of issue 7
+    assert sorted(p.name for p in (world_dir / "examples").glob("*.toml")) == bundled
