@@ -1,9 +1,9 @@
 """The service configuration: one TOML file, validated at start.
 
-Every section is a frozen dataclass whose defaults are the documented defaults (the README's Service section has the
-reference table; ``deploy/apf-companion.toml`` is a commented example). Loading is strict: an unknown key, a wrong
-type or a value outside its range raises ``ConfigError`` naming the key (``cycle.rate_hz``) and the allowed range;
-a likely typo gets a suggestion. Nothing here touches the network.
+Every section is a frozen dataclass whose defaults are the documented defaults (docs/configuration.md has the
+reference table, generated from these classes; ``deploy/apf-companion.toml`` is a commented example). Loading is
+strict: an unknown key, a wrong type or a value outside its range raises ``ConfigError`` naming the key
+(``cycle.rate_hz``) and the allowed range; a likely typo gets a suggestion. Nothing here touches the network.
 
 Times are in the vehicle's time base. ``cycle.time_scale`` (default 1) is for simulated vehicles that run faster
 than real time: the service's clock runs ``time_scale`` times faster than the wall clock, so every period,
@@ -141,7 +141,7 @@ class PlannerConfig:
     Attributes:
         name: One of bapf-nav (the product planner, default), capf, bapf, a-bapf, cr-bapf, cr-bapf* (the
             paper's) or bendyruler (a comparison baseline).
-        preset: Parameter preset: "default" (the paper's Table), "paper" or "reference" (notes.md).
+        preset: Parameter preset: "default" (the paper's Table), "paper" or "reference" (docs/paper/notes.md).
         dim: 2 (plan north/east at the goal's altitude) or 3.
         seed: Seed of the random walk's generator (repeatable flights).
         random_walk_budget: Consecutive cycles without a greedy move (random walk or local minimum) after

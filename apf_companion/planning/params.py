@@ -2,7 +2,7 @@
 
 Diab, Mohammadkarimi, Rajan, "Artificial Potential Field-Based Path Planning for Cluttered Environments",
 IEEE Aerospace 2023, DOI 10.1109/AERO55745.2023.10115857. Where the paper is silent, the project's decisions in
-``notes.md`` apply; every rule that differs between the two presets is a named field, not a hidden branch.
+``docs/paper/notes.md`` apply; every rule that differs between the two presets is a named field, not a hidden branch.
 """
 
 from __future__ import annotations
@@ -77,7 +77,8 @@ class PlannerParams:
     abapf_rule, abapf_search : A-BAPF rule and search method (see the enums).
     random_walk : CR-BAPF* escape rule.
     agent_repulsion : include the agent's own repulsion J_o(r) in J_a (Eq. (4)). False reproduces the
-        authors' code, where J_o(r) is always 0 (notes.md), so greedy moves only decrease the target distance.
+        authors' code, where J_o(r) is always 0 (docs/paper/notes.md), so greedy moves only decrease the target
+        distance.
     capf_k_att : CAPF attractive gain [1/m^2-ish, potential per m^2], > 0.
     capf_eta : CAPF FIRAS repulsion gain, >= 0.
     capf_rho_0_m : CAPF repulsion influence distance [m], > 0.
@@ -226,6 +227,6 @@ class PlannerParams:
 
     @classmethod
     def reference(cls, **overrides: Any) -> PlannerParams:
-        """The authors' published MATLAB code (notes.md): alpha_t = 1e5, J_o(r) = 0, single-draw random walk."""
+        """The authors' published MATLAB code (docs/paper/notes.md): alpha_t = 1e5, J_o(r) = 0, single-draw walk."""
         base = cls(alpha_t=1e5, agent_repulsion=False, random_walk=RandomWalkRule.SINGLE_DRAW)
         return dataclasses.replace(base, **overrides)

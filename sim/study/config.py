@@ -1,14 +1,14 @@
 """The study's configuration: every rule of the Monte Carlo study as a named, frozen option.
 
-Two presets (notes.md, decision 1):
+Two presets (docs/paper/notes.md, decision 1):
 - ``reference``: what the authors' published MATLAB code (github M-DIAB/APF, CR-BAPF* only) does: obstacles
   uniform continuous in [5, 20]^2, a cumulative list of detected obstacles, the agent's own repulsion
   J_o(r) = 0 (``agent_repulsion=False``) and a single-draw random walk.
 - ``paper``: what the paper's text says: obstacles uniform over the 30 m x 30 m square, only the obstacles in
   sensor range now, J_a(r) = J_t(r) + J_o(r) (Eq. (4)) and the random walk q ~ U{Q} over safe points.
 
-Shared by both (paper Section "Simulation Setup" and notes.md, decision 2): start (3, 3) m, target (22, 22) m,
-sensor range 8 m, step 0.4 m, N_b = 60, position noise N(0, 0.1^2) per axis on every move, collision within
+Shared by both (paper Section "Simulation Setup" and docs/paper/notes.md, decision 2): start (3, 3) m, target
+(22, 22) m, sensor range 8 m, step 0.4 m, N_b = 60, position noise N(0, 0.1^2) per axis on every move, collision within
 0.25 m of an obstacle (checked at the start of each iteration), success within 0.7 m of the target, at most 900
 iterations.
 """
@@ -37,7 +37,7 @@ class ObstacleSampling(enum.Enum):
     """How obstacle coordinates are drawn inside ``obstacle_box_m``."""
 
     CONTINUOUS = "continuous"
-    """Uniform continuous on every axis (notes.md: both presets)."""
+    """Uniform continuous on every axis (docs/paper/notes.md: both presets)."""
     INTEGER = "integer"
     """Uniform over the integer coordinates of the box, like the authors' README example
     ``Bacteria_Run(randi([5 20], [50, 2]))``; repeated points count once (their detection merges duplicates)."""
@@ -45,7 +45,7 @@ class ObstacleSampling(enum.Enum):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Density:
-    """Obstacle count N ~ discrete U[n_low, n_high], inclusive, redrawn per trial (notes.md, decision 5)."""
+    """Obstacle count N ~ discrete U[n_low, n_high], inclusive, redrawn per trial (docs/paper/notes.md, decision 5)."""
 
     n_low: int
     n_high: int
@@ -121,7 +121,7 @@ class StudyConfig:
     """Iteration cap; a trial still running after it is a timeout."""
     capf_patience: int = 60
     """CAPF is stuck after this many iterations without a new best distance to the target (or at once when
-    its gradient vanishes; notes.md, CAPF)."""
+    its gradient vanishes; docs/paper/notes.md, CAPF)."""
     chunk_trials: int = 500
     """Trials per seeded chunk. Part of the random-stream layout: change it and the draws change."""
 
@@ -162,7 +162,7 @@ class StudyConfig:
 
     @classmethod
     def reference(cls) -> StudyConfig:
-        """The authors' code (notes.md): obstacles in [5, 20]^2, cumulative detection, J_o(r) = 0,
+        """The authors' code (docs/paper/notes.md): obstacles in [5, 20]^2, cumulative detection, J_o(r) = 0,
         single-draw random walk (all through ``PlannerParams.reference()``)."""
         return cls(
             preset="reference",
