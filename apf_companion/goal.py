@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError, ProtocolError
 
@@ -44,11 +45,11 @@ FloatArray = npt.NDArray[np.float64]
 EARTH_RADIUS_M = 6_378_137.0  # WGS-84 equatorial radius, for the flat-earth conversion
 MAX_LOCAL_M = 100_000.0  # goals farther than this from the origin are refused as absurd
 
-MAV_FRAME_GLOBAL = 0
-MAV_FRAME_LOCAL_NED = 1
-MAV_FRAME_GLOBAL_RELATIVE_ALT = 3
-MAV_FRAME_GLOBAL_INT = 5
-MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = 6
+MAV_FRAME_GLOBAL = mavlink.MAV_FRAME_GLOBAL
+MAV_FRAME_LOCAL_NED = mavlink.MAV_FRAME_LOCAL_NED
+MAV_FRAME_GLOBAL_RELATIVE_ALT = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT
+MAV_FRAME_GLOBAL_INT = mavlink.MAV_FRAME_GLOBAL_INT
+MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
 _GLOBAL_AMSL = (MAV_FRAME_GLOBAL, MAV_FRAME_GLOBAL_INT)
 _GLOBAL_REL = (MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
 
@@ -218,17 +219,21 @@ def local_goal_from_reposition(
     """
     if math.isinf(z):
         # MAV_CMD_DO_REPOSITION (common.xml): only NaN means "keep the current altitude"; +-inf is not a height.
-        raise RepositionError(2, f"DO_REPOSITION altitude {z} is not a number (NaN keeps the altitude)")
+        raise RepositionError(
+            mavlink.MAV_RESULT_DENIED, f"DO_REPOSITION altitude {z} is not a number (NaN keeps the altitude)"
+        )
     z_keep = math.isnan(z)
     if frame == MAV_FRAME_LOCAL_NED:
         north_m, east_m = x * 1e-4, y * 1e-4
         down_m = None if z_keep else float(z)
     elif frame in _GLOBAL_AMSL or frame in _GLOBAL_REL:
         if reference is None:
-            raise RepositionError(1, "no GLOBAL_POSITION_INT yet: cannot place a global goal")
+            raise RepositionError(
+                mavlink.MAV_RESULT_TEMPORARILY_REJECTED, "no GLOBAL_POSITION_INT yet: cannot place a global goal"
+            )
         lat_deg, lon_deg = x * 1e-7, y * 1e-7
         if not (-90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 180.0):
-            raise RepositionError(2, f"latitude/longitude out of range: {lat_deg}, {lon_deg}")
+            raise RepositionError(mavlink.MAV_RESULT_DENIED, f"latitude/longitude out of range: {lat_deg}, {lon_deg}")
         dn = math.radians(lat_deg - reference.lat_deg) * EARTH_RADIUS_M
         de = math.radians(lon_deg - reference.lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(reference.lat_deg))
         north_m = reference.pos_ned_m[0] + dn
@@ -239,8 +244,10 @@ def local_goal_from_reposition(
             now_alt = reference.alt_amsl_m if frame in _GLOBAL_AMSL else reference.alt_rel_m
             down_m = reference.pos_ned_m[2] - (float(z) - now_alt)
     else:
-        raise RepositionError(3, f"DO_REPOSITION frame {frame} unsupported (use LOCAL_NED or a GLOBAL frame)")
+        raise RepositionError(
+            mavlink.MAV_RESULT_UNSUPPORTED, f"DO_REPOSITION frame {frame} unsupported (use LOCAL_NED or a GLOBAL frame)"
+        )
     try:
         return Route.point(north_m, east_m, down_m, source=source)
     except ConfigError as err:
-        raise RepositionError(2, str(err)) from err
+        raise RepositionError(mavlink.MAV_RESULT_DENIED, str(err)) from err
