@@ -1,4 +1,47 @@
-"""Placing range scans in local NED."""
+"""Placing range scans in local NED, and filling straight surfaces between sector returns.
+
+Surface fill
+------------
+A sector scan gives one point per sector, so along a wall ``d`` metres away the points spread as
+``d * increment / cos^2`` of the angle off abeam: 0.8 m apart 3 m along a wall 0.5 m away with 5-degree
+sectors, wide enough for a point-based clearance check to pass through the wall. ``surface_fill_points`` fills
+those chords.
+
+Rule ("same surface"), for elements ``i`` and ``j`` of adjacent sectors (bearings one increment apart,
+including last -> first in a full-circle scan; see ``_adjacent_steps``) that both have finite ranges:
+
+1. the chord ``|p_j - p_i| <= max_gap_m``, and
+2. the returns on BOTH sides, ``p_{i-1}`` and ``p_{j+1}`` (each an adjacent sector with a finite range), lie
+   within ``line_tol_m`` of the straight line through ``p_i`` and ``p_j``: four returns in a row on one
+   line. A wall is straight over four sectors; separate objects rarely line up that way.
+
+Such a chord gets ``ceil(L / spacing_m) - 1`` points at equal steps, so neighbouring points are at most
+``spacing_m`` apart; the returns themselves are not repeated (``scan_to_points_ned`` gives them).
+
+Why both sides: with one collinear neighbour (three returns) a close trunk's two returns, a few centimetres
+apart, define almost any line through the next trunk's return. Measured on the simulator's 72 x 5-degree
+sensor (minimum range in each 5-degree window) at 300 random free positions per world: with one side, 137
+filled points in ``forest-dense`` lay more than 0.3 m from any trunk (in a passable gap); with both sides,
+``forest-dense`` got no filled point at all (``benchmarks/replay_surface_fill.py --rules``). Straight-wall
+returns deviate at most 1.1 cm from the line through their neighbours, 0.3-2 m from the wall.
+
+Failure modes (filled points are obstacles only; ``ObstacleMemory.clear_observed`` removes them once a later
+scan sees through them, so a wrong fill is temporary):
+
+- A real gap narrower than what one sector resolves, between collinear surfaces (a doorway in a wall seen very
+  obliquely, objects that happen to line up over four sectors) is closed until a scan sees through it. Such
+  a gap was not seen as free by this scan anyway: each sector reports its nearest return.
+- The chords at the ends of a straight run stay unfilled: at a wall's end, at a corner between two walls
+  (neither side lies on the chord's line), and at the last chord before grazing incidence (a sector nearly
+  parallel to the wall returns the window's nearest point, off the line): 0.3 m from a wall the chord 80-85
+  degrees off abeam (1.23 m long, 1.7-3 m along the wall) stays open until the vehicle comes nearer.
+- Curved surfaces (large trunks, round pillars) and range noise above ``line_tol_m`` leave chords unfilled;
+  range noise moves a point mostly along its ray, and on the oblique walls where chords are long that ray
+  runs nearly along the wall, so the perpendicular error stays small there.
+
+The helpers work on all pairs at once (pair ``i`` joins element ``i`` and element ``(i + 1) % M``; the
+neighbouring pairs come from rolling the arrays): no per-sector Python loop.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +52,9 @@ import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
 from apf_companion.perception.types import FloatArray, Pose, RangeScan, ScanFrame
+
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
 
 __all__ = ["scan_bearings_ned_rad", "scan_to_points_ned", "surface_fill_points"]
 
@@ -56,7 +102,7 @@ def scan_to_points_ned(scan: RangeScan, pose: Pose) -> FloatArray:
     return points
 
 
-def _adjacent_steps(bearings_rad: FloatArray) -> npt.NDArray[np.bool_]:
+def _adjacent_steps(bearings_rad: FloatArray) -> BoolArray:
     """(M,) True where element ``i`` and element ``(i + 1) % M`` are adjacent sectors.
 
     The increment is the median step between consecutive elements (wrapped to (-pi, pi]); a step counts when it
@@ -73,6 +119,58 @@ def _adjacent_steps(bearings_rad: FloatArray) -> npt.NDArray[np.bool_]:
     return np.asarray(np.abs(steps - inc) <= _STEP_RTOL * abs(inc), dtype=np.bool_)
 
 
+def _check_fill_params(spacing_m: float, max_gap_m: float, line_tol_m: float) -> None:
+    """ConfigError unless spacing_m > 0, max_gap_m > 0 and line_tol_m >= 0, all finite."""
+    if not (math.isfinite(spacing_m) and spacing_m > 0.0):
+        raise ConfigError(f"surface fill spacing_m must be finite and > 0, got {spacing_m!r}")
+    if not (math.isfinite(max_gap_m) and max_gap_m > 0.0):
+        raise ConfigError(f"surface fill max_gap_m must be finite and > 0, got {max_gap_m!r}")
+    if not (math.isfinite(line_tol_m) and line_tol_m >= 0.0):
+        raise ConfigError(f"surface fill line_tol_m must be finite and >= 0, got {line_tol_m!r}")
+
+
+def _line_deviation_m(unit: FloatArray, offset_m: FloatArray) -> FloatArray:
+    """(M,) distance of ``offset_m`` (M, 2), taken from a point on each line, from the line along ``unit``."""
+    return np.asarray(np.abs(unit[:, 0] * offset_m[:, 1] - unit[:, 1] * offset_m[:, 0]), dtype=np.float64)
+
+
+def _same_surface(
+    p_m: FloatArray, chord_m: FloatArray, length_m: FloatArray, adj: BoolArray, line_tol_m: float, both_sides: bool
+) -> BoolArray:
+    """(M,) rule 2 of the module docstring: the neighbouring returns lie on the line of chord ``i``.
+
+    ``p_m`` (M, 2) are the returns relative to the vehicle, ``chord_m`` = p_j - p_i, ``length_m`` its length,
+    ``adj`` the pairs of adjacent sectors with finite ranges. ``both_sides`` False accepts one side.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = chord_m / length_m[:, None]
+    q_m = np.roll(p_m, -1, axis=0)  # p_j
+    # Distances of the previous return (p_{i-1}) and the next one (p_{j+1}) from the line through p_i and p_j.
+    dev_prev = _line_deviation_m(unit, np.roll(p_m, 1, axis=0) - p_m)
+    dev_next = _line_deviation_m(unit, np.roll(q_m, -1, axis=0) - q_m)
+    line_prev = np.roll(adj, 1) & (dev_prev <= line_tol_m)  # pair i-1 valid: element i-1 adjacent and finite
+    line_next = np.roll(adj, -1) & (dev_next <= line_tol_m)  # pair i+1 valid: element j+1 adjacent and finite
+    return (line_prev & line_next) if both_sides else (line_prev | line_next)
+
+
+def _chord_samples_ne_m(
+    origin_ne_m: FloatArray,
+    p_m: FloatArray,
+    chord_m: FloatArray,
+    length_m: FloatArray,
+    pairs: IntArray,
+    spacing_m: float,
+) -> FloatArray:
+    """(K, 2) north/east of the interior points of the chords ``pairs`` (``p_m`` and ``chord_m`` relative to
+    ``origin_ne_m``): ``ceil(L / spacing_m) - 1`` per chord at equal steps, chord by chord."""
+    counts = np.ceil(length_m[pairs] / spacing_m).astype(np.intp) - 1  # interior points per chord
+    owner = np.repeat(np.arange(pairs.size), counts)
+    k = np.arange(owner.size) - np.repeat(np.cumsum(counts) - counts, counts) + 1  # 1..counts per chord
+    t = k / (counts[owner] + 1.0)
+    idx = pairs[owner]
+    return np.asarray(origin_ne_m + p_m[idx] + t[:, None] * chord_m[idx], dtype=np.float64)
+
+
 def surface_fill_points(
     scan: RangeScan,
     pose: Pose,
@@ -84,41 +182,7 @@ def surface_fill_points(
 ) -> FloatArray:
     """Obstacle points along the chord between adjacent sector returns that lie on one straight surface.
 
-    A sector scan gives one point per sector, so along a wall ``d`` metres away the points spread as
-    ``d * increment / cos^2`` of the angle off abeam: 0.8 m apart 3 m along a wall 0.5 m away with 5-degree
-    sectors, wide enough for a point-based clearance check to pass through the wall. This fills those chords.
-
-    Rule ("same surface"), for elements ``i`` and ``j`` of adjacent sectors (bearings one increment apart,
-    including last -> first in a full-circle scan; see ``_adjacent_steps``) that both have finite ranges:
-
-    1. the chord ``|p_j - p_i| <= max_gap_m``, and
-    2. the returns on BOTH sides, ``p_{i-1}`` and ``p_{j+1}`` (each an adjacent sector with a finite range), lie
-       within ``line_tol_m`` of the straight line through ``p_i`` and ``p_j``: four returns in a row on one
-       line. A wall is straight over four sectors; separate objects rarely line up that way.
-
-    Such a chord gets ``ceil(L / spacing_m) - 1`` points at equal steps, so neighbouring points are at most
-    ``spacing_m`` apart; the returns themselves are not repeated (``scan_to_points_ned`` gives them).
-
-    Why both sides: with one collinear neighbour (three returns) a close trunk's two returns, a few centimetres
-    apart, define almost any line through the next trunk's return. Measured on the simulator's 72 x 5-degree
-    sensor (minimum range in each 5-degree window) at 300 random free positions per world: with one side, 137
-    filled points in ``forest-dense`` lay more than 0.3 m from any trunk (in a passable gap); with both sides,
-    ``forest-dense`` got no filled point at all (``benchmarks/replay_surface_fill.py --rules``). Straight-wall
-    returns deviate at most 1.1 cm from the line through their neighbours, 0.3-2 m from the wall.
-
-    Failure modes (filled points are obstacles only; ``ObstacleMemory.clear_observed`` removes them once a later
-    scan sees through them, so a wrong fill is temporary):
-
-    - A real gap narrower than what one sector resolves, between collinear surfaces (a doorway in a wall seen very
-      obliquely, objects that happen to line up over four sectors) is closed until a scan sees through it. Such
-      a gap was not seen as free by this scan anyway: each sector reports its nearest return.
-    - The chords at the ends of a straight run stay unfilled: at a wall's end, at a corner between two walls
-      (neither side lies on the chord's line), and at the last chord before grazing incidence (a sector nearly
-      parallel to the wall returns the window's nearest point, off the line): 0.3 m from a wall the chord 80-85
-      degrees off abeam (1.23 m long, 1.7-3 m along the wall) stays open until the vehicle comes nearer.
-    - Curved surfaces (large trunks, round pillars) and range noise above ``line_tol_m`` leave chords unfilled;
-      range noise moves a point mostly along its ray, and on the oblique walls where chords are long that ray
-      runs nearly along the wall, so the perpendicular error stays small there.
+    The rule, why it asks for both sides and its failure modes are in the module docstring.
 
     Parameters
     ----------
@@ -131,49 +195,29 @@ def surface_fill_points(
     line_tol_m:
         Largest distance of a neighbouring return from the chord's line [m], >= 0.
     both_sides:
-        Require the returns on both sides on the line (the rule above). False accepts one side (three returns
+        Require the returns on both sides on the line (the rule). False accepts one side (three returns
         on a line): measured for comparison only (``benchmarks/replay_surface_fill.py --rules``).
 
     Returns
     -------
     (K, 3) float64 filled points in local NED [m], at the vehicle's height, chord by chord in scan order.
     """
-    if not (math.isfinite(spacing_m) and spacing_m > 0.0):
-        raise ConfigError(f"surface fill spacing_m must be finite and > 0, got {spacing_m!r}")
-    if not (math.isfinite(max_gap_m) and max_gap_m > 0.0):
-        raise ConfigError(f"surface fill max_gap_m must be finite and > 0, got {max_gap_m!r}")
-    if not (math.isfinite(line_tol_m) and line_tol_m >= 0.0):
-        raise ConfigError(f"surface fill line_tol_m must be finite and >= 0, got {line_tol_m!r}")
+    _check_fill_params(spacing_m, max_gap_m, line_tol_m)
     bearings = scan_bearings_ned_rad(scan, pose)
-    # Pair i joins element i and element (i + 1) % M; ``adj`` also gives the neighbouring pairs by rolling.
-    adj = _adjacent_steps(bearings) & np.isfinite(scan.ranges_m) & np.roll(np.isfinite(scan.ranges_m), -1)
+    finite = np.isfinite(scan.ranges_m)
+    adj = _adjacent_steps(bearings) & finite & np.roll(finite, -1)
     if not np.any(adj):
         return np.empty((0, 3), dtype=np.float64)
-    r = np.where(np.isfinite(scan.ranges_m), scan.ranges_m, 0.0)
+    r = np.where(finite, scan.ranges_m, 0.0)
     p = np.column_stack([r * np.cos(bearings), r * np.sin(bearings)])  # relative to the vehicle, (M, 2)
-    q = np.roll(p, -1, axis=0)  # p_j
-    chord = q - p
+    chord = np.roll(p, -1, axis=0) - p
     length = np.hypot(chord[:, 0], chord[:, 1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        unit = chord / length[:, None]
-    # Distances of the previous return (p_{i-1}) and the next one (p_{j+1}) from the line through p_i and p_j.
-    prev_off = np.roll(p, 1, axis=0) - p
-    next_off = np.roll(q, -1, axis=0) - q
-    dev_prev = np.abs(unit[:, 0] * prev_off[:, 1] - unit[:, 1] * prev_off[:, 0])
-    dev_next = np.abs(unit[:, 0] * next_off[:, 1] - unit[:, 1] * next_off[:, 0])
-    line_prev = np.roll(adj, 1) & (dev_prev <= line_tol_m)  # pair i-1 valid: element i-1 adjacent and finite
-    line_next = np.roll(adj, -1) & (dev_next <= line_tol_m)  # pair i+1 valid: element j+1 adjacent and finite
-    same_surface = (line_prev & line_next) if both_sides else (line_prev | line_next)
-    fill = adj & (length > spacing_m) & (length <= max_gap_m) & same_surface
-    pairs = np.flatnonzero(fill)
+    same_surface = _same_surface(p, chord, length, adj, line_tol_m, both_sides)
+    pairs = np.flatnonzero(adj & (length > spacing_m) & (length <= max_gap_m) & same_surface)
     if pairs.size == 0:
         return np.empty((0, 3), dtype=np.float64)
-    counts = np.ceil(length[pairs] / spacing_m).astype(np.intp) - 1  # interior points per chord
-    owner = np.repeat(np.arange(pairs.size), counts)
-    k = np.arange(owner.size) - np.repeat(np.cumsum(counts) - counts, counts) + 1  # 1..counts per chord
-    t = k / (counts[owner] + 1.0)
-    idx = pairs[owner]
-    out = np.empty((owner.size, 3), dtype=np.float64)
-    out[:, :2] = pose.pos_ned_m[:2] + p[idx] + t[:, None] * chord[idx]
+    samples_ne = _chord_samples_ne_m(pose.pos_ned_m[:2], p, chord, length, pairs, spacing_m)
+    out = np.empty((samples_ne.shape[0], 3), dtype=np.float64)
+    out[:, :2] = samples_ne
     out[:, 2] = pose.pos_ned_m[2]
     return out

@@ -41,6 +41,7 @@ __all__ = ["BacteriaPlanner"]
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
+Int8Array = npt.NDArray[np.int8]
 
 #: Terms below e^_NEGLIGIBLE_LOG relative to LHS >= 1 cannot change a decision (see module Notes).
 _NEGLIGIBLE_LOG = -60.0
@@ -69,6 +70,91 @@ def _count_rows(flags: BoolArray) -> IntArray:
     if flags.shape[0] == 1:
         return np.array([np.count_nonzero(flags)])
     return np.asarray(np.add.reduce(flags, axis=1), dtype=np.int64)
+
+
+def _relevant_counts(relevant: BoolArray) -> tuple[IntArray | None, int]:
+    """(A,) relevant obstacles per agent (None for one agent) and their common count (0: not all equal).
+
+    Always equal for A = 1 with obstacles; np.count_nonzero without an axis is several times cheaper for
+    that single-agent step.
+    """
+    n_agents = relevant.shape[0]
+    if n_agents == 1:
+        return None, int(np.count_nonzero(relevant))
+    counts = np.add.reduce(relevant, axis=1)
+    return counts, int(counts[0]) if n_agents and counts.min() == counts.max() else 0
+
+
+def _first_passing(passing: BoolArray, gain: FloatArray) -> tuple[IntArray, IntArray, BoolArray, Int8Array]:
+    """Search order of Fig. 3: (A,) chosen point (the first passing one by increasing target distance; -1:
+    none), number passing, stuck (none passes) and reason (GREEDY or LOCAL_MINIMUM)."""
+    # Larger gain = closer to the target; argmax takes the lowest index among ties.
+    chosen = np.where(passing, gain, _MINUS_INF).argmax(axis=1)
+    n_passing = _count_rows(passing)
+    stuck = n_passing == _ZERO_COUNT
+    chosen[stuck] = -1
+    # GREEDY = 0, LOCAL_MINIMUM = 2: the int8 view of the bool array times 2.
+    reason = stuck.view(np.int8) * _LOCAL_MINIMUM_CODE
+    return chosen, n_passing, stuck, reason
+
+
+def _walk_uniforms(walkers: IntArray, rng: np.random.Generator | None, walk_uniforms: FloatArray | None) -> FloatArray:
+    """One U[0, 1) per stuck agent: the given ones (lockstep study) or drawn from ``rng``."""
+    if walk_uniforms is not None:
+        return walk_uniforms[walkers]
+    if rng is not None:
+        return rng.random(walkers.size)
+    raise ConfigError("rng is required: CR-BAPF* needs a random walk for this step")
+
+
+def _random_walk(
+    rule: RandomWalkRule,
+    safe: BoolArray,
+    n_safe: IntArray,
+    walkers: IntArray,
+    u: FloatArray,
+) -> tuple[IntArray, IntArray]:
+    """CR-BAPF* random walk: the walkers that move and their random points, from the uniforms ``u``.
+
+    SAFE_SET (the paper's q ~ U{Q}): one of the walker's safe points uniformly (Q empty: it stays).
+    SINGLE_DRAW (the authors' code): one of the N_b points uniformly, moving only when it is safe.
+    """
+    n_points = safe.shape[1]
+    if rule is RandomWalkRule.SINGLE_DRAW:
+        q = np.minimum((u * n_points).astype(np.int64), n_points - 1)
+        moves = safe[walkers, q]
+    else:
+        n_safe_w = n_safe[walkers]
+        j = np.minimum((u * n_safe_w).astype(np.int64), np.maximum(n_safe_w - 1, 0))
+        q = np.argmax(np.cumsum(safe[walkers], axis=1) > j[:, None], axis=1)
+        moves = n_safe_w > 0
+    return walkers[moves], q[moves]
+
+
+def _groups(rows: IntArray, counts: IntArray, n_points: int) -> list[IntArray]:
+    """Rows split into groups of equal obstacle count (no padding), each cut to a bounded memory size."""
+    if rows.size == 1:
+        return [rows]
+    rows = rows[np.argsort(counts[rows], kind="stable")]
+    sorted_counts = counts[rows]
+    bounds = [0, *(np.flatnonzero(np.diff(sorted_counts)) + 1).tolist(), rows.size]
+    groups: list[IntArray] = []
+    for lo, hi in itertools.pairwise(bounds):
+        chunk = max(1, _CHUNK_ELEMENTS // ((n_points + 1) * int(sorted_counts[lo])))
+        groups.extend(rows[start : min(start + chunk, hi)] for start in range(lo, hi, chunk))
+    return groups
+
+
+def _safe_points(branching: bool, passing: BoolArray, inside: BoolArray | None) -> tuple[BoolArray | None, IntArray]:
+    """CR-BAPF: (A, K) points outside rho_l of every obstacle (None: all) and (A,) their number (-1 for
+    the planners without rho_l)."""
+    n_agents, n_points = passing.shape
+    if not branching:
+        return None, filled(n_agents, -1, np.int64)
+    if inside is None:  # no obstacle near any agent: every point is safe
+        return None, filled(n_agents, n_points, np.int64)
+    safe = ~inside
+    return safe, _count_rows(safe)
 
 
 class BacteriaPlanner(Planner):
@@ -153,29 +239,34 @@ class BacteriaPlanner(Planner):
         reach_m *= reach_m
         return reach_m
 
-    def _step_batch(
-        self,
-        positions_m: FloatArray,
-        targets_m: FloatArray,
-        obstacles_m: FloatArray,
-        obstacle_mask: BoolArray | None,
-        rng: np.random.Generator | None,
-        walk_uniforms: FloatArray | None,
-    ) -> BatchDecision:
-        p = self.params
-        n_agents, dim = positions_m.shape
+    def _target_terms(self, positions_m: FloatArray, targets_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(A,) a = log |J_t(r)| (Eq. (1)) and (A, K) Delta_k = rho_t(r) - rho_t(r + o_k) (module Notes).
 
+        Delta_k = -(|o_k|^2 + 2 o_k . (r - r_t)) > 0 when point k is closer to the target than the agent.
+        """
         rel_t = positions_m - targets_m  # (A, D)
         log_target_agent = self._log_alpha_t - self._mu_t * np.add.reduce(rel_t * rel_t, axis=1)  # a
-        # gain = Delta_k = rho_t(r) - rho_t(r + o_k) = -(|o_k|^2 + 2 o_k . (r - r_t)): (A, K), > 0 = closer.
         gain = rel_t[:, 0, None] * self._minus_two_offsets[0]
-        for axis in range(1, dim):
+        for axis in range(1, positions_m.shape[1]):
             gain += rel_t[:, axis, None] * self._minus_two_offsets[axis]
         gain -= self._offset_sq
+        return log_target_agent, gain
 
-        # Obstacles relative to the agent, (D, A, N): one (A, N) slab per axis (contiguous when it pays off).
+    def _relevant_obstacles(
+        self,
+        positions_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        log_target_agent: FloatArray,
+    ) -> tuple[FloatArray, BoolArray]:
+        """(D, A, N) obstacles relative to their agent and the (A, N) obstacles that can change Eq. (6).
+
+        An obstacle is dropped when it lies beyond ``_reach_sq`` (module Notes) or is masked out; A-BAPF with
+        the full obstacle set keeps every known one.
+        """
+        # One (A, N) slab per axis (contiguous when it pays off).
         by_axis = obstacles_m.transpose(2, 0, 1)
-        if n_agents > 8:
+        if positions_m.shape[0] > 8:
             by_axis = np.ascontiguousarray(by_axis)
         rel_o = by_axis - positions_m.T[:, :, None]
         dist_sq_agent = np.add.reduce(rel_o * rel_o, axis=0)
@@ -185,57 +276,75 @@ class BacteriaPlanner(Planner):
             relevant = dist_sq_agent <= self._reach_sq(log_target_agent)[:, None]
             if obstacle_mask is not None:
                 relevant &= obstacle_mask
-        # Does every agent have the same, non-zero number of relevant obstacles? (Always so for A = 1 with
-        # obstacles; np.count_nonzero without an axis is several times cheaper for that single-agent step.)
-        if n_agents == 1:
-            counts = None
-            n_same = int(np.count_nonzero(relevant))
-        else:
-            counts = np.add.reduce(relevant, axis=1)
-            n_same = int(counts[0]) if n_agents and counts.min() == counts.max() else 0
+        return rel_o, relevant
 
+    def _initial_point_mu(
+        self, n_agents: int, obstacles_m: FloatArray, obstacle_mask: BoolArray | None
+    ) -> FloatArray | None:
+        """A-BAPF: (A, K) mu_o,k before Eq. (11) is evaluated, mu_max with known obstacles else mu_min; None
+        for the other planners."""
+        if not self.adaptive:
+            return None
+        p = self.params
+        known = obstacle_mask.any(axis=1) if obstacle_mask is not None else np.full(n_agents, obstacles_m.size > 0)
+        return np.repeat(np.where(known, float(p.mu_max), float(p.mu_min))[:, None], self._n_points, 1)
+
+    def _decide_by_groups(
+        self,
+        rel_o: FloatArray,
+        relevant: BoolArray,
+        counts: IntArray | None,
+        log_target_agent: FloatArray,
+        gain: FloatArray,
+        mu_points: FloatArray | None,
+    ) -> tuple[BoolArray, BoolArray | None]:
+        """Eq. (6) when agents have different numbers of relevant obstacles: ``_decide`` per group of equal
+        count; an agent without any passes every point closer to the target (LHS = 0 < RHS = mu_t Delta).
+
+        Returns (passing (A, K), inside rho_l (A, K) or None); fills ``mu_points`` in place.
+        """
+        passing = gain > _ZERO
         inside: BoolArray | None = None
-        mu_points: FloatArray | None = None
-        if self.adaptive:
-            known = obstacle_mask.any(axis=1) if obstacle_mask is not None else np.full(n_agents, by_axis.size > 0)
-            mu_points = np.repeat(np.where(known, float(p.mu_max), float(p.mu_min))[:, None], self._n_points, 1)
+        rows = np.flatnonzero(counts) if counts is not None else None  # None: one agent, no obstacle
+        if counts is None or rows is None or not rows.size:
+            return passing, inside
+        if self.branching:
+            inside = np.zeros(gain.shape, dtype=bool)  # None means no point is inside rho_l
+        for idx in _groups(rows, counts, self._n_points):
+            n_obs = int(counts[idx[0]])
+            cols = np.nonzero(relevant[idx])[1].reshape(idx.size, n_obs)
+            gathered = rel_o[:, idx[:, None], cols].transpose(0, 2, 1)
+            ok, bad, mu = self._decide(gathered, log_target_agent[idx], gain[idx])
+            passing[idx] = ok
+            if inside is not None and bad is not None:
+                inside[idx] = bad
+            if mu_points is not None:
+                mu_points[idx] = mu
+        return passing, inside
 
+    def _step_batch(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        rng: np.random.Generator | None,
+        walk_uniforms: FloatArray | None,
+    ) -> BatchDecision:
+        n_agents, dim = positions_m.shape
+        log_target_agent, gain = self._target_terms(positions_m, targets_m)
+        rel_o, relevant = self._relevant_obstacles(positions_m, obstacles_m, obstacle_mask, log_target_agent)
+        counts, n_same = _relevant_counts(relevant)
+        mu_points = self._initial_point_mu(n_agents, obstacles_m, obstacle_mask)
+        inside: BoolArray | None
         if n_same:
             gathered = rel_o[:, relevant].reshape(dim, n_agents, n_same).transpose(0, 2, 1)
             passing, inside, mu = self._decide(gathered, log_target_agent, gain)
             if mu_points is not None:
                 mu_points[:] = mu
         else:
-            passing = gain > _ZERO  # no relevant obstacle: LHS = 0 < RHS = mu_t Delta
-            rows = np.flatnonzero(counts) if counts is not None else None  # None: one agent, no obstacle
-            if counts is not None and rows is not None and rows.size:
-                if self.branching:
-                    inside = np.zeros(gain.shape, dtype=bool)  # None below means no point is inside rho_l
-                for idx in self._groups(rows, counts):
-                    n_obs = int(counts[idx[0]])
-                    cols = np.nonzero(relevant[idx])[1].reshape(idx.size, n_obs)
-                    gathered = rel_o[:, idx[:, None], cols].transpose(0, 2, 1)
-                    ok, bad, mu = self._decide(gathered, log_target_agent[idx], gain[idx])
-                    passing[idx] = ok
-                    if inside is not None and bad is not None:
-                        inside[idx] = bad
-                    if mu_points is not None:
-                        mu_points[idx] = mu
-
+            passing, inside = self._decide_by_groups(rel_o, relevant, counts, log_target_agent, gain, mu_points)
         return self._select(positions_m, passing, inside, gain, mu_points, rng, walk_uniforms)
-
-    def _groups(self, rows: IntArray, counts: IntArray) -> list[IntArray]:
-        """Rows split into groups of equal obstacle count (no padding), each cut to a bounded memory size."""
-        if rows.size == 1:
-            return [rows]
-        rows = rows[np.argsort(counts[rows], kind="stable")]
-        sorted_counts = counts[rows]
-        bounds = [0, *(np.flatnonzero(np.diff(sorted_counts)) + 1).tolist(), rows.size]
-        groups: list[IntArray] = []
-        for lo, hi in itertools.pairwise(bounds):
-            chunk = max(1, _CHUNK_ELEMENTS // ((self._n_points + 1) * int(sorted_counts[lo])))
-            groups.extend(rows[start : min(start + chunk, hi)] for start in range(lo, hi, chunk))
-        return groups
 
     def _decide(
         self,
@@ -310,43 +419,15 @@ class BacteriaPlanner(Planner):
 
         ``inside`` (A, K): bacteria points within rho_l of a known obstacle (CR-BAPF); None: none are.
         """
-        n_agents, n_points = passing.shape
-        # Larger gain = closer to the target; argmax takes the lowest index among ties.
-        chosen = np.where(passing, gain, _MINUS_INF).argmax(axis=1)
-        n_passing = _count_rows(passing)
-        stuck = n_passing == _ZERO_COUNT
-        chosen[stuck] = -1
-        # GREEDY = 0, LOCAL_MINIMUM = 2: the int8 view of the bool array times 2.
-        reason = stuck.view(np.int8) * _LOCAL_MINIMUM_CODE
-        safe: BoolArray | None = None
-        if not self.branching:
-            n_safe = filled(n_agents, -1, np.int64)
-        elif inside is None:  # no obstacle near any agent: every point is safe
-            n_safe = filled(n_agents, n_points, np.int64)
-        else:
-            safe = ~inside
-            n_safe = _count_rows(safe)
-
+        n_agents = passing.shape[0]
+        chosen, n_passing, stuck, reason = _first_passing(passing, gain)
+        safe, n_safe = _safe_points(self.branching, passing, inside)
         if self.random_walk:
-            if safe is None:
-                safe = np.ones(passing.shape, dtype=bool)
             walkers = np.flatnonzero(stuck)
             if walkers.size:
-                if walk_uniforms is not None:
-                    u = walk_uniforms[walkers]
-                elif rng is not None:
-                    u = rng.random(walkers.size)
-                else:
-                    raise ConfigError("rng is required: CR-BAPF* needs a random walk for this step")
-                if self.params.random_walk is RandomWalkRule.SINGLE_DRAW:
-                    q = np.minimum((u * n_points).astype(np.int64), n_points - 1)
-                    moves = safe[walkers, q]
-                else:
-                    n_safe_w = n_safe[walkers]
-                    j = np.minimum((u * n_safe_w).astype(np.int64), np.maximum(n_safe_w - 1, 0))
-                    q = np.argmax(np.cumsum(safe[walkers], axis=1) > j[:, None], axis=1)
-                    moves = n_safe_w > 0
-                walkers, q = walkers[moves], q[moves]
+                u = _walk_uniforms(walkers, rng, walk_uniforms)
+                all_safe = safe if safe is not None else np.ones(passing.shape, dtype=bool)
+                walkers, q = _random_walk(self.params.random_walk, all_safe, n_safe, walkers, u)
                 chosen[walkers] = q
                 reason[walkers] = DecisionReason.RANDOM_WALK
                 stuck[walkers] = False
