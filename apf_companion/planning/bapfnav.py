@@ -46,7 +46,7 @@ from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.potentials import obstacle_potential
-from apf_companion.planning.stateful import AgentState, StatefulPlanner
+from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
 
 __all__ = ["BapfNavPlanner"]
 
@@ -101,8 +101,6 @@ class BapfNavPlanner(StatefulPlanner):
         state: AgentState,
     ) -> BatchDecision:
         assert isinstance(state, NavState)
-        p = self.params
-        n_agents = positions_m.shape[0]
         changed = ~np.all(state.target_m == targets_m, axis=1)
         if changed.any():
             state.restart(np.flatnonzero(changed), targets_m[changed])
@@ -164,18 +162,9 @@ class BapfNavPlanner(StatefulPlanner):
         reason[gave_up] = _GAVE_UP_CODE
         chosen[gave_up] = -1
         moved = chosen >= 0
-        next_points = np.full((n_agents, p.dim), np.nan)
-        next_points[moved] = positions_m[moved] + offsets[chosen[moved]]
         state.prev_dir[moved] = self._units[chosen[moved]]
         state.since_field[state.mode == _ESCAPE] += 1
-        return BatchDecision(
-            next_points_m=next_points,
-            reason=reason,
-            chosen_index=chosen.astype(np.int64),
-            mu_o_k=np.full(n_agents, np.nan),
-            n_passing=passing.sum(axis=1).astype(np.int64),
-            n_safe=feasible.sum(axis=1).astype(np.int64),
-        )
+        return decision_from_choice(positions_m, offsets, chosen, reason, passing.sum(axis=1), feasible.sum(axis=1))
 
     def _geometry(
         self,

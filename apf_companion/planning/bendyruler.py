@@ -39,7 +39,7 @@ import numpy.typing as npt
 from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.params import PlannerParams
-from apf_companion.planning.stateful import AgentState, StatefulPlanner
+from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
 
 __all__ = ["BendyRulerPlanner", "BendyRulerState"]
 
@@ -120,18 +120,10 @@ class BendyRulerPlanner(StatefulPlanner):
         ok = safe[rows, chosen]
         chosen = np.where(ok, chosen, -1)
         moved = chosen >= 0
-        next_points = np.full((n_agents, p.dim), np.nan)
-        next_points[moved] = positions_m[moved] + self.bacteria_offsets_m[chosen[moved]]
         state.prev_dir[moved] = self._units[chosen[moved]]
         reason = np.where(moved, DecisionReason.GREEDY, DecisionReason.LOCAL_MINIMUM).astype(np.int8)
-        return BatchDecision(
-            next_points_m=next_points,
-            reason=reason,
-            chosen_index=chosen.astype(np.int64),
-            mu_o_k=np.full(n_agents, np.nan),
-            n_passing=open_.sum(axis=1).astype(np.int64),
-            n_safe=safe.sum(axis=1).astype(np.int64),
-        )
+        offsets = self.bacteria_offsets_m
+        return decision_from_choice(positions_m, offsets, chosen, reason, open_.sum(axis=1), safe.sum(axis=1))
 
     def _probe(
         self,

@@ -19,10 +19,32 @@ from apf_companion.planning.base import Planner
 from apf_companion.planning.decision import BatchDecision, Decision
 from apf_companion.planning.params import PlannerParams
 
-__all__ = ["AgentState", "StatefulPlanner"]
+__all__ = ["AgentState", "StatefulPlanner", "decision_from_choice"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+
+
+def decision_from_choice(
+    positions_m: npt.NDArray[np.float64],
+    offsets_m: npt.NDArray[np.float64],
+    chosen: npt.NDArray[np.integer],
+    reason: npt.NDArray[np.int8],
+    n_passing: npt.NDArray[np.integer],
+    n_safe: npt.NDArray[np.integer],
+) -> BatchDecision:
+    """The batch decision of agents that move to bacteria point ``chosen`` (row of ``offsets_m``; -1: no move)."""
+    moved = chosen >= 0
+    next_points = np.full(positions_m.shape, np.nan)
+    next_points[moved] = positions_m[moved] + offsets_m[chosen[moved]]
+    return BatchDecision(
+        next_points_m=next_points,
+        reason=reason,
+        chosen_index=chosen.astype(np.int64),
+        mu_o_k=np.full(positions_m.shape[0], np.nan),
+        n_passing=n_passing.astype(np.int64),
+        n_safe=n_safe.astype(np.int64),
+    )
 
 
 class AgentState(Protocol):
