@@ -45,7 +45,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -375,22 +375,7 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
     t0 = time.monotonic()
     svc_log = (opt.out / "service.log").open("wb")
     sim_log = (opt.out / "vehicle.log").open("wb")
-    service = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "apf_companion",
-        "--log-format",
-        "json",
-        "run",
-        "--config",
-        str(cfg_path),
-        "--result-json",
-        str(opt.out / "service_result.json"),
-        *opt.service_args,
-        stdout=svc_log,
-        stderr=svc_log,
-        env=env,
-    )
+    service = await _start_service(opt, cfg_path, svc_log, env)
     vehicle_port = port if proxy is None else proxy.vehicle_port  # the vehicle talks to the proxy
     vehicle = await asyncio.create_subprocess_exec(
         *_sim_argv(opt, vehicle_port, gcs_port), stdout=sim_log, stderr=sim_log, env=env
@@ -423,7 +408,48 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
     sim_res = _read_json(opt.out / "sim_result.json")
     svc_res = _read_json(opt.out / "service_result.json")
     outcome = "timeout" if timed_out and sim_res is not None else _outcome(sim_res, svc_res)
-    record: dict[str, Any] = {
+    record = _record(opt, outcome, sim_res, svc_res, wall_s, (service.returncode, vehicle.returncode), progress.texts)
+    if proxy is not None:
+        record["link_faults"] = str(opt.link_faults)
+        record["link_stats"] = proxy.stats_dict()
+        record["blackout_windows_s"] = proxy.blackout_windows()
+    _write_result(opt, record, sim_res)
+    return record
+
+
+async def _start_service(
+    opt: FlyOptions, cfg_path: Path, log: IO[bytes], env: dict[str, str]
+) -> asyncio.subprocess.Process:
+    """The companion service (``python -m apf_companion run``) as a child process, logging JSON to ``log``."""
+    return await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "apf_companion",
+        "--log-format",
+        "json",
+        "run",
+        "--config",
+        str(cfg_path),
+        "--result-json",
+        str(opt.out / "service_result.json"),
+        *opt.service_args,
+        stdout=log,
+        stderr=log,
+        env=env,
+    )
+
+
+def _record(
+    opt: FlyOptions,
+    outcome: str,
+    sim_res: dict[str, Any] | None,
+    svc_res: dict[str, Any] | None,
+    wall_s: float,
+    exit_codes: tuple[int | None, int | None],
+    statustexts: list[str],
+) -> dict[str, Any]:
+    """The flight's result record from the vehicle's and the service's result files."""
+    return {
         "outcome": outcome,
         "steps": int(svc_res["steps"]) if svc_res else 0,
         "min_clearance_m": sim_res.get("min_clearance_m") if sim_res else None,
@@ -439,18 +465,18 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
         "wall_time_s": round(wall_s, 3),
         "service_state": svc_res.get("state") if svc_res else None,
         "latency_ms_p99": svc_res.get("latency_ms_p99") if svc_res else None,
-        "service_exit_code": service.returncode,
-        "vehicle_exit_code": vehicle.returncode,
-        "statustexts": progress.texts[-20:],
+        "service_exit_code": exit_codes[0],
+        "vehicle_exit_code": exit_codes[1],
+        "statustexts": statustexts[-20:],
         "service_outcome": svc_res.get("outcome") if svc_res else None,
         # The goal was lost without arriving: LINK_LOST, or IDLE after a failed takeover / mode loss.
         "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
         "service_events": _service_events(opt.out / "service.log"),
     }
-    if proxy is not None:
-        record["link_faults"] = str(opt.link_faults)
-        record["link_stats"] = proxy.stats_dict()
-        record["blackout_windows_s"] = proxy.blackout_windows()
+
+
+def _write_result(opt: FlyOptions, record: dict[str, Any], sim_res: dict[str, Any] | None) -> None:
+    """``result.json``, the --json copy and, with --plot, ``trajectory.png``."""
     (opt.out / "result.json").write_text(json.dumps(record, indent=2) + "\n")
     if opt.json_path is not None:
         opt.json_path.parent.mkdir(parents=True, exist_ok=True)
@@ -460,7 +486,6 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
             plot_trajectory(sim_res, record, opt.out / "trajectory.png", goal_ne_m=opt.goal_ne_m)
         except Exception as err:  # a missing matplotlib must not lose the flight result
             print(f"apf-sim fly: no plot ({err})", file=sys.stderr)
-    return record
 
 
 def plot_trajectory(
@@ -521,6 +546,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    _add_scenario_options(p)
+    _add_flight_options(p)
+    _add_sweep_options(p)
+    p.set_defaults(func=_cmd_fly)
+
+
+def _add_scenario_options(p: argparse.ArgumentParser) -> None:
+    """What flies where: planner, autopilot profile, dynamics, the world and its start and goal."""
     p.add_argument(
         "--planner", default="bapf-nav", help="bapf-nav (default), bendyruler, capf, bapf, a-bapf, cr-bapf, cr-bapf*"
     )
@@ -544,6 +577,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     # "--start -12.0,0.0": argparse takes a word starting with "-" for an option unless it looks like a negative
     # number, and its pattern (argparse._ActionsContainer) has no comma; widen it to N,E pairs for this parser.
     p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d*\.?\d*,-?\d*\.?\d*$")
+
+
+def _add_flight_options(p: argparse.ArgumentParser) -> None:
+    """How one flight runs and what it writes: height, speed-up, rates, limits, noise, output."""
     p.add_argument("--alt", type=float, default=5.0, help="flight height above home [m]")
     p.add_argument("--speedup", type=float, default=5.0, help="simulated s per wall s (default 5)")
     p.add_argument("--rate", type=float, default=10.0, help="service cycle rate in simulated Hz (default 10)")
@@ -553,6 +590,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--json", type=Path, help="write the result record here too")
     p.add_argument("--no-plot", action="store_true", help="skip the trajectory PNG")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+
+
+def _add_sweep_options(p: argparse.ArgumentParser) -> None:
+    """Several flights: --trials, the study on the same worlds, seeded link faults."""
     p.add_argument(
         "--trials",
         type=int,
@@ -574,7 +615,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="seeded faults between vehicle and service, e.g. loss=0.3,jitter=0.1,dup=0.05,reorder=0.05,"
         "blackout=2@40%%  (times in simulated s; see sim/linkfaults.py)",
     )
-    p.set_defaults(func=_cmd_fly)
 
 
 def _bundled_worlds() -> list[str]:
@@ -786,12 +826,28 @@ def _sweep(base: FlyOptions, trials: int, study_reps: int = 0) -> int:
     trials = len(records)
     if trials == 0:
         return 130
-    counts = {o: sum(r["outcome"] == o for r in records) for o in OUTCOMES}
+    summary = _sweep_summary(base, records)
+    study: dict[str, Any] | None = None
+    if study_reps > 0 and base.world is None and len(fields) == trials:
+        study = _study_summary(base, records, fields, study_reps)
+        summary["study_same_worlds"] = study
+    summary["records"] = records
+    base.out.mkdir(parents=True, exist_ok=True)
+    (base.out / "sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if base.json_path is not None:
+        base.json_path.write_text(json.dumps(summary, indent=2) + "\n")
+    _print_sweep(base, summary, study, study_reps)
+    return 0
 
+
+def _sweep_summary(base: FlyOptions, records: list[dict[str, Any]]) -> dict[str, Any]:
+    """The sweep's summary: outcome counts, success rate with its Wilson interval, means, fault counts."""
+    trials = len(records)
+    counts = {o: sum(r["outcome"] == o for r in records) for o in OUTCOMES}
     ok = counts["arrived"]
     lo, hi = wilson_interval(ok, trials)
     wins = [r for r in records if r["outcome"] == "arrived"]
-    summary: dict[str, Any] = {
+    return {
         "planner": base.planner,
         "profile": base.profile,
         "preset": base.preset if base.world is None else None,
@@ -808,15 +864,14 @@ def _sweep(base: FlyOptions, trials: int, study_reps: int = 0) -> int:
         "link_faults": None if base.link_faults is None else str(base.link_faults),
         **_fault_summary(records),
     }
-    study: dict[str, Any] | None = None
-    if study_reps > 0 and base.world is None and len(fields) == trials:
-        study = _study_summary(base, records, fields, study_reps)
-        summary["study_same_worlds"] = study
-    summary["records"] = records
-    base.out.mkdir(parents=True, exist_ok=True)
-    (base.out / "sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
-    if base.json_path is not None:
-        base.json_path.write_text(json.dumps(summary, indent=2) + "\n")
+
+
+def _print_sweep(base: FlyOptions, summary: dict[str, Any], study: dict[str, Any] | None, study_reps: int) -> None:
+    """The sweep's summary lines on stdout."""
+    trials = summary["trials"]
+    counts = summary["counts"]
+    ok = counts["arrived"]
+    lo, hi = summary["success_rate_95ci"]
     print(
         f"success {ok}/{trials} = {ok / trials:.3f} (95 % CI {lo:.3f}-{hi:.3f}); "
         + ", ".join(f"{o} {n}" for o, n in counts.items())
@@ -840,4 +895,3 @@ def _sweep(base: FlyOptions, trials: int, study_reps: int = 0) -> int:
             f"flight {ok / trials:.3f} vs study {study['rate']:.3f}: paired difference "
             f"{study['fly_minus_study']:+.3f} (95 % CI {dlo:+.3f} to {dhi:+.3f})"
         )
-    return 0

@@ -27,6 +27,7 @@ from sim.study.config import (
 
 if TYPE_CHECKING:
     from sim.study.engine import CellResult
+    from sim.study.worldstudy import WorldCase, WorldCell
 
 MU_SWEEP_PLANNERS = ("bapf", "cr-bapf*")
 
@@ -81,6 +82,19 @@ def _densities(text: str) -> tuple[Density, ...]:
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add ``study`` to ``apf-sim``."""
     p = subparsers.add_parser("study", help="the paper's Monte Carlo study", description=__doc__)
+    _add_field_options(p)
+    _add_execution_options(p)
+    _add_model_options(p)
+    _add_output_options(p)
+    p.add_argument(
+        "--noise", type=float, default=None, metavar="SD", help="actuation noise SD per axis [m] (default 0.1)"
+    )
+    _register_worlds(p)
+    p.set_defaults(func=run)
+
+
+def _add_field_options(p: argparse.ArgumentParser) -> None:
+    """What the random-field study runs: preset, trials, densities, planners, seed."""
     p.add_argument(
         "--preset",
         choices=PRESET_NAMES,
@@ -100,6 +114,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "planner and the BendyRuler-style baseline, which the paper does not have)",
     )
     p.add_argument("--seed", type=int, default=0, help="root seed (default 0)")
+
+
+def _add_execution_options(p: argparse.ArgumentParser) -> None:
+    """Where the trials run: worker processes, Dask, chunk size."""
     p.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: all cores; 1 = run in this process)"
     )
@@ -116,6 +134,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         default=None,
         help="trials per seeded chunk (default 500; part of the random-stream layout)",
     )
+
+
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    """Variants of the study's model: obstacle sampling, noise, the A-BAPF rule, the mu_o sweep."""
     p.add_argument(
         "--obstacles",
         choices=[s.value for s in ObstacleSampling],
@@ -145,6 +167,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument(
         "--mu-trials", type=int, default=1000, help="trials per planner, density and mu_o of the sweep (default 1000)"
     )
+
+
+def _add_output_options(p: argparse.ArgumentParser) -> None:
+    """What gets written: JSON summary, CSV records, figures, the progress bar."""
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help="write the summary as JSON")
     p.add_argument("--csv", type=Path, default=None, metavar="PATH", help="write per-trial records as CSV")
     p.add_argument(
@@ -155,11 +181,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="write the figures (PNG) here (with --world: each world, its A* path and one run per planner)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
-    p.add_argument(
-        "--noise", type=float, default=None, metavar="SD", help="actuation noise SD per axis [m] (default 0.1)"
-    )
-    _register_worlds(p)
-    p.set_defaults(func=run)
 
 
 def _register_worlds(p: argparse.ArgumentParser) -> None:
@@ -215,11 +236,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
 
-def _run(args: argparse.Namespace) -> int:
-    from sim.study.engine import collect_cells, make_tasks, run_tasks
-    from sim.study.executors import study_executor
-    from sim.study.report import markdown_table, study_json, write_csv, write_json
-
+def _config(args: argparse.Namespace) -> StudyConfig:
+    """The preset's StudyConfig with the command line's overrides."""
     config = StudyConfig.from_preset(args.preset)
     if args.chunk_trials is not None:
         config = dataclasses.replace(config, chunk_trials=args.chunk_trials)
@@ -234,6 +252,14 @@ def _run(args: argparse.Namespace) -> int:
         if not args.noise >= 0:
             raise ConfigError(f"--noise: need >= 0, got {args.noise}")
         config = dataclasses.replace(config, noise_std_m=args.noise)
+    return config
+
+
+def _run(args: argparse.Namespace) -> int:
+    from sim.study.engine import collect_cells, make_tasks, run_tasks
+    from sim.study.executors import study_executor
+
+    config = _config(args)
     planners = _planners(args.planners)
     if args.world:
         return _run_worlds(args, config, planners)
@@ -261,8 +287,26 @@ def _run(args: argparse.Namespace) -> int:
 
     cells = collect_cells(results[: len(tasks)])
     sweep_cells = [(mu, collect_cells(results[a:b])) for mu, a, b in sweep_spans]
-
     n_trials = sum(t.n_trials for t in all_tasks)
+    _print_fields(args, config, cells, sweep_cells, n_trials, wall_s, ran_on.describe())
+    if args.optimum:
+        _print_field_optimum(args, config, cells, densities, workers)
+    _write_fields(args, config, cells, sweep_cells, densities, wall_s, workers)
+    return 0
+
+
+def _print_fields(
+    args: argparse.Namespace,
+    config: StudyConfig,
+    cells: list[CellResult],
+    sweep_cells: list[tuple[float, list[CellResult]]],
+    n_trials: int,
+    wall_s: float,
+    ran_on: str,
+) -> None:
+    """The random-field study's Markdown tables and its one-line run summary."""
+    from sim.study.report import markdown_table
+
     variant = "" if config.obstacle_sampling is ObstacleSampling.CONTINUOUS else ", integer obstacle coordinates"
     if args.noise_std is not None:
         variant += f", noise std {config.noise_std_m:g} m"
@@ -272,13 +316,23 @@ def _run(args: argparse.Namespace) -> int:
         print(f"\n### R_s versus mu_o ({args.mu_trials} trials per point)\n")
         print(_sweep_table(sweep_cells))
     print(
-        f"\n{n_trials} trials in {wall_s:.1f} s wall clock with {ran_on.describe()} "
+        f"\n{n_trials} trials in {wall_s:.1f} s wall clock with {ran_on} "
         f"({n_trials / wall_s:.0f} trials/s). M_s and S over successful trials; T_a = chunk wall time / "
         "chunk trials (amortised, lockstep)."
     )
 
-    if args.optimum:
-        _print_field_optimum(args, config, cells, densities, workers)
+
+def _write_fields(
+    args: argparse.Namespace,
+    config: StudyConfig,
+    cells: list[CellResult],
+    sweep_cells: list[tuple[float, list[CellResult]]],
+    densities: tuple[Density, ...],
+    wall_s: float,
+    workers: int,
+) -> None:
+    """The random-field study's --json, --csv and --plots files."""
+    from sim.study.report import study_json, write_csv, write_json
 
     if args.json is not None:
         doc = study_json(
@@ -295,7 +349,6 @@ def _run(args: argparse.Namespace) -> int:
         write_csv(args.csv, cells)
     if args.plots is not None:
         _write_plots(args.plots, config, cells, sweep_cells, densities, args.seed)
-    return 0
 
 
 def _optimum_kwargs(args: argparse.Namespace, *, fields: bool = False) -> dict[str, float]:
@@ -339,10 +392,8 @@ def _print_field_optimum(
     print(field_optimum_table(cells, optima, config.goal_radius_m))
 
 
-def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[str, ...]) -> int:
-    from sim.study.executors import study_executor
-    from sim.study.report import write_json
-    from sim.study.worldstudy import cell_summary, load_case, run_world_study, world_table
+def _world_spacing(args: argparse.Namespace, config: StudyConfig) -> float:
+    """Check the --world run's options; the surface-sample spacing [m]."""
     from sim.world.geometry import SURFACE_SPACING_M
 
     if args.mu_sweep or args.csv is not None:
@@ -356,6 +407,14 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
     spacing = SURFACE_SPACING_M if args.surface_spacing is None else args.surface_spacing
     if not spacing > 0:
         raise ConfigError(f"--surface-spacing: need > 0, got {spacing}")
+    return spacing
+
+
+def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[str, ...]) -> int:
+    from sim.study.executors import study_executor
+    from sim.study.worldstudy import load_case, run_world_study, world_table
+
+    spacing = _world_spacing(args, config)
     kw = _optimum_kwargs(args)
     cases = [
         load_case(w, spacing_m=spacing, optimum_clearance_m=kw["clearance_m"], optimum_resolution_m=kw["resolution_m"])
@@ -382,6 +441,23 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
         f"true geometry. A* = full-knowledge grid optimum (clearance {kw['clearance_m']} m, grid "
         f"{kw['resolution_m']} m) to the goal circle (radius {config.goal_radius_m} m); mean path over successes."
     )
+    _write_worlds(args, config, planners, cases, cells, spacing, kw)
+    return 0
+
+
+def _write_worlds(
+    args: argparse.Namespace,
+    config: StudyConfig,
+    planners: tuple[str, ...],
+    cases: list[WorldCase],
+    cells: list[WorldCell],
+    spacing: float,
+    kw: dict[str, float],
+) -> None:
+    """The --world run's --json and --plots files."""
+    from sim.study.report import write_json
+    from sim.study.worldstudy import cell_summary
+
     if args.json is not None:
         doc: dict[str, object] = {
             "schema": 1,
@@ -402,7 +478,6 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
         for case in cases:
             plot_world(args.plots / f"world_{case.label}.png", case, config, planners, args.seed, **kw)
         print(f"\nfigures in {args.plots}: " + ", ".join(f"world_{c.label}.png" for c in cases))
-    return 0
 
 
 def _sweep_table(sweep_cells: list[tuple[float, list[CellResult]]]) -> str:

@@ -120,6 +120,98 @@ class SimulationResult:
     """(A, N_max) obstacles detected during each run."""
 
 
+@dataclass(slots=True)
+class _Outputs:
+    """Per-trial outputs of ``simulate``, indexed by trial id."""
+
+    outcome: npt.NDArray[np.int8]
+    iterations: npt.NDArray[np.int32]
+    detected: BoolArray
+    min_dist: FloatArray
+    path: FloatArray
+    clear: FloatArray
+    swept: FloatArray
+    """Clearance of the move that led to each trial's position [m]."""
+
+    @classmethod
+    def empty(cls, n_trials: int, n_max: int) -> _Outputs:
+        return cls(
+            outcome=np.full(n_trials, _RUNNING, dtype=np.int8),
+            iterations=np.zeros(n_trials, dtype=np.int32),
+            detected=np.zeros((n_trials, n_max), dtype=bool),
+            min_dist=np.full((n_trials, n_max), np.inf),
+            path=np.zeros(n_trials),
+            clear=np.full(n_trials, np.inf),
+            swept=np.full(n_trials, np.inf),
+        )
+
+
+@dataclass(slots=True)
+class _Active:
+    """The active set's arrays, row i = trial ``ids[i]`` (compacted when trials finish)."""
+
+    ids: npt.NDArray[np.intp]
+    pos: FloatArray
+    obs: FloatArray
+    obs_raw: FloatArray
+    ever: BoolArray
+    min_dist: FloatArray
+    best_goal_dist: FloatArray
+    since_best: npt.NDArray[np.int32]
+    state: AgentState | None
+
+    def retire(self, finished: npt.NDArray[np.int8], out: _Outputs) -> None:
+        """Record the finished trials' outcomes and drop them from the active set."""
+        done = finished != _RUNNING
+        if not done.any():
+            return
+        done_ids = self.ids[done]
+        out.outcome[done_ids] = finished[done]
+        out.detected[done_ids] = self.ever[done]
+        out.min_dist[done_ids] = self.min_dist[done]
+        keep = ~done
+        self.ids = self.ids[keep]
+        self.pos = self.pos[keep]
+        self.obs = self.obs[keep]
+        self.obs_raw = self.obs_raw[keep]
+        self.ever = self.ever[keep]
+        self.min_dist = self.min_dist[keep]
+        self.best_goal_dist = self.best_goal_dist[keep]
+        self.since_best = self.since_best[keep]
+        if self.state is not None:
+            self.state = self.state.take(keep)
+
+
+@dataclass(slots=True)
+class _Tracer:
+    """The per-iteration ``Trace`` of a recorded run."""
+
+    n_trials: int
+    dim: int
+    pos: list[FloatArray]
+    reason: list[npt.NDArray[np.int8]]
+    mu: list[FloatArray]
+
+    def frame(self, ids: npt.NDArray[np.intp], pos: FloatArray) -> None:
+        frame = np.full((self.n_trials, self.dim), np.nan)
+        frame[ids] = pos
+        self.pos.append(frame)
+        self.reason.append(np.full(self.n_trials, -1, dtype=np.int8))
+        self.mu.append(np.full(self.n_trials, np.nan))
+
+    def decisions(self, rows: npt.NDArray[np.intp], bd: BatchDecision) -> None:
+        self.reason[-1][rows] = np.asarray(bd.reason)
+        self.mu[-1][rows] = np.asarray(bd.mu_o_k, dtype=np.float64)
+
+    def trace(self) -> Trace:
+        n, d = self.n_trials, self.dim
+        return Trace(
+            positions_m=np.stack(self.pos) if self.pos else np.zeros((0, n, d)),
+            reason=np.stack(self.reason) if self.reason else np.zeros((0, n), np.int8),
+            mu_o_k=np.stack(self.mu) if self.mu else np.zeros((0, n)),
+        )
+
+
 def simulate(
     config: StudyConfig,
     planner_name: str,
@@ -152,147 +244,155 @@ def simulate(
     if planner is None:
         planner = get_planner(planner_name, config.planner_params)
     stop_at_minimum = stops_at_local_minimum(planner_name, config)
-    is_capf = planner_name == "capf"
-    cumulative = config.detection == DetectionRule.CUMULATIVE
-
     raw = np.asarray(worlds.obstacles_m, dtype=np.float64)
     n_trials, n_max, dim = raw.shape
     exists = np.asarray(worlds.mask, dtype=bool)
+    out = _Outputs.empty(n_trials, n_max)
+    act = _initial_active(config, planner, raw, exists)
+    targets = np.broadcast_to(np.asarray(config.target_m, dtype=np.float64), (n_trials, dim))
+    tracer = _Tracer(n_trials, dim, [], [], []) if record else None
+    for it in range(1, config.max_iterations + 1):
+        if act.ids.size == 0:
+            break
+        out.iterations[act.ids] = it  # 1. count
+        if tracer is not None:
+            tracer.frame(act.ids, act.pos)
+        finished, in_range = _sense(config, act, out, clearance, is_capf=planner_name == "capf")  # 2.-5.
+        planning = finished == _RUNNING
+        if planning.any():  # 6.-7.
+            sel = np.flatnonzero(planning)
+            bd = _plan(config, planner, act, sel, targets, in_range, rng)
+            if tracer is not None:
+                tracer.decisions(act.ids[sel], bd)
+            _stop_rules(bd, sel, finished, stop_at_minimum=stop_at_minimum)
+            _move(config, act, out, bd, sel, finished, rng, clearance)
+        act.retire(finished, out)
+    act.retire(np.full(act.ids.size, Outcome.TIMEOUT, dtype=np.int8), out)
+    trace = None if tracer is None else tracer.trace()
+    return SimulationResult(records=_records(out, exists, clearance), trace=trace, detected=out.detected)
+
+
+def _records(out: _Outputs, exists: BoolArray, clearance: ClearanceFn | None) -> TrialRecords:
+    """The per-trial records of a finished run (``time_ms`` zero)."""
+    n_trials = out.outcome.size
+    return TrialRecords(
+        outcome=out.outcome,
+        iterations=out.iterations,
+        safety_m=safety_per_trial(out.min_dist, out.detected),
+        n_obstacles=exists.sum(axis=1).astype(np.int32),
+        n_detected=out.detected.sum(axis=1).astype(np.int32),
+        time_ms=np.zeros(n_trials),
+        path_m=out.path,
+        clearance_m=out.clear if clearance is not None else out.min_dist.min(axis=1, initial=np.inf),
+    )
+
+
+def _initial_active(config: StudyConfig, planner: BatchPlanner, raw: FloatArray, exists: BoolArray) -> _Active:
+    """Every trial at the start, nothing detected yet."""
+    n_trials, n_max, dim = raw.shape
     # Padding rows sit at infinity, so distances to them are +inf and never detected or collided with.
     padded = np.where(exists[..., None], raw, np.inf)
     start = np.asarray(config.start_m, dtype=np.float64)
-    target = np.asarray(config.target_m, dtype=np.float64)
-
-    # Per-trial outputs (indexed by trial id).
-    outcome = np.full(n_trials, _RUNNING, dtype=np.int8)
-    iterations = np.zeros(n_trials, dtype=np.int32)
-    detected_out = np.zeros((n_trials, n_max), dtype=bool)
-    min_dist_out = np.full((n_trials, n_max), np.inf)
-    path_out = np.zeros(n_trials)
-    clear_out = np.full(n_trials, np.inf)
-    swept = np.full(n_trials, np.inf)  # clearance of the move that led to each trial's position
-
-    # Active-set state (compacted when trials finish).
-    ids = np.arange(n_trials)
-    pos = np.broadcast_to(start, (n_trials, dim)).copy()
-    obs = padded.copy()
-    obs_raw = raw.copy()
-    ever = np.zeros((n_trials, n_max), dtype=bool)
-    min_dist = np.full((n_trials, n_max), np.inf)
-    best_goal_dist = np.full(n_trials, np.inf)
-    since_best = np.zeros(n_trials, dtype=np.int32)
-    targets = np.broadcast_to(target, (n_trials, dim))
     # Stateful planners (``StatefulPlanner``, or a wrapper that forwards ``initial_state``) get per-trial state.
     state: AgentState | None = planner.initial_state(n_trials) if hasattr(planner, "initial_state") else None
-
-    trace_pos: list[FloatArray] = []
-    trace_reason: list[npt.NDArray[np.int8]] = []
-    trace_mu: list[FloatArray] = []
-
-    for it in range(1, config.max_iterations + 1):
-        if ids.size == 0:
-            break
-        a = ids.size
-        iterations[ids] = it
-        if record:
-            frame = np.full((n_trials, dim), np.nan)
-            frame[ids] = pos
-            trace_pos.append(frame)
-            trace_reason.append(np.full(n_trials, -1, dtype=np.int8))
-            trace_mu.append(np.full(n_trials, np.nan))
-
-        diff = obs - pos[:, None, :]
-        dist = np.sqrt(np.einsum("and,and->an", diff, diff))
-        if clearance is None:
-            collided = (dist < config.collision_radius_m).any(axis=1)
-        else:
-            true_clear = np.minimum(clearance(pos, pos), swept[ids])
-            clear_out[ids] = np.minimum(clear_out[ids], true_clear)
-            collided = true_clear < config.collision_radius_m
-        in_range = dist <= config.sensor_range_m
-        ever |= in_range
-        np.minimum(min_dist, dist, out=min_dist)
-        goal_dist = np.sqrt(np.einsum("ad,ad->a", pos - target, pos - target))
-        reached = ~collided & (goal_dist <= config.goal_radius_m)
-
-        finished = np.full(a, _RUNNING, dtype=np.int8)
-        finished[collided] = Outcome.COLLISION
-        finished[reached] = Outcome.SUCCESS
-        if is_capf:
-            improved = goal_dist < best_goal_dist
-            best_goal_dist = np.where(improved, goal_dist, best_goal_dist)
-            since_best = np.where(improved, 0, since_best + 1).astype(np.int32)
-            finished[(finished == _RUNNING) & (since_best >= config.capf_patience)] = Outcome.STUCK
-
-        planning = finished == _RUNNING
-        if planning.any():
-            known = ever if cumulative else in_range
-            sel = np.flatnonzero(planning)
-            if state is not None:
-                bd = _step_stateful(planner, state, sel, a, pos, targets, obs_raw, known)
-            elif sel.size == a:  # the usual case: no gather copies
-                bd = planner.step_batch(pos, targets[:a], obs_raw, known, rng)
-            else:
-                bd = planner.step_batch(pos[sel], targets[: sel.size], obs_raw[sel], known[sel], rng)
-            reason = np.asarray(bd.reason)
-            if record:
-                trace_reason[-1][ids[sel]] = reason
-                trace_mu[-1][ids[sel]] = np.asarray(bd.mu_o_k, dtype=np.float64)
-            if stop_at_minimum:
-                finished[sel[reason == DecisionReason.LOCAL_MINIMUM]] = Outcome.STUCK
-            finished[sel[reason == DecisionReason.GAVE_UP]] = Outcome.STUCK
-            next_pts = np.asarray(bd.next_points_m, dtype=np.float64)
-            moves = ~np.isnan(next_pts[:, 0]) & (finished[sel] == _RUNNING)
-            if moves.any():
-                movers = sel[moves]
-                noise = rng.normal(0.0, config.noise_std_m, size=(movers.size, dim))
-                new_pos = next_pts[moves] + noise
-                if clearance is not None:
-                    swept[ids[movers]] = clearance(pos[movers], new_pos)
-                path_out[ids[movers]] += np.sqrt(np.einsum("ad,ad->a", new_pos - pos[movers], new_pos - pos[movers]))
-                pos[movers] = new_pos
-
-        done = finished != _RUNNING
-        if done.any():
-            done_ids = ids[done]
-            outcome[done_ids] = finished[done]
-            detected_out[done_ids] = ever[done]
-            min_dist_out[done_ids] = min_dist[done]
-            keep = ~done
-            ids = ids[keep]
-            pos = pos[keep]
-            obs = obs[keep]
-            obs_raw = obs_raw[keep]
-            ever = ever[keep]
-            min_dist = min_dist[keep]
-            best_goal_dist = best_goal_dist[keep]
-            since_best = since_best[keep]
-            if state is not None:
-                state = state.take(keep)
-
-    if ids.size:
-        outcome[ids] = Outcome.TIMEOUT
-        detected_out[ids] = ever
-        min_dist_out[ids] = min_dist
-
-    records = TrialRecords(
-        outcome=outcome,
-        iterations=iterations,
-        safety_m=safety_per_trial(min_dist_out, detected_out),
-        n_obstacles=exists.sum(axis=1).astype(np.int32),
-        n_detected=detected_out.sum(axis=1).astype(np.int32),
-        time_ms=np.zeros(n_trials),
-        path_m=path_out,
-        clearance_m=clear_out if clearance is not None else min_dist_out.min(axis=1, initial=np.inf),
+    return _Active(
+        ids=np.arange(n_trials),
+        pos=np.broadcast_to(start, (n_trials, dim)).copy(),
+        obs=padded.copy(),
+        obs_raw=raw.copy(),
+        ever=np.zeros((n_trials, n_max), dtype=bool),
+        min_dist=np.full((n_trials, n_max), np.inf),
+        best_goal_dist=np.full(n_trials, np.inf),
+        since_best=np.zeros(n_trials, dtype=np.int32),
+        state=state,
     )
-    trace = None
-    if record:
-        trace = Trace(
-            positions_m=np.stack(trace_pos) if trace_pos else np.zeros((0, n_trials, dim)),
-            reason=np.stack(trace_reason) if trace_reason else np.zeros((0, n_trials), np.int8),
-            mu_o_k=np.stack(trace_mu) if trace_mu else np.zeros((0, n_trials)),
-        )
-    return SimulationResult(records=records, trace=trace, detected=detected_out)
+
+
+def _sense(
+    config: StudyConfig, act: _Active, out: _Outputs, clearance: ClearanceFn | None, *, is_capf: bool
+) -> tuple[npt.NDArray[np.int8], BoolArray]:
+    """Steps 2-5 (collision, detection, goal, CAPF's stuck rule): each active trial's outcome so far
+    (``_RUNNING`` = plan on) and the obstacles in sensor range."""
+    target = np.asarray(config.target_m, dtype=np.float64)
+    pos = act.pos
+    diff = act.obs - pos[:, None, :]
+    dist = np.sqrt(np.einsum("and,and->an", diff, diff))
+    if clearance is None:
+        collided = (dist < config.collision_radius_m).any(axis=1)
+    else:
+        true_clear = np.minimum(clearance(pos, pos), out.swept[act.ids])
+        out.clear[act.ids] = np.minimum(out.clear[act.ids], true_clear)
+        collided = true_clear < config.collision_radius_m
+    in_range = dist <= config.sensor_range_m
+    act.ever |= in_range
+    np.minimum(act.min_dist, dist, out=act.min_dist)
+    goal_dist = np.sqrt(np.einsum("ad,ad->a", pos - target, pos - target))
+    reached = ~collided & (goal_dist <= config.goal_radius_m)
+
+    finished = np.full(act.ids.size, _RUNNING, dtype=np.int8)
+    finished[collided] = Outcome.COLLISION
+    finished[reached] = Outcome.SUCCESS
+    if is_capf:
+        improved = goal_dist < act.best_goal_dist
+        act.best_goal_dist = np.where(improved, goal_dist, act.best_goal_dist)
+        act.since_best = np.where(improved, 0, act.since_best + 1).astype(np.int32)
+        finished[(finished == _RUNNING) & (act.since_best >= config.capf_patience)] = Outcome.STUCK
+    return finished, in_range
+
+
+def _plan(
+    config: StudyConfig,
+    planner: BatchPlanner,
+    act: _Active,
+    sel: npt.NDArray[np.intp],
+    targets: FloatArray,
+    in_range: BoolArray,
+    rng: np.random.Generator,
+) -> BatchDecision:
+    """Step 6: the planner's decisions for the planning rows ``sel`` of the active set, on the known obstacles
+    (every one detected so far under ``DetectionRule.CUMULATIVE``, else those in sensor range now)."""
+    known = act.ever if config.detection == DetectionRule.CUMULATIVE else in_range
+    a = act.ids.size
+    if act.state is not None:
+        return _step_stateful(planner, act.state, sel, a, act.pos, targets, act.obs_raw, known)
+    if sel.size == a:  # the usual case: no gather copies
+        return planner.step_batch(act.pos, targets[:a], act.obs_raw, known, rng)
+    return planner.step_batch(act.pos[sel], targets[: sel.size], act.obs_raw[sel], known[sel], rng)
+
+
+def _stop_rules(
+    bd: BatchDecision, sel: npt.NDArray[np.intp], finished: npt.NDArray[np.int8], *, stop_at_minimum: bool
+) -> None:
+    """Step 6's ends: LOCAL_MINIMUM (for the planners it stops) and GAVE_UP are STUCK."""
+    reason = np.asarray(bd.reason)
+    if stop_at_minimum:
+        finished[sel[reason == DecisionReason.LOCAL_MINIMUM]] = Outcome.STUCK
+    finished[sel[reason == DecisionReason.GAVE_UP]] = Outcome.STUCK
+
+
+def _move(
+    config: StudyConfig,
+    act: _Active,
+    out: _Outputs,
+    bd: BatchDecision,
+    sel: npt.NDArray[np.intp],
+    finished: npt.NDArray[np.int8],
+    rng: np.random.Generator,
+    clearance: ClearanceFn | None,
+) -> None:
+    """Step 7: still-running trials with a next point move there plus N(0, noise_std_m^2) per axis."""
+    next_pts = np.asarray(bd.next_points_m, dtype=np.float64)
+    moves = ~np.isnan(next_pts[:, 0]) & (finished[sel] == _RUNNING)
+    if not moves.any():
+        return
+    pos = act.pos
+    movers = sel[moves]
+    noise = rng.normal(0.0, config.noise_std_m, size=(movers.size, pos.shape[1]))
+    new_pos = next_pts[moves] + noise
+    if clearance is not None:
+        out.swept[act.ids[movers]] = clearance(pos[movers], new_pos)
+    out.path[act.ids[movers]] += np.sqrt(np.einsum("ad,ad->a", new_pos - pos[movers], new_pos - pos[movers]))
+    pos[movers] = new_pos
 
 
 def _step_stateful(

@@ -119,12 +119,8 @@ def _check_keys(table: Any, kind: str, index: int) -> Mapping[str, Any]:
     return table
 
 
-def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") -> World:
-    """Build a World from a parsed TOML/JSON mapping in the documented format."""
-    unknown = set(data) - _TOP_KEYS
-    if unknown:
-        msg = f"world: unknown top-level keys {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}"
-        raise ConfigError(msg)
+def _cylinders(data: Mapping[str, Any]) -> tuple[list[tuple[float, float]], list[float], list[float]]:
+    """The ``[[cylinder]]`` tables: centres (north, east) m, radii m, heights m."""
     centres: list[tuple[float, float]] = []
     radii: list[float] = []
     heights: list[float] = []
@@ -136,6 +132,11 @@ def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") 
         centres.append(_pair(t["ne_m"], f"cylinder[{i}].ne_m"))
         radii.append(_num(t, "radius_m", f"cylinder[{i}]", 0.0))
         heights.append(_num(t, "height_m", f"cylinder[{i}]", math.inf, minimum=1e-9))
+    return centres, radii, heights
+
+
+def _walls(data: Mapping[str, Any]) -> tuple[list[np.ndarray], list[float], list[float]]:
+    """The ``[[wall]]`` then ``[[polygon]]`` tables: segments (N, 2, 2) NE m, thicknesses m, heights m."""
     segs: list[np.ndarray] = []
     thick: list[float] = []
     wall_h: list[float] = []
@@ -160,6 +161,34 @@ def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") 
         segs.append(poly)
         thick.extend([_num(t, "thickness_m", f"polygon[{i}]", 0.0)] * len(poly))
         wall_h.extend([_num(t, "height_m", f"polygon[{i}]", math.inf, minimum=1e-9)] * len(poly))
+    return segs, thick, wall_h
+
+
+def _with_random_field(world: World, raw: Any, name: str) -> World:
+    """``world`` merged with the ``[random_field]`` table's seeded paper field."""
+    t = _check_keys(raw, "random_field", 0)
+    obstacles = t.get("obstacles", "low")
+    seed = t.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        msg = f"world: random_field.seed must be an integer >= 0, got {seed!r}"
+        raise ConfigError(msg)
+    field = paper_field(
+        str(t.get("preset", "reference")),
+        obstacles if isinstance(obstacles, str) else int(obstacles),
+        np.random.default_rng(seed),
+        radius_m=_num(t, "radius_m", "random_field", 0.0),
+    )
+    return world.merged(field, name=name)
+
+
+def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") -> World:
+    """Build a World from a parsed TOML/JSON mapping in the documented format."""
+    unknown = set(data) - _TOP_KEYS
+    if unknown:
+        msg = f"world: unknown top-level keys {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}"
+        raise ConfigError(msg)
+    centres, radii, heights = _cylinders(data)
+    segs, thick, wall_h = _walls(data)
     name = data.get("name", default_name)
     start = _pair(data["start_ne_m"], "start_ne_m") if "start_ne_m" in data else None
     goal = _pair(data["goal_ne_m"], "goal_ne_m") if "goal_ne_m" in data else None
@@ -175,17 +204,5 @@ def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") 
         goal_ne_m=goal,
     )
     if "random_field" in data:
-        t = _check_keys(data["random_field"], "random_field", 0)
-        obstacles = t.get("obstacles", "low")
-        seed = t.get("seed", 0)
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            msg = f"world: random_field.seed must be an integer >= 0, got {seed!r}"
-            raise ConfigError(msg)
-        field = paper_field(
-            str(t.get("preset", "reference")),
-            obstacles if isinstance(obstacles, str) else int(obstacles),
-            np.random.default_rng(seed),
-            radius_m=_num(t, "radius_m", "random_field", 0.0),
-        )
-        world = world.merged(field, name=str(name))
+        world = _with_random_field(world, data["random_field"], str(name))
     return world
