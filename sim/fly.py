@@ -726,9 +726,11 @@ def _sweep_loop(
             rec["obstacles"] = opt.obstacles
         records.append(rec)
         ok = sum(r["outcome"] == "arrived" for r in records)
+        clearance = rec.get("min_clearance_m")
+        clearance_txt = f"{clearance:.3f} m" if isinstance(clearance, float) else "-"
         print(
             f"[{k + 1}/{trials}] seed {seed}: {rec['outcome']:9s} world {rec.get('world')} "
-            f"clearance {rec.get('min_clearance_m')} steps {rec.get('steps')}  (success so far {ok}/{k + 1})",
+            f"clearance {clearance_txt} steps {rec.get('steps')}  (success so far {ok}/{k + 1})",
             flush=True,
         )
 

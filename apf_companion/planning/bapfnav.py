@@ -120,15 +120,7 @@ class BapfNavPlanner(StatefulPlanner):
         active = state.mode != _GAVE_UP
         passing = feasible & (cost < cost0[:, None]) & active[:, None]
 
-        # Escape: agents already escaping, and agents whose direct step found no passing point.
-        escaping = state.mode == _ESCAPE
-        trapped = (state.mode == _DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
-        if trapped.any():
-            rows = np.flatnonzero(trapped)
-            state.mode[rows] = _ESCAPE
-            state.hit_dist_m[rows] = g0[rows]
-            state.field[rows] = None
-            escaping = escaping | trapped
+        escaping = self._escaping(state, passing, feasible, g0)
         if escaping.any():
             rows = np.flatnonzero(escaping)
             self._escape_scores(
@@ -147,15 +139,7 @@ class BapfNavPlanner(StatefulPlanner):
             )
 
         chosen = self._choose(cost, cost0, passing, state.prev_dir)
-        # Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
-        # into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
-        # margin; never closer. Without this the agent would sit there until its patience ran out.
-        boxed = ~feasible.any(axis=1) & active
-        if boxed.any():
-            rows = np.flatnonzero(boxed)
-            room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
-            widest = np.argmax(room, axis=1)
-            chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
+        self._squeeze_out(chosen, ~feasible.any(axis=1) & active, seg2)
         moved = chosen >= 0
         gave_up = state.mode == _GAVE_UP
         reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
@@ -165,6 +149,30 @@ class BapfNavPlanner(StatefulPlanner):
         state.prev_dir[moved] = self._units[chosen[moved]]
         state.since_field[state.mode == _ESCAPE] += 1
         return decision_from_choice(positions_m, offsets, chosen, reason, passing.sum(axis=1), feasible.sum(axis=1))
+
+    @staticmethod
+    def _escaping(state: NavState, passing: BoolArray, feasible: BoolArray, g0: FloatArray) -> BoolArray:
+        """(A,) agents that plan on the escape potential: those already escaping, and those whose direct step
+        found no passing point (they enter ESCAPE here, remembering where: Bug2's leave rule)."""
+        escaping = state.mode == _ESCAPE
+        trapped = (state.mode == _DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
+        if trapped.any():
+            rows = np.flatnonzero(trapped)
+            state.mode[rows] = _ESCAPE
+            state.hit_dist_m[rows] = g0[rows]
+            state.field[rows] = None
+            escaping = escaping | trapped
+        return np.asarray(escaping)
+
+    def _squeeze_out(self, chosen: IntArray, boxed: BoolArray, seg2: FloatArray) -> None:
+        """Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
+        into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
+        margin; never closer. Without this the agent would sit there until its patience ran out."""
+        if boxed.any():
+            rows = np.flatnonzero(boxed)
+            room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
+            widest = np.argmax(room, axis=1)
+            chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
 
     def _geometry(
         self,

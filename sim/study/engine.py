@@ -4,7 +4,7 @@ Thousands of trials advance together as one array program: positions are ``(A, D
 to ``(A, N_max, D)`` with masks, the planner decides for every active trial in one ``step_batch`` call, and
 finished trials leave the active set (its arrays are compacted in place).
 
-One iteration of a trial, in the authors' order (notes.md; github M-DIAB/APF ``Bacteria_Run.m``):
+One iteration of a trial, in the authors' order (docs/paper/notes.md; github M-DIAB/APF ``Bacteria_Run.m``):
 
 1. count the iteration (M_s counts iterations, including ones without a move);
 2. collision: closer than ``collision_radius_m`` to any obstacle -> COLLISION;
@@ -14,8 +14,8 @@ One iteration of a trial, in the authors' order (notes.md; github M-DIAB/APF ``B
    entering the goal circle": the move that would follow cannot change any metric, so it is not computed);
 5. stuck rules: CAPF without a new best target distance for ``capf_patience`` iterations -> STUCK;
 6. plan: ``planner.step_batch`` on the known obstacles. A LOCAL_MINIMUM ends BAPF, CR-BAPF and A-BAPF
-   (notes.md, decision 3), CAPF (vanishing gradient) and the bendyruler baseline (nothing changes until it
-   moves); for CR-BAPF* it ends the trial only under the SAFE_SET random walk (an empty safe set is a fixed
+   (docs/paper/notes.md, decision 3), CAPF (vanishing gradient) and the bendyruler baseline (nothing changes
+   until it moves); for CR-BAPF* it ends the trial only under the SAFE_SET random walk (an empty safe set is a fixed
    point), while under SINGLE_DRAW it is a no-move iteration; for bapf-nav it is a no-move iteration, and its
    GAVE_UP (the planner's own give-up rule) is STUCK. Stateful planners (``StatefulPlanner``) get their
    per-trial state, which follows the trials through the compaction;
@@ -88,7 +88,8 @@ sample points (``sim.study.worldstudy``)."""
 _STOPS_AT_LOCAL_MINIMUM = frozenset(
     {PlannerName.CAPF, PlannerName.BAPF, PlannerName.A_BAPF, PlannerName.CR_BAPF, PlannerName.BENDYRULER}
 )
-"""Planners whose trial ends at the first LOCAL_MINIMUM (notes.md, decision 3; CAPF: vanishing gradient)."""
+"""Planners whose trial ends at the first LOCAL_MINIMUM (docs/paper/notes.md, decision 3; CAPF: vanishing
+gradient)."""
 
 
 def stops_at_local_minimum(planner_name: str, config: StudyConfig) -> bool:
