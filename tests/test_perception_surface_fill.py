@@ -291,8 +291,8 @@ def test_wrong_fill_across_a_doorway_is_cleared_by_a_scan_through_it() -> None:
             assert in_door(plain.points(0.0)) == 0  # (the sector returns alone leave it open)
     pts = front.points(3.0)
     assert in_door(pts) == 0
-    wall = pts[np.abs(pts[:, 0] - 10.0) < 0.2, 1]
-    assert np.any(wall < 2.8) and np.any(wall > 3.7)
+    along_m = pts[np.abs(pts[:, 0] - 10.0) < 0.2, 1]  # east of the remembered wall points
+    assert np.any(along_m < 2.8) and np.any(along_m > 3.7)
 
 
 # ---- properties ---------------------------------------------------------------------------------------------

@@ -262,7 +262,7 @@ async def _lockstep(session: zenoh.Session, goal: bytes, heard: Callable[[], int
     ("content", "fragment"),
     [
         ('{ mode: "router" }', "sets 'mode'"),
-        ('{ listen: { endpoints: ["tcp/0.0.0.0:7447"] } }', "sets 'listen/endpoints'"),
+        ('{ listen: { endpoints: ["tcp/127.0.0.1:7447"] } }', "sets 'listen/endpoints'"),
         ('{ connect: { endpoints: ["tcp/10.0.0.1:7447"] } }', "sets 'connect/endpoints'"),
         ("{ scouting: { multicast: { enabled: true } } }", "multicast"),
         ("{ transprt: {} }", "unknown field"),
