@@ -17,7 +17,7 @@ Method (2D, north/east metres):
 The result is a feasible path (every bundled world's path keeps the clearance on every segment: tested; only a
 start or goal that itself lies closer, or a grid edge no refinement replaced, may not): an upper bound on the
 true optimum, tight up to how well a few straight bends
-follow an arc where the path wraps an obstacle. Measured (``tests/test_optimal.py`` and the docs): a detour
+follow an arc where the path wraps an obstacle. Measured (``tests/sim/study/test_optimal.py`` and the docs): a detour
 round one disc +0.03 % at 0.1 m and 0.2 m grids, a 53-degree wrap of a 1.35 m disc +0.3 %; straight lines are
 exact; on 30 random reference fields the 0.2 m grid gives on average 0.14 % (at most 0.7 %) more than 0.1 m.
 A gap narrower than the grid resolves (within ~``resolution_m`` of 2 * clearance) may be missed, making the

@@ -22,15 +22,14 @@ from apf_companion.errors import ConfigError, LinkError
 from apf_companion.links.zenoh import Overflow, ZenohConfig, ZenohLink, ZenohSubscription
 from apf_companion.perception import GoalCommand, encode_goal_json
 from apf_companion.service import CompanionService
-
-from .conftest import free_port
+from tests.conftest import free_port
 
 pytestmark = [
     pytest.mark.timeout(90),
     pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI to make certificates"),
 ]
 
-DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 PKI_IN_EXAMPLES = "/etc/apf-companion/zenoh/"
 RANGES = "apf/sensors/range0/ranges"
 GOAL = "apf/cmd/goal"

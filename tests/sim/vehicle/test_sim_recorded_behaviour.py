@@ -19,7 +19,9 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, Autopilot, CopterMode
 from sim.vehicle import Dynamics, EngineConfig, SpawnConfig, VehicleEngine
 
-REAL: dict[str, Any] = tomllib.loads((Path(__file__).parent / "data" / "arducopter_sitl_responses.toml").read_text())
+REAL: dict[str, Any] = tomllib.loads(
+    (Path(__file__).resolve().parents[2] / "data" / "arducopter_sitl_responses.toml").read_text()
+)
 TOL = float(REAL["tolerance"])
 GCS = m.MAVLink(None, srcSystem=255, srcComponent=190)
 

@@ -13,7 +13,7 @@ from apf_companion.config import ServiceConfig, config_from_mapping, load_config
 from apf_companion.errors import ConfigError
 from apf_companion.service import build_planner, initial_route
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_defaults_are_documented_values() -> None:

@@ -17,7 +17,7 @@ import pytest
 from apf_companion.goal import Route
 from apf_companion.navigator import State
 from apf_companion.setpoint import SetpointKind, silent_safe_velocity
-from tests.test_service_flight import GOAL, flight, service_config, sparse_world
+from tests.service.test_service_flight import GOAL, flight, service_config, sparse_world
 
 pytestmark = pytest.mark.timeout(90)
 

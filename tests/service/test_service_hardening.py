@@ -20,7 +20,7 @@ from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
 from apf_companion.outbox import FLOAT32_MAX, Outbox
 from apf_companion.setpoint import Setpoint, SetpointKind
-from tests.test_service_mavlink import ScriptedAutopilot, fast_config, rig, until
+from tests.service.test_service_mavlink import ScriptedAutopilot, fast_config, rig, until
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -13,7 +13,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.links.messages import ObstacleDistance, ObstacleDistance3d, Source
 from apf_companion.perception import PerceptionFrontEnd, PerceptionParams
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SRC = Source(1, 1)
 
 

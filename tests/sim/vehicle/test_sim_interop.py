@@ -18,8 +18,7 @@ from apf_companion.autopilot import CopterMode
 from apf_companion.links import MavlinkLink
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.testing import command_long
-
-from .conftest import HANG_S, free_port, wait_for
+from tests.conftest import HANG_S, free_port, wait_for
 
 pytestmark = [pytest.mark.interop, pytest.mark.usefixtures("simulator_yields_every_step")]
 

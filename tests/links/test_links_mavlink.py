@@ -20,8 +20,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.errors import LinkError, LinkTimeout
 from apf_companion.links import EndpointKind, MavlinkLink
 from apf_companion.links.transports import MAX_UDP_PEERS, TRANSPORTS
-
-from .conftest import HANG_S, free_port, until
+from tests.conftest import HANG_S, free_port, until
 
 
 def heartbeat(link: MavlinkLink) -> Any:

@@ -25,8 +25,7 @@ from apf_companion.perception import GoalCommand, encode_goal_json
 from apf_companion.service import CompanionService
 from sim.vehicle import SimConfig, Simulator, SpawnConfig, ZenohOutput
 from sim.world import World, paper_field
-
-from .conftest import HANG_S, SimulatorClock, free_port, until, until_sim_time
+from tests.conftest import HANG_S, SimulatorClock, free_port, until, until_sim_time
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.usefixtures("simulator_yields_every_step")]
 

@@ -37,8 +37,7 @@ from apf_companion.perception import (
     encode_laserscan_cdr,
     encode_scan_json,
 )
-
-from .conftest import HANG_S, free_port, until
+from tests.conftest import HANG_S, free_port, until
 
 # The all-interfaces address, spelled out only to check that it is refused (nothing here binds it).
 ANY_IPV4 = ".".join("0" * 4)

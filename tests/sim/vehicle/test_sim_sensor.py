@@ -20,8 +20,7 @@ from sim.vehicle.sensor import obstacle_distance_msg
 from sim.vehicle.sensor_only import SensorOnlyConfig, SensorSimulator
 from sim.vehicle.testing import simulator_with_client
 from sim.world import World
-
-from .conftest import HANG_S, free_port
+from tests.conftest import HANG_S, free_port
 
 pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
 

@@ -21,8 +21,7 @@ from apf_companion.errors import ConfigError
 from apf_companion.links import MavlinkLink
 from sim.vehicle import EngineConfig, SpawnConfig, VehicleEngine
 from sim.world import World, load_world
-
-from .conftest import HANG_S, free_port
+from tests.conftest import HANG_S, free_port
 
 GCS = m.MAVLink(None, srcSystem=255, srcComponent=190)
 

@@ -18,8 +18,7 @@ from apf_companion.errors import LinkTimeout
 from apf_companion.links import MavlinkLink
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.testing import command_int, command_long, simulator_with_client
-
-from .conftest import HANG_S, wait_for
+from tests.conftest import HANG_S, wait_for
 
 pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
 

@@ -32,8 +32,7 @@ from apf_companion.links import MavlinkLink
 from sim.vehicle import Simulator, SpawnConfig
 from sim.vehicle.testing import command_long, simulator_with_client
 from sim.world import World
-
-from .conftest import HANG_S, StepWatch, wait_for, wait_sim_time
+from tests.conftest import HANG_S, StepWatch, wait_for, wait_sim_time
 
 pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
 

@@ -14,7 +14,7 @@ import pytest
 
 from apf_companion.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_check_config_ok_prints_effective_config(capsys: pytest.CaptureFixture[str]) -> None:
