@@ -42,12 +42,7 @@ def build_planner(config: ServiceConfig) -> Any:
         ConfigError: unknown planner parameter or a value the planner refuses.
     """
     pc = config.planner
-    if pc.preset == "paper":
-        params = PlannerParams.paper()
-    elif pc.preset == "reference":
-        params = PlannerParams.reference()
-    else:
-        params = PlannerParams()
+    params = PlannerParams.from_preset(pc.preset)
     current = {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
     overrides: dict[str, Any] = {}
     for key, raw in pc.params.items():

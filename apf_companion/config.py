@@ -23,6 +23,7 @@ from typing import Any
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ConfigError
+from apf_companion.planning.params import Preset
 from apf_companion.planning.registry import ALL_PLANNER_NAMES, DEFAULT_PLANNER
 
 __all__ = [
@@ -41,7 +42,7 @@ __all__ = [
     "load_config",
 ]
 
-PLANNER_PRESETS = ("default", "paper", "reference")
+PLANNER_PRESETS: tuple[str, ...] = tuple(Preset)
 _PLANNER_NAMES = ALL_PLANNER_NAMES
 
 

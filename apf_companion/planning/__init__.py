@@ -24,7 +24,7 @@ from apf_companion.planning.crbapf import CrBapfPlanner, CrBapfStarPlanner
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.geometry import bacteria_offsets, bacteria_ring, bacteria_sphere
 from apf_companion.planning.navstate import NavMode, NavState
-from apf_companion.planning.params import AbapfRule, AbapfSearch, PlannerParams, RandomWalkRule
+from apf_companion.planning.params import AbapfRule, AbapfSearch, PlannerParams, Preset, RandomWalkRule
 from apf_companion.planning.potentials import (
     agent_potential,
     branch_obstacle_potential,
@@ -68,6 +68,7 @@ __all__ = [
     "Planner",
     "PlannerName",
     "PlannerParams",
+    "Preset",
     "RandomWalkRule",
     "StatefulPlanner",
     "agent_potential",

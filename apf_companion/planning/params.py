@@ -10,12 +10,13 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from apf_companion.errors import ConfigError
 
-__all__ = ["AbapfRule", "AbapfSearch", "PlannerParams", "RandomWalkRule"]
+__all__ = ["AbapfRule", "AbapfSearch", "PlannerParams", "Preset", "RandomWalkRule"]
 
 
 class AbapfRule(enum.Enum):
@@ -36,6 +37,17 @@ class AbapfSearch(enum.Enum):
     GRID = "grid"
     #: Golden-section search on the continuous interval, finished on the integer grid.
     GOLDEN = "golden"
+
+
+class Preset(enum.StrEnum):
+    """Named parameter sets (``PlannerParams.from_preset``); the names are defined here once."""
+
+    #: ``PlannerParams()``: the paper's Table I values.
+    DEFAULT = "default"
+    #: The paper's text (``PlannerParams.paper()``).
+    PAPER = "paper"
+    #: The authors' published code (``PlannerParams.reference()``).
+    REFERENCE = "reference"
 
 
 class RandomWalkRule(enum.Enum):
@@ -224,6 +236,21 @@ class PlannerParams:
     def paper(cls, **overrides: Any) -> PlannerParams:
         """The paper's text: Table I values, J_a with its repulsion, random walk over the safe set."""
         return dataclasses.replace(cls(), **overrides)
+
+    @classmethod
+    def from_preset(cls, preset: str) -> PlannerParams:
+        """The parameters of ``preset`` (a ``Preset`` or its name); ``ConfigError`` for an unknown name."""
+        makers: dict[Preset, Callable[[], PlannerParams]] = {
+            Preset.DEFAULT: cls,
+            Preset.PAPER: cls.paper,
+            Preset.REFERENCE: cls.reference,
+        }
+        try:
+            make = makers[Preset(preset)]
+        except ValueError:
+            msg = f"preset {preset!r} is unknown; allowed: {', '.join(Preset)}"
+            raise ConfigError(msg) from None
+        return make()
 
     @classmethod
     def reference(cls, **overrides: Any) -> PlannerParams:

@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning import ALL_PLANNER_NAMES, PlannerParams
+from apf_companion.planning import ALL_PLANNER_NAMES, PlannerParams, Preset
 
 
 class DetectionRule(enum.Enum):
@@ -83,7 +83,7 @@ DEFAULT_DENSITIES: tuple[Density, ...] = (
 )
 """The paper's three densities (Table II a-c)."""
 
-PRESET_NAMES: tuple[str, ...] = ("reference", "paper")
+PRESET_NAMES: tuple[str, ...] = (Preset.REFERENCE.value, Preset.PAPER.value)  # the study's two presets
 
 
 def _pair(values: tuple[float, ...], name: str) -> None:
@@ -184,12 +184,11 @@ class StudyConfig:
 
     @classmethod
     def from_preset(cls, name: str) -> StudyConfig:
-        if name == "reference":
-            return cls.reference()
-        if name == "paper":
-            return cls.paper()
-        msg = f"preset: unknown {name!r}; choose one of {', '.join(PRESET_NAMES)}"
-        raise ConfigError(msg)
+        makers = {Preset.REFERENCE: cls.reference, Preset.PAPER: cls.paper}
+        if name not in PRESET_NAMES:
+            msg = f"preset: unknown {name!r}; choose one of {', '.join(PRESET_NAMES)}"
+            raise ConfigError(msg)
+        return makers[Preset(name)]()
 
     def with_mu_o(self, mu_o_per_m2: float) -> StudyConfig:
         """The same study with another obstacle decay rate mu_o (the paper's R_s-vs-mu_o figure)."""
