@@ -15,6 +15,7 @@ from typing import Protocol, Self
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.errors import ConfigError
 from apf_companion.planning.base import Planner
 from apf_companion.planning.decision import BatchDecision, Decision
 from apf_companion.planning.params import PlannerParams
@@ -118,8 +119,6 @@ class StatefulPlanner(Planner):
         pos, tgt, obs, mask = self._check_batch(positions_m, targets_m, obstacles_m, obstacle_mask)
         st = state if state is not None else self.initial_state(pos.shape[0])
         if len(st) != pos.shape[0]:
-            from apf_companion.errors import ConfigError
-
             raise ConfigError(f"state has {len(st)} rows for {pos.shape[0]} agents")
         return self._plan(pos, tgt, obs, mask, st)
 
