@@ -82,6 +82,9 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
     own = getattr(planner, "clearance_m", None)
     clearance_m = float(own) if own is not None else float(planner.params.rho_l_m)
     guarded = own is not None or config.planner.name in _GUARDED_PLANNERS
+    # Where the vehicle can be (apf_companion.envelope): never inside radius + margin, the clearance the user asked
+    # for; the planner's noise margin on top is for its plan, not for the braking envelope.
+    tracking_m = min(clearance_m, float(planner.params.vehicle_radius_m + planner.params.safety_margin_m))
     return NavigatorParams(
         dim=config.planner.dim,
         heartbeat_timeout_s=config.link.heartbeat_timeout_s,
@@ -101,6 +104,9 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         reset_hold_s=config.safety.reset_hold_s,
         silent_horizon_s=config.safety.guid_timeout_s,
         silent_drift_m=config.safety.silent_drift_m,
+        brake_accel_m_s2=config.safety.brake_accel_m_s2,
+        brake_latency_s=config.safety.brake_latency_s,
+        tracking_clearance_m=tracking_m,
         resume_after_link_lost=config.safety.resume_after_link_lost,
     )
 

@@ -360,6 +360,11 @@ class SafetyConfig:
             evidence) [s].
         sectors: Directions (equal azimuth sectors) whose freshness is tracked; 0 = off.
         sector_max_age_s: A sector without a reading for this long is unknown: no motion towards it [s].
+        brake_accel_m_s2: The autopilot's horizontal braking acceleration, for the braking envelope
+            (apf_companion.envelope; docs/hardening.md "Tracking margin"): ArduCopter WPNAV_ACCEL / 100 (default
+            250 cm/s^2, libraries/AC_WPNav/AC_WPNav.cpp), PX4 MPC_ACC_HOR; 0 = off [m/s^2].
+        brake_latency_s: Reaction time before that braking: a cycle, the link, the jerk-limited build-up
+            (WPNAV_ACCEL / PSC_JERK_XY / 2 = 0.25 s) and the attitude lag (ATC_INPUT_TC 0.15 s) [s].
         resume_after_link_lost: When the autopilot's heartbeat returns, fly on to the goal (only in GUIDED /
             OFFBOARD, with fresh inputs); False: hold and wait for a new goal.
     """
@@ -377,6 +382,8 @@ class SafetyConfig:
     clear_span_s: float = 0.3
     sectors: int = 16
     sector_max_age_s: float = 1.0
+    brake_accel_m_s2: float = 2.5
+    brake_latency_s: float = 0.5
     resume_after_link_lost: bool = True
 
     def __post_init__(self) -> None:
@@ -396,6 +403,8 @@ class SafetyConfig:
             raise _fail("safety.sectors", "0 or an integer in [4, 360]", self.sectors)
         _check_range("safety.clear_span_s", self.clear_span_s, 0.0, 60.0)
         _check_range("safety.sector_max_age_s", self.sector_max_age_s, 0.05, 60.0)
+        _check_range("safety.brake_accel_m_s2", self.brake_accel_m_s2, 0.0, 20.0)
+        _check_range("safety.brake_latency_s", self.brake_latency_s, 0.0, 5.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -153,7 +153,9 @@ class AutopilotHandlers:
                 self._set_route(route, now_s)
 
     def _on_local_position(self, rec: LocalPositionNed, now_s: float) -> None:
-        pose = self.perception.on_local_position(rec.time_boot_ms, (rec.x, rec.y, rec.z), now_s)
+        pose = self.perception.on_local_position(
+            rec.time_boot_ms, (rec.x, rec.y, rec.z), now_s, vel_ned_m_s=(rec.vx, rec.vy, rec.vz)
+        )
         reset = self.perception.take_reset()
         if reset is not None:
             self.navigator.recovery.position_reset(now_s, reset)

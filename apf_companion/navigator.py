@@ -40,6 +40,7 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.envelope import BrakingEnvelope
 from apf_companion.goal import Route
 from apf_companion.perception import Pose
 from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity
@@ -138,6 +139,10 @@ class NavigatorParams:
         silent_horizon_s, silent_drift_m: Safe when silent: the last setpoint's feed-forward may carry the vehicle
             at most ``silent_drift_m`` past its position over ``silent_horizon_s`` (GUID_TIMEOUT), never towards a
             remembered obstacle (``apf_companion.setpoint.silent_safe_velocity``).
+        brake_accel_m_s2, brake_latency_s, tracking_clearance_m: The braking envelope
+            (``apf_companion.envelope``): the feed-forward never exceeds the speed that can still stop
+            ``tracking_clearance_m`` short of a remembered point along the step; cycles whose reported velocity
+            could carry the vehicle closer than that are counted (``envelope_warnings``). 0 = off.
         resume_after_link_lost: LINK_LOST keeps the goal; when the heartbeat returns with the autopilot still in
             GUIDED / OFFBOARD the service holds, then navigates on once the inputs are fresh. False: the goal is
             dropped (IDLE once the link is back; motion only after a new goal).
@@ -161,6 +166,9 @@ class NavigatorParams:
     reset_hold_s: float = 2.0
     silent_horizon_s: float = 3.0
     silent_drift_m: float = 1.0
+    brake_accel_m_s2: float = 0.0
+    brake_latency_s: float = 0.5
+    tracking_clearance_m: float = 0.0
     resume_after_link_lost: bool = True
 
 
@@ -214,6 +222,8 @@ class _Counters:
     goals: int = 0
     dropped_targets: int = 0
     unknown_direction_holds: int = 0  # a step towards a sector without recent ranges: held instead
+    envelope_caps: int = 0  # feed-forward cut to the speed that can still stop short of the tracking clearance
+    envelope_warnings: int = 0  # the reported velocity could carry the vehicle inside it before it can stop
 
 
 @dataclass(slots=True)
@@ -252,6 +262,12 @@ class _StepTracker:
         self.counters = counters
         self.target: FloatArray | None = None
         self.target_t_s = 0.0
+        self.envelope = BrakingEnvelope(
+            accel_m_s2=params.brake_accel_m_s2,
+            latency_s=params.brake_latency_s,
+            clearance_m=params.tracking_clearance_m,
+            dim=params.dim,
+        )
 
     def set(self, target: FloatArray, now_s: float) -> None:
         self.target = target
@@ -285,8 +301,13 @@ class _StepTracker:
         return self.setpoint(pos, target, self.approach_speed(gap, nearest_m), obstacles)
 
     def setpoint(self, pos: FloatArray, target: FloatArray, speed_m_s: float, obstacles: FloatArray) -> Setpoint:
-        """Fly to ``target`` at ``speed_m_s``, with the feed-forward cut to what is safe if nothing follows."""
+        """Fly to ``target`` at ``speed_m_s``, with the feed-forward cut to what can still stop short of the
+        tracking clearance (``BrakingEnvelope``) and to what is safe if nothing follows."""
         p = self.p
+        cap = self.envelope.speed_cap_m_s(pos, target - pos, obstacles)
+        if cap < speed_m_s:
+            self.counters.envelope_caps += 1
+            speed_m_s = cap
         sp = navigate(pos, target, cruise_speed_m_s=speed_m_s, dim=p.dim)
         vel = silent_safe_velocity(
             target,
@@ -298,6 +319,18 @@ class _StepTracker:
             dim=p.dim,
         )
         return dataclasses.replace(sp, vel_ned_m_s=vel)
+
+    def watch(self, out: CycleOutput, pose: Pose, obstacles: FloatArray) -> None:
+        """Where the vehicle can be, not where the setpoint is: count the cycles whose reported velocity, followed
+        by this setpoint, could carry the vehicle inside the tracking clearance before it can stop
+        (``envelope_warnings``, in the status). Only counted: overriding the plan with a brake made the paper
+        planners pass closer on the simulator's ArduCopter controller (docs/hardening.md, "Tracking margin")."""
+        sp = out.setpoint
+        if sp is None or sp.kind is not SetpointKind.NAVIGATE:
+            return
+        pos = np.asarray(pose.pos_ned_m, dtype=np.float64)
+        if self.envelope.breaches(pos, pose.vel_ned_m_s, np.asarray(sp.vel_ned_m_s), obstacles):
+            self.counters.envelope_warnings += 1
 
     def known_direction(self, out: CycleOutput, pos: FloatArray, view: ObstacleView) -> CycleOutput:
         """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle."""
@@ -706,6 +739,7 @@ class Navigator:
             out = self._out(inp, tracked, dist, decision=Decision.TRACKING.value, n_obstacles=n)
         else:
             out = self._plan(inp, pos, leg, dist, obstacles)
+        self._steps.watch(out, self.pose, obstacles)
         return self._steps.known_direction(out, pos, self.obstacles)
 
     def _plan(self, inp: _Inputs, pos: FloatArray, leg: _Leg, dist: float, obstacles: FloatArray) -> CycleOutput:

@@ -91,6 +91,7 @@ class PerceptionCounters:
     implausible_poses: int = 0  # further than the vehicle can move since the last pose
     pose_time_jumps: int = 0  # time_boot_ms forward beyond the receive clock, or far back without reboot evidence
     pose_resets: int = 0  # re-anchored on a sustained new position / time base (EKF reset, reboot)
+    bad_velocities: int = 0  # a reported velocity non-finite or beyond [safety] max_speed_m_s: pose kept, no velocity
     scans: int = 0
     bad_scans: int = 0  # ProtocolError from a decoder (malformed message / payload)
     invalid_sectors: int = 0  # readings classified invalid (below min, zero, out of range)
@@ -146,9 +147,16 @@ class PerceptionFrontEnd:
         else:
             self.counters.bad_poses += 1
 
-    def on_local_position(self, time_boot_ms: int, pos_ned_m: tuple[float, float, float], now_s: float) -> Pose | None:
+    def on_local_position(
+        self,
+        time_boot_ms: int,
+        pos_ned_m: tuple[float, float, float],
+        now_s: float,
+        vel_ned_m_s: tuple[float, float, float] | None = None,
+    ) -> Pose | None:
         """A LOCAL_POSITION_NED received at ``now_s``: the new pose (history updated, waiting scans placed), or
-        None when it is stale, non-finite or no heading is known yet."""
+        None when it is stale, non-finite or no heading is known yet. An implausible reported velocity does not
+        reject the pose: the pose carries no velocity (the navigator's braking envelope is then off)."""
         self.counters.poses += 1
         if self._yaw_rad is None:
             return None  # no ATTITUDE yet: body-frame ranges could not be placed
@@ -159,8 +167,11 @@ class PerceptionFrontEnd:
             counter = _REJECTED[verdict]
             setattr(self.counters, counter, getattr(self.counters, counter) + 1)
             return None
+        vel = self._plausible_velocity(vel_ned_m_s)
         try:
-            pose = Pose(t_s=now_s, pos_ned_m=np.array(pos_ned_m, dtype=np.float64), yaw_rad=self._yaw_rad)
+            pose = Pose(
+                t_s=now_s, pos_ned_m=np.array(pos_ned_m, dtype=np.float64), yaw_rad=self._yaw_rad, vel_ned_m_s=vel
+            )
         except ConfigError:
             self.counters.bad_poses += 1
             return None
@@ -169,6 +180,15 @@ class PerceptionFrontEnd:
         if self.deferred:
             self._place_deferred()  # before the cycle this pose triggers
         return pose
+
+    def _plausible_velocity(self, vel: tuple[float, float, float] | None) -> FloatArray | None:
+        if vel is None:
+            return None
+        v = np.array(vel, dtype=np.float64)
+        if not np.all(np.isfinite(v)) or float(np.sqrt(v @ v)) > self.gate.limits.max_speed_m_s:
+            self.counters.bad_velocities += 1
+            return None
+        return v
 
     def _reset(self, reason: str) -> None:
         """The gate re-anchored: poses and remembered points are in the old frame; forget them."""

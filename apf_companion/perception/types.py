@@ -73,11 +73,14 @@ class Pose:
         t_s: Monotonic time of the pose [s].
         pos_ned_m: (3,) float64 position in local NED [m].
         yaw_rad: Heading, 0 = north, clockwise positive (towards east) [rad].
+        vel_ned_m_s: (3,) velocity in local NED as the autopilot reports it (LOCAL_POSITION_NED vx/vy/vz), or
+            None when not reported or not plausible [m/s].
     """
 
     t_s: float
     pos_ned_m: FloatArray
     yaw_rad: float
+    vel_ned_m_s: FloatArray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "pos_ned_m", _frozen_array(self.pos_ned_m, name="pos_ned_m", shape=(3,)))
@@ -90,6 +93,11 @@ class Pose:
         if not np.all(np.isfinite(self.pos_ned_m)):
             msg = f"pos_ned_m must be finite, got {self.pos_ned_m}"
             raise ConfigError(msg)
+        if self.vel_ned_m_s is not None:
+            object.__setattr__(self, "vel_ned_m_s", _frozen_array(self.vel_ned_m_s, name="vel_ned_m_s", shape=(3,)))
+            if not np.all(np.isfinite(self.vel_ned_m_s)):
+                msg = f"vel_ned_m_s must be finite, got {self.vel_ned_m_s}"
+                raise ConfigError(msg)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Pose):
@@ -98,6 +106,14 @@ class Pose:
             self.t_s == other.t_s
             and self.yaw_rad == other.yaw_rad
             and bool(np.array_equal(self.pos_ned_m, other.pos_ned_m))
+            and (
+                self.vel_ned_m_s is other.vel_ned_m_s
+                or (
+                    self.vel_ned_m_s is not None
+                    and other.vel_ned_m_s is not None
+                    and bool(np.array_equal(self.vel_ned_m_s, other.vel_ned_m_s))
+                )
+            )
         )
 
     __hash__ = None  # type: ignore[assignment]

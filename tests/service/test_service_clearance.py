@@ -14,12 +14,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-from apf_companion.config import PlannerConfig, ServiceConfig
+from apf_companion.autopilot import Autopilot
+from apf_companion.config import CycleConfig, PlannerConfig, SafetyConfig, ServiceConfig
 from apf_companion.goal import Route
 from apf_companion.navigator import Navigator, State
 from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, Pose
 from apf_companion.service import build_navigator, build_planner
 from sim.vehicle.dynamics import ControlTarget, Limits, TargetKind, VehicleState, step_dynamics
+from sim.vehicle.params import ParamTable
+from sim.vehicle.poscontrol import ArduCopterPosControl
 from sim.world import paper_field
 
 ALT_M = 5.0
@@ -27,14 +30,29 @@ COLLISION_RADIUS_M = 0.25  # the simulator's
 
 
 def fly_closed_loop(
-    world_seed: int, density: str, *, clearance: bool = True, planner: str = "cr-bapf*"
+    world_seed: int,
+    density: str,
+    *,
+    clearance: bool = True,
+    planner: str = "cr-bapf*",
+    arducopter: bool = False,
+    envelope: bool = True,
+    cruise_m_s: float = 1.0,
 ) -> tuple[State, float, float]:
     """(final state, minimum clearance [m], flight time [s]) of one flight (3, 3) -> (22, 22).
 
-    ``planner``: the grazes were CR-BAPF*'s (the default planner when this test was written)."""
+    ``planner``: the grazes were CR-BAPF*'s (the default planner when this test was written). ``arducopter``: the
+    simulator's model of ArduCopter's position controller (jerk/acceleration shaping, lean lag: it overshoots at
+    turns as the real one does) instead of the simple one; the pose then carries the vehicle's velocity, as
+    LOCAL_POSITION_NED does. ``envelope`` False: the braking envelope off (``[safety] brake_accel_m_s2 = 0``).
+    ``cruise_m_s``: the service's cruise feed-forward (``[cycle] cruise_speed_m_s``)."""
     obstacles = np.asarray(paper_field("reference", density, np.random.default_rng(world_seed)).circles_ne_m)
     obs3 = np.hstack([obstacles, np.full((obstacles.shape[0], 1), -ALT_M)])
-    cfg = ServiceConfig(planner=PlannerConfig(name=planner))
+    cfg = ServiceConfig(
+        planner=PlannerConfig(name=planner),
+        safety=SafetyConfig(brake_accel_m_s2=2.5 if envelope else 0.0),
+        cycle=CycleConfig(cruise_speed_m_s=cruise_m_s),
+    )
     built = build_planner(cfg)
     perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=10.0, merge_radius_m=0.2))
     nav = build_navigator(cfg, built, perception)
@@ -48,6 +66,7 @@ def fly_closed_loop(
         )
     state = VehicleState(pos_ned_m=np.array([3.0, 3.0, -ALT_M]), on_ground=False)
     limits = Limits()  # ArduPilot defaults of the simulator (WPNAV_SPEED 5 m/s, WPNAV_ACCEL 2.5 m/s^2)
+    controller = ArduCopterPosControl(ParamTable(Autopilot.ARDUPILOT)) if arducopter else None
     target = ControlTarget(kind=TargetKind.HOLD, pos_ned_m=state.pos_ned_m.copy())
     dt_cycle, substeps = 0.1, 5
     t = 0.0
@@ -59,7 +78,8 @@ def fly_closed_loop(
         t = round(t + dt_cycle, 6)
         pos = state.pos_ned_m.copy()
         nav.autopilot_heartbeat(t, mode_ok=True)
-        nav.update_pose(Pose(t_s=t, pos_ned_m=pos, yaw_rad=0.0))
+        vel = state.vel_ned_m_s.copy() if arducopter else None
+        nav.update_pose(Pose(t_s=t, pos_ned_m=pos, yaw_rad=0.0, vel_ned_m_s=vel))
         in_range = np.hypot(*(obstacles - pos[:2]).T) <= cfg.sensors.max_range_m
         perception.remember(obs3[in_range], t)
         sp = nav.cycle(t).setpoint
@@ -68,7 +88,7 @@ def fly_closed_loop(
                 kind=TargetKind.POSITION, pos_ned_m=np.array(sp.pos_ned_m), vel_ned_m_s=np.array(sp.vel_ned_m_s)
             )
         for _ in range(substeps):
-            step_dynamics(state, target, limits, dt_cycle / substeps, armed=True)
+            step_dynamics(state, target, limits, dt_cycle / substeps, armed=True, controller=controller)
             min_clear = min(min_clear, float(np.min(np.hypot(*(obstacles - state.pos_ned_m[:2]).T))))
     return nav.state, min_clear, t
 
@@ -113,3 +133,12 @@ def test_slow_down_near_obstacles_scales_the_feed_forward() -> None:
     assert nav.approach_speed(1.0, rho_l + step_m) == pytest.approx(0.6 * cruise)
     # Still tapering within one step of the point.
     assert nav.approach_speed(0.5 * step_m, rho_l) == pytest.approx(0.1 * cruise)
+
+
+@pytest.mark.parametrize(("seed", "density"), GRAZE_WORLDS)
+def test_bapf_nav_keeps_radius_and_margin_on_arducopters_position_controller(seed: int, density: str) -> None:
+    """The same loop on the simulator's model of ArduCopter's position controller (jerk- and acceleration-
+    limited, overshooting at turns like the real one, issue 8), the pose carrying the reported velocity."""
+    state, min_clear, _ = fly_closed_loop(seed, density, planner="bapf-nav", arducopter=True)
+    assert state is State.ARRIVED
+    assert min_clear >= COLLISION_RADIUS_M + 0.1, min_clear
