@@ -72,7 +72,7 @@ class FlyOptions:
 
     planner: str = "bapf-nav"
     profile: str = "ardupilot"
-    dynamics: str = "simple"  # the simulator's vehicle response: simple | arducopter
+    dynamics: str = "auto"  # the simulator's vehicle response: auto (per profile) | simple | arducopter
     seed: int = 0
     preset: str = "reference"
     obstacles: str = "mid"
@@ -458,7 +458,7 @@ def _record(
         "flight_time_s": float(svc_res["flight_time_s"]) if svc_res else 0.0,
         "planner": opt.planner,
         "profile": opt.profile,
-        "dynamics": opt.dynamics,
+        "dynamics": (sim_res or {}).get("dynamics", opt.dynamics),  # the vehicle's own (auto resolved)
         "world": (sim_res or {}).get("world", {}).get("name", opt.world),
         "seed": opt.seed,
         "speedup": opt.speedup,
@@ -560,9 +560,10 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
     p.add_argument(
         "--dynamics",
-        choices=("simple", "arducopter"),
-        default="simple",
-        help="the simulated vehicle's response: simple (default) or arducopter (ArduCopter's controller shape)",
+        choices=("auto", "simple", "arducopter"),
+        default="auto",
+        help="the simulated vehicle's response: auto (default: arducopter, ArduCopter's controller shape, for the "
+        "ardupilot profile; simple for px4), simple, or arducopter",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")

@@ -42,10 +42,10 @@ def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: 
     v.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
     v.add_argument(
         "--dynamics",
-        choices=("simple", "arducopter"),
-        default="simple",
-        help="simple (default) or arducopter: ArduCopter's jerk-limited position controller shape, lag, "
-        "overshoot and spool-up (ardupilot profile; docs/simulator.md)",
+        choices=("auto", "simple", "arducopter"),
+        default="auto",
+        help="auto (default: arducopter for the ardupilot profile, simple for px4), simple, or arducopter: "
+        "ArduCopter's jerk-limited position controller shape, lag, overshoot and spool-up (docs/simulator.md)",
     )
     _world_args(v)
     v.add_argument(

@@ -10,7 +10,16 @@ from apf_companion.errors import ConfigError
 from sim.vehicle.sensor import RangeSensorConfig
 from sim.world.model import FloatArray, World
 
-__all__ = ["DEFAULT_RATES_HZ", "Dynamics", "EngineConfig", "HomeConfig", "SpawnConfig", "StatusText", "VehicleSnapshot"]
+__all__ = [
+    "AUTO_DYNAMICS",
+    "DEFAULT_RATES_HZ",
+    "Dynamics",
+    "EngineConfig",
+    "HomeConfig",
+    "SpawnConfig",
+    "StatusText",
+    "VehicleSnapshot",
+]
 
 # Telemetry streamed by default [Hz], by message name; SET_MESSAGE_INTERVAL changes them per link. A rate of 0 is
 # a message sent only when requested (SET_MESSAGE_INTERVAL, REQUEST_MESSAGE).
@@ -35,6 +44,9 @@ class Dynamics(enum.Enum):
 
     SIMPLE = "simple"  # square-root position loop, velocity loop, limited acceleration (no jerk limit, no lag)
     ARDUCOPTER = "arducopter"  # AC_PosControl's jerk-limited shaping, tracking loops, attitude lag, spool-up
+
+
+AUTO_DYNAMICS = "auto"  # SimConfig / CLI: the profile's own vehicle (arducopter for ardupilot, simple for px4)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -32,7 +32,7 @@ from typing import Any
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkError
 from apf_companion.links import MavlinkLink
-from sim.vehicle.config import Dynamics, EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
+from sim.vehicle.config import AUTO_DYNAMICS, Dynamics, EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
 from sim.vehicle.engine import VehicleEngine
 from sim.vehicle.sensor import RangeSensorConfig, Scan
 from sim.world.model import World
@@ -75,7 +75,8 @@ class SimConfig:
     Attributes:
         links: MAVLink endpoints (``udpout:127.0.0.1:14550``, ``udpin:...``, ``tcpin:...``, ``tcp:...``).
         profile: ``ardupilot`` or ``px4`` (or an ``Autopilot``).
-        dynamics: ``simple`` or ``arducopter`` (or a ``Dynamics``; arducopter needs the ardupilot profile).
+        dynamics: ``simple`` or ``arducopter`` (or a ``Dynamics``; arducopter needs the ardupilot profile), or
+            ``auto``: arducopter for the ardupilot profile, simple for px4 (the CLI's default).
         world: the obstacles (``sim.world``).
         speedup: simulated seconds per wall second (``math.inf`` = as fast as possible).
         seed: seeds actuation noise and sensor noise/dropout (separate streams).
@@ -114,11 +115,16 @@ class SimConfig:
             except ValueError as err:
                 msg = f"profile must be 'ardupilot' or 'px4', got {self.profile!r}"
                 raise ConfigError(msg) from err
+        if isinstance(self.dynamics, str) and self.dynamics.lower() == AUTO_DYNAMICS:
+            # The profile's own vehicle: ArduCopter's controller shape for ArduPilot (what flies here flies there,
+            # issue 8); PX4 keeps the simple response with its takeoff/land ramps.
+            auto = Dynamics.ARDUCOPTER if self.profile is Autopilot.ARDUPILOT else Dynamics.SIMPLE
+            object.__setattr__(self, "dynamics", auto)
         if isinstance(self.dynamics, str):
             try:
                 object.__setattr__(self, "dynamics", Dynamics(self.dynamics.lower()))
             except ValueError as err:
-                msg = f"dynamics must be 'simple' or 'arducopter', got {self.dynamics!r}"
+                msg = f"dynamics must be 'auto', 'simple' or 'arducopter', got {self.dynamics!r}"
                 raise ConfigError(msg) from err
         if not (self.speedup > 0):
             msg = f"speedup must be > 0 (inf = as fast as possible), got {self.speedup}"

@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 from apf_companion.autopilot import MASK_POSITION, MASK_VELOCITY, Autopilot, CopterMode
 from apf_companion.errors import ConfigError
 from apf_companion.links import MavlinkLink
-from sim.vehicle import EngineConfig, SpawnConfig, VehicleEngine
+from sim.vehicle import Dynamics, EngineConfig, SimConfig, SpawnConfig, VehicleEngine
 from sim.world import World, load_world
 from tests.conftest import HANG_S, free_port
 
@@ -242,3 +242,10 @@ async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
     async with asyncio.timeout(HANG_S):
         _, err = await bad.communicate()
     assert bad.returncode == 2 and b"GUID_TIMEOUT 99 not in [0.1, 5]" in err
+
+
+def test_auto_dynamics_is_the_profiles_own_vehicle() -> None:
+    """``auto`` (the CLIs' default): ArduCopter's controller shape for ArduPilot, the simple response for PX4."""
+    assert SimConfig(profile="ardupilot", dynamics="auto").dynamics is Dynamics.ARDUCOPTER
+    assert SimConfig(profile="px4", dynamics="auto").dynamics is Dynamics.SIMPLE
+    assert SimConfig(profile="ardupilot").dynamics is Dynamics.SIMPLE  # the in-process API keeps its default
