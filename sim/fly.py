@@ -34,6 +34,7 @@ import argparse
 import asyncio
 import contextlib
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -196,6 +197,16 @@ ranges_max_age_s = {max(0.5, 0.1 * opt.speedup)}
 north_m = {north}
 east_m = {east}
 down_m = {-opt.alt_m}
+""" + _visualisation_toml(opt)
+
+
+def _visualisation_toml(opt: FlyOptions) -> str:
+    """Record the flight to ``OUT/apf-*.mcap`` beside the tlogs when foxglove-sdk (the ``viz`` extra) is there."""
+    if importlib.util.find_spec("foxglove") is None:
+        return ""
+    return f"""
+[visualisation]
+mcap_dir = "{opt.out.resolve()}"
 """
 
 
@@ -360,7 +371,7 @@ def expected_flight_s(opt: FlyOptions) -> float:
 async def fly(opt: FlyOptions) -> dict[str, Any]:
     """Fly once; returns the result record (also written to ``opt.out/result.json`` and ``opt.json_path``)."""
     opt.out.mkdir(parents=True, exist_ok=True)
-    for stale in ("sim_result.json", "service_result.json"):
+    for stale in ("sim_result.json", "service_result.json", *(p.name for p in opt.out.glob("apf-*.mcap"))):
         (opt.out / stale).unlink(missing_ok=True)
     port = free_udp_port()
     gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
@@ -472,6 +483,7 @@ def _record(
         # The goal was lost without arriving: LINK_LOST, or IDLE after a failed takeover / mode loss.
         "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
         "service_events": _service_events(opt.out / "service.log"),
+        "mcap": next((str(p) for p in sorted(opt.out.glob("apf-*.mcap"))), None),
     }
 
 
@@ -686,7 +698,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         f"min clearance: {'n/a' if clearance is None else f'{clearance:.3f} m'}\n"
         f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
         f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
-        f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs)"
+        f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs"
+        + (f", {Path(rec['mcap']).name}: apf-sim mcap-plot, or open it in Foxglove)" if rec["mcap"] else ")")
     )
     return 0 if rec["outcome"] == "arrived" else 3
 
