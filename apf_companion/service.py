@@ -541,7 +541,11 @@ def _open_observers(config: ServiceConfig, clock: ServiceClock) -> list[CycleObs
     vc = config.visualisation
     if not vc.enabled:
         return []
-    from apf_companion.viz.sink import FoxgloveSink, mcap_path_in
+    try:
+        from apf_companion.viz.sink import FoxgloveSink, mcap_path_in
+    except ImportError as err:  # the optional extra is missing
+        msg = "[visualisation] needs foxglove-sdk: pip install 'apf-companion[viz]'"
+        raise ConfigError(msg) from err
 
     mcap = mcap_path_in(config.resolve(vc.mcap_dir)) if vc.mcap_dir else None
     port = vc.foxglove_port if vc.foxglove else None

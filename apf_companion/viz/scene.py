@@ -39,6 +39,7 @@ from apf_companion.planning import Decision
 from apf_companion.viz.frames import FRAME_ENU, FRAME_NED, NED_IN_ENU_XYZW, yaw_quaternion_xyzw
 
 __all__ = [
+    "candidate_cloud",
     "candidate_scores",
     "cycle_record",
     "frame_transform",
@@ -143,6 +144,14 @@ def candidate_scores(plan: PlanStep) -> tuple[FloatArray, FloatArray]:
     with np.errstate(invalid="ignore"):
         score = np.where(passing, 1.0 - (cost - lo) / max(hi - lo, 1e-9), -1.0)
     return score, np.where(passing, cost, np.nan)
+
+
+def candidate_cloud(snap: CycleSnapshot, ns: int) -> PointCloud | None:
+    """The latest planner step's candidates with ``score`` and ``cost_m`` (2D steps at the flown altitude)."""
+    if snap.plan is None:
+        return None
+    score, cost = candidate_scores(snap.plan)
+    return point_cloud(ns, to3(snap.plan.candidates_m, _down(snap)), {"score": score, "cost_m": cost})
 
 
 def _down(snap: CycleSnapshot) -> float:

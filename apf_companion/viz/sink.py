@@ -13,8 +13,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from apf_companion.errors import ConfigError
 from apf_companion.observe import CycleSnapshot
 from apf_companion.viz import scene
@@ -86,7 +84,8 @@ class FoxgloveSink:
                 self.server = fg.start_server(name="apf-companion", host="127.0.0.1", port=port, context=self.ctx)
         except Exception as err:
             self.close()
-            msg = f"cannot open the Foxglove output ({mcap_path or ''} port {port}): {err}"
+            where = f"MCAP {mcap_path}" if self.writer is None and mcap_path is not None else f"127.0.0.1:{port}"
+            msg = f"cannot open the Foxglove output ({where}): {err}"
             raise ConfigError(msg) from err
         log.info("viz.open", extra={"mcap": str(mcap_path) if mcap_path else None, "port": self.port})
 
@@ -104,13 +103,9 @@ class FoxgloveSink:
             self.pose.log(pose, log_time=ns)
         self.obstacles.log(scene.point_cloud(ns, snap.obstacles_ned_m), log_time=ns)
         self.scan.log(scene.point_cloud(ns, snap.scan_ned_m), log_time=ns)
-        plan = snap.plan
-        if plan is not None:
-            score, cost = scene.candidate_scores(plan)
-            down = float(snap.target_ned_m[2]) if snap.target_ned_m is not None else 0.0
-            xyz = scene.to3(plan.candidates_m, down if np.isfinite(down) else 0.0)
-            cloud = scene.point_cloud(ns, xyz, {"score": score, "cost_m": cost})
-            self.candidates.log(cloud, log_time=ns)
+        candidates = scene.candidate_cloud(snap, ns)
+        if candidates is not None:
+            self.candidates.log(candidates, log_time=ns)
         self.entities.log(scene.scene(snap, ns), log_time=ns)
         for msg in scene.log_messages(snap, self._decision, ns):
             self.log.log(msg, log_time=ns)

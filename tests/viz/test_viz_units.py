@@ -5,6 +5,8 @@ from __future__ import annotations
 import datetime
 import json
 import math
+import socket
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +18,7 @@ from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.errors import ConfigError
 from apf_companion.observe import PlanStep
 from apf_companion.planning import BapfNavPlanner, Decision, DecisionReason, PlannerParams
+from apf_companion.service import CompanionService
 from apf_companion.viz import FRAME_ENU, FRAME_NED, NED_IN_ENU_XYZW, Topic, yaw_quaternion_xyzw
 from apf_companion.viz.scene import candidate_scores
 from apf_companion.viz.sink import FoxgloveSink, mcap_path_in
@@ -104,6 +107,22 @@ def test_sink_refuses_bad_outputs_with_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot open the Foxglove output"):
         FoxgloveSink(mcap_path=taken)  # never overwrites a recording
     assert taken.read_bytes() == b"x"
+
+
+def test_a_taken_port_or_a_missing_sdk_is_a_config_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(ConfigError, match=f"127.0.0.1:{port}"):
+            FoxgloveSink(port=port)
+    # As if the viz extra were not installed: the service refuses the config, it does not crash.
+    monkeypatch.setitem(sys.modules, "foxglove", None)
+    for name in ("apf_companion.viz.sink", "apf_companion.viz.scene"):
+        monkeypatch.delitem(sys.modules, name)
+    cfg = config_from_mapping({"visualisation": {"foxglove": True, "foxglove_port": 0}})
+    with pytest.raises(ConfigError, match=r"apf-companion\[viz\]"):
+        CompanionService(cfg)
 
 
 def test_the_shipped_layout_shows_only_topics_the_service_publishes() -> None:
