@@ -4,7 +4,8 @@ Two processes on loopback, as on a real vehicle: the simulated autopilot (``apf-
 service (``apf-companion run``), which finds the simulator on a free UDP port. This command watches the flight
 on a third MAVLink link (as a ground station would), shows progress, and when the flight ends prints the outcome,
 path length, minimum clearance and flight time, and writes a trajectory plot, both .tlogs, the results and (with
-foxglove-sdk, the ``viz`` extra) the service's ``.mcap`` recording to ``--out``. ``--json PATH`` writes the outcome record::
+foxglove-sdk, the ``viz`` extra) the service's ``.mcap`` recording to ``--out``. ``--json PATH`` writes the
+outcome record::
 
     {"outcome": "arrived" | "collision" | "stuck" | "timeout" | "error", "steps": int,
      "min_clearance_m": float | null, "path_length_m": float, "sim_time_s": float, "flight_time_s": float,
