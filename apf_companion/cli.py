@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from apf_companion import __version__
-from apf_companion.config import ServiceConfig, load_config
+from apf_companion.config import ServiceConfig, VisualisationConfig, load_config
 from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.goal import Route, load_route, parse_goal_text
 
@@ -113,12 +113,32 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--dry-run", action="store_true", help="plan and log, send nothing")
     run.add_argument("--tlog", metavar="PATH", help="override link.tlog")
     run.add_argument("--result-json", type=Path, metavar="PATH", help="write the outcome (ServiceResult) here on exit")
+    run.add_argument(
+        "--foxglove",
+        nargs="?",
+        type=int,
+        const=-1,
+        metavar="PORT",
+        help="serve a Foxglove WebSocket on 127.0.0.1 (PORT, default visualisation.foxglove_port; 0 = any free)",
+    )
+    run.add_argument("--mcap-dir", metavar="DIR", help="record one .mcap per run into DIR (visualisation.mcap_dir)")
     run.set_defaults(func=_cmd_run)
 
     check = sub.add_parser("check-config", help="validate a config file", description=_cmd_check.__doc__)
     check.add_argument("config", type=Path, help="TOML config file")
     check.set_defaults(func=_cmd_check)
     return parser
+
+
+def _visualisation(cfg: ServiceConfig, args: argparse.Namespace) -> VisualisationConfig:
+    """``[visualisation]`` with ``--foxglove [PORT]`` and ``--mcap-dir`` applied (validated again)."""
+    vc = cfg.visualisation
+    if args.foxglove is not None:
+        port = vc.foxglove_port if args.foxglove == -1 else args.foxglove
+        vc = dataclasses.replace(vc, foxglove=True, foxglove_port=port)
+    if args.mcap_dir:
+        vc = dataclasses.replace(vc, mcap_dir=str(Path(args.mcap_dir).resolve()))
+    return vc
 
 
 def _effective_config(args: argparse.Namespace) -> tuple[ServiceConfig, Route | None]:
@@ -130,6 +150,7 @@ def _effective_config(args: argparse.Namespace) -> tuple[ServiceConfig, Route | 
         link = dataclasses.replace(link, tlog=str(Path(args.tlog).resolve()))
     planner = dataclasses.replace(cfg.planner, name=args.planner) if args.planner else cfg.planner
     cfg = dataclasses.replace(cfg, link=link, planner=planner, dry_run=cfg.dry_run or args.dry_run)
+    cfg = dataclasses.replace(cfg, visualisation=_visualisation(cfg, args))
     route: Route | None = None
     if args.goal and args.route:
         msg = "--goal and --route exclude each other"

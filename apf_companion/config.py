@@ -37,6 +37,7 @@ __all__ = [
     "SensorsConfig",
     "ServiceConfig",
     "StatusConfig",
+    "VisualisationConfig",
     "ZenohSection",
     "config_from_mapping",
     "load_config",
@@ -339,6 +340,31 @@ class StatusConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class VisualisationConfig:
+    """``[visualisation]``: the cycle in Foxglove, live and recorded (docs/visualisation.md; needs the ``viz`` extra).
+
+    Attributes:
+        foxglove: Serve a Foxglove WebSocket on 127.0.0.1 (``apf-companion run --foxglove``).
+        foxglove_port: Its port; 0 = any free port (logged as ``viz.open``).
+        mcap_dir: Write one MCAP recording per run into this directory (``apf-YYYYmmddTHHMMSSZ.mcap``), relative
+            to this config's directory; "" = no recording.
+    """
+
+    foxglove: bool = False
+    foxglove_port: int = 8765
+    mcap_dir: str = ""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.foxglove_port <= 65535:
+            raise _fail("visualisation.foxglove_port", "in [0, 65535] (0 = any free port)", self.foxglove_port)
+
+    @property
+    def enabled(self) -> bool:
+        """Any output asked for."""
+        return self.foxglove or bool(self.mcap_dir)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class SafetyConfig:
     """``[safety]``: the hardening gates and limits (docs/hardening.md).
 
@@ -431,6 +457,7 @@ class ServiceConfig:
     zenoh: ZenohSection = field(default_factory=ZenohSection)
     status: StatusConfig = field(default_factory=StatusConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    visualisation: VisualisationConfig = field(default_factory=VisualisationConfig)
     base_dir: Path = field(default_factory=Path.cwd)
     """Directory relative paths (goal.route, link.tlog) are resolved against (the config file's)."""
 
@@ -458,6 +485,7 @@ _SECTIONS: dict[str, type[Any]] = {
     "zenoh": ZenohSection,
     "status": StatusConfig,
     "safety": SafetyConfig,
+    "visualisation": VisualisationConfig,
 }
 _TOP_LEVEL = ("dry_run", "exit_when_done", "max_flight_s")
 

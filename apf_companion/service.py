@@ -29,6 +29,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,7 @@ from apf_companion.handlers import AutopilotHandlers
 from apf_companion.links import MavlinkLink
 from apf_companion.links.messages import DECODERS, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State
+from apf_companion.observe import CycleObserver, Observers
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
 from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
@@ -154,6 +156,7 @@ class CompanionService:
         result_path: Where ``run`` writes the ``ServiceResult`` JSON when it ends.
         link: The open autopilot link (``open`` passes it), or None (nothing is sent or received).
         zenoh: The open zenoh link (``open`` passes it when enabled), or None.
+        observers: Read-only watchers of each cycle; None = those ``[visualisation]`` asks for (Foxglove).
     """
 
     def __init__(
@@ -165,6 +168,7 @@ class CompanionService:
         result_path: Path | None = None,
         link: MavlinkLink | None = None,
         zenoh: Any = None,
+        observers: Sequence[CycleObserver] | None = None,
     ) -> None:
         self.config = config
         self.clock = clock or ServiceClock(config.cycle.time_scale)
@@ -174,10 +178,11 @@ class CompanionService:
         now = self.clock.now()
         self.planner = build_planner(config)
         self.perception = PerceptionFrontEnd(perception_params(config))
-        self.navigator = build_navigator(config, self.planner, self.perception)
-        self.outbox = build_outbox(config, link, self.clock.now)
         self.counters = ServiceCounters()
         self.faults = FaultLog(self.counters)
+        self.observers = Observers(self.faults)
+        self.navigator = build_navigator(config, self.observers.tap(self.planner), self.perception)
+        self.outbox = build_outbox(config, link, self.clock.now)
         self.handlers = AutopilotHandlers(
             handler_params(config),
             perception=self.perception,
@@ -212,6 +217,7 @@ class CompanionService:
         self._first_nav_s: float | None = None
         self._end_s: float | None = None
         self._outcome: Outcome | None = None
+        self.observers.add(_open_observers(config, self.clock) if observers is None else observers)  # last: opens
 
     # ---- lifecycle ---------------------------------------------------------------------------------------------
     @classmethod
@@ -250,7 +256,8 @@ class CompanionService:
             raise
 
     async def aclose(self) -> None:
-        """Close the links (safe to call twice)."""
+        """Close the links and the observers (safe to call twice)."""
+        self.observers.close()
         if self.link is not None:
             await self.link.aclose()
         if self.zenoh is not None:
@@ -397,6 +404,7 @@ class CompanionService:
                 },
             )
         self.reporter.changes([*out.changes, *self.navigator.drain_changes()])
+        self.observers.cycle(out, self.navigator, self.perception)
         self._check_done(now)
         return out
 
@@ -526,6 +534,22 @@ class ZenohInputs:
             return
         p = goal.pos_ned_m
         self.service.set_route(Route.point(float(p[0]), float(p[1]), float(p[2]), source="zenoh"), now)
+
+
+def _open_observers(config: ServiceConfig, clock: ServiceClock) -> list[CycleObserver]:
+    """The Foxglove sink when ``[visualisation]`` asks for one (foxglove-sdk is imported only then)."""
+    vc = config.visualisation
+    if not vc.enabled:
+        return []
+    try:
+        from apf_companion.viz.sink import FoxgloveSink, mcap_path_in
+    except ImportError as err:  # the optional extra is missing
+        msg = "[visualisation] needs foxglove-sdk: pip install 'apf-companion[viz]'"
+        raise ConfigError(msg) from err
+
+    mcap = mcap_path_in(config.resolve(vc.mcap_dir)) if vc.mcap_dir else None
+    port = vc.foxglove_port if vc.foxglove else None
+    return [FoxgloveSink(mcap_path=mcap, port=port, t0_s=clock.now())]
 
 
 async def _open_zenoh(config: ServiceConfig) -> Any:

@@ -7,6 +7,7 @@ sets ``func`` (a callable taking the parsed namespace and returning an exit code
 - ``sensor``  world and range sensor only, following an external autopilot (sim/vehicle/cli.py)
 - ``fly``     the simulator and the companion service together, one SITL-style flight (sim/fly.py)
 - ``sweep``   R_s and path length over a grid of planner parameters and densities (sim/sweep_cli.py)
+- ``mcap-plot`` a recorded flight (.mcap) drawn to PNG (sim/mcap_plot.py)
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import cast
 
-_SUBCOMMAND_MODULES = ("sim.fly", "sim.vehicle.cli", "sim.study.cli", "sim.sweep_cli")
+_SUBCOMMAND_MODULES = ("sim.fly", "sim.vehicle.cli", "sim.study.cli", "sim.sweep_cli", "sim.mcap_plot")
 
 
 def package_version() -> str:

@@ -3,8 +3,9 @@
 Two processes on loopback, as on a real vehicle: the simulated autopilot (``apf-sim vehicle``) and the companion
 service (``apf-companion run``), which finds the simulator on a free UDP port. This command watches the flight
 on a third MAVLink link (as a ground station would), shows progress, and when the flight ends prints the outcome,
-path length, minimum clearance and flight time, and writes a trajectory plot, both .tlogs and the results to
-``--out``. ``--json PATH`` writes the outcome record::
+path length, minimum clearance and flight time, and writes a trajectory plot, both .tlogs, the results and (with
+foxglove-sdk, the ``viz`` extra) the service's ``.mcap`` recording to ``--out``. ``--json PATH`` writes the
+outcome record::
 
     {"outcome": "arrived" | "collision" | "stuck" | "timeout" | "error", "steps": int,
      "min_clearance_m": float | null, "path_length_m": float, "sim_time_s": float, "flight_time_s": float,
@@ -34,6 +35,7 @@ import argparse
 import asyncio
 import contextlib
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -196,6 +198,16 @@ ranges_max_age_s = {max(0.5, 0.1 * opt.speedup)}
 north_m = {north}
 east_m = {east}
 down_m = {-opt.alt_m}
+""" + _visualisation_toml(opt)
+
+
+def _visualisation_toml(opt: FlyOptions) -> str:
+    """Record the flight to ``OUT/apf-*.mcap`` beside the tlogs when foxglove-sdk (the ``viz`` extra) is there."""
+    if importlib.util.find_spec("foxglove") is None:
+        return ""
+    return f"""
+[visualisation]
+mcap_dir = "{opt.out.resolve()}"
 """
 
 
@@ -360,7 +372,7 @@ def expected_flight_s(opt: FlyOptions) -> float:
 async def fly(opt: FlyOptions) -> dict[str, Any]:
     """Fly once; returns the result record (also written to ``opt.out/result.json`` and ``opt.json_path``)."""
     opt.out.mkdir(parents=True, exist_ok=True)
-    for stale in ("sim_result.json", "service_result.json"):
+    for stale in ("sim_result.json", "service_result.json", *(p.name for p in opt.out.glob("apf-*.mcap"))):
         (opt.out / stale).unlink(missing_ok=True)
     port = free_udp_port()
     gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
@@ -472,6 +484,7 @@ def _record(
         # The goal was lost without arriving: LINK_LOST, or IDLE after a failed takeover / mode loss.
         "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
         "service_events": _service_events(opt.out / "service.log"),
+        "mcap": next((str(p) for p in sorted(opt.out.glob("apf-*.mcap"))), None),
     }
 
 
@@ -687,7 +700,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         f"min clearance: {'n/a' if clearance is None else f'{clearance:.3f} m'}\n"
         f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
         f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
-        f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs)"
+        f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs"
+        + (f", {Path(rec['mcap']).name}: apf-sim mcap-plot, or open it in Foxglove)" if rec["mcap"] else ")")
     )
     return 0 if rec["outcome"] == "arrived" else 3
 

@@ -121,6 +121,8 @@ class PerceptionFrontEnd:
         self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
         self._ranges_t_s: float | None = None
+        #: The obstacle points the newest usable scan added, (M, 3) local NED [m] (read by the visualisation).
+        self.latest_scan_ned_m: FloatArray = np.empty((0, 3))
 
     # ---- what the navigator reads (ObstacleView) -----------------------------------------------------------
     def points(self, now_s: float) -> FloatArray:
@@ -322,6 +324,7 @@ class PerceptionFrontEnd:
         """The one write to the obstacle memory: a usable scan measured at ``t_s`` (possibly no points: all free
         is news too, it keeps the ranges fresh)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        self.latest_scan_ned_m = pts
         if pts.shape[0]:
             self.memory.add(pts, t_s, sensor)
         if self._ranges_t_s is None or t_s > self._ranges_t_s:

@@ -148,7 +148,10 @@ class BapfNavPlanner(StatefulPlanner):
         moved = chosen >= 0
         state.prev_dir[moved] = self._units[chosen[moved]]
         state.since_field[state.mode == _ESCAPE] += 1
-        return decision_from_choice(positions_m, offsets, chosen, reason, passing.sum(axis=1), feasible.sum(axis=1))
+        scores = np.where(passing, cost, np.inf)  # what the viz colours the candidates by
+        return decision_from_choice(
+            positions_m, offsets, chosen, reason, passing.sum(axis=1), feasible.sum(axis=1), candidate_cost=scores
+        )
 
     @staticmethod
     def _escaping(state: NavState, passing: BoolArray, feasible: BoolArray, g0: FloatArray) -> BoolArray:

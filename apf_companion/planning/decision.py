@@ -54,6 +54,8 @@ class Decision:
     n_passing : how many bacteria points passed Eq. (6) (0 for CAPF, which has none).
     n_safe : how many bacteria points are at least rho_l from every known obstacle (the random walk's set Q);
         -1 when the planner does not compute it.
+    candidate_cost : (N_b,) float64 score of each bacteria point, lower is better [m]; +inf where the point
+        fails the move test. None when the planner does not report it (bapf-nav does: its J_k).
     """
 
     next_point_m: npt.NDArray[np.float64] | None
@@ -62,6 +64,7 @@ class Decision:
     mu_o_k: float | None = None
     n_passing: int = 0
     n_safe: int = -1
+    candidate_cost: npt.NDArray[np.float64] | None = None
 
     @property
     def moved(self) -> bool:
@@ -86,6 +89,7 @@ class BatchDecision:
     mu_o_k : (A,) float64; NaN unless A-BAPF moved.
     n_passing : (A,) int64.
     n_safe : (A,) int64; -1 when not computed.
+    candidate_cost : (A, N_b) float64 or None.
     """
 
     next_points_m: npt.NDArray[np.float64]
@@ -94,6 +98,7 @@ class BatchDecision:
     mu_o_k: npt.NDArray[np.float64]
     n_passing: npt.NDArray[np.int64]
     n_safe: npt.NDArray[np.int64]
+    candidate_cost: npt.NDArray[np.float64] | None = None
 
     @property
     def moved(self) -> npt.NDArray[np.bool_]:
@@ -112,4 +117,5 @@ class BatchDecision:
             mu_o_k=None if mu != mu else mu,  # NaN: none
             n_passing=int(self.n_passing[index]),
             n_safe=int(self.n_safe[index]),
+            candidate_cost=None if self.candidate_cost is None else self.candidate_cost[index].copy(),
         )

@@ -33,8 +33,10 @@ def decision_from_choice(
     reason: npt.NDArray[np.int8],
     n_passing: npt.NDArray[np.integer],
     n_safe: npt.NDArray[np.integer],
+    candidate_cost: npt.NDArray[np.float64] | None = None,
 ) -> BatchDecision:
-    """The batch decision of agents that move to bacteria point ``chosen`` (row of ``offsets_m``; -1: no move)."""
+    """The batch decision of agents that move to bacteria point ``chosen`` (row of ``offsets_m``; -1: no move);
+    ``candidate_cost`` (A, N_b): each point's score, +inf where it does not pass (``BatchDecision``)."""
     moved = chosen >= 0
     next_points = np.full(positions_m.shape, np.nan)
     next_points[moved] = positions_m[moved] + offsets_m[chosen[moved]]
@@ -45,6 +47,7 @@ def decision_from_choice(
         mu_o_k=np.full(positions_m.shape[0], np.nan),
         n_passing=n_passing.astype(np.int64),
         n_safe=n_safe.astype(np.int64),
+        candidate_cost=candidate_cost,
     )
 
 

@@ -11,7 +11,10 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
+from apf_companion.viz import Topic
+from sim.cli import main as sim_main
 from sim.fly import _outcome
+from sim.mcap_plot import read_recording
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -65,6 +68,16 @@ def test_fly_paper_scenario_one_command(tmp_path: Path) -> None:
     companion = _types_in_tlog(out / "companion.tlog")
     assert {"SET_POSITION_TARGET_LOCAL_NED", "HEARTBEAT", "OBSTACLE_DISTANCE", "LOCAL_POSITION_NED"} <= companion
     assert "SET_POSITION_TARGET_LOCAL_NED" in _types_in_tlog(out / "vehicle.tlog")
+    # The service's MCAP beside the tlogs (the `viz` extra is in `test`), read back and drawn by mcap-plot.
+    mcap = Path(rec["mcap"])
+    assert mcap.parent == out and mcap.name.startswith("apf-") and mcap.suffix == ".mcap"
+    recording = read_recording(mcap)
+    assert set(recording.topics) == {str(t) for t in Topic}
+    planned = [c for _, c in recording.topics[Topic.CYCLE] if c["decision"] not in (None, "TRACKING")]
+    assert len(planned) >= rec["steps"] - 1
+    png = tmp_path / "flight.png"
+    assert sim_main(["mcap-plot", str(mcap), "-o", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
 
 
 def test_outcome_rules() -> None:
