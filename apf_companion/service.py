@@ -12,8 +12,8 @@ MAVLink messages are decoded once into typed records (apf_companion.links.messag
 ``asyncio.TaskGroup`` runs the named tasks: ``apf.rx`` (the autopilot link), ``apf.cycle`` (a planning cycle when a
 new pose arrives, at most ``rate_hz``, and on a timer one period after the last cycle otherwise, so a frozen pose
 is noticed within one cycle), ``apf.status`` (HEARTBEAT at 1 Hz, NAMED_VALUE_FLOAT and the zenoh status at their
-rates), ``apf.takeover`` (steps the takeover controller) and ``apf.zenoh`` (scans and goals from zenoh, when
-enabled).
+rates), ``apf.takeover`` (steps the takeover controller), ``apf.forward`` (OBSTACLE_DISTANCE to the autopilot,
+when ``[sensors] forward_obstacle_distance``) and ``apf.zenoh`` (scans and goals from zenoh, when enabled).
 
 Clock: ``ServiceClock`` is monotonic and scaled by ``cycle.time_scale`` (vehicle seconds per wall second), so a
 simulated vehicle running N times faster than real time keeps every limit's meaning in vehicle seconds.
@@ -29,6 +29,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,7 @@ from apf_companion.builders import (
     build_navigator,
     build_outbox,
     build_planner,
+    forwarder_params,
     handler_params,
     initial_route,
     perception_params,
@@ -46,6 +48,7 @@ from apf_companion.builders import (
 )
 from apf_companion.config import ServiceConfig, ZenohSection
 from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
+from apf_companion.forwarder import ObstacleForwarder
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.links import MavlinkLink
@@ -171,7 +174,6 @@ class CompanionService:
         self.result_path = result_path
         self.link = link
         self.zenoh = zenoh
-        now = self.clock.now()
         self.planner = build_planner(config)
         self.perception = PerceptionFrontEnd(perception_params(config))
         self.navigator = build_navigator(config, self.planner, self.perception)
@@ -196,8 +198,12 @@ class CompanionService:
             autopilot=self.handlers,
             counters=self.counters,
             zenoh=zenoh,
-            now_s=now,
+            now_s=self.clock.now(),
         )
+        self.forwarder = ObstacleForwarder(
+            forwarder_params(config), perception=self.perception, navigator=self.navigator, outbox=self.outbox,
+            counters=self.counters,
+        )  # fmt: skip
         self.takeover = TakeoverDriver(
             TakeoverController(takeover_params(config)),
             navigator=self.navigator,
@@ -270,9 +276,12 @@ class CompanionService:
                 tasks = [
                     tg.create_task(self._rx(), name="apf.rx"),
                     tg.create_task(self._cycle_loop(), name="apf.cycle"),
-                    tg.create_task(self._status_loop(), name="apf.status"),
+                    tg.create_task(self._periodic("status", self.reporter.due, 1.0), name="apf.status"),
                     tg.create_task(self._takeover_loop(), name="apf.takeover"),
                 ]
+                if self.forwarder.params.enabled:
+                    forward = self._periodic("forward", self.forwarder.due, self.forwarder.period_s)
+                    tasks.append(tg.create_task(forward, name="apf.forward"))
                 if self.zenoh is not None:
                     zenoh_in = ZenohInputs(self.zenoh, self.config.zenoh, self)
                     tasks.append(tg.create_task(zenoh_in.run(), name="apf.zenoh"))
@@ -417,15 +426,16 @@ class CompanionService:
     def _flown_s(self, now: float) -> float | None:
         return None if self._first_nav_s is None else now - self._first_nav_s
 
-    async def _status_loop(self) -> None:
+    async def _periodic(self, task: str, due: Callable[[float], float], retry_s: float) -> None:
+        """``due(now)`` sends what is due and returns when to call it again (``retry_s`` later if it raised)."""
         while True:
             now = self.clock.now()
             try:
-                due = self.reporter.due(now)
+                next_s = due(now)
             except Exception as err:
-                self.faults.caught("status", err)
-                due = now + 1.0
-            await self.clock.sleep(due - now)
+                self.faults.caught(task, err)
+                next_s = now + retry_s
+            await self.clock.sleep(next_s - now)
 
     async def _takeover_loop(self) -> None:
         while True:
