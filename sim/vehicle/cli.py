@@ -23,7 +23,8 @@ from sim.world import World, load_world, paper_field, parse_field_spec
 
 log = logging.getLogger(__name__)
 
-WAIT_REPORT_S = 5.0  # apf-sim sensor: repeat what it is waiting for this often [s, wall]
+FIRST_REPORT_S = 2.0  # apf-sim sensor: say what it is waiting for after this long without scans [s, wall]
+WAIT_REPORT_S = 5.0  # ... and again this often [s, wall]
 
 __all__ = ["register"]
 
@@ -293,12 +294,13 @@ async def _sensor_main(args: argparse.Namespace) -> int:
 
 
 class SensorStatusPrinter:
-    """Says "ready" once scans flow, and what is missing every ``WAIT_REPORT_S`` until then (or after they stop)."""
+    """Says "ready" once scans flow, and what is missing (after ``FIRST_REPORT_S``, then every ``WAIT_REPORT_S``)
+    while they do not."""
 
     def __init__(self, sim: SensorSimulator, t0: float) -> None:
         self.sim = sim
         self.ready = False
-        self.next_report = t0 + WAIT_REPORT_S
+        self.next_report = t0 + FIRST_REPORT_S
 
     def update(self, now: float) -> None:
         reason = self.sim.waiting_for(now)

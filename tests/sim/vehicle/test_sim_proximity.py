@@ -86,6 +86,8 @@ async def test_prx1_type_takes_effect_after_reboot_and_reports_distance_sensors(
         gcs.send(obstacle_distance(gcs.mav, sectors(s0=300)))
         assert await sys_status_bits(gcs) == (False, False, False)  # PRX1_TYPE is read at boot only
         assert (await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, CopterMode.GUIDED)).result == ACCEPTED
+        ack = await command_long(gcs, m.MAV_CMD_SET_MESSAGE_INTERVAL, m.MAVLINK_MSG_ID_ATTITUDE, 250_000)
+        assert ack.result == ACCEPTED
         await wait_sim_time(sim, 4.0)
         await drain(gcs)
         att = await gcs.recv_match(type="ATTITUDE", timeout=HANG_S)
@@ -104,6 +106,9 @@ async def test_prx1_type_takes_effect_after_reboot_and_reports_distance_sensors(
             att.time_boot_ms < 2000 < before_ms
         )  # time since boot restarted (boot ends at 1 s, sim/vehicle/reboot.py)
         assert await set_param(gcs, "WPNAV_SPEED", 300.0) == 300.0  # stored parameters survive
+        await command_long(gcs, m.MAV_CMD_GET_MESSAGE_INTERVAL, m.MAVLINK_MSG_ID_ATTITUDE)
+        mi = await gcs.recv_match(type="MESSAGE_INTERVAL", timeout=HANG_S)
+        assert mi.interval_us == 100_000  # SET_MESSAGE_INTERVAL is not stored: back to the default (10 Hz)
         assert await sys_status_bits(gcs) == (True, True, False)  # the MAVLink backend exists, no data yet
 
         # the GCS asks for DISTANCE_SENSOR (message intervals do not survive a reboot)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -248,3 +250,16 @@ async def test_sensor_only_without_an_autopilot_says_so() -> None:
         await sensor.aclose()
     with pytest.raises(ConfigError, match="source_component"):
         SensorOnlyConfig(autopilot="udpin:127.0.0.1:1", outputs=("udpout:127.0.0.1:9",), source_component=0)
+
+
+def test_sensor_cli_says_what_it_waits_for() -> None:
+    """`apf-sim sensor` with no autopilot: "started as 1/158", then what is missing, not "ready" and then nothing."""
+    port = free_port(socket.SOCK_DGRAM)
+    out = subprocess.run(
+        [sys.executable, "-m", "sim", "sensor", "--autopilot", f"udpin:127.0.0.1:{port}",
+         "--output", "udpout:127.0.0.1:9", "--duration", "2.5"],
+        capture_output=True, text=True, timeout=HANG_S, check=True,
+    ).stdout  # fmt: skip
+    assert "started as 1/158" in out
+    assert "apf-sim sensor waiting: no HEARTBEAT" in out
+    assert "ready" not in out
