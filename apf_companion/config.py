@@ -302,6 +302,8 @@ class SensorsConfig:
         _check_range("sensors.surface_fill_line_tol_m", self.surface_fill_line_tol_m, 0.0, 1.0)
         for text in self.mavlink_sources:
             parse_source("sensors.mavlink_sources[]", text)
+        if self.mavlink_sources and not self.mavlink:
+            raise _fail("sensors.mavlink_sources", "empty unless sensors.mavlink is true", list(self.mavlink_sources))
         # ArduPilot's proximity backend times out after 0.5 s without a message (AP_Proximity_MAV.cpp)
         _check_range("sensors.forward_rate_hz", self.forward_rate_hz, 2.5, 50.0)
 

@@ -145,6 +145,8 @@ def test_sensor_sources_and_forwarding_keys() -> None:
     for ours in ("1/191", "1/1"):  # our own ids, the autopilot's
         with pytest.raises(ConfigError, match="not our own or the autopilot's ids"):
             config_from_mapping({"sensors": {"mavlink_sources": [ours]}})
+    with pytest.raises(ConfigError, match=r"empty unless sensors\.mavlink is true"):
+        config_from_mapping({"sensors": {"mavlink": False, "mavlink_sources": ["1/158"]}})
     for rate in (2.0, 60.0):  # below 2.5 Hz ArduPilot's 0.5 s proximity timeout would flicker
         with pytest.raises(ConfigError, match=r"sensors\.forward_rate_hz"):
             config_from_mapping({"sensors": {"forward_rate_hz": rate}})
