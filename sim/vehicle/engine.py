@@ -74,7 +74,8 @@ WARN_INTERVAL_S = 1.0  # a repeated warning (same reason) goes out at most this 
 
 
 class VehicleEngine:
-    """The simulated autopilot + vehicle + range sensor on a simulated clock (``t_s`` since boot)."""
+    """The simulated autopilot + vehicle + range sensor on a simulated clock (``t_s`` since start; ``boot_s`` since
+    the last reboot, the autopilot's own clock)."""
 
     def __init__(self, cfg: EngineConfig, *, n_links: int, emit: Emit) -> None:
         self.cfg = cfg
