@@ -11,6 +11,7 @@ import numpy as np
 
 from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
+from apf_companion.forwarder import ForwarderParams
 from apf_companion.goal import Route, load_route
 from apf_companion.handlers import HandlerParams
 from apf_companion.links import MavlinkLink
@@ -26,6 +27,7 @@ __all__ = [
     "build_navigator",
     "build_outbox",
     "build_planner",
+    "forwarder_params",
     "handler_params",
     "initial_route",
     "navigator_params",
@@ -181,7 +183,14 @@ def handler_params(config: ServiceConfig) -> HandlerParams:
         dry_run=config.dry_run,
         mavlink_ranges=config.sensors.mavlink,
         telemetry_rate_hz=lc.telemetry_rate_hz,
+        sensor_sources=tuple(Source(system, component) for system, component in config.sensors.source_ids()),
+        forwarding=config.sensors.forward_obstacle_distance,
     )
+
+
+def forwarder_params(config: ServiceConfig) -> ForwarderParams:
+    s = config.sensors
+    return ForwarderParams(enabled=s.forward_obstacle_distance, rate_hz=s.forward_rate_hz, max_range_m=s.max_range_m)
 
 
 def reporter_params(config: ServiceConfig) -> ReporterParams:

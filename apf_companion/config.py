@@ -41,6 +41,7 @@ __all__ = [
     "ZenohSection",
     "config_from_mapping",
     "load_config",
+    "parse_source",
 ]
 
 PLANNER_PRESETS: tuple[str, ...] = tuple(Preset)
@@ -64,6 +65,18 @@ def _check_range(key: str, value: float, lo: float, hi: float, *, lo_open: bool 
 def _check_id(key: str, value: int, lo: int = 1, hi: int = 255) -> None:
     if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
         raise _fail(key, f"an integer in [{lo}, {hi}]", value)
+
+
+def parse_source(key: str, text: str) -> tuple[int, int]:
+    """A MAVLink source ``"SYSID/COMPID"`` (both in [1, 255]) as (system, component); ConfigError naming ``key``."""
+    allowed = "'SYSID/COMPID' with both ids in [1, 255], e.g. '1/158'"
+    sys_text, sep, comp_text = str(text).partition("/")
+    if not sep or not sys_text.strip().isdigit() or not comp_text.strip().isdigit():
+        raise _fail(key, allowed, text)
+    ids = int(sys_text), int(comp_text)
+    if not all(1 <= i <= 255 for i in ids):
+        raise _fail(key, allowed, text)
+    return ids
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -254,6 +267,14 @@ class SensorsConfig:
         surface_fill_spacing_m: Largest distance between filled points [m] (keep it <= merge_radius_m).
         surface_fill_max_gap_m: Longest chord between two returns that is filled [m].
         surface_fill_line_tol_m: The returns on both sides of a chord must lie this close to its line [m].
+        mavlink_sources: Range sensors, besides the autopilot, whose OBSTACLE_DISTANCE / DISTANCE_SENSOR /
+            OBSTACLE_DISTANCE_3D are read, as ``"SYSID/COMPID"`` (e.g. ``"1/158"`` for ``apf-sim sensor``); ranges
+            from any other source are rejected and counted (``rejected_ranges``).
+        forward_obstacle_distance: Send the remembered obstacles around the vehicle to the autopilot as
+            OBSTACLE_DISTANCE (72 sectors of 5 deg, body FRD, cm) from our component id, for ArduPilot's proximity
+            library (PRX1_TYPE = 2) and the ground station's proximity view. While on, the autopilot's own
+            DISTANCE_SENSOR echo of its proximity sectors (ids 10-18) is not read back.
+        forward_rate_hz: OBSTACLE_DISTANCE messages per second when forwarding [Hz].
     """
 
     mavlink: bool = True
@@ -267,6 +288,9 @@ class SensorsConfig:
     surface_fill_spacing_m: float = 0.2
     surface_fill_max_gap_m: float = 1.5
     surface_fill_line_tol_m: float = 0.05
+    mavlink_sources: tuple[str, ...] = ()
+    forward_obstacle_distance: bool = False
+    forward_rate_hz: float = 10.0
 
     def __post_init__(self) -> None:
         _check_range("sensors.memory_expiry_s", self.memory_expiry_s, 0.1, 3600.0)
@@ -277,6 +301,16 @@ class SensorsConfig:
         _check_range("sensors.surface_fill_spacing_m", self.surface_fill_spacing_m, 0.01, 5.0)
         _check_range("sensors.surface_fill_max_gap_m", self.surface_fill_max_gap_m, 0.01, 5.0)
         _check_range("sensors.surface_fill_line_tol_m", self.surface_fill_line_tol_m, 0.0, 1.0)
+        for text in self.mavlink_sources:
+            parse_source("sensors.mavlink_sources[]", text)
+        if self.mavlink_sources and not self.mavlink:
+            raise _fail("sensors.mavlink_sources", "empty unless sensors.mavlink is true", list(self.mavlink_sources))
+        # ArduPilot's proximity backend times out after 0.5 s without a message (AP_Proximity_MAV.cpp)
+        _check_range("sensors.forward_rate_hz", self.forward_rate_hz, 2.5, 50.0)
+
+    def source_ids(self) -> tuple[tuple[int, int], ...]:
+        """``mavlink_sources`` as (system, component) pairs."""
+        return tuple(parse_source("sensors.mavlink_sources[]", text) for text in self.mavlink_sources)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -465,6 +499,11 @@ class ServiceConfig:
         _check_range("max_flight_s", self.max_flight_s, 0.0, 86400.0)
         if self.sensors.zenoh and not self.zenoh.enabled:
             raise _fail("sensors.zenoh", "false unless zenoh.enabled is true", True)
+        lc = self.link
+        ours = ((lc.autopilot_sysid, lc.component_id), (lc.autopilot_sysid, lc.autopilot_compid))
+        for system, component in self.sensors.source_ids():
+            if (system, component) in ours:
+                raise _fail("sensors.mavlink_sources[]", "not our own or the autopilot's ids", f"{system}/{component}")
 
     def resolve(self, path: str) -> Path:
         """A path from the config, relative to ``base_dir``."""

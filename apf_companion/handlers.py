@@ -1,8 +1,15 @@
 """The autopilot handlers: decoded MAVLink records in, to the part that owns what they carry.
 
 Messages are accepted only from the configured autopilot (sysid/compid), one handler per record type
-(``_AUTOPILOT``); the one exception is COMMAND_INT / COMMAND_LONG addressed to our component from a configured
-ground-station sysid (DO_REPOSITION). Everything else is counted (``foreign_messages``) and dropped.
+(``_AUTOPILOT``); the exceptions are COMMAND_INT / COMMAND_LONG addressed to our component from a configured
+ground-station sysid (DO_REPOSITION), and range messages from a configured sensor (``[sensors] mavlink_sources``).
+Range messages from anyone else are counted in ``rejected_ranges``, everything else in ``foreign_messages``;
+both are dropped.
+
+While the service forwards its obstacles (OBSTACLE_DISTANCE), the autopilot's DISTANCE_SENSOR with ids 10-18 is
+its proximity library reporting those same sectors back (``GCS_Common.cpp`` ``send_proximity``:
+``PROXIMITY_SENSOR_ID_START + i``); reading it would keep every forwarded obstacle alive forever, so it is
+counted (``proximity_echoes_ignored``) and dropped.
 
 Owns what the autopilot says about itself: its mode and arming (HEARTBEAT), whether it has been heard, and the
 global reference (GLOBAL_POSITION_INT) that places global goals and the PX4 takeoff altitude.
@@ -45,6 +52,9 @@ log = logging.getLogger(__name__)
 
 NOT_A_VEHICLE = frozenset({mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GCS})  # their HEARTBEATs
 REBOOTING = frozenset({mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT})  # HEARTBEAT.system_status
+RANGE_RECORDS = (ObstacleDistance, DistanceSensor, ObstacleDistance3d)
+# AP_Proximity.h PROXIMITY_SENSOR_ID_START (10): DISTANCE_SENSOR ids of the proximity sectors (8) and upward (+9)
+PROXIMITY_ECHO_IDS = range(10, 10 + 9)
 DEG_E7 = 1e-7
 MM = 1e-3
 
@@ -65,6 +75,8 @@ class HandlerParams:
     dry_run: bool = False
     mavlink_ranges: bool = True  # [sensors] mavlink
     telemetry_rate_hz: float = 20.0
+    sensor_sources: tuple[Source, ...] = ()  # [sensors] mavlink_sources
+    forwarding: bool = False  # [sensors] forward_obstacle_distance
 
 
 class AutopilotHandlers:
@@ -117,6 +129,11 @@ class AutopilotHandlers:
                 handler(self, rec, now_s)
         elif isinstance(rec, CommandInt | CommandLong) and self._for_us(rec):
             self._on_command(rec, now_s)
+        elif isinstance(rec, RANGE_RECORDS):
+            if rec.src in self.params.sensor_sources:
+                _AUTOPILOT[type(rec)](self, rec, now_s)
+            else:
+                self.counters.rejected_ranges += 1
         else:
             self.counters.foreign_messages += 1
 
@@ -186,7 +203,11 @@ class AutopilotHandlers:
             self.perception.on_obstacle_distance(rec, now_s)
 
     def _on_distance_sensor(self, rec: DistanceSensor, now_s: float) -> None:
-        if self.params.mavlink_ranges:
+        p = self.params
+        if p.forwarding and rec.src == p.autopilot and rec.sensor_id in PROXIMITY_ECHO_IDS:
+            self.counters.proximity_echoes_ignored += 1
+            return
+        if p.mavlink_ranges:
             self.perception.on_distance_sensor(rec, now_s)
 
     def _on_obstacle_distance_3d(self, rec: ObstacleDistance3d, now_s: float) -> None:

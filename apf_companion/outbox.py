@@ -73,6 +73,7 @@ class Outbox:
         self.setpoints_sent = 0
         self.last_setpoint: Setpoint | None = None  # the newest one that went out
         self.statustexts_sent = 0
+        self.obstacle_distances_sent = 0
         self.clamped_values = 0  # report values clamped into float32's range
         self.unsendable = 0  # setpoints / commands with a value float32 cannot carry: not sent
         self.send_errors = 0  # packing or sending raised: counted, logged once per kind
@@ -104,6 +105,7 @@ class Outbox:
         return {
             "setpoints_sent": self.setpoints_sent,
             "statustexts_sent": self.statustexts_sent,
+            "obstacle_distances_sent": self.obstacle_distances_sent,
             "clamped_values": self.clamped_values,
             "unsendable": self.unsendable,
             "send_errors": self.send_errors,
@@ -147,6 +149,26 @@ class Outbox:
         payload = text.encode("ascii", "replace")[:STATUSTEXT_BYTES]
         sent = self._send(lambda mav: mav.statustext_encode(severity, payload))
         self.statustexts_sent += int(sent)
+
+    def obstacle_distance(self, time_usec: int, distances_cm: tuple[int, ...], min_cm: int, max_cm: int) -> bool:
+        """OBSTACLE_DISTANCE in body FRD: element j at j * 5 deg clockwise from the nose (AP_Proximity_MAV.cpp
+        reads ``j * increment + angle_offset`` in the body frame); True when it went out."""
+        increment_deg = 360 // len(distances_cm)
+        sent = self._send(
+            lambda mav: mav.obstacle_distance_encode(
+                time_usec & 0xFFFFFFFFFFFFFFFF,
+                mavlink.MAV_DISTANCE_SENSOR_UNKNOWN,  # a fused view of every sensor, not one device
+                list(distances_cm),
+                increment_deg,
+                min_cm,
+                max_cm,
+                increment_f=float(increment_deg),
+                angle_offset=0.0,
+                frame=mavlink.MAV_FRAME_BODY_FRD,
+            )
+        )
+        self.obstacle_distances_sent += int(sent)
+        return sent
 
     def named_value_float(self, name: str, value: float) -> None:
         t = self.boot_ms()

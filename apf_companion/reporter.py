@@ -53,6 +53,9 @@ class ServiceCounters:
     commands_for_us: int = 0
     mode_requests: int = 0
     handler_errors: int = 0  # an exception escaped a handler / cycle / report: caught, the task goes on
+    rejected_ranges: int = 0  # range messages from neither the autopilot nor a [sensors] mavlink_sources id
+    proximity_echoes_ignored: int = 0  # forwarding: the autopilot's DISTANCE_SENSOR echo of our own sectors
+    forward_skipped: int = 0  # forwarding: no OBSTACLE_DISTANCE sent (no fresh pose or heading)
 
 
 class FaultLog:
@@ -196,7 +199,7 @@ class StatusReporter:
         return {
             NVI_REJECTED_POSES: pose,
             NVI_REJECTED_SCANS: p.bad_scans + p.clears_refused,
-            NVI_REJECTED_LINK: c.foreign_messages + c.undecodable_messages + c.bad_goals,
+            NVI_REJECTED_LINK: c.foreign_messages + c.undecodable_messages + c.bad_goals + c.rejected_ranges,
             NVI_ERRORS: c.handler_errors + o.send_errors + o.unsendable,
         }
 

@@ -12,8 +12,8 @@ MAVLink messages are decoded once into typed records (apf_companion.links.messag
 ``asyncio.TaskGroup`` runs the named tasks: ``apf.rx`` (the autopilot link), ``apf.cycle`` (a planning cycle when a
 new pose arrives, at most ``rate_hz``, and on a timer one period after the last cycle otherwise, so a frozen pose
 is noticed within one cycle), ``apf.status`` (HEARTBEAT at 1 Hz, NAMED_VALUE_FLOAT and the zenoh status at their
-rates), ``apf.takeover`` (steps the takeover controller) and ``apf.zenoh`` (scans and goals from zenoh, when
-enabled).
+rates), ``apf.takeover`` (steps the takeover controller), ``apf.forward`` (OBSTACLE_DISTANCE to the autopilot,
+when ``[sensors] forward_obstacle_distance``) and ``apf.zenoh`` (scans and goals from zenoh, when enabled).
 
 Clock: ``ServiceClock`` is monotonic and scaled by ``cycle.time_scale`` (vehicle seconds per wall second), so a
 simulated vehicle running N times faster than real time keeps every limit's meaning in vehicle seconds.
@@ -29,7 +29,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,7 @@ from apf_companion.builders import (
     build_navigator,
     build_outbox,
     build_planner,
+    forwarder_params,
     handler_params,
     initial_route,
     perception_params,
@@ -47,6 +48,7 @@ from apf_companion.builders import (
 )
 from apf_companion.config import ServiceConfig, ZenohSection
 from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
+from apf_companion.forwarder import ObstacleForwarder
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.links import MavlinkLink
@@ -145,6 +147,33 @@ class ServiceResult:
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2, allow_nan=False)
 
+    @classmethod
+    def of(
+        cls,
+        outcome: str,
+        navigator: Navigator,
+        reporter: StatusReporter,
+        link: MavlinkLink | None,
+        *,
+        flight_s: float,
+        error: str | None,
+    ) -> ServiceResult:
+        """The result from the parts' counters (status, navigator, link) at the end of a run."""
+        p50, p99 = reporter.latency.run_percentiles()
+        counters = reporter.counts() | {f"nav_{k}": v for k, v in navigator.counts().items()}
+        if link is not None:
+            counters |= {f"link_{k}": v for k, v in dataclasses.asdict(link.stats).items()}
+        return cls(
+            outcome=outcome,
+            state=navigator.state.value,
+            steps=navigator.counters.planner_steps,
+            flight_time_s=flight_s,
+            latency_ms_p50=p50,
+            latency_ms_p99=p99,
+            counters=counters,
+            error=error,
+        )
+
 
 class CompanionService:
     """The running service. Create with ``await CompanionService.open(config)``, then ``await run()``.
@@ -175,7 +204,6 @@ class CompanionService:
         self.result_path = result_path
         self.link = link
         self.zenoh = zenoh
-        now = self.clock.now()
         self.planner = build_planner(config)
         self.perception = PerceptionFrontEnd(perception_params(config))
         self.counters = ServiceCounters()
@@ -201,16 +229,9 @@ class CompanionService:
             autopilot=self.handlers,
             counters=self.counters,
             zenoh=zenoh,
-            now_s=now,
+            now_s=self.clock.now(),
         )
-        self.takeover = TakeoverDriver(
-            TakeoverController(takeover_params(config)),
-            navigator=self.navigator,
-            handlers=self.handlers,
-            outbox=self.outbox,
-            reporter=self.reporter,
-            profile=config.autopilot.profile,
-        )
+        self.forwarder, self.takeover = self._drivers(config)
         self._stop = asyncio.Event()
         self._new_pose = asyncio.Event()
         self._trigger_rx_wall: float | None = None  # wall time the triggering pose was read
@@ -218,6 +239,22 @@ class CompanionService:
         self._end_s: float | None = None
         self._outcome: Outcome | None = None
         self.observers.add(_open_observers(config, self.clock) if observers is None else observers)  # last: opens
+
+    def _drivers(self, config: ServiceConfig) -> tuple[ObstacleForwarder, TakeoverDriver]:
+        """The parts that send on their own schedule: OBSTACLE_DISTANCE forwarding and the takeover."""
+        forwarder = ObstacleForwarder(
+            forwarder_params(config), perception=self.perception, navigator=self.navigator, outbox=self.outbox,
+            counters=self.counters,
+        )  # fmt: skip
+        takeover = TakeoverDriver(
+            TakeoverController(takeover_params(config)),
+            navigator=self.navigator,
+            handlers=self.handlers,
+            outbox=self.outbox,
+            reporter=self.reporter,
+            profile=config.autopilot.profile,
+        )
+        return forwarder, takeover
 
     # ---- lifecycle ---------------------------------------------------------------------------------------------
     @classmethod
@@ -277,9 +314,12 @@ class CompanionService:
                 tasks = [
                     tg.create_task(self._rx(), name="apf.rx"),
                     tg.create_task(self._cycle_loop(), name="apf.cycle"),
-                    tg.create_task(self._status_loop(), name="apf.status"),
+                    tg.create_task(self._periodic("status", self.reporter.due, 1.0), name="apf.status"),
                     tg.create_task(self._takeover_loop(), name="apf.takeover"),
                 ]
+                if self.forwarder.params.enabled:
+                    forward = self._periodic("forward", self.forwarder.due, self.forwarder.period_s)
+                    tasks.append(tg.create_task(forward, name="apf.forward"))
                 if self.zenoh is not None:
                     zenoh_in = ZenohInputs(self.zenoh, self.config.zenoh, self)
                     tasks.append(tg.create_task(zenoh_in.run(), name="apf.zenoh"))
@@ -300,20 +340,8 @@ class CompanionService:
     def result(self, *, error: str | None = None) -> ServiceResult:
         end = self._end_s if self._end_s is not None else self.clock.now()
         flight = max(0.0, self._flown_s(end) or 0.0)
-        p50, p99 = self.reporter.latency.run_percentiles()
-        counters = self.reporter.counts() | {f"nav_{k}": v for k, v in self.navigator.counts().items()}
-        if self.link is not None:
-            counters |= {f"link_{k}": v for k, v in dataclasses.asdict(self.link.stats).items()}
-        return ServiceResult(
-            outcome=self._outcome or Outcome.STOPPED,
-            state=self.navigator.state.value,
-            steps=self.navigator.counters.planner_steps,
-            flight_time_s=flight,
-            latency_ms_p50=p50,
-            latency_ms_p99=p99,
-            counters=counters,
-            error=error,
-        )
+        outcome = self._outcome or Outcome.STOPPED
+        return ServiceResult.of(outcome, self.navigator, self.reporter, self.link, flight_s=flight, error=error)
 
     # ---- goals -------------------------------------------------------------------------------------------------
     def set_route(self, route: Route, now: float) -> bool:
@@ -425,15 +453,16 @@ class CompanionService:
     def _flown_s(self, now: float) -> float | None:
         return None if self._first_nav_s is None else now - self._first_nav_s
 
-    async def _status_loop(self) -> None:
+    async def _periodic(self, task: str, due: Callable[[float], float], retry_s: float) -> None:
+        """``due(now)`` sends what is due and returns when to call it again (``retry_s`` later if it raised)."""
         while True:
             now = self.clock.now()
             try:
-                due = self.reporter.due(now)
+                next_s = due(now)
             except Exception as err:
-                self.faults.caught("status", err)
-                due = now + 1.0
-            await self.clock.sleep(due - now)
+                self.faults.caught(task, err)
+                next_s = now + retry_s
+            await self.clock.sleep(next_s - now)
 
     async def _takeover_loop(self) -> None:
         while True:

@@ -115,6 +115,7 @@ class DistanceSensor:
     current_distance: int  # [cm]
     orientation: int  # MAV_SENSOR_ORIENTATION
     quaternion: tuple[float, ...]  # (w, x, y, z) for MAV_SENSOR_ROTATION_CUSTOM
+    sensor_id: int = 0  # DISTANCE_SENSOR.id (ArduPilot's proximity sectors: 10-17)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -241,6 +242,7 @@ def _distance_sensor(msg: Any) -> DistanceSensor:
         current_distance=int(msg.current_distance),
         orientation=int(msg.orientation),
         quaternion=tuple(float(q) for q in msg.quaternion),
+        sensor_id=int(msg.id),
     )
 
 

@@ -15,6 +15,7 @@ from apf_companion.perception.cdr import (
     laserscan_to_scan,
     parse_laserscan_cdr,
 )
+from apf_companion.perception.forward import FORWARD_SECTORS, ForwardSectors, obstacle_sectors_cm
 from apf_companion.perception.frontend import PerceptionCounters, PerceptionFrontEnd, PerceptionParams
 from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned, surface_fill_points
 from apf_companion.perception.history import PoseHistory
@@ -39,8 +40,10 @@ from apf_companion.perception.types import GoalCommand, Pose, RangeScan, ScanFra
 __all__ = [
     "ENCODING_CDR",
     "ENCODING_JSON",
+    "FORWARD_SECTORS",
     "GOAL_SCHEMA",
     "SCAN_SCHEMA",
+    "ForwardSectors",
     "GoalCommand",
     "LaserScanMsg",
     "ObstacleMemory",
@@ -63,6 +66,7 @@ __all__ = [
     "encode_laserscan_cdr",
     "encode_scan_json",
     "laserscan_to_scan",
+    "obstacle_sectors_cm",
     "parse_laserscan_cdr",
     "points_from_obstacle_distance_3d",
     "scan_bearings_ned_rad",

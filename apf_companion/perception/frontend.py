@@ -141,6 +141,15 @@ class PerceptionFrontEnd:
         """The azimuth sector of ``bearing_ned_rad`` (local NED) has a recent reading (``[safety] sectors``)."""
         return self.sectors.fresh(bearing_ned_rad, now_s)
 
+    @property
+    def yaw_rad(self) -> float | None:
+        """The latest ATTITUDE yaw [rad] (0 north, clockwise), None before the first."""
+        return self._yaw_rad
+
+    def autopilot_boot_s(self, now_s: float) -> float | None:
+        """The autopilot's time since boot at service time ``now_s`` (offset of the latest pose), None before."""
+        return None if self._boot_offset_s is None else now_s - self._boot_offset_s
+
     # ---- poses ---------------------------------------------------------------------------------------------
     def on_attitude(self, yaw_rad: float) -> None:
         """ATTITUDE.yaw: the heading the next poses carry."""

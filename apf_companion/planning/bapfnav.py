@@ -122,21 +122,8 @@ class BapfNavPlanner(StatefulPlanner):
 
         escaping = self._escaping(state, passing, feasible, g0)
         if escaping.any():
-            rows = np.flatnonzero(escaping)
-            self._escape_scores(
-                rows,
-                positions_m,
-                targets_m,
-                obstacles_m,
-                obstacle_mask,
-                state,
-                feasible,
-                clear_k,
-                clear_0,
-                cost,
-                cost0,
-                passing,
-            )
+            world = (positions_m, targets_m, obstacles_m, obstacle_mask, state)
+            self._escape_scores(np.flatnonzero(escaping), *world, feasible, clear_k, clear_0, cost, cost0, passing)
 
         chosen = self._choose(cost, cost0, passing, state.prev_dir)
         self._squeeze_out(chosen, ~feasible.any(axis=1) & active, seg2)

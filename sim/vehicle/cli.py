@@ -17,11 +17,14 @@ import numpy as np
 from apf_companion.errors import ApfCompanionError
 from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
-from sim.vehicle.sensor_only import SensorOnlyConfig, SensorSimulator
+from sim.vehicle.sensor_only import SENSOR_COMPID, SensorOnlyConfig, SensorSimulator
 from sim.vehicle.simulator import SimConfig, Simulator, ZenohOutput
 from sim.world import World, load_world, paper_field, parse_field_spec
 
 log = logging.getLogger(__name__)
+
+FIRST_REPORT_S = 2.0  # apf-sim sensor: say what it is waiting for after this long without scans [s, wall]
+WAIT_REPORT_S = 5.0  # ... and again this often [s, wall]
 
 __all__ = ["register"]
 
@@ -89,8 +92,14 @@ def _register_sensor(subparsers: argparse._SubParsersAction) -> None:  # type: i
     _world_args(s)
     s.add_argument("--output", action="append", default=[], metavar="ENDPOINT", help="MAVLink output, repeatable")
     s.add_argument("--to-autopilot", action="store_true", help="also send the sensor messages to the autopilot")
-    s.add_argument("--sysid", type=int, default=1, help="our MAVLink system id on outputs (default 1)")
-    s.add_argument("--compid", type=int, default=1, help="our MAVLink component id on outputs (default 1)")
+    s.add_argument("--sysid", type=int, default=1, help="our MAVLink system id (default 1: the vehicle's)")
+    s.add_argument(
+        "--compid",
+        type=int,
+        default=SENSOR_COMPID,
+        help=f"our MAVLink component id (default {SENSOR_COMPID}, MAV_COMP_ID_PERIPHERAL; never 1: ArduPilot drops "
+        'packets with its own ids). The service must list it: [sensors] mavlink_sources = ["1/158"]',
+    )
     s.add_argument("--rate", type=float, default=10.0, help="sensor rate [Hz]")
     s.add_argument("--range", type=float, default=8.0, help="max range [m]")
     s.add_argument("--min-range", type=float, default=0.2, help="min range [m]")
@@ -265,12 +274,15 @@ async def _sensor_main(args: argparse.Namespace) -> int:
     loop = asyncio.get_running_loop()
     t0 = loop.time()
     sim = await SensorSimulator.start(cfg)
-    print(f"apf-sim sensor ready: autopilot={args.autopilot} world={cfg.world.name}", flush=True)
+    ids = f"{cfg.source_system}/{cfg.source_component}"
+    print(f"apf-sim sensor started as {ids}: autopilot={args.autopilot} world={cfg.world.name}", flush=True)
+    status = SensorStatusPrinter(sim, t0)
     try:
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(0.1):
                     await stop.wait()
+            status.update(loop.time())
             if args.duration is not None and loop.time() - t0 >= args.duration:
                 break
             if sim.error is not None:
@@ -279,6 +291,26 @@ async def _sensor_main(args: argparse.Namespace) -> int:
         await sim.aclose()
     print(f"apf-sim sensor done: scans={sim.scans} min_clearance_m={sim.result()['min_clearance_m']}", flush=True)
     return 0
+
+
+class SensorStatusPrinter:
+    """Says "ready" once scans flow, and what is missing (after ``FIRST_REPORT_S``, then every ``WAIT_REPORT_S``)
+    while they do not."""
+
+    def __init__(self, sim: SensorSimulator, t0: float) -> None:
+        self.sim = sim
+        self.ready = False
+        self.next_report = t0 + FIRST_REPORT_S
+
+    def update(self, now: float) -> None:
+        reason = self.sim.waiting_for(now)
+        if reason is None and not self.ready:
+            self.ready = True
+            print(f"apf-sim sensor ready: scans flowing (autopilot system {self.sim.sysid})", flush=True)
+        elif reason is not None and now >= self.next_report:
+            self.ready = False
+            self.next_report = now + WAIT_REPORT_S
+            print(f"apf-sim sensor waiting: {reason}", flush=True)
 
 
 def run_vehicle(args: argparse.Namespace) -> int:

@@ -17,7 +17,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.vehicle.geo import GLOBAL_FRAMES, down_from_alt, latlon_to_ne
 from sim.vehicle.profiles import param_int
-from sim.vehicle.telemetry import build
+from sim.vehicle.reboot import handle_reboot
+from sim.vehicle.telemetry import as_list, build
 
 if TYPE_CHECKING:
     from sim.vehicle.engine import VehicleEngine
@@ -143,11 +144,12 @@ def _get_message_interval(v: VehicleEngine, c: Command) -> None:
 
 def _request_message(v: VehicleEngine, c: Command) -> int | None:
     msg_id = param_int(c.p[0], -1)
-    out = build(v, msg_id) if v.telemetry.streamable(msg_id) else None
-    if out is None:
+    out = as_list(build(v, msg_id)) if v.telemetry.streamable(msg_id) else []
+    if not out:
         return int(mavlink.MAV_RESULT_FAILED)
     v.ack(c.link, c.msg, c.command, mavlink.MAV_RESULT_ACCEPTED)
-    v.emit(c.link, out)
+    for msg in out:
+        v.emit(c.link, msg)
     return None
 
 
@@ -177,4 +179,5 @@ COMMANDS: dict[int, CommandHandler] = {
     mavlink.MAV_CMD_REQUEST_MESSAGE: _request_message,
     mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: _send_after_ack(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION),
     mavlink.MAV_CMD_GET_HOME_POSITION: _send_after_ack(mavlink.MAVLINK_MSG_ID_HOME_POSITION),
+    mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN: handle_reboot,
 }

@@ -36,6 +36,7 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "SYSTEM_TIME": 0.0,
     "AUTOPILOT_VERSION": 0.0,
     "GPS_RAW_INT": 0.0,
+    "DISTANCE_SENSOR": 0.0,
 }
 
 

@@ -49,8 +49,10 @@ from sim.vehicle.guided import GuidedState
 from sim.vehicle.params import ParamTable
 from sim.vehicle.poscontrol import ArduCopterPosControl
 from sim.vehicle.profiles import PROFILES, AutopilotProfile, Behaviour
+from sim.vehicle.proximity import Proximity
 from sim.vehicle.ranging import RangeSensorDriver
-from sim.vehicle.recorder import FlightRecorder
+from sim.vehicle.reboot import BootPhase, BootState, reboot_engine
+from sim.vehicle.recorder import FlightRecorder, flight_result
 from sim.vehicle.sensor import Scan
 from sim.vehicle.telemetry import TelemetryScheduler
 from sim.world.model import FloatArray
@@ -72,7 +74,8 @@ WARN_INTERVAL_S = 1.0  # a repeated warning (same reason) goes out at most this 
 
 
 class VehicleEngine:
-    """The simulated autopilot + vehicle + range sensor on a simulated clock (``t_s`` since boot)."""
+    """The simulated autopilot + vehicle + range sensor on a simulated clock (``t_s`` since start; ``boot_s`` since
+    the last reboot, the autopilot's own clock)."""
 
     def __init__(self, cfg: EngineConfig, *, n_links: int, emit: Emit) -> None:
         self.cfg = cfg
@@ -101,6 +104,9 @@ class VehicleEngine:
         self.ranging = RangeSensorDriver()
         self.recorder = FlightRecorder(cfg.trajectory_rate_hz)
         self.guided = GuidedState()
+        self.boot = BootState()
+        self.own_id_drops = 0  # messages from our own sysid/compid, dropped (ArduPilot profile)
+        self.proximity = Proximity.at_boot(self.params)
         self._next_noise_t = 0.0
         self._noise_vel = np.zeros(2)
         self._spawn(cfg.spawn)
@@ -216,13 +222,23 @@ class VehicleEngine:
         return self.guided.last_t_s
 
     @property
+    def boot_s(self) -> float:
+        """Simulated seconds since the last (re)boot: the autopilot's own clock (``time_boot_ms``)."""
+        return self.t_s - self.boot.boot_t_s
+
+    @property
     def time_boot_ms(self) -> int:
-        return int(self.t_s * 1000.0) & 0xFFFFFFFF
+        return int(self.boot_s * 1000.0) & 0xFFFFFFFF
+
+    def reboot(self) -> None:
+        """MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN was accepted (and ACKed): restart the autopilot (sim/vehicle/reboot.py)."""
+        reboot_engine(self)
 
     # --------------------------------------------------------------------------------------------- input
     def handle(self, msg: Any, link: int) -> None:
         """Process one received message (from link index ``link``) at the current simulated time."""
-        handle_message(self, msg, link)
+        if self.boot.phase(self.t_s) is BootPhase.RUNNING:  # a rebooting autopilot reads nothing
+            handle_message(self, msg, link)
 
     # --------------------------------------------------------------------------------------------- step
     def step(self) -> None:
@@ -249,8 +265,12 @@ class VehicleEngine:
             self._update_clearance()
             self._auto_disarm()
         self.recorder.record(self.t_s, self.state.pos_ned_m)
-        self.ranging.tick(self)
-        self.telemetry.tick(self, self._emit)
+        phase = self.boot.phase(self.t_s)
+        if phase is BootPhase.RUNNING:
+            self.ranging.tick(self)
+            self.telemetry.tick(self, self._emit)
+        elif phase is BootPhase.BOOTING:
+            self.boot.tick_booting(self)
 
     def _noise(self) -> FloatArray | None:
         sd = self.params["SIM_POS_NOISE"]
@@ -338,25 +358,4 @@ class VehicleEngine:
 
     def result(self) -> dict[str, Any]:
         """The flight result (JSON-ready); the format is documented in docs/simulator.md."""
-        return {
-            "schema": "apf.sim_result/1",
-            "profile": self.profile.value,
-            "dynamics": self.cfg.dynamics.value,
-            "seed": self.cfg.seed,
-            "collided": self.crash_info is not None and self.crash_info["obstacle_id"] >= 0,
-            "crashed": self.crashed,
-            "crashed_at": self.crash_info,
-            "sim_time_s": round(self.t_s, 6),
-            "path_length_m": self.path_length_m,
-            "min_clearance_m": self.min_clearance_m if math.isfinite(self.min_clearance_m) else None,
-            "vehicle_radius_m": self.params["SIM_VEH_RADIUS"],
-            "final_pos_ned_m": self.state.pos_ned_m.tolist(),
-            "final_mode": self.mode_name(),
-            "armed": self.armed,
-            "on_ground": self.state.on_ground,
-            "trajectory_t_s": list(self.trajectory_t_s),
-            "trajectory_ned_m": [list(p) for p in self.trajectory_ned_m],
-            "statustexts": [[s.t_s, s.severity, s.text] for s in self.statustexts],
-            "params": dict(self.params.items()),
-            "world": self.world.describe(),
-        }
+        return flight_result(self)

@@ -29,6 +29,10 @@ MessageHandler = Callable[["VehicleEngine", Any, int], None]
 
 
 def handle_message(v: VehicleEngine, msg: Any, link: int) -> None:
+    if v.profile_rules.drops_own_ids and (msg.get_srcSystem(), msg.get_srcComponent()) == (SYSID, COMPID):
+        # MAVLink_routing.cpp check_and_forward: "loopback of our own messages" is not processed locally
+        v.own_id_drops += 1
+        return
     handler = HANDLERS.get(msg.get_msgId())
     if handler is not None:
         handler(v, msg, link)
@@ -123,7 +127,12 @@ def _apply_setpoint(v: VehicleEngine, msg: Any, frame: int, pos_in: FloatArray) 
 def _on_timesync(v: VehicleEngine, msg: Any, link: int) -> None:
     # A request has tc1 == 0: answer with our clock (simulated ns since boot) and echo ts1.
     if msg.tc1 == 0:
-        v.emit(link, v.mav.timesync_encode(int(v.t_s * 1e9), msg.ts1))
+        v.emit(link, v.mav.timesync_encode(int(v.boot_s * 1e9), msg.ts1))
+
+
+def _on_obstacle_distance(v: VehicleEngine, msg: Any, link: int) -> None:
+    # GCS_Common.cpp handle_obstacle_distance -> AP_Proximity: from anyone (no target fields)
+    v.proximity.on_obstacle_distance(msg, v.t_s)
 
 
 def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
@@ -140,4 +149,5 @@ HANDLERS: dict[int, MessageHandler] = {
     **{msg_id: _for_us(fn) for msg_id, fn in PARAM_HANDLERS.items()},
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: _for_us(_on_mission_request_list),
     mavlink.MAVLINK_MSG_ID_TIMESYNC: _on_timesync,
+    mavlink.MAVLINK_MSG_ID_OBSTACLE_DISTANCE: _on_obstacle_distance,
 }

@@ -109,6 +109,16 @@ _ARDUPILOT = (
         hi=2.0,
         doc="arducopter dynamics: linear horizontal drag [1/s], fitted to the SITL 5 m step (issue 8)",
     ),
+    # AP_Proximity_Params.cpp: read at boot (@RebootRequired); sim/vehicle/proximity.py
+    ParamSpec(
+        name="PRX1_TYPE",
+        default=0.0,
+        lo=0.0,
+        hi=20.0,
+        doc="proximity sensor type, applied at boot: 0 none, 2 MAVLink (OBSTACLE_DISTANCE); others not simulated",
+    ),
+    ParamSpec(name="PRX1_ORIENT", default=0.0, lo=0.0, hi=1.0, doc="proximity orientation: 0 default, 1 upside down"),
+    ParamSpec(name="PRX1_YAW_CORR", default=0.0, lo=-180.0, hi=180.0, doc="proximity yaw correction [deg]"),
     ParamSpec(
         name="WP_YAW_BEHAVIOR",
         default=2.0,

@@ -27,7 +27,7 @@ class RangeSensorDriver:
         scan = scan_world(
             v.world,
             sensor,
-            t_s=v.t_s,
+            t_s=v.boot_s,
             pos_ned_m=v.state.pos_ned_m,
             yaw_rad=v.state.yaw_rad,
             min_range_m=v.params["SIM_RNG_MIN"],

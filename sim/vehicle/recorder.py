@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Any
 
 from sim.world.model import FloatArray
 
-__all__ = ["FlightRecorder"]
+if TYPE_CHECKING:
+    from sim.vehicle.engine import VehicleEngine
+
+__all__ = ["FlightRecorder", "flight_result"]
 
 
 class FlightRecorder:
@@ -32,3 +36,29 @@ class FlightRecorder:
 
     def clearance(self, clearance_m: float) -> None:
         self.min_clearance_m = min(self.min_clearance_m, clearance_m)
+
+
+def flight_result(v: VehicleEngine) -> dict[str, Any]:
+    """The engine's flight result (JSON-ready); the format is documented in docs/simulator.md."""
+    return {
+        "schema": "apf.sim_result/1",
+        "profile": v.profile.value,
+        "dynamics": v.cfg.dynamics.value,
+        "seed": v.cfg.seed,
+        "collided": v.crash_info is not None and v.crash_info["obstacle_id"] >= 0,
+        "crashed": v.crashed,
+        "crashed_at": v.crash_info,
+        "sim_time_s": round(v.t_s, 6),
+        "path_length_m": v.path_length_m,
+        "min_clearance_m": v.min_clearance_m if math.isfinite(v.min_clearance_m) else None,
+        "vehicle_radius_m": v.params["SIM_VEH_RADIUS"],
+        "final_pos_ned_m": v.state.pos_ned_m.tolist(),
+        "final_mode": v.mode_name(),
+        "armed": v.armed,
+        "on_ground": v.state.on_ground,
+        "trajectory_t_s": list(v.trajectory_t_s),
+        "trajectory_ned_m": [list(p) for p in v.trajectory_ned_m],
+        "statustexts": [[s.t_s, s.severity, s.text] for s in v.statustexts],
+        "params": dict(v.params.items()),
+        "world": v.world.describe(),
+    }

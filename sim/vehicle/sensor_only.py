@@ -21,6 +21,7 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError
 from apf_companion.links import MavlinkLink
@@ -40,6 +41,8 @@ log = logging.getLogger(__name__)
 __all__ = ["SensorOnlyConfig", "SensorSimulator"]
 
 POSE_STALE_S = 1.0  # no scan from a pose older than this (wall clock)
+SENSOR_COMPID = int(mavlink.MAV_COMP_ID_PERIPHERAL)  # 158: a peripheral, not the autopilot (1)
+AUTOPILOT_COMPID = int(mavlink.MAV_COMP_ID_AUTOPILOT1)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -52,8 +55,11 @@ class SensorOnlyConfig:
         also_to_autopilot: also send the sensor messages on the autopilot link (e.g. for its proximity
             driver).
         autopilot_sysid: follow this system (None = the first autopilot heard).
-        source_system / source_component: our MAVLink identity on the output links (default 1/1, as if the
-            autopilot forwarded them, so a companion that filters on the autopilot's ids accepts them).
+        source_system / source_component: our MAVLink identity on every link (default 1/158: the vehicle's
+            system, MAV_COMP_ID_PERIPHERAL). Never the autopilot's own 1/1: ArduPilot drops every packet that
+            carries its own ids (``MAVLink_routing.cpp``, "loopback of our own messages"), so the stream
+            requests would never arrive. The companion must accept ranges from this id (the service:
+            ``[sensors] mavlink_sources = ["1/158"]``).
         request_rate_hz: ask the autopilot for LOCAL_POSITION_NED and ATTITUDE at this rate (0 = don't).
         rate_hz, min_range_m, max_range_m, noise_sd_m, dropout_prob: the sensor.
         vehicle_radius_m: for the collision flag in the result.
@@ -66,7 +72,7 @@ class SensorOnlyConfig:
     sensor: RangeSensorConfig = field(default_factory=RangeSensorConfig)
     autopilot_sysid: int | None = None
     source_system: int = 1
-    source_component: int = 1
+    source_component: int = SENSOR_COMPID
     request_rate_hz: float = 20.0
     rate_hz: float = 10.0
     min_range_m: float = 0.2
@@ -91,6 +97,11 @@ class SensorOnlyConfig:
             raise ConfigError("sensor dropout_prob must be in [0, 1] and noise_sd_m >= 0")
         if not self.outputs and self.zenoh is None and not self.also_to_autopilot:
             raise ConfigError("sensor-only mode needs an output: outputs, zenoh, or also_to_autopilot")
+        for name in ("source_system", "source_component"):
+            value = getattr(self, name)
+            if not 1 <= value <= 255:
+                msg = f"sensor {name} must be in [1, 255], got {value}"
+                raise ConfigError(msg)
 
 
 class SensorSimulator:
@@ -118,6 +129,9 @@ class SensorSimulator:
         self._closed = False
         self.error: BaseException | None = None
         self._rates_requested = False
+        self.heartbeats = 0  # from the followed autopilot
+        self.poses = 0  # LOCAL_POSITION_NED received
+        self.attitudes = 0  # ATTITUDE received
 
     @classmethod
     async def start(cls, cfg: SensorOnlyConfig) -> SensorSimulator:
@@ -182,6 +196,23 @@ class SensorSimulator:
             "world": self.cfg.world.describe(),
         }
 
+    def waiting_for(self, now: float) -> str | None:
+        """Why no scan is being sent at ``now`` (event-loop time; None while scans flow): what is missing from the
+        autopilot, and what to check."""
+        if self.yaw_rad is not None and now - self._pose_wall_t <= POSE_STALE_S:
+            return None
+        cfg = self.cfg
+        if self.heartbeats == 0:
+            return f"no HEARTBEAT from an autopilot on {cfg.autopilot}: check the endpoint and that it sends to us"
+        missing = [name for name, n in (("LOCAL_POSITION_NED", self.poses), ("ATTITUDE", self.attitudes)) if n == 0]
+        if missing:
+            ids = f"{cfg.source_system}/{cfg.source_component}"
+            return (
+                f"no {' or '.join(missing)} from system {self.sysid}: the autopilot streams nothing unasked and "
+                f"ignores requests from its own ids (we are {ids}); an EKF without an origin sends no position"
+            )
+        return "the pose is older than 1 s"
+
     async def _main(self) -> None:
         try:
             async with asyncio.TaskGroup() as tg:
@@ -198,29 +229,37 @@ class SensorSimulator:
             return
         interval_us = 1e6 / self.cfg.request_rate_hz
         mav = self.autopilot.mav
-        for msg_id in (32, 30):  # LOCAL_POSITION_NED, ATTITUDE
-            self.autopilot.send(mav.command_long_encode(sysid, compid, 511, 0, msg_id, interval_us, 0, 0, 0, 0, 0))
+        for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE):
+            self.autopilot.send(
+                mav.command_long_encode(
+                    sysid, compid, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us, 0, 0, 0, 0, 0
+                )
+            )
 
     async def _follow(self) -> None:
         loop = asyncio.get_running_loop()
         async for msg in self.autopilot.messages():
             mtype = msg.get_type()
             src = msg.get_srcSystem()
-            if mtype == "HEARTBEAT" and msg.get_srcComponent() == 1 and msg.type != 6:  # 6 = GCS
+            if mtype == "HEARTBEAT" and msg.get_srcComponent() == AUTOPILOT_COMPID and msg.type != mavlink.MAV_TYPE_GCS:
                 if self.sysid is None:
                     self.sysid = src
-                if src == self.sysid and not self._rates_requested:
-                    self._rates_requested = True
-                    self._request_rates(src, 1)
+                if src == self.sysid:
+                    self.heartbeats += 1
+                    if not self._rates_requested:
+                        self._rates_requested = True
+                        self._request_rates(src, AUTOPILOT_COMPID)
                 continue
             if self.sysid is None or src != self.sysid:
                 continue
             if mtype == "LOCAL_POSITION_NED":
+                self.poses += 1
                 self.pos_ned_m = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
                 self.time_boot_ms = int(msg.time_boot_ms)
                 self._pose_wall_t = loop.time()
                 self._track()
             elif mtype == "ATTITUDE":
+                self.attitudes += 1
                 self.yaw_rad = float(msg.yaw)
 
     def _track(self) -> None:

@@ -23,7 +23,7 @@ from sim.vehicle.profiles import Behaviour
 if TYPE_CHECKING:
     from sim.vehicle.engine import VehicleEngine
 
-__all__ = ["BUILDERS", "STREAM_IDS", "TelemetryScheduler", "build"]
+__all__ = ["BUILDERS", "STREAM_IDS", "TelemetryScheduler", "as_list", "build"]
 
 Builder = Callable[["VehicleEngine"], Any]
 
@@ -93,7 +93,8 @@ def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
         enabled |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
         if v.armed or (not v.crashed and rules.arm_refusal(v, force=False) is None):
             health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
-    return present, enabled, health
+    prx_present, prx_enabled, prx_health = v.proximity.sensor_flags(v.t_s)  # none unless PRX1_TYPE at boot
+    return present | prx_present, enabled | prx_enabled, health | prx_health
 
 
 def _sys_status(v: VehicleEngine) -> Any:
@@ -137,7 +138,7 @@ def _gps_raw_int(v: VehicleEngine) -> Any:
     speed_cm_s = round(float(np.hypot(vel[0], vel[1])) * 100.0)
     cog_cdeg = round(math.degrees(math.atan2(vel[1], vel[0])) * 100.0) % 36000
     return v.mav.gps_raw_int_encode(
-        int(v.t_s * 1e6),
+        int(v.boot_s * 1e6),
         mavlink.GPS_FIX_TYPE_3D_FIX,
         round(lat * 1e7),
         round(lon * 1e7),
@@ -174,7 +175,7 @@ def _home_position(v: VehicleEngine) -> Any:
     h = v.cfg.home
     lat, lon, alt = round(h.lat_deg * 1e7), round(h.lon_deg * 1e7), round(h.alt_amsl_m * 1000.0)
     q = [1.0, 0.0, 0.0, 0.0]
-    return v.mav.home_position_encode(lat, lon, alt, 0.0, 0.0, 0.0, q, 0.0, 0.0, 0.0, time_usec=int(v.t_s * 1e6))
+    return v.mav.home_position_encode(lat, lon, alt, 0.0, 0.0, 0.0, q, 0.0, 0.0, 0.0, time_usec=int(v.boot_s * 1e6))
 
 
 def _position_target_local_ned(v: VehicleEngine) -> Any:
@@ -211,6 +212,11 @@ def _system_time(v: VehicleEngine) -> Any:
     return v.mav.system_time_encode(0, v.time_boot_ms)
 
 
+def _distance_sensor(v: VehicleEngine) -> list[Any]:
+    """The proximity library's 8 faces (sim/vehicle/proximity.py); nothing unless its status is Good."""
+    return v.proximity.distance_sensor_msgs(v.mav, v.t_s, v.time_boot_ms)
+
+
 def _autopilot_version(v: VehicleEngine) -> Any:
     version = v.profile_rules.flight_sw_version
     return v.mav.autopilot_version_encode(CAPABILITIES, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, SIM_UID)
@@ -229,7 +235,15 @@ BUILDERS: dict[int, Builder] = {
     mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: _system_time,
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,
     mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: _gps_raw_int,
+    mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR: _distance_sensor,
 }
+
+
+def as_list(built: Any) -> list[Any]:
+    """A builder's result as a list of messages (a builder returns one, None, or a list: DISTANCE_SENSOR)."""
+    if built is None:
+        return []
+    return built if isinstance(built, list) else [built]
 
 
 def build(v: VehicleEngine, msg_id: int) -> Any:
@@ -269,8 +283,8 @@ class TelemetryScheduler:
                 st.next_t = max(st.next_t + st.interval_s, t_s + 0.5 * st.interval_s)
                 if msg_id not in cache:
                     cache[msg_id] = build(v, msg_id)
-                if cache[msg_id] is not None:
-                    emit(link, cache[msg_id])
+                for msg in as_list(cache[msg_id]):
+                    emit(link, msg)
 
     def set_interval(self, link: int, msg_id: int, interval_us: float, t_s: float) -> bool:
         """SET_MESSAGE_INTERVAL: 0 = default, < 0 = off; False for a message this vehicle does not stream."""
@@ -285,6 +299,12 @@ class TelemetryScheduler:
             stream.interval_s = max(interval_us * 1e-6, self.min_interval_s)
         stream.next_t = t_s
         return True
+
+    def reset(self, t_s: float) -> None:
+        """After a reboot: every link back to the default intervals (SET_MESSAGE_INTERVAL is not stored)."""
+        for streams in self.streams:
+            for msg_id, st in streams.items():
+                st.interval_s, st.next_t = self.default_intervals[msg_id], t_s
 
     def interval_us(self, link: int, msg_id: int) -> int:
         """GET_MESSAGE_INTERVAL's answer: the interval [us], -1 = off, 0 = not a stream of this vehicle."""

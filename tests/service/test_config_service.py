@@ -126,3 +126,27 @@ def test_route_example_loads() -> None:
 
     route = load_route(REPO / "deploy" / "route-example.toml")
     assert len(route) == 3 and math.isnan(route.waypoints_ned_m[1, 2])
+
+
+def test_sensor_sources_and_forwarding_keys() -> None:
+    cfg = config_from_mapping(
+        {"sensors": {"mavlink_sources": ["1/158", "2/196"], "forward_obstacle_distance": True, "forward_rate_hz": 20}}
+    )
+    assert cfg.sensors.source_ids() == ((1, 158), (2, 196))
+    assert cfg.sensors.forward_obstacle_distance and cfg.sensors.forward_rate_hz == 20.0
+    defaults = config_from_mapping({})
+    assert defaults.sensors.mavlink_sources == () and not defaults.sensors.forward_obstacle_distance
+    bad_sources: list[object] = ["1-158", "1/0", "256/1", "1/", "a/b", "1/158/2"]
+    for bad in bad_sources:
+        with pytest.raises(ConfigError, match=r"sensors\.mavlink_sources\[\]"):
+            config_from_mapping({"sensors": {"mavlink_sources": [bad]}})
+    with pytest.raises(ConfigError, match=r"sensors\.mavlink_sources"):
+        config_from_mapping({"sensors": {"mavlink_sources": "1/158"}})  # a list, not a string
+    for ours in ("1/191", "1/1"):  # our own ids, the autopilot's
+        with pytest.raises(ConfigError, match="not our own or the autopilot's ids"):
+            config_from_mapping({"sensors": {"mavlink_sources": [ours]}})
+    with pytest.raises(ConfigError, match=r"empty unless sensors\.mavlink is true"):
+        config_from_mapping({"sensors": {"mavlink": False, "mavlink_sources": ["1/158"]}})
+    for rate in (2.0, 60.0):  # below 2.5 Hz ArduPilot's 0.5 s proximity timeout would flicker
+        with pytest.raises(ConfigError, match=r"sensors\.forward_rate_hz"):
+            config_from_mapping({"sensors": {"forward_rate_hz": rate}})

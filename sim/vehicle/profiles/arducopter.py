@@ -83,6 +83,9 @@ class ArduCopterProfile:
     echoes_target_yaw = False  # GCS_MAVLink_Copter.cpp send_position_target_local_ned sends yaw 0
     # AC_PosControl.cpp input_pos_vel_accel_NE_cm integrates the target; mode_guided.cpp zeroes vel at GUID_TIMEOUT
     advances_position_target = True
+    supports_reboot = True  # GCS_Common.cpp handle_preflight_reboot
+    # MAVLink_routing.cpp check_and_forward: "loopback of our own messages" -> not processed locally
+    drops_own_ids = True
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:

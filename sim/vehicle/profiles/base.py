@@ -86,6 +86,8 @@ class AutopilotProfile(Protocol):
     body_yaw_relative: bool  # in BODY_* frames the setpoint's yaw is relative to the heading
     echoes_target_yaw: bool  # POSITION_TARGET_LOCAL_NED carries the target's yaw (else 0)
     advances_position_target: bool  # a position+velocity target moves along its velocity until GUID_TIMEOUT
+    supports_reboot: bool  # MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN is modelled (sim/vehicle/reboot.py)
+    drops_own_ids: bool  # messages from the autopilot's own sysid/compid are dropped (MAVLink_routing.cpp)
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int: ...

@@ -87,6 +87,8 @@ class Px4Profile:
     body_yaw_relative = False  # mavlink_receiver.cpp passes BODY_NED yaw through unrotated
     echoes_target_yaw = True
     advances_position_target = False  # the position is flown as sent; the velocity is a feed-forward
+    supports_reboot = False  # not modelled: UNSUPPORTED
+    drops_own_ids = False  # not checked in PX4's source
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:

@@ -6,12 +6,14 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from apf_companion.errors import LinkTimeout
+from apf_companion.errors import ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink
 from apf_companion.links.zenoh import ZenohConfig, ZenohLink
 from apf_companion.perception import decode_laserscan_cdr, decode_scan_json
@@ -20,7 +22,7 @@ from sim.vehicle.sensor import obstacle_distance_msg
 from sim.vehicle.sensor_only import SensorOnlyConfig, SensorSimulator
 from sim.vehicle.testing import simulator_with_client
 from sim.world import World
-from tests.conftest import HANG_S, free_port
+from tests.conftest import HANG_S, free_port, until
 
 pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
 
@@ -181,7 +183,7 @@ async def test_sensor_only_follows_an_external_autopilot() -> None:
         od = await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)
         assert list(od.distances) == expected_sectors()
         assert od.time_usec % 1000 == 0  # the autopilot's time_boot_ms of the pose used
-        assert (od.get_srcSystem(), od.get_srcComponent()) == (1, 1)
+        assert (od.get_srcSystem(), od.get_srcComponent()) == (1, m.MAV_COMP_ID_PERIPHERAL)  # not the autopilot's
         assert sensor.sysid == 1
         # the sensor asked the autopilot for 20 Hz position and attitude
         await asyncio.sleep(0.3)
@@ -194,3 +196,70 @@ async def test_sensor_only_follows_an_external_autopilot() -> None:
         await sensor.aclose()
         await autopilot.aclose()
         await companion.aclose()
+
+
+@pytest.mark.parametrize("compid", [1, m.MAV_COMP_ID_PERIPHERAL])
+async def test_sensor_only_needs_its_own_component_id(compid: int) -> None:
+    """Against an autopilot that streams nothing unasked (as ArduCopter): posing as 1/1, the sensor's stream
+    requests are dropped (MAVLink_routing.cpp) and it says what it is waiting for; as 1/158 it gets its pose."""
+    ap_port = free_port(socket.SOCK_DGRAM)
+    companion = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=42, source_component=191)
+    assert companion.local_address is not None
+    autopilot = await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{ap_port}"],
+            spawn=SpawnConfig(pos_ne_m=(0.0, 0.0), yaw_deg=YAW_DEG, airborne=True),
+            sensor=RangeSensorConfig(messages=frozenset()),
+            rates_hz={"LOCAL_POSITION_NED": 0.0, "ATTITUDE": 0.0},
+            speedup=1.0,
+        )
+    )
+    sensor = await SensorSimulator.start(
+        SensorOnlyConfig(
+            autopilot=f"udpin:127.0.0.1:{ap_port}",
+            outputs=(f"udpout:127.0.0.1:{companion.local_address[1]}",),
+            world=hand_world(),
+            source_component=compid,
+        )
+    )
+    loop = asyncio.get_running_loop()
+    try:
+        if compid == 1:
+            await until(lambda: sensor.heartbeats >= 2, what="autopilot heartbeats")
+            reason = sensor.waiting_for(loop.time())
+            assert reason is not None and "no LOCAL_POSITION_NED or ATTITUDE" in reason and "1/1" in reason
+            assert sensor.scans == 0 and autopilot.engine.own_id_drops >= 2
+        else:
+            od = await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)
+            assert list(od.distances) == expected_sectors()
+            assert sensor.waiting_for(loop.time()) is None and autopilot.engine.own_id_drops == 0
+    finally:
+        await sensor.aclose()
+        await autopilot.aclose()
+        await companion.aclose()
+
+
+async def test_sensor_only_without_an_autopilot_says_so() -> None:
+    sensor = await SensorSimulator.start(
+        SensorOnlyConfig(autopilot=f"udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}", outputs=("udpout:127.0.0.1:9",))
+    )
+    try:
+        reason = sensor.waiting_for(asyncio.get_running_loop().time())
+        assert reason is not None and reason.startswith("no HEARTBEAT")
+    finally:
+        await sensor.aclose()
+    with pytest.raises(ConfigError, match="source_component"):
+        SensorOnlyConfig(autopilot="udpin:127.0.0.1:1", outputs=("udpout:127.0.0.1:9",), source_component=0)
+
+
+def test_sensor_cli_says_what_it_waits_for() -> None:
+    """`apf-sim sensor` with no autopilot: "started as 1/158", then what is missing, not "ready" and then nothing."""
+    port = free_port(socket.SOCK_DGRAM)
+    out = subprocess.run(
+        [sys.executable, "-m", "sim", "sensor", "--autopilot", f"udpin:127.0.0.1:{port}",
+         "--output", "udpout:127.0.0.1:9", "--duration", "2.5"],
+        capture_output=True, text=True, timeout=HANG_S, check=True,
+    ).stdout  # fmt: skip
+    assert "started as 1/158" in out
+    assert "apf-sim sensor waiting: no HEARTBEAT" in out
+    assert "ready" not in out

@@ -138,7 +138,7 @@ async def test_commands_for_other_components_are_not_answered() -> None:
 
 async def test_unsupported_command() -> None:
     async with simulator_with_client() as (_sim, gcs):
-        ack = await command_long(gcs, m.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
+        ack = await command_long(gcs, m.MAV_CMD_DO_MOTOR_TEST, 1)
         assert ack.result == UNSUPPORTED
         assert (await command_long(gcs, m.MAV_CMD_DO_REPOSITION, -1)).result == UNSUPPORTED  # COMMAND_INT only
 
