@@ -52,6 +52,7 @@ from sim.vehicle.profiles import PROFILES, AutopilotProfile, Behaviour
 from sim.vehicle.ranging import RangeSensorDriver
 from sim.vehicle.recorder import FlightRecorder
 from sim.vehicle.sensor import Scan
+from sim.vehicle.startup import EkfStartup
 from sim.vehicle.telemetry import TelemetryScheduler
 from sim.world.model import FloatArray
 
@@ -97,7 +98,10 @@ class VehicleEngine:
         self.crash_listeners: list[Callable[[], None]] = []
         self.last_scan: Scan | None = None
         self._last_warn: dict[str, float] = {}
-        self.telemetry = TelemetryScheduler(n_links, cfg.rates_hz, min_interval_s=self.dt)
+        unasked = self.profile_rules.unasked_streams if cfg.unasked_streams is None else cfg.unasked_streams
+        self.telemetry = TelemetryScheduler(n_links, cfg.rates_hz, min_interval_s=self.dt, unasked=unasked)
+        skip = cfg.fast_start or cfg.spawn.airborne or self.profile_rules.ekf_origin_delay_s(self.params) <= 0
+        self.startup = EkfStartup(skip=skip)  # a flying vehicle already has its origin
         self.ranging = RangeSensorDriver()
         self.recorder = FlightRecorder(cfg.trajectory_rate_hz)
         self.guided = GuidedState()
@@ -229,6 +233,7 @@ class VehicleEngine:
         """Advance one physics step: rules, dynamics, collisions, sensor, telemetry."""
         self._steps += 1
         self.t_s = self._steps * self.dt
+        self.startup.tick(self)
         if not self.crashed:
             self.profile_rules.check_failsafes(self)
             self.target, limits = choose_target(self, self.limits())

@@ -110,6 +110,13 @@ _ARDUPILOT = (
         doc="arducopter dynamics: linear horizontal drag [1/s], fitted to the SITL 5 m step (issue 8)",
     ),
     ParamSpec(
+        name="SIM_EKF_ORIGIN_S",
+        default=20.0,
+        lo=0.0,
+        hi=600.0,
+        doc="seconds after boot until the EKF origin is set (SITL: about 20 s, issue 8); fast start = 0",
+    ),
+    ParamSpec(
         name="WP_YAW_BEHAVIOR",
         default=2.0,
         lo=0.0,

@@ -87,6 +87,7 @@ class Px4Profile:
     body_yaw_relative = False  # mavlink_receiver.cpp passes BODY_NED yaw through unrotated
     echoes_target_yaw = True
     advances_position_target = False  # the position is flown as sent; the velocity is a feed-forward
+    unasked_streams = True  # mavlink_main.cpp configure_streams_to_default: the mode's streams from boot
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:
@@ -174,6 +175,9 @@ class Px4Profile:
 
     def guided_timeout_s(self, params: ParamTable) -> float | None:
         return None  # OFFBOARD holds the last setpoint; the loss failsafe ends it
+
+    def ekf_origin_delay_s(self, params: ParamTable) -> float:
+        return 0.0  # not modelled for PX4: position from boot
 
     # -- command rules
     def arm_refusal(self, v: VehicleEngine, *, force: bool) -> str | None:
