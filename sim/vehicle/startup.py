@@ -24,8 +24,8 @@ if TYPE_CHECKING:
 __all__ = ["EKF_FLAGS_NO_ORIGIN", "EKF_FLAGS_ORIGIN", "ORIGIN_TEXT", "EkfStartup"]
 
 ORIGIN_TEXT = "EKF3 IMU0 origin set"  # NavEKF3_core.cpp setOrigin, MAV_SEVERITY_INFO
-# EKF_STATUS_REPORT.flags (NavEKF3_core send_status_report from the filter status): attitude, velocities and height
-# from the start, in constant-position mode without GPS; the horizontal position flags once the origin is set.
+# EKF_STATUS_REPORT.flags (NavEKF3_Outputs.cpp send_status_report, from the filter status): attitude, velocities
+# and height from the start, in constant-position mode without GPS; the horizontal position once the origin is set.
 EKF_FLAGS_NO_ORIGIN = int(
     mavlink.EKF_ATTITUDE
     | mavlink.EKF_VELOCITY_HORIZ
