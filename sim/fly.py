@@ -366,7 +366,7 @@ def _service_events(log_path: Path) -> dict[str, Any]:
             events["last_reason"] = ev.get("reason")
             if ev.get("new") == "LINK_LOST":
                 events["link_lost"] += 1
-            elif ev.get("new") == "HOLDING":
+            elif ev.get("new") == "HOLDING" and ev.get("old") != "HOLDING":  # not a new reason while holding
                 events["holding"] += 1
         elif ev.get("event") == "takeover.failed":
             events["takeover_failed"].append(ev.get("error"))
