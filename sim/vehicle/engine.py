@@ -100,6 +100,7 @@ class VehicleEngine:
         self._last_warn: dict[str, float] = {}
         unasked = self.profile_rules.unasked_streams if cfg.unasked_streams is None else cfg.unasked_streams
         self.telemetry = TelemetryScheduler(n_links, cfg.rates_hz, min_interval_s=self.dt, unasked=unasked)
+        self.telemetry.boot_stream_rates(dict(self.params.items()))  # SRn_* (ArduPilot profile)
         skip = cfg.fast_start or cfg.spawn.airborne or self.profile_rules.ekf_origin_delay_s(self.params) <= 0
         self.startup = EkfStartup(skip=skip)  # a flying vehicle already has its origin
         self.ranging = RangeSensorDriver()

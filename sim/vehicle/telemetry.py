@@ -259,6 +259,14 @@ DATA_STREAMS: dict[int, tuple[int, ...]] = {
     mavlink.MAV_DATA_STREAM_EXTRA3: (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT),
 }
 
+SR_STREAMS = {  # SRn_<group> parameter -> its stream (GCS_MAVLink_Copter.cpp stream-rate parameters)
+    "EXT_STAT": mavlink.MAV_DATA_STREAM_EXTENDED_STATUS,
+    "POSITION": mavlink.MAV_DATA_STREAM_POSITION,
+    "EXTRA1": mavlink.MAV_DATA_STREAM_EXTRA1,
+    "EXTRA2": mavlink.MAV_DATA_STREAM_EXTRA2,
+    "EXTRA3": mavlink.MAV_DATA_STREAM_EXTRA3,
+}
+
 
 def build(v: VehicleEngine, msg_id: int) -> Any:
     """The message ``msg_id`` as the vehicle would send it now; None if unknown or nothing to send."""
@@ -331,6 +339,14 @@ class TelemetryScheduler:
             ids = DATA_STREAMS.get(stream_id, ())
         for msg_id in ids:
             self.set_interval(link, msg_id, 1e6 / rate_hz if rate_hz > 0 else -1.0, t_s)
+
+    def boot_stream_rates(self, params: Mapping[str, float]) -> None:
+        """SRn_<group> parameters set at boot: stream that group on link n at that rate (0 = as before)."""
+        for name, rate_hz in params.items():
+            link, _, group = name.removeprefix("SR").partition("_")
+            stream = SR_STREAMS.get(group)
+            if stream is not None and link.isdigit() and int(link) < len(self.streams) and rate_hz > 0:
+                self.set_data_stream(int(link), stream, rate_hz, 0.0)
 
     def interval_us(self, link: int, msg_id: int) -> int:
         """GET_MESSAGE_INTERVAL's answer: the interval [us], -1 = off, 0 = not a stream of this vehicle."""

@@ -128,3 +128,18 @@ async def test_fast_start_and_the_parameter() -> None:
         assert value.param_value == pytest.approx(2.0)
         await wait_sim_time(sim, 2.5)
         assert sim.engine.startup.origin_t_s == pytest.approx(2.0, abs=0.02)
+
+
+async def test_stream_rate_parameters_at_boot() -> None:
+    """SRn_<group> (GCS_MAVLink_Copter.cpp stream rates, read at boot): SR0_POSITION streams the position group on
+    link 0 unasked; the other groups stay off."""
+    cfg: dict[str, Any] = {
+        "unasked_streams": None,
+        "params": {"SR0_POSITION": 5.0},
+        "sensor": RangeSensorConfig(messages=frozenset()),
+    }
+    async with simulator_with_client(profile="ardupilot", speedup=SPEEDUP, **cfg) as (sim, gcs):
+        await wait_sim_time(sim, 2.0)
+        seen = types(await drain(gcs))
+        assert {"LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"} <= seen
+        assert seen <= {"HEARTBEAT", "STATUSTEXT", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"}
