@@ -183,7 +183,8 @@ class TakeoverController:
 
     @staticmethod
     def _ready(inp: TakeoverInputs) -> bool:
-        return inp.navigating and inp.ekf_ready
+        # a pose, fresh inputs (NAVIGATING: a goal set a moment ago is NAVIGATING before its first cycle) and the EKF
+        return inp.navigating and inp.down_m is not None and inp.ekf_ready
 
     def _begin(self, now_s: float, inp: TakeoverInputs, acts: list[Action]) -> None:
         if self.params.arm and not inp.armed:

@@ -16,7 +16,10 @@ density low/mid/high), or any world file with ``--world``.
 
 Time: the simulator runs ``--speedup`` times faster than real time and the service gets the same
 ``cycle.time_scale``, so its 10 Hz cycle and 0.5 s staleness limits stay in simulated seconds (50 Hz and 100 ms of
-wall time at the default speed-up of 5); the heartbeat timeout is ``max(3, speedup)`` simulated seconds.
+wall time at the default speed-up of 5); the heartbeat timeout is ``max(3, speedup)`` simulated seconds. The
+vehicle starts with ``--fast-start`` (EKF origin at boot, not 20 s later as on SITL: the flights keep their speed;
+the startup wait is tested in tests/service/test_service_startup.py), and streams only what is asked for, as a
+real ArduCopter: the service requests its streams, the ground-station watcher its LOCAL_POSITION_NED.
 
 ``--trials N`` flies seeds SEED..SEED+N-1 and, on paper fields, runs the study's engine ``--study-reps`` times on
 each flown field (``study_same_worlds``), so the flight rate is compared with the study's on the same worlds.

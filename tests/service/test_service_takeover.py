@@ -214,6 +214,8 @@ def test_waits_for_a_position_estimate_before_taking_over_then_proceeds() -> Non
     assert kinds(c.step(0.0, no_pose)) == [ActionKind.STARTED]
     assert phase(c) is Phase.READY
     assert c.step(29.0, no_pose) == []  # nothing sent: GUIDED and arming would be refused before the EKF origin
+    new_goal = dataclasses.replace(GROUND, down_m=None)  # NAVIGATING before its first cycle, still no pose
+    assert c.step(29.2, new_goal) == []
     pose_no_ekf = dataclasses.replace(GROUND, ekf_ready=False)
     assert c.step(29.5, pose_no_ekf) == []
     assert kinds(c.step(29.9, GROUND)) == [ActionKind.SUSPEND, ActionKind.SET_MODE]
