@@ -170,6 +170,7 @@ def takeover_params(config: ServiceConfig) -> TakeoverParams:
         takeoff_alt_m=a.takeoff_alt_m,
         mode_timeout_s=a.mode_timeout_s,
         offboard_prestream_s=a.offboard_prestream_s,
+        ready_timeout_s=a.ready_timeout_s,
     )
 
 

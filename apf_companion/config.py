@@ -132,6 +132,9 @@ class AutopilotConfig:
         takeoff_alt_m: With ``arm``: take off to this height above home before navigating [m]; 0 = no takeoff.
         mode_timeout_s: Give up a mode switch not confirmed by HEARTBEAT.custom_mode within this [s].
         offboard_prestream_s: PX4: stream setpoints this long before asking for OFFBOARD (PX4 wants > 1 s) [s].
+        ready_timeout_s: Before taking over (mode, arming) wait at most this long for a position (LOCAL_POSITION_NED
+            fresh) and, where the autopilot reports it, an EKF with a horizontal position (EKF_STATUS_REPORT); the
+            goal is dropped after that. ArduCopter SITL has no position for about 20 s after boot [s].
     """
 
     profile: Autopilot = Autopilot.ARDUPILOT
@@ -140,6 +143,7 @@ class AutopilotConfig:
     takeoff_alt_m: float = 0.0
     mode_timeout_s: float = 5.0
     offboard_prestream_s: float = 1.3
+    ready_timeout_s: float = 90.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.profile, Autopilot):
@@ -147,6 +151,7 @@ class AutopilotConfig:
         _check_range("autopilot.takeoff_alt_m", self.takeoff_alt_m, 0.0, 500.0)
         _check_range("autopilot.mode_timeout_s", self.mode_timeout_s, 0.5, 60.0)
         _check_range("autopilot.offboard_prestream_s", self.offboard_prestream_s, 1.0, 10.0, lo_open=True)
+        _check_range("autopilot.ready_timeout_s", self.ready_timeout_s, 1.0, 3600.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -476,7 +481,8 @@ class ServiceConfig:
         exit_when_done: Exit when the flight ends (ARRIVED at the last waypoint, or STUCK): for scripted
             simulated flights (``apf-sim fly``).
         max_flight_s: With ``exit_when_done``: give up (exit, outcome timeout) after this many vehicle
-            seconds; 0 = no limit [s].
+            seconds of flight (from the first navigation setpoint; from the goal when navigation never started:
+            a run stuck waiting for position, ranges or the takeover ends too); 0 = no limit [s].
     """
 
     dry_run: bool = False

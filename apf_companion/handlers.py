@@ -29,9 +29,11 @@ from apf_companion.autopilot import Autopilot, CopterMode, Px4MainMode, Px4Mode
 from apf_companion.goal import GlobalReference, RepositionError, Route, local_goal_from_reposition
 from apf_companion.links.messages import (
     Attitude,
+    CommandAck,
     CommandInt,
     CommandLong,
     DistanceSensor,
+    EkfStatusReport,
     GlobalPositionInt,
     Heartbeat,
     LocalPositionNed,
@@ -45,6 +47,7 @@ from apf_companion.navigator import Navigator
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd
 from apf_companion.reporter import ServiceCounters
+from apf_companion.streams import StreamKeeper, wanted_streams
 
 __all__ = ["AutopilotHandlers", "HandlerParams", "mode_is_ours"]
 
@@ -57,6 +60,15 @@ RANGE_RECORDS = (ObstacleDistance, DistanceSensor, ObstacleDistance3d)
 PROXIMITY_ECHO_IDS = range(10, 10 + 9)
 DEG_E7 = 1e-7
 MM = 1e-3
+# ArduCopter position_ok() (system.cpp ekf_has_absolute_position / _relative_position): a horizontal position, not
+# the constant-position mode the EKF is in before it has one
+EKF_POSITION_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS | mavlink.EKF_POS_HORIZ_REL
+_STREAM_OF = {
+    LocalPositionNed: mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+    Attitude: mavlink.MAVLINK_MSG_ID_ATTITUDE,
+    GlobalPositionInt: mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    EkfStatusReport: mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+}
 
 
 def mode_is_ours(profile: Autopilot, custom_mode: int) -> bool:
@@ -112,6 +124,9 @@ class AutopilotHandlers:
         self.custom_mode: int | None = None
         self.base_mode = 0
         self.global_ref: GlobalReference | None = None
+        self.streams = StreamKeeper(wanted_streams(params.profile, params.telemetry_rate_hz))
+        self.ekf_flags: int | None = None  # latest EKF_STATUS_REPORT.flags; None: the autopilot sends none
+        self.acks: dict[int, tuple[int, float]] = {}  # command -> (result, service time) of its latest ACK to us
 
     @property
     def armed(self) -> bool:
@@ -122,8 +137,23 @@ class AutopilotHandlers:
         """The autopilot's latest mode is ours (GUIDED / OFFBOARD); False before its first HEARTBEAT."""
         return self.custom_mode is not None and mode_is_ours(self.params.profile, self.custom_mode)
 
+    @property
+    def ekf_ready(self) -> bool:
+        """The EKF has a horizontal position; True when the autopilot reports no EKF status (PX4)."""
+        return self.ekf_flags is None or (
+            bool(self.ekf_flags & EKF_POSITION_FLAGS) and not self.ekf_flags & mavlink.EKF_CONST_POS_MODE
+        )
+
+    def ack_time(self, command: int, result: int = mavlink.MAV_RESULT_ACCEPTED) -> float | None:
+        """When ``command`` was last acknowledged with ``result`` (service time), None if its latest ACK differs."""
+        ack = self.acks.get(command)
+        return ack[1] if ack is not None and ack[0] == result else None
+
     def handle(self, rec: Record, now_s: float) -> None:
         if rec.src == self.params.autopilot:
+            stream = _STREAM_OF.get(type(rec))
+            if stream is not None:
+                self.streams.heard(stream, now_s)
             handler = _AUTOPILOT.get(type(rec))
             if handler is not None:
                 handler(self, rec, now_s)
@@ -159,15 +189,18 @@ class AutopilotHandlers:
         first = not self.heard or not self.navigator.link_alive(now_s)
         if (self.heard and first) or rec.system_status in REBOOTING:
             self.perception.gate.note_reboot()  # boot evidence: a pose may start a new time base
+        if first or rec.system_status in REBOOTING:
+            self.streams.restart()  # a rebooted autopilot has forgotten our stream requests
         self.heard = True
         self.custom_mode = rec.custom_mode
         self.base_mode = rec.base_mode
         self.navigator.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok)
-        if first:
-            self.outbox.request_streams(self.params.telemetry_rate_hz)
-            if self._route_at_start is not None:
-                route, self._route_at_start = self._route_at_start, None
-                self._set_route(route, now_s)
+        rates = self.streams.due(now_s)
+        if rates:
+            self.outbox.request_streams(rates)
+        if first and self._route_at_start is not None:
+            route, self._route_at_start = self._route_at_start, None
+            self._set_route(route, now_s)
 
     def _on_local_position(self, rec: LocalPositionNed, now_s: float) -> None:
         pose = self.perception.on_local_position(
@@ -197,6 +230,14 @@ class AutopilotHandlers:
         self.global_ref = GlobalReference(
             lat_deg=lat, lon_deg=lon, alt_amsl_m=alt, alt_rel_m=rel, pos_ned_m=(p[0], p[1], p[2])
         )
+
+    def _on_ekf_status(self, rec: EkfStatusReport, now_s: float) -> None:
+        self.ekf_flags = rec.flags
+        self.navigator.ekf_ready = self.ekf_ready  # why there is no pose yet (HOLDING reason)
+
+    def _on_command_ack(self, rec: CommandAck, now_s: float) -> None:
+        if rec.target_component in (0, self.params.component_id):
+            self.acks[rec.command] = (rec.result, now_s)
 
     def _on_obstacle_distance(self, rec: ObstacleDistance, now_s: float) -> None:
         if self.params.mavlink_ranges:
@@ -257,5 +298,7 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     DistanceSensor: AutopilotHandlers._on_distance_sensor,
     ObstacleDistance3d: AutopilotHandlers._on_obstacle_distance_3d,
     Odometry: AutopilotHandlers._on_odometry,
+    EkfStatusReport: AutopilotHandlers._on_ekf_status,
+    CommandAck: AutopilotHandlers._on_command_ack,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

@@ -59,6 +59,7 @@ __all__ = [
 
 FloatArray = npt.NDArray[np.float64]
 PROGRESS_EPS_M = 0.1  # a new best distance to the goal must beat the old by this much to count as progress
+REASON_REPEAT_S = 1.0  # a changed HOLDING reason is announced at most this often (a flapping cause cannot flood)
 SLOW_FRACTION = 0.2  # feed-forward speed next to an obstacle, as a fraction of cruise
 
 
@@ -457,6 +458,25 @@ def _near(points: FloatArray, pos: FloatArray, dim: int, reach_m: float) -> Floa
     return np.asarray(points[keep], dtype=np.float64)
 
 
+def _no_pose_reason(ekf_ready: bool | None) -> str:
+    """Why HOLDING has no pose: the EKF has no origin yet (ArduPilot sends no LOCAL_POSITION_NED then), or no pose
+    came (not requested, not sent)."""
+    if ekf_ready is False:
+        return "waiting for EKF origin: no position yet"
+    return "no pose yet (no LOCAL_POSITION_NED)"
+
+
+def _repeats(said: tuple[str, float], reason: str, now_s: float) -> bool:
+    return reason == said[0] or now_s - said[1] < REASON_REPEAT_S
+
+
+def _stale_reason(inp: _Inputs, *, ranges_seen: bool) -> str:
+    ranges = "ranges stale" if ranges_seen else "no ranges yet"
+    if not inp.pose_ok:
+        return f"pose stale, {ranges}: holding position" if not inp.ranges_ok else "pose stale: holding position"
+    return f"{ranges}: holding position"
+
+
 class Recovery:
     """What the navigator keeps through a lost link or a position reset, and how it resumes (docs/hardening.md)."""
 
@@ -532,6 +552,8 @@ class Navigator:
         self.engaged = False  # the autopilot has been seen in GUIDED/OFFBOARD for this route
         self.mode_ok = False  # latest HEARTBEAT: autopilot is in GUIDED/OFFBOARD
         self.suspended = False  # the service is busy with arming/takeoff: no setpoints
+        self.ekf_ready: bool | None = None  # EKF_STATUS_REPORT has a horizontal position (None = not reported)
+        self._said: tuple[str, float] = ("", -math.inf)  # the last reason announced, and when
         self.last_output: CycleOutput | None = None
         self._steps = _StepTracker(params, self.counters)
         self._hold = _Hold()
@@ -669,8 +691,8 @@ class Navigator:
     def _blocked(self, inp: _Inputs) -> CycleOutput | None:
         """Silence when there is no goal or pose (NAVIGATING -> HOLDING without a pose), or while suspended."""
         if self.route is None or self.pose is None:
-            if self.route is not None and self.state is State.NAVIGATING:
-                self._enter_hold_state(inp.now_s, State.HOLDING, "no pose yet")
+            if self.route is not None and self.state in (State.NAVIGATING, State.HOLDING):
+                self._enter_hold_state(inp.now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
             return self._silent(inp)
         if self.suspended:
             return self._silent(inp)
@@ -714,11 +736,9 @@ class Navigator:
         return self._out(inp, sp, self._distance_to_goal())
 
     def _hold_stale(self, inp: _Inputs) -> CycleOutput:
-        what = "pose" if not inp.pose_ok else "ranges"
-        if not inp.pose_ok and not inp.ranges_ok:
-            what = "pose and ranges"
         dist = self._distance_to_goal()
-        self._enter_hold_state(inp.now_s, State.HOLDING, f"{what} stale: holding position")
+        reason = _stale_reason(inp, ranges_seen=self.obstacles.ranges_t_s is not None)
+        self._enter_hold_state(inp.now_s, State.HOLDING, reason)
         return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=inp.pose_ok), dist)
 
     def _fly(self, inp: _Inputs) -> CycleOutput:
@@ -782,10 +802,11 @@ class Navigator:
 
     # ---- helpers -----------------------------------------------------------------------------------------------
     def _change(self, now_s: float, new: State, reason: str) -> None:
-        if new is self.state:
-            return
+        if new is self.state and (new is not State.HOLDING or _repeats(self._said, reason, now_s)):
+            return  # HOLDING says why now: a new cause is announced (at most every REASON_REPEAT_S)
         self._pending.append(StateChange(t_s=now_s, old=self.state, new=new, reason=reason))
         self.state = new
+        self._said = (reason, now_s)
 
     def _drop_route(self, now_s: float, new: State, reason: str) -> None:
         self.route = None

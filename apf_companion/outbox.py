@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -22,18 +22,14 @@ from apf_companion.autopilot import PX4_OFFBOARD, Autopilot, CopterMode
 from apf_companion.links import MavlinkLink
 from apf_companion.setpoint import Setpoint, encode_setpoint
 
-__all__ = ["FLOAT32_MAX", "STREAM_INTERVALS", "Outbox", "float32_ok"]
+__all__ = ["FLOAT32_MAX", "Outbox", "float32_ok"]
 
 log = logging.getLogger(__name__)
 
 FLOAT32_MAX = 3.4028234663852886e38  # MAVLink float fields are IEEE float32
 
 STATUSTEXT_BYTES = 50  # one STATUSTEXT's text field
-GLOBAL_POSITION_INTERVAL_US = 200_000.0  # GLOBAL_POSITION_INT at 5 Hz: only the takeoff and DO_REPOSITION use it
 UINT32_MASK = 0xFFFFFFFF
-
-STREAM_INTERVALS: tuple[int, ...] = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE)
-"""Messages requested at ``link.telemetry_rate_hz`` (SET_MESSAGE_INTERVAL) once the autopilot is heard."""
 
 
 def float32_ok(values: Iterable[float]) -> bool:
@@ -77,6 +73,7 @@ class Outbox:
         self.clamped_values = 0  # report values clamped into float32's range
         self.unsendable = 0  # setpoints / commands with a value float32 cannot carry: not sent
         self.send_errors = 0  # packing or sending raised: counted, logged once per kind
+        self.stream_requests = 0  # SET_MESSAGE_INTERVAL commands sent
         self._logged: set[str] = set()
 
     @property
@@ -109,6 +106,7 @@ class Outbox:
             "clamped_values": self.clamped_values,
             "unsendable": self.unsendable,
             "send_errors": self.send_errors,
+            "stream_requests": self.stream_requests,
         }
 
     def command_long(self, command: int, *params: float) -> None:
@@ -197,13 +195,8 @@ class Outbox:
     def takeoff(self, param7_m: float) -> None:
         self.command_long(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, param7_m)
 
-    def request_streams(self, telemetry_rate_hz: float) -> None:
-        """SET_MESSAGE_INTERVAL for the pose streams, and GLOBAL_POSITION_INT at 5 Hz."""
-        interval_us = 1e6 / telemetry_rate_hz
-        for msg_id in STREAM_INTERVALS:
-            self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval_us)
-        self.command_long(
-            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
-            float(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT),
-            GLOBAL_POSITION_INTERVAL_US,
-        )
+    def request_streams(self, rates_hz: Mapping[int, float]) -> None:
+        """SET_MESSAGE_INTERVAL for each message id at its rate [Hz] (apf_companion.streams says which)."""
+        for msg_id, rate_hz in rates_hz.items():
+            self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), 1e6 / rate_hz)
+            self.stream_requests += 1

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
 from apf_companion.autopilot import Autopilot
 from apf_companion.builders import (
     build_navigator,
@@ -236,6 +238,7 @@ class CompanionService:
         self._new_pose = asyncio.Event()
         self._trigger_rx_wall: float | None = None  # wall time the triggering pose was read
         self._first_nav_s: float | None = None
+        self._goal_s: float | None = None  # when the current goal was set
         self._end_s: float | None = None
         self._outcome: Outcome | None = None
         self.observers.add(_open_observers(config, self.clock) if observers is None else observers)  # last: opens
@@ -351,6 +354,7 @@ class CompanionService:
             self.counters.goals += 1
             self._outcome = None
             self._end_s = None
+            self._goal_s = now
             log.info("goal.set", extra={"source": route.source, "waypoints_ned_m": route.to_json_list()})
             self.reporter.changes(self.navigator.drain_changes())
         else:
@@ -439,12 +443,10 @@ class CompanionService:
     def _check_done(self, now: float) -> None:
         if not self.config.exit_when_done or self._outcome is not None:
             return
-        outcome = outcome_now(
-            self.navigator,
-            goals=self.counters.goals,
-            flown_s=self._flown_s(now),
-            max_s=self.config.max_flight_s,
-        )
+        flown = self._flown_s(now)
+        if flown is None and self._goal_s is not None:
+            flown = now - self._goal_s  # never navigated (no position, no ranges, no takeover): time since the goal
+        outcome = outcome_now(self.navigator, goals=self.counters.goals, flown_s=flown, max_s=self.config.max_flight_s)
         if outcome is not None:
             self._outcome = outcome
             self._end_s = now
@@ -505,6 +507,9 @@ class TakeoverDriver:
             armed=ap.armed,
             down_m=None if pose is None else float(pose.pos_ned_m[2]),
             home_amsl_m=ap.home_amsl_m(),
+            waiting=nav.state is State.HOLDING and not nav.engaged,
+            ekf_ready=ap.ekf_ready,
+            takeoff_ack_s=ap.ack_time(mavlink.MAV_CMD_NAV_TAKEOFF),
         )
         for action in self.controller.step(now, inputs):
             self._carry_out(action, now)

@@ -8,9 +8,15 @@ the navigator to suspend or resume, and how it went. Each phase waits for its co
 Order (ArduPilot's ``mode_guided.cpp`` takes off only in GUIDED; PX4's commander accepts OFFBOARD only after
 setpoints have streamed for a while, ``offboard_prestream_s``):
 
+- [no position yet: READY, waiting (at most ``ready_timeout_s``) for fresh inputs and an EKF with a horizontal
+  position: ArduCopter refuses GUIDED and arming before its EKF origin (``mode.cpp`` "requires position",
+  ``AP_Arming_Copter.cpp`` "Need Position Estimate")], then
 - arm requested and disarmed: [ArduPilot: GUIDED] -> ARMING -> [takeoff_alt_m > 0: [PX4: GLOBAL_POSITION] ->
   TAKEOFF] with the navigator suspended (no setpoints), then
 - [PX4: PRESTREAM] -> MODE (GUIDED / OFFBOARD confirmed by HEARTBEAT.custom_mode) -> done.
+
+NAV_TAKEOFF is resent only while it has not been ACCEPTED since the phase began and the vehicle is not climbing
+(a takeoff climbs for seconds; a second NAV_TAKEOFF while it climbs fails on ArduCopter: not landed).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from apf_companion.autopilot import Autopilot
 
 __all__ = [
     "COMMAND_RETRY_S",
+    "TAKEOFF_CLIMBING_M",
     "Action",
     "ActionKind",
     "Phase",
@@ -37,11 +44,13 @@ PRESTREAM_GAP_S = 0.5  # setpoints further apart than this restart the pre-strea
 IDLE_POLL_S = 0.05  # tick while waiting for a goal to take over for
 ACTIVE_POLL_S = 0.02  # tick while a phase waits for its condition
 TAKEOFF_S_PER_M = 4.0  # the takeoff phase's timeout grows by this much per metre of height
+TAKEOFF_CLIMBING_M = 0.1  # above the start: the takeoff is under way, NAV_TAKEOFF is not resent
 PRESTREAM_EXTRA_S = 5.0  # the pre-stream phase may take this much longer than a mode change
 
 
 class Phase(enum.Enum):
     IDLE = "idle"
+    READY = "position estimate"
     MODE_BEFORE_ARM = "mode before arming"
     ARMING = "arming"
     GLOBAL_POSITION = "global position"
@@ -78,6 +87,7 @@ class TakeoverParams:
     takeoff_alt_m: float = 0.0
     mode_timeout_s: float = 5.0
     offboard_prestream_s: float = 1.3
+    ready_timeout_s: float = 90.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -92,6 +102,10 @@ class TakeoverInputs:
         armed: The latest autopilot HEARTBEAT has MAV_MODE_FLAG_SAFETY_ARMED.
         down_m: The vehicle's down (local NED) [m], None without a pose.
         home_amsl_m: Home altitude AMSL from GLOBAL_POSITION_INT (alt - relative_alt) [m], None until heard.
+        waiting: The navigator holds for a goal it has not taken over for yet because its inputs are missing (no
+            pose yet: the takeover starts and waits in READY).
+        ekf_ready: The autopilot's EKF has a horizontal position (True when it does not report one).
+        takeoff_ack_s: When NAV_TAKEOFF was last ACCEPTED (service time), None if not (or its latest ACK failed).
     """
 
     navigating: bool
@@ -101,6 +115,9 @@ class TakeoverInputs:
     armed: bool
     down_m: float | None = None
     home_amsl_m: float | None = None
+    waiting: bool = False
+    ekf_ready: bool = True
+    takeoff_ack_s: float | None = None
 
 
 class TakeoverController:
@@ -114,6 +131,7 @@ class TakeoverController:
         self._suspended = False
         self._deadline_s = 0.0
         self._next_send_s = 0.0
+        self._phase_start_s = 0.0
         self._home_down_m = 0.0
         self._takeoff_param_m = params.takeoff_alt_m
         self._prestream_since_s: float | None = None
@@ -135,7 +153,7 @@ class TakeoverController:
         fail the phase that waits. Returns the actions in the order to carry them out."""
         acts: list[Action] = []
         if self.phase is Phase.IDLE:
-            if not self.params.enabled or not inp.navigating or inp.engaged or inp.route is None:
+            if not self.params.enabled or not (inp.navigating or inp.waiting) or inp.engaged or inp.route is None:
                 return acts
             self._start(now_s, inp, acts)
         while self.phase is not Phase.IDLE:
@@ -147,7 +165,7 @@ class TakeoverController:
             elif now_s > self._deadline_s:
                 self._fail(f"{self._what()} not confirmed within {self._timeout_s():.1f} s", inp, acts)
             else:
-                resend = self._command()
+                resend = self._command(inp)
                 if resend is not None and now_s >= self._next_send_s:
                     acts.append(resend)
                     self._next_send_s = now_s + COMMAND_RETRY_S
@@ -158,6 +176,17 @@ class TakeoverController:
     def _start(self, now_s: float, inp: TakeoverInputs, acts: list[Action]) -> None:
         self._route = inp.route
         acts.append(Action(ActionKind.STARTED))
+        if self._ready(inp):
+            self._begin(now_s, inp, acts)
+        else:
+            self._enter(Phase.READY, now_s)
+
+    @staticmethod
+    def _ready(inp: TakeoverInputs) -> bool:
+        # a pose, fresh inputs (NAVIGATING: a goal set a moment ago is NAVIGATING before its first cycle) and the EKF
+        return inp.navigating and inp.down_m is not None and inp.ekf_ready
+
+    def _begin(self, now_s: float, inp: TakeoverInputs, acts: list[Action]) -> None:
         if self.params.arm and not inp.armed:
             self._suspended = True
             acts.append(Action(ActionKind.SUSPEND))
@@ -172,9 +201,12 @@ class TakeoverController:
         self.phase = phase
         self._deadline_s = now_s + self._timeout_s()
         self._next_send_s = now_s
+        self._phase_start_s = now_s
 
     def _timeout_s(self) -> float:
         p = self.params
+        if self.phase is Phase.READY:
+            return p.ready_timeout_s
         if self.phase is Phase.TAKEOFF:
             return p.mode_timeout_s + TAKEOFF_S_PER_M * p.takeoff_alt_m
         if self.phase is Phase.PRESTREAM:
@@ -190,6 +222,8 @@ class TakeoverController:
         phase = self.phase
         if phase in (Phase.MODE, Phase.MODE_BEFORE_ARM):
             return inp.mode_ok
+        if phase is Phase.READY:
+            return self._ready(inp)
         if phase is Phase.ARMING:
             return inp.armed
         if phase is Phase.GLOBAL_POSITION:
@@ -205,19 +239,27 @@ class TakeoverController:
             and last - since >= self.params.offboard_prestream_s
         )
 
-    def _command(self) -> Action | None:
+    def _command(self, inp: TakeoverInputs) -> Action | None:
         if self.phase in (Phase.MODE, Phase.MODE_BEFORE_ARM):
             return Action(ActionKind.SET_MODE)
         if self.phase is Phase.ARMING:
             return Action(ActionKind.ARM)
-        if self.phase is Phase.TAKEOFF:
+        if self.phase is Phase.TAKEOFF and not self._taking_off(inp):
             return Action(ActionKind.TAKEOFF, value=self._takeoff_param_m)
-        return None  # GLOBAL_POSITION and PRESTREAM only wait
+        return None  # READY, GLOBAL_POSITION and PRESTREAM only wait; a takeoff under way needs no resend
+
+    def _taking_off(self, inp: TakeoverInputs) -> bool:
+        """NAV_TAKEOFF was ACCEPTED in this phase, or the vehicle climbs."""
+        acked = inp.takeoff_ack_s is not None and inp.takeoff_ack_s >= self._phase_start_s
+        climbing = inp.down_m is not None and self._home_down_m - inp.down_m > TAKEOFF_CLIMBING_M
+        return acked or climbing
 
     def _advance(self, now_s: float, inp: TakeoverInputs, acts: list[Action]) -> None:
         p = self.params
         phase = self.phase
-        if phase is Phase.MODE_BEFORE_ARM:
+        if phase is Phase.READY:
+            self._begin(now_s, inp, acts)
+        elif phase is Phase.MODE_BEFORE_ARM:
             self._enter(Phase.ARMING, now_s)
         elif phase is Phase.ARMING and p.takeoff_alt_m > 0:
             self._home_down_m = inp.down_m if inp.down_m is not None else 0.0

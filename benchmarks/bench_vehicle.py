@@ -120,6 +120,7 @@ async def bench_simulator(messages: frozenset[str]) -> tuple[float, int, int, fl
                 speedup=math.inf,
                 spawn=SpawnConfig(airborne=True, alt_m=5.0),
                 sensor=RangeSensorConfig(messages=messages),
+                unasked_streams=True,  # the full telemetry load, as measured before streams waited to be asked
             )
         )
         sim.engine.scan_listeners.append(Pilot(sim.engine))

@@ -17,7 +17,10 @@ density low/mid/high), or any world file with ``--world``.
 
 Time: the simulator runs ``--speedup`` times faster than real time and the service gets the same
 ``cycle.time_scale``, so its 10 Hz cycle and 0.5 s staleness limits stay in simulated seconds (50 Hz and 100 ms of
-wall time at the default speed-up of 5); the heartbeat timeout is ``max(3, speedup)`` simulated seconds.
+wall time at the default speed-up of 5); the heartbeat timeout is ``max(3, speedup)`` simulated seconds. The
+vehicle starts with ``--fast-start`` (EKF origin at boot, not 20 s later as on SITL: the flights keep their speed;
+the startup wait is tested in tests/service/test_service_startup.py), and streams only what is asked for, as a
+real ArduCopter: the service requests its streams, the ground-station watcher its LOCAL_POSITION_NED.
 
 ``--trials N`` flies seeds SEED..SEED+N-1 and, on paper fields, runs the study's engine ``--study-reps`` times on
 each flown field (``study_same_worlds``), so the flight rate is compared with the study's on the same worlds.
@@ -51,6 +54,7 @@ from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink
@@ -66,6 +70,7 @@ PAPER_START = (3.0, 3.0)
 PAPER_GOAL = (22.0, 22.0)
 # Measured: the default service flies the paper's 26.9 m diagonal in ~53 simulated s after the takeoff.
 EXPECTED_SPEED_M_S = 0.5
+GCS_POSITION_INTERVAL_US = 200_000.0  # the ground-station watcher's LOCAL_POSITION_NED: 5 Hz
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -238,6 +243,7 @@ def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
         # One word: "--start -12.0,0.0" would read as two options to the vehicle's argparse.
         f"--start={opt.start_ne_m[0]},{opt.start_ne_m[1]}",
         "--exit-on-crash",
+        "--fast-start",  # the EKF origin at boot: fly keeps its speed (the startup is tested in tests/service)
         "--duration",
         str(opt.max_flight_s + 120.0),
     ]
@@ -285,14 +291,33 @@ async def _watch(
     gcs: MavlinkLink, progress: _Progress, airborne_m: float, on_airborne: Callable[[], None] | None = None
 ) -> None:
     """Follow the flight as a ground station: position for the progress line, STATUSTEXT for the log;
-    ``on_airborne()`` once the vehicle is ``airborne_m`` above home."""
+    ``on_airborne()`` once the vehicle is ``airborne_m`` above home. Like a ground station it asks for
+    LOCAL_POSITION_NED (an ArduCopter streams nothing unasked), at each HEARTBEAT until the first one arrives."""
+    have_position = False
     while True:
         try:
             msg = await gcs.recv(timeout=1.0)
         except LinkTimeout:
             continue
         kind = msg.get_type()
+        if kind == "HEARTBEAT" and not have_position:
+            gcs.send(
+                gcs.mav.command_long_encode(
+                    msg.get_srcSystem(),
+                    msg.get_srcComponent(),
+                    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                    0,
+                    float(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
+                    GCS_POSITION_INTERVAL_US,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                )
+            )
         if kind == "LOCAL_POSITION_NED":
+            have_position = True
             progress.pos = (msg.x, msg.y, msg.z)
             progress.sim_t = msg.time_boot_ms / 1000.0
             progress.show()
@@ -356,7 +381,7 @@ def _service_events(log_path: Path) -> dict[str, Any]:
             events["last_reason"] = ev.get("reason")
             if ev.get("new") == "LINK_LOST":
                 events["link_lost"] += 1
-            elif ev.get("new") == "HOLDING":
+            elif ev.get("new") == "HOLDING" and ev.get("old") != "HOLDING":  # not a new reason while holding
                 events["holding"] += 1
         elif ev.get("event") == "takeover.failed":
             events["takeover_failed"].append(ev.get("error"))

@@ -19,9 +19,11 @@ from typing import Any
 __all__ = [
     "DECODERS",
     "Attitude",
+    "CommandAck",
     "CommandInt",
     "CommandLong",
     "DistanceSensor",
+    "EkfStatusReport",
     "GlobalPositionInt",
     "Heartbeat",
     "LocalPositionNed",
@@ -152,6 +154,21 @@ class CommandInt:
     z: float
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CommandAck:
+    src: Source
+    command: int  # MAV_CMD
+    result: int  # MAV_RESULT
+    target_system: int  # 0 when the sender did not fill it (MAVLink 1 extension field)
+    target_component: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EkfStatusReport:
+    src: Source
+    flags: int  # EKF_STATUS_FLAGS bits (ardupilotmega.xml)
+
+
 Record = (
     Heartbeat
     | LocalPositionNed
@@ -163,6 +180,8 @@ Record = (
     | Odometry
     | CommandLong
     | CommandInt
+    | CommandAck
+    | EkfStatusReport
 )
 
 
@@ -284,6 +303,20 @@ def _command_int(msg: Any) -> CommandInt:
     )
 
 
+def _command_ack(msg: Any) -> CommandAck:
+    return CommandAck(
+        src=_src(msg),
+        command=int(msg.command),
+        result=int(msg.result),
+        target_system=int(getattr(msg, "target_system", 0) or 0),
+        target_component=int(getattr(msg, "target_component", 0) or 0),
+    )
+
+
+def _ekf_status_report(msg: Any) -> EkfStatusReport:
+    return EkfStatusReport(src=_src(msg), flags=int(msg.flags))
+
+
 DECODERS: dict[str, Callable[[Any], Record]] = {
     "HEARTBEAT": _heartbeat,
     "LOCAL_POSITION_NED": _local_position_ned,
@@ -295,6 +328,8 @@ DECODERS: dict[str, Callable[[Any], Record]] = {
     "ODOMETRY": _odometry,
     "COMMAND_LONG": _command_long,
     "COMMAND_INT": _command_int,
+    "COMMAND_ACK": _command_ack,
+    "EKF_STATUS_REPORT": _ekf_status_report,
 }
 """Message type name -> decoder, for every message the service consumes."""
 

@@ -71,6 +71,16 @@ def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: 
         help="horizontal actuation noise SD per 0.1 s [m] (SIM_POS_NOISE; the paper's is 0.1)",
     )
     v.add_argument("--airborne", action="store_true", help="start flying (armed, hovering) instead of landed")
+    v.add_argument(
+        "--fast-start",
+        action="store_true",
+        help="EKF origin at boot (ArduPilot otherwise has no position for SIM_EKF_ORIGIN_S = 20 s, as on SITL)",
+    )
+    v.add_argument(
+        "--unasked-streams",
+        action="store_true",
+        help="stream telemetry without being asked (ArduPilot otherwise sends HEARTBEAT only until asked)",
+    )
     v.add_argument("--alt", type=float, default=5.0, help="hover height for --airborne [m]")
     v.add_argument("--start", type=_pair, metavar="N,E", help="start north,east [m] (default: world start)")
     v.add_argument("--yaw", type=float, default=0.0, help="start heading [deg]")
@@ -219,6 +229,8 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         tlog_path=args.tlog,
         zenoh=_zenoh(args),
         result_json=args.result_json,
+        fast_start=args.fast_start,
+        unasked_streams=True if args.unasked_streams else None,
     )
     stop = asyncio.Event()
     _install_signals(stop)

@@ -37,6 +37,7 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "AUTOPILOT_VERSION": 0.0,
     "GPS_RAW_INT": 0.0,
     "DISTANCE_SENSOR": 0.0,
+    "EKF_STATUS_REPORT": 0.0,
 }
 
 
@@ -94,6 +95,8 @@ class EngineConfig:
     rates_hz: dict[str, float] = field(default_factory=dict)
     trajectory_rate_hz: float = 10.0
     dynamics: Dynamics = Dynamics.SIMPLE
+    fast_start: bool = False  # the EKF origin is set at boot (skips the profile's SIM_EKF_ORIGIN_S wait)
+    unasked_streams: bool | None = None  # stream DEFAULT_RATES_HZ unasked; None = the profile's habit
 
     def __post_init__(self) -> None:
         if self.dynamics is Dynamics.ARDUCOPTER and self.profile is not Autopilot.ARDUPILOT:

@@ -54,6 +54,7 @@ from sim.vehicle.ranging import RangeSensorDriver
 from sim.vehicle.reboot import BootPhase, BootState, reboot_engine
 from sim.vehicle.recorder import FlightRecorder, flight_result
 from sim.vehicle.sensor import Scan
+from sim.vehicle.startup import EkfStartup
 from sim.vehicle.telemetry import TelemetryScheduler
 from sim.world.model import FloatArray
 
@@ -100,7 +101,11 @@ class VehicleEngine:
         self.crash_listeners: list[Callable[[], None]] = []
         self.last_scan: Scan | None = None
         self._last_warn: dict[str, float] = {}
-        self.telemetry = TelemetryScheduler(n_links, cfg.rates_hz, min_interval_s=self.dt)
+        unasked = self.profile_rules.unasked_streams if cfg.unasked_streams is None else cfg.unasked_streams
+        self.telemetry = TelemetryScheduler(n_links, cfg.rates_hz, min_interval_s=self.dt, unasked=unasked)
+        self.telemetry.boot_stream_rates(dict(self.params.items()))  # SRn_* (ArduPilot profile)
+        # A flying vehicle already has its origin; fast_start skips the wait at every boot (tests).
+        self.startup = EkfStartup(skip=cfg.fast_start or cfg.spawn.airborne)
         self.ranging = RangeSensorDriver()
         self.recorder = FlightRecorder(cfg.trajectory_rate_hz)
         self.guided = GuidedState()
@@ -245,6 +250,7 @@ class VehicleEngine:
         """Advance one physics step: rules, dynamics, collisions, sensor, telemetry."""
         self._steps += 1
         self.t_s = self._steps * self.dt
+        self.startup.tick(self)
         if not self.crashed:
             self.profile_rules.check_failsafes(self)
             self.target, limits = choose_target(self, self.limits())

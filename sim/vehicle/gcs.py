@@ -135,6 +135,14 @@ def _on_obstacle_distance(v: VehicleEngine, msg: Any, link: int) -> None:
     v.proximity.on_obstacle_distance(msg, v.t_s)
 
 
+def _on_request_data_stream(v: VehicleEngine, msg: Any, link: int) -> None:
+    # GCS_Common.cpp handle_request_data_stream: start_stop 0 stops, 1 starts at req_message_rate [Hz], else ignored
+    if msg.start_stop not in (0, 1):
+        return
+    rate_hz = float(msg.req_message_rate) if msg.start_stop == 1 else 0.0
+    v.telemetry.set_data_stream(link, int(msg.req_stream_id), rate_hz, v.t_s)
+
+
 def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
     mission_type = getattr(msg, "mission_type", 0)
     v.emit(link, v.mav.mission_count_encode(msg.get_srcSystem(), msg.get_srcComponent(), 0, mission_type=mission_type))
@@ -148,6 +156,7 @@ HANDLERS: dict[int, MessageHandler] = {
     mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT: _for_us(_on_set_position_target_global_int),
     **{msg_id: _for_us(fn) for msg_id, fn in PARAM_HANDLERS.items()},
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: _for_us(_on_mission_request_list),
+    mavlink.MAVLINK_MSG_ID_REQUEST_DATA_STREAM: _for_us(_on_request_data_stream),
     mavlink.MAVLINK_MSG_ID_TIMESYNC: _on_timesync,
     mavlink.MAVLINK_MSG_ID_OBSTACLE_DISTANCE: _on_obstacle_distance,
 }

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ConfigError
 
-__all__ = ["ParamSpec", "ParamTable", "param_specs"]
+__all__ = ["SR_GROUPS", "ParamSpec", "ParamTable", "param_specs"]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -120,12 +120,30 @@ _ARDUPILOT = (
     ParamSpec(name="PRX1_ORIENT", default=0.0, lo=0.0, hi=1.0, doc="proximity orientation: 0 default, 1 upside down"),
     ParamSpec(name="PRX1_YAW_CORR", default=0.0, lo=-180.0, hi=180.0, doc="proximity yaw correction [deg]"),
     ParamSpec(
+        name="SIM_EKF_ORIGIN_S",
+        default=20.0,
+        lo=0.0,
+        hi=600.0,
+        doc="seconds after boot until the EKF origin is set (SITL: about 20 s, issue 8); fast start = 0",
+    ),
+    ParamSpec(
         name="WP_YAW_BEHAVIOR",
         default=2.0,
         lo=0.0,
         hi=3.0,
         doc="yaw when a target has none: 0 keep heading, else face the direction of travel",
     ),
+)
+
+# SRn_* stream rates [Hz] of the stream groups the simulator builds (GCS_MAVLink_Copter.cpp; default 0: nothing
+# streams unasked). Read at boot (like ArduPilot, which initialises its message intervals from them at startup):
+# ``--param SR0_POSITION=10`` streams LOCAL_POSITION_NED and GLOBAL_POSITION_INT on link 0 from boot.
+SR_GROUPS = ("EXT_STAT", "POSITION", "EXTRA1", "EXTRA2", "EXTRA3")
+SR_LINKS = 4
+_STREAM_RATES = tuple(
+    ParamSpec(name=f"SR{n}_{group}", default=0.0, lo=0.0, hi=50.0, doc=f"link {n}: {group} stream rate at boot [Hz]")
+    for n in range(SR_LINKS)
+    for group in SR_GROUPS
 )
 
 _PX4 = (
@@ -170,7 +188,7 @@ _PX4 = (
 
 def param_specs(profile: Autopilot) -> tuple[ParamSpec, ...]:
     """The parameter list of a profile, in PARAM_VALUE index order."""
-    return (_ARDUPILOT if profile is Autopilot.ARDUPILOT else _PX4) + _SIM
+    return (_ARDUPILOT + _STREAM_RATES if profile is Autopilot.ARDUPILOT else _PX4) + _SIM
 
 
 class ParamTable:

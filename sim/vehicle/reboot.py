@@ -22,6 +22,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.vehicle.guided import GuidedState
 from sim.vehicle.proximity import Proximity
+from sim.vehicle.startup import EkfStartup
 
 if TYPE_CHECKING:
     from sim.vehicle.commands import Command
@@ -102,5 +103,7 @@ def reboot_engine(v: VehicleEngine) -> None:
     v.hold_pos_ned_m = v.state.pos_ned_m.copy()
     v.boot.start(v.t_s)
     v.telemetry.reset(v.boot.boot_t_s)
+    # The EKF starts again: no origin until the profile's delay after this boot (fast_start: at once, as at power-up).
+    v.startup = EkfStartup(skip=v.cfg.fast_start, boot_t_s=v.boot.boot_t_s)
     v.proximity = Proximity.at_boot(v.params)
     v.ranging.next_scan_t = v.boot.booting_until_s

@@ -89,6 +89,10 @@ class SimConfig:
         tlog_path: record every frame in and out; link ``i > 0`` records to ``<stem>.link<i>.tlog``.
         zenoh: also publish scans over zenoh.
         result_json: write the flight result here on close and on a crash.
+        fast_start: the EKF origin is set at boot (the ArduPilot profile otherwise waits SIM_EKF_ORIGIN_S, 20 s,
+            with no position, no arming in GUIDED; see sim/vehicle/startup.py). For tests that do not test startup.
+        unasked_streams: stream telemetry without being asked (the old behaviour); None = the profile's habit
+            (ArduPilot: HEARTBEAT only until SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM; PX4: its default streams).
     """
 
     links: Sequence[str] = ()
@@ -106,6 +110,8 @@ class SimConfig:
     tlog_path: Path | None = None
     zenoh: ZenohOutput | None = None
     result_json: Path | None = None
+    fast_start: bool = False
+    unasked_streams: bool | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "links", tuple(self.links))
@@ -144,6 +150,8 @@ class SimConfig:
             home=self.home,
             physics_rate_hz=self.physics_rate_hz,
             rates_hz=dict(self.rates_hz),
+            fast_start=self.fast_start,
+            unasked_streams=self.unasked_streams,
         )
 
 

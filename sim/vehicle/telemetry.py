@@ -23,7 +23,7 @@ from sim.vehicle.profiles import Behaviour
 if TYPE_CHECKING:
     from sim.vehicle.engine import VehicleEngine
 
-__all__ = ["BUILDERS", "STREAM_IDS", "TelemetryScheduler", "as_list", "build"]
+__all__ = ["BUILDERS", "DATA_STREAMS", "STREAM_IDS", "TelemetryScheduler", "as_list", "build"]
 
 Builder = Callable[["VehicleEngine"], Any]
 
@@ -53,6 +53,7 @@ SIM_UID = 0x53494D0000000001  # "SIM" + 1
 GPS_EPH_CM = 80  # GPS_RAW_INT: HDOP 0.8 ...
 GPS_EPV_CM = 120  # ... VDOP 1.2
 GPS_SATELLITES = 12
+EKF_VARIANCE = 0.05  # EKF_STATUS_REPORT test ratios: well below the 0.8 failsafe threshold (FS_EKF_THRESH)
 _GUIDED_FLAG_BEHAVIOURS = frozenset({Behaviour.GUIDED, Behaviour.RTL, Behaviour.LAND, Behaviour.TAKEOFF})
 
 
@@ -105,6 +106,8 @@ def _sys_status(v: VehicleEngine) -> Any:
 
 
 def _local_position_ned(v: VehicleEngine) -> Any:
+    if not v.startup.origin_set:
+        return None  # GCS_Common.cpp send_local_position: no position relative to an origin yet
     p, vel = v.state.pos_ned_m, v.state.vel_ned_m_s
     return v.mav.local_position_ned_encode(
         v.time_boot_ms, float(p[0]), float(p[1]), float(p[2]), float(vel[0]), float(vel[1]), float(vel[2])
@@ -113,6 +116,9 @@ def _local_position_ned(v: VehicleEngine) -> Any:
 
 def _global_position_int(v: VehicleEngine) -> Any:
     st = v.state
+    if not v.startup.origin_set:
+        # GCS_Common.cpp send_global_position_int ignores get_location's failure: the stale (zero) location
+        return v.mav.global_position_int_encode(v.time_boot_ms, 0, 0, 0, 0, 0, 0, 0, 0)
     lat, lon = ne_to_latlon(v.cfg.home, float(st.pos_ned_m[0]), float(st.pos_ned_m[1]))
     vel = st.vel_ned_m_s
     hdg = round(math.degrees(st.yaw_rad) * 100.0) % 36000
@@ -172,6 +178,8 @@ def _extended_sys_state(v: VehicleEngine) -> Any:
 
 
 def _home_position(v: VehicleEngine) -> Any:
+    if not v.startup.origin_set:
+        return None  # GCS_Common.cpp send_home_position: home not set yet
     h = v.cfg.home
     lat, lon, alt = round(h.lat_deg * 1e7), round(h.lon_deg * 1e7), round(h.alt_amsl_m * 1000.0)
     q = [1.0, 0.0, 0.0, 0.0]
@@ -198,6 +206,11 @@ def _position_target_local_ned(v: VehicleEngine) -> Any:
         float(sp.yaw or 0.0) if echo_yaw else 0.0,
         float(sp.yaw_rate or 0.0) if echo_yaw else 0.0,
     )
+
+
+def _ekf_status_report(v: VehicleEngine) -> Any:
+    """The EKF's solution flags (sim/vehicle/startup.py); variances small and constant."""
+    return v.mav.ekf_status_report_encode(v.startup.flags, EKF_VARIANCE, EKF_VARIANCE, EKF_VARIANCE, EKF_VARIANCE, 0.0)
 
 
 def _vfr_hud(v: VehicleEngine) -> Any:
@@ -236,6 +249,29 @@ BUILDERS: dict[int, Builder] = {
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,
     mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: _gps_raw_int,
     mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR: _distance_sensor,
+    mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT: _ekf_status_report,
+}
+
+# REQUEST_DATA_STREAM: the messages of each stream that this vehicle builds (ArduCopter GCS_MAVLink_Copter.cpp
+# STREAM_*_msgs: EXTENDED_STATUS has SYS_STATUS and GPS_RAW, POSITION has LOCATION and LOCAL_POSITION, EXTRA1
+# ATTITUDE, EXTRA2 VFR_HUD, EXTRA3 SYSTEM_TIME and EKF_STATUS_REPORT). MAV_DATA_STREAM_ALL sets all of them.
+DATA_STREAMS: dict[int, tuple[int, ...]] = {
+    mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: (mavlink.MAVLINK_MSG_ID_SYS_STATUS, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT),
+    mavlink.MAV_DATA_STREAM_POSITION: (
+        mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+        mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+    ),
+    mavlink.MAV_DATA_STREAM_EXTRA1: (mavlink.MAVLINK_MSG_ID_ATTITUDE,),
+    mavlink.MAV_DATA_STREAM_EXTRA2: (mavlink.MAVLINK_MSG_ID_VFR_HUD,),
+    mavlink.MAV_DATA_STREAM_EXTRA3: (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT),
+}
+
+SR_STREAMS = {  # SRn_<group> parameter -> its stream (GCS_MAVLink_Copter.cpp stream-rate parameters)
+    "EXT_STAT": mavlink.MAV_DATA_STREAM_EXTENDED_STATUS,
+    "POSITION": mavlink.MAV_DATA_STREAM_POSITION,
+    "EXTRA1": mavlink.MAV_DATA_STREAM_EXTRA1,
+    "EXTRA2": mavlink.MAV_DATA_STREAM_EXTRA2,
+    "EXTRA3": mavlink.MAV_DATA_STREAM_EXTRA3,
 }
 
 
@@ -261,12 +297,20 @@ class Stream:
 class TelemetryScheduler:
     """Which message is due on which link; each link has its own intervals (SET_MESSAGE_INTERVAL)."""
 
-    def __init__(self, n_links: int, rates_hz: Mapping[str, float], *, min_interval_s: float) -> None:
+    def __init__(
+        self, n_links: int, rates_hz: Mapping[str, float], *, min_interval_s: float, unasked: bool = True
+    ) -> None:
         rates = {**DEFAULT_RATES_HZ, **rates_hz}
         self.default_intervals = {STREAM_IDS[name]: (1.0 / r if r > 0 else 0.0) for name, r in rates.items()}
         self.min_interval_s = min_interval_s
+        # ``unasked`` False: only HEARTBEAT until a stream is requested (HEARTBEAT is not a stream in ArduPilot:
+        # GCS_Common.cpp sends it at 1 Hz on every link regardless of the stream rates)
+        boot = {
+            msg_id: (iv if unasked or msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT else 0.0)
+            for msg_id, iv in self.default_intervals.items()
+        }
         self.streams: list[dict[int, Stream]] = [
-            {msg_id: Stream(iv, 0.0) for msg_id, iv in self.default_intervals.items()} for _ in range(n_links)
+            {msg_id: Stream(iv, 0.0) for msg_id, iv in boot.items()} for _ in range(n_links)
         ]
 
     def streamable(self, msg_id: int) -> bool:
@@ -305,6 +349,24 @@ class TelemetryScheduler:
         for streams in self.streams:
             for msg_id, st in streams.items():
                 st.interval_s, st.next_t = self.default_intervals[msg_id], t_s
+
+    def set_data_stream(self, link: int, stream_id: int, rate_hz: float, t_s: float) -> None:
+        """REQUEST_DATA_STREAM: every message of the stream (all streams for MAV_DATA_STREAM_ALL) at ``rate_hz``
+        on this link, 0 = off (GCS_Common.cpp handle_request_data_stream sets the SRn_ stream rate)."""
+        if stream_id == mavlink.MAV_DATA_STREAM_ALL:
+            ids = tuple(i for group in DATA_STREAMS.values() for i in group)
+        else:
+            ids = DATA_STREAMS.get(stream_id, ())
+        for msg_id in ids:
+            self.set_interval(link, msg_id, 1e6 / rate_hz if rate_hz > 0 else -1.0, t_s)
+
+    def boot_stream_rates(self, params: Mapping[str, float]) -> None:
+        """SRn_<group> parameters set at boot: stream that group on link n at that rate (0 = as before)."""
+        for name, rate_hz in params.items():
+            link, _, group = name.removeprefix("SR").partition("_")
+            stream = SR_STREAMS.get(group)
+            if stream is not None and link.isdigit() and int(link) < len(self.streams) and rate_hz > 0:
+                self.set_data_stream(int(link), stream, rate_hz, 0.0)
 
     def interval_us(self, link: int, msg_id: int) -> int:
         """GET_MESSAGE_INTERVAL's answer: the interval [us], -1 = off, 0 = not a stream of this vehicle."""

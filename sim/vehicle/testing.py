@@ -38,8 +38,13 @@ async def simulator_with_client(
 ) -> AsyncIterator[tuple[Simulator, MavlinkLink]]:
     """A Simulator (``SimConfig(**cfg)``; its first link goes to the client) and a connected client link.
 
-    Waits for the first HEARTBEAT, so the client can send at once.
+    Waits for the first HEARTBEAT, so the client can send at once. Unless ``cfg`` says otherwise the vehicle starts
+    fast (``fast_start``: EKF origin at boot) and streams unasked (``unasked_streams``): tests of other behaviour
+    need not wait out the ArduPilot startup or request each stream; tests of the startup pass ``fast_start=False``
+    / ``unasked_streams=None``.
     """
+    cfg.setdefault("fast_start", True)
+    cfg.setdefault("unasked_streams", True)
     client = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=source_system, source_component=source_component)
     try:
         assert client.local_address is not None

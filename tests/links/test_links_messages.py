@@ -12,9 +12,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.links.messages import (
     DECODERS,
     Attitude,
+    CommandAck,
     CommandInt,
     CommandLong,
     DistanceSensor,
+    EkfStatusReport,
     GlobalPositionInt,
     Heartbeat,
     LocalPositionNed,
@@ -100,6 +102,18 @@ CASES: list[tuple[str, Any, type[Any], dict[str, Any]]] = [
         ),
         CommandInt,
         {"frame": mavlink.MAV_FRAME_LOCAL_NED, "x": 0, "y": 50000, "z": -5.0},
+    ),
+    (
+        "COMMAND_ACK",
+        lambda m: m.command_ack_encode(mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_RESULT_FAILED, 0, 0, 1, 191),
+        CommandAck,
+        {"command": mavlink.MAV_CMD_NAV_TAKEOFF, "result": mavlink.MAV_RESULT_FAILED, "target_component": 191},
+    ),
+    (
+        "EKF_STATUS_REPORT",
+        lambda m: m.ekf_status_report_encode(mavlink.EKF_ATTITUDE | mavlink.EKF_CONST_POS_MODE, 0, 0, 0, 0, 0),
+        EkfStatusReport,
+        {"flags": mavlink.EKF_ATTITUDE | mavlink.EKF_CONST_POS_MODE},
     ),
 ]
 

@@ -209,6 +209,7 @@ async def _ground_flight(
             profile=profile,
             speedup=SPEEDUP,
             spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=False),
+            fast_start=True,  # the EKF startup wait is tested in test_service_startup.py
         )
     )
     async with running(svc, sim):

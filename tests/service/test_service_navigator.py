@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -257,3 +258,54 @@ def test_goal_replaced_mid_flight() -> None:
     feed(nav, t, tuple(pos))
     sp = nav.cycle(t).setpoint
     assert sp is not None and sp.pos_ned_m[1] > pos[1] + 0.3  # now heading east
+
+
+def test_holding_reason_follows_the_current_cause() -> None:
+    """The HOLDING reason says what is missing now (it used to stay "no pose yet" while ranges were missing)."""
+    nav = make()
+    nav.autopilot_heartbeat(0.0, mode_ok=False)
+    nav.ekf_ready = False  # EKF_STATUS_REPORT without a horizontal position
+    assert nav.set_route(Route.point(5.0, 3.0, None, source="test"), 0.0)
+    nav.drain_changes()
+    out = nav.cycle(0.1)
+    assert out.state is State.HOLDING and out.setpoint is None
+    assert [c.reason for c in out.changes] == ["waiting for EKF origin: no position yet"]
+    # the origin is set, poses come, no ranges yet: the reason changes (same state, a new StateChange)
+    nav.ekf_ready = True
+    reasons: list[str] = []
+    for k in range(2, 40):
+        t = 0.1 * k
+        nav.autopilot_heartbeat(t, mode_ok=False)
+        nav.update_pose(Pose(t_s=t, pos_ned_m=np.array([0.0, 0.0, -5.0]), yaw_rad=0.0))
+        out = nav.cycle(t)
+        reasons += [c.reason for c in out.changes if c.new is State.HOLDING]
+    assert out.state is State.HOLDING
+    assert reasons == ["no ranges yet: holding position"]  # announced once, not every cycle
+    # ranges arrive: navigating (taking over)
+    t = 4.0
+    feed(nav, t, (0.0, 0.0, -5.0))
+    out = nav.cycle(t)
+    assert out.state is State.NAVIGATING
+
+
+def test_holding_reason_changes_are_rate_limited() -> None:
+    nav = make()
+    feed(nav, 0.0, (0.0, 0.0, -5.0))
+    assert nav.set_route(Route.point(5.0, 3.0, None, source="test"), 0.0)
+    nav.cycle(0.0)
+    nav.drain_changes()
+    # ranges stay stale; the pose comes and goes (0.7 s on, 0.7 s off): the cause flips every few cycles, the
+    # announcements at most once per REASON_REPEAT_S
+    changes = []
+    for k in range(1, 81):
+        t = 0.6 + 0.1 * k
+        nav.autopilot_heartbeat(t, mode_ok=True)
+        if (k // 7) % 2 == 0:
+            nav.update_pose(Pose(t_s=t, pos_ned_m=np.array([0.0, 0.0, -5.0]), yaw_rad=0.0))
+        changes += [c for c in nav.cycle(t).changes if c.old is State.HOLDING and c.new is State.HOLDING]
+    assert len(changes) >= 3
+    assert {c.reason for c in changes} == {
+        "ranges stale: holding position",
+        "pose stale, ranges stale: holding position",
+    }
+    assert all(b.t_s - a.t_s >= 1.0 - 1e-9 for a, b in itertools.pairwise(changes))

@@ -84,7 +84,8 @@ def test_ardupilot_arm_and_takeoff_in_order_with_the_navigator_suspended() -> No
     assert kinds(out) == [ActionKind.TAKEOFF] and out[0].value == 5.0  # param7: height above home
     assert phase(c) is Phase.TAKEOFF
     assert c.step(0.3, dataclasses.replace(armed, down_m=-4.0)) == []  # 4 m < 90 % of 5 m
-    assert kinds(c.step(0.2 + COMMAND_RETRY_S, dataclasses.replace(armed, down_m=-4.0))) == [ActionKind.TAKEOFF]
+    # climbing: no second NAV_TAKEOFF (ArduCopter would refuse it: not landed)
+    assert c.step(0.2 + COMMAND_RETRY_S, dataclasses.replace(armed, down_m=-4.0)) == []
     out = c.step(1.5, dataclasses.replace(armed, down_m=-4.6))
     assert kinds(out) == [ActionKind.AIRBORNE, ActionKind.RESUME, ActionKind.DONE]
     assert out[0].value == -5.0
@@ -186,3 +187,46 @@ def test_a_new_goal_after_a_failure_starts_again() -> None:
     assert ActionKind.FAILED in kinds(c.step(1.5, GROUND))
     other = dataclasses.replace(GROUND, route=object())
     assert kinds(c.step(2.0, other)) == [ActionKind.STARTED, ActionKind.SET_MODE]
+
+
+def test_takeoff_is_resent_only_without_an_accepted_ack_and_without_a_climb() -> None:
+    c = ctl(arm=True, takeoff_alt_m=5.0)
+    armed = dataclasses.replace(GROUND, mode_ok=True, armed=True)
+    c.step(0.0, dataclasses.replace(GROUND, mode_ok=True))
+    assert kinds(c.step(0.1, armed)) == [ActionKind.TAKEOFF]
+    # no ACK, still on the ground: resent after COMMAND_RETRY_S (the first may have been lost)
+    assert kinds(c.step(0.1 + COMMAND_RETRY_S, armed)) == [ActionKind.TAKEOFF]
+    # ACCEPTED (ArduCopter spools up for seconds before it leaves the ground): not resent while it has not climbed
+    acked = dataclasses.replace(armed, takeoff_ack_s=0.1 + COMMAND_RETRY_S + 0.05)
+    for k in range(2, 6):
+        assert c.step(0.1 + k * COMMAND_RETRY_S, acked) == []
+    # an ACCEPTED from before this phase does not count
+    c2 = ctl(arm=True, takeoff_alt_m=5.0)
+    c2.step(10.0, dataclasses.replace(GROUND, mode_ok=True))
+    stale = dataclasses.replace(armed, takeoff_ack_s=1.0)
+    assert kinds(c2.step(10.1, stale)) == [ActionKind.TAKEOFF]
+    assert kinds(c2.step(10.1 + COMMAND_RETRY_S, stale)) == [ActionKind.TAKEOFF]
+
+
+def test_waits_for_a_position_estimate_before_taking_over_then_proceeds() -> None:
+    c = ctl(arm=True, takeoff_alt_m=5.0, ready_timeout_s=30.0)
+    no_pose = dataclasses.replace(GROUND, navigating=False, waiting=True, down_m=None, ekf_ready=False)
+    assert kinds(c.step(0.0, no_pose)) == [ActionKind.STARTED]
+    assert phase(c) is Phase.READY
+    assert c.step(29.0, no_pose) == []  # nothing sent: GUIDED and arming would be refused before the EKF origin
+    new_goal = dataclasses.replace(GROUND, down_m=None)  # NAVIGATING before its first cycle, still no pose
+    assert c.step(29.2, new_goal) == []
+    pose_no_ekf = dataclasses.replace(GROUND, ekf_ready=False)
+    assert c.step(29.5, pose_no_ekf) == []
+    assert kinds(c.step(29.9, GROUND)) == [ActionKind.SUSPEND, ActionKind.SET_MODE]
+    assert phase(c) is Phase.MODE_BEFORE_ARM
+
+
+def test_position_estimate_wait_is_bounded() -> None:
+    c = ctl(arm=True, takeoff_alt_m=5.0, ready_timeout_s=30.0)
+    no_pose = dataclasses.replace(GROUND, navigating=False, waiting=True, down_m=None, ekf_ready=False)
+    c.step(0.0, no_pose)
+    out = c.step(30.1, no_pose)
+    assert kinds(out) == [ActionKind.FAILED] and out[0].drop_goal
+    assert out[0].reason == "position estimate not confirmed within 30.0 s"
+    assert phase(c) is Phase.IDLE

@@ -49,6 +49,7 @@ def test_service_events_from_the_json_log(tmp_path: Path) -> None:
     lines: list[Any] = [
         {"event": "state.change", "new": "NAVIGATING", "reason": "new goal"},
         {"event": "state.change", "new": "HOLDING", "reason": "pose stale: holding position"},
+        {"event": "state.change", "old": "HOLDING", "new": "HOLDING", "reason": "ranges stale: holding position"},
         "not json {",
         {"event": "takeover.failed", "error": "arming not confirmed within 5 s"},
         {"event": "state.change", "new": "LINK_LOST", "reason": "autopilot heartbeat lost: stopped sending"},

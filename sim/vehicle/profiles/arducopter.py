@@ -49,6 +49,10 @@ MODES_OK = frozenset(
     )
 )
 MODES_NO_ARM = frozenset(int(m) for m in (CopterMode.LAND, CopterMode.RTL, CopterMode.BRAKE))
+# Mode::requires_GPS (mode.h): refused before the EKF has a position (mode.cpp set_mode, "requires position")
+MODES_NEED_POSITION = frozenset(
+    int(m) for m in (CopterMode.GUIDED, CopterMode.LOITER, CopterMode.POSHOLD, CopterMode.BRAKE, CopterMode.RTL)
+)
 _BEHAVIOUR = {int(CopterMode.GUIDED): Behaviour.GUIDED, int(CopterMode.LAND): Behaviour.LAND}
 _BEHAVIOUR[int(CopterMode.RTL)] = Behaviour.RTL
 # POSITION_TARGET_LOCAL_NED's type_mask per GUIDED submode (GCS_MAVLink_Copter.cpp send_position_target_local_ned)
@@ -86,6 +90,8 @@ class ArduCopterProfile:
     supports_reboot = True  # GCS_Common.cpp handle_preflight_reboot
     # MAVLink_routing.cpp check_and_forward: "loopback of our own messages" -> not processed locally
     drops_own_ids = True
+    # a fresh ArduCopter sends HEARTBEAT only (SITL, issue 8): SRn_* stream rates default to 0 until a GCS asks
+    unasked_streams = False
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:
@@ -114,6 +120,11 @@ class ArduCopterProfile:
             v.statustext(mavlink.MAV_SEVERITY_WARNING, f"Flight mode change failed {self.mode_name(custom_mode)}")
             return self.fail_result
         if v.crashed:
+            return self.fail_result
+        if custom_mode in MODES_NEED_POSITION and not v.startup.origin_set:
+            # mode.cpp set_mode -> mode_change_failed: "Mode change to %s failed: %s", MAV_SEVERITY_WARNING
+            text = f"Mode change to {self.mode_name(custom_mode)} failed: requires position"
+            v.statustext(mavlink.MAV_SEVERITY_WARNING, text)
             return self.fail_result
         v.set_mode(custom_mode, "command")
         return int(mavlink.MAV_RESULT_ACCEPTED)
@@ -149,10 +160,16 @@ class ArduCopterProfile:
     def guided_timeout_s(self, params: ParamTable) -> float | None:
         return params["GUID_TIMEOUT"]
 
+    def ekf_origin_delay_s(self, params: ParamTable) -> float:
+        return params["SIM_EKF_ORIGIN_S"]
+
     # -- command rules
     def arm_refusal(self, v: VehicleEngine, *, force: bool) -> str | None:
         if v.custom_mode in MODES_NO_ARM and not force:
             return "Arm: Mode not armable"
+        if v.custom_mode in MODES_NEED_POSITION and not v.startup.origin_set:
+            # AP_Arming_Copter.cpp mandatory_position_checks (run even when forced): no position_ok() yet
+            return "PreArm: Need Position Estimate"
         return None
 
     def takeoff(self, v: VehicleEngine, p: tuple[float, ...]) -> int:

@@ -89,6 +89,7 @@ class Px4Profile:
     advances_position_target = False  # the position is flown as sent; the velocity is a feed-forward
     supports_reboot = False  # not modelled: UNSUPPORTED
     drops_own_ids = False  # not checked in PX4's source
+    unasked_streams = True  # mavlink_main.cpp configure_streams_to_default: the mode's streams from boot
 
     # -- modes
     def initial_mode(self, airborne: bool) -> int:
@@ -176,6 +177,9 @@ class Px4Profile:
 
     def guided_timeout_s(self, params: ParamTable) -> float | None:
         return None  # OFFBOARD holds the last setpoint; the loss failsafe ends it
+
+    def ekf_origin_delay_s(self, params: ParamTable) -> float:
+        return 0.0  # not modelled for PX4: position from boot
 
     # -- command rules
     def arm_refusal(self, v: VehicleEngine, *, force: bool) -> str | None:

@@ -30,7 +30,10 @@ async def test_mavsdk_discovers_and_reads_position_velocity(profile: str) -> Non
     action = pytest.importorskip("mavsdk.asyncio.plugins.action")
     port = free_port(socket.SOCK_DGRAM)
     spawn = SpawnConfig(pos_ne_m=(2.0, 3.0), airborne=True, alt_m=5.0)
-    sim = await Simulator.start(SimConfig(links=[f"udpout:127.0.0.1:{port}"], profile=profile, spawn=spawn))
+    # MAVSDK asks for no streams here: the vehicle streams unasked (a real ArduCopter waits to be asked)
+    sim = await Simulator.start(
+        SimConfig(links=[f"udpout:127.0.0.1:{port}"], profile=profile, spawn=spawn, unasked_streams=True)
+    )
     try:
         config = mavsdk_asyncio.Configuration.create_with_component_type(mavsdk_asyncio.ComponentType.GROUND_STATION)
         async with mavsdk_asyncio.Mavsdk(config) as sdk:
@@ -84,6 +87,7 @@ async def test_mavproxy_headless_sees_heartbeat_and_mode(tmp_path: Path) -> None
             links=[f"udpout:127.0.0.1:{port}", f"udpout:127.0.0.1:{ctl.local_address[1]}"],
             profile="ardupilot",
             spawn=SpawnConfig(airborne=True),
+            unasked_streams=True,
         )
     )
     lines: list[str] = []
@@ -132,7 +136,11 @@ async def test_mavsdk_standard_flows(profile: str) -> None:
     action = pytest.importorskip("mavsdk.asyncio.plugins.action")
     offboard = pytest.importorskip("mavsdk.asyncio.plugins.offboard")
     port = free_port(socket.SOCK_DGRAM)
-    sim = await Simulator.start(SimConfig(links=[f"udpout:127.0.0.1:{port}"], profile=profile, speedup=4.0))
+    sim = await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{port}"], profile=profile, speedup=4.0, fast_start=True, unasked_streams=True
+        )
+    )
     try:
         config = mavsdk_asyncio.Configuration.create_with_component_type(mavsdk_asyncio.ComponentType.GROUND_STATION)
         async with mavsdk_asyncio.Mavsdk(config) as sdk:
