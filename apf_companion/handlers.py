@@ -39,12 +39,21 @@ from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd
 from apf_companion.reporter import ServiceCounters
 
-__all__ = ["AutopilotHandlers", "HandlerParams", "mode_is_ours"]
+__all__ = ["COMMAND_MESSAGES", "AutopilotHandlers", "HandlerParams", "mode_is_ours"]
 
 log = logging.getLogger(__name__)
 
 NOT_A_VEHICLE = frozenset({mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GCS})  # their HEARTBEATs
 REBOOTING = frozenset({mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT})  # HEARTBEAT.system_status
+#: Messages that ask for action (goals, modes): with a signing key they are used only when signed with it
+#: (``link.require_signed_commands``; the link drops the others before any handler sees them).
+COMMAND_MESSAGES = (
+    "COMMAND_INT",
+    "COMMAND_LONG",
+    "SET_POSITION_TARGET_LOCAL_NED",
+    "SET_POSITION_TARGET_GLOBAL_INT",
+    "SET_MODE",
+)
 DEG_E7 = 1e-7
 MM = 1e-3
 

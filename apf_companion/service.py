@@ -42,13 +42,14 @@ from apf_companion.builders import (
     initial_route,
     perception_params,
     reporter_params,
+    signing_setup,
     takeover_params,
 )
 from apf_companion.config import ServiceConfig, ZenohSection
 from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
-from apf_companion.links import MavlinkLink
+from apf_companion.links import MavlinkLink, TimestampKeeper
 from apf_companion.links.messages import DECODERS, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State
 from apf_companion.outbox import Outbox
@@ -154,6 +155,7 @@ class CompanionService:
         result_path: Where ``run`` writes the ``ServiceResult`` JSON when it ends.
         link: The open autopilot link (``open`` passes it), or None (nothing is sent or received).
         zenoh: The open zenoh link (``open`` passes it when enabled), or None.
+        signing_keeper: Saves the link's signing timestamp (``open`` passes it when signing is configured).
     """
 
     def __init__(
@@ -165,8 +167,10 @@ class CompanionService:
         result_path: Path | None = None,
         link: MavlinkLink | None = None,
         zenoh: Any = None,
+        signing_keeper: TimestampKeeper | None = None,
     ) -> None:
         self.config = config
+        self.signing_keeper = signing_keeper
         self.clock = clock or ServiceClock(config.cycle.time_scale)
         self.result_path = result_path
         self.link = link
@@ -197,6 +201,7 @@ class CompanionService:
             counters=self.counters,
             zenoh=zenoh,
             now_s=now,
+            signing=None if link is None or link.signing is None else link.signing.stats,
         )
         self.takeover = TakeoverDriver(
             TakeoverController(takeover_params(config)),
@@ -231,18 +236,14 @@ class CompanionService:
         """
         build_planner(config)  # config errors (planner, route file) before any socket is opened
         route = route if route is not None else initial_route(config)
-        tlog = config.resolve(config.link.tlog) if config.link.tlog else None
-        link = await MavlinkLink.open(
-            config.link.connect,
-            source_system=config.link.autopilot_sysid,
-            source_component=config.link.component_id,
-            tlog_path=tlog,
-        )
+        link, keeper = await _open_mavlink(config)
         zenoh = None
         try:
             if config.zenoh.enabled:
                 zenoh = await _open_zenoh(config)
-            return cls(config, route=route, clock=clock, result_path=result_path, link=link, zenoh=zenoh)
+            return cls(
+                config, route=route, clock=clock, result_path=result_path, link=link, zenoh=zenoh, signing_keeper=keeper
+            )
         except BaseException:
             if zenoh is not None:
                 await zenoh.aclose()
@@ -253,6 +254,8 @@ class CompanionService:
         """Close the links (safe to call twice)."""
         if self.link is not None:
             await self.link.aclose()
+        if self.signing_keeper is not None:
+            self.signing_keeper.close()  # the last signing timestamp, after the last frame
         if self.zenoh is not None:
             zl, self.zenoh = self.zenoh, None
             self.reporter.zenoh = None
@@ -276,6 +279,9 @@ class CompanionService:
                 if self.zenoh is not None:
                     zenoh_in = ZenohInputs(self.zenoh, self.config.zenoh, self)
                     tasks.append(tg.create_task(zenoh_in.run(), name="apf.zenoh"))
+                if self.signing_keeper is not None:
+                    saver = self.signing_keeper.run(lambda err: self.faults.caught("signing", err))
+                    tasks.append(tg.create_task(saver, name="apf.signing"))
                 await self._stop.wait()
                 for task in tasks:
                     task.cancel()
@@ -526,6 +532,31 @@ class ZenohInputs:
             return
         p = goal.pos_ned_m
         self.service.set_route(Route.point(float(p[0]), float(p[1]), float(p[2]), source="zenoh"), now)
+
+
+async def _open_mavlink(config: ServiceConfig) -> tuple[MavlinkLink, TimestampKeeper | None]:
+    """The autopilot link, signed when ``[link] signing_key_file`` is set (then with its timestamp keeper, which
+    has saved once: an unwritable timestamp file is a start-up error, not a surprise 30 s later)."""
+    lc = config.link
+    signing = signing_setup(config)  # key and timestamp files are checked before any socket is opened
+    link = await MavlinkLink.open(
+        lc.connect,
+        source_system=lc.autopilot_sysid,
+        source_component=lc.component_id,
+        tlog_path=config.resolve(lc.tlog) if lc.tlog else None,
+        signing=None if signing is None else signing.params,
+    )
+    if signing is None or link.signing is None:
+        return link, None
+    keeper = TimestampKeeper(link.signing, signing.timestamps)
+    try:
+        keeper.save()
+    except OSError as err:
+        await link.aclose()
+        msg = f"cannot write signing timestamp file {signing.timestamps.path}: {err.strerror}"
+        raise ConfigError(msg) from err
+    log.info("signing.on", extra={"timestamp": link.signing.timestamp, "timestamp_file": str(keeper.store.path)})
+    return link, keeper
 
 
 async def _open_zenoh(config: ServiceConfig) -> Any:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from apf_companion.errors import ApfCompanionError
+from apf_companion.links import load_signing_key
 from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SensorOnlyConfig, SensorSimulator
@@ -74,6 +75,13 @@ def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: 
     v.add_argument("--mode", help="start mode (GUIDED, LOITER, OFFBOARD, AUTO.LOITER, ...)")
     v.add_argument("--home", type=_triple, metavar="LAT,LON,ALT", help="home lat, lon [deg], alt AMSL [m]")
     v.add_argument("--physics-rate", type=float, default=100.0, help="physics steps per simulated s")
+    v.add_argument(
+        "--signing-key",
+        type=Path,
+        metavar="FILE",
+        help="MAVLink 2 signing key (32 raw bytes or 64 hex digits, mode 600): sign every frame, drop frames not "
+        "signed with it except RADIO_STATUS and a few others, as ArduPilot / PX4 do",
+    )
     _sensor_args(v)
     v.set_defaults(func=run_vehicle)
 
@@ -210,12 +218,14 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         tlog_path=args.tlog,
         zenoh=_zenoh(args),
         result_json=args.result_json,
+        signing_key=None if args.signing_key is None else load_signing_key(args.signing_key),
     )
     stop = asyncio.Event()
     _install_signals(stop)
     sim = await Simulator.start(cfg)
     print(
-        f"apf-sim vehicle ready: profile={args.profile} world={cfg.world.name} links={list(cfg.links)}",
+        f"apf-sim vehicle ready: profile={args.profile} world={cfg.world.name} links={list(cfg.links)}"
+        f"{' signed' if cfg.signing_key is not None else ''}",
         flush=True,
     )
     try:
