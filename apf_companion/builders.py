@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -13,8 +15,15 @@ from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.forwarder import ForwarderParams
 from apf_companion.goal import Route, load_route
-from apf_companion.handlers import HandlerParams
-from apf_companion.links import MavlinkLink
+from apf_companion.handlers import COMMAND_MESSAGES, HandlerParams
+from apf_companion.links import (
+    MavlinkLink,
+    SigningParams,
+    TimestampFile,
+    accept_unsigned_telemetry,
+    load_signing_key,
+    start_timestamp,
+)
 from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
@@ -24,6 +33,7 @@ from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
 
 __all__ = [
+    "SigningSetup",
     "build_navigator",
     "build_outbox",
     "build_planner",
@@ -33,6 +43,7 @@ __all__ = [
     "navigator_params",
     "perception_params",
     "reporter_params",
+    "signing_setup",
     "takeover_params",
 ]
 
@@ -212,3 +223,36 @@ def initial_route(config: ServiceConfig) -> Route | None:
     if g.north_m is not None and g.east_m is not None:
         return Route.point(g.north_m, g.east_m, g.down_m, source="config")
     return None
+
+
+@dataclass(frozen=True, slots=True)
+class SigningSetup:
+    """MAVLink 2 signing on the autopilot link: the link's parameters and where its timestamp is kept."""
+
+    params: SigningParams
+    timestamps: TimestampFile
+
+
+def signing_setup(config: ServiceConfig, unix_s: float | None = None) -> SigningSetup | None:
+    """Signing from ``[link] signing_*`` (None when no key file is set): the key (file mode checked), the first
+    timestamp (max(now, persisted + 1 min)) and the unsigned-message rule (commands / telemetry).
+
+    Raises:
+        ConfigError: the key file is missing, not private (mode 600), malformed or all zero; the timestamp file
+            is unreadable or malformed.
+    """
+    lc = config.link
+    if not lc.signing_key_file:
+        return None
+    key_path = config.resolve(lc.signing_key_file)
+    key = load_signing_key(key_path)
+    if lc.signing_timestamp_file:
+        ts_path = config.resolve(lc.signing_timestamp_file)
+    else:
+        ts_path = key_path.with_name(key_path.name + ".timestamp")
+    store = TimestampFile(ts_path)
+    initial = start_timestamp(store.load(), time.time() if unix_s is None else unix_s)
+    rule = accept_unsigned_telemetry(
+        COMMAND_MESSAGES, commands_ok=not lc.require_signed_commands, telemetry_ok=not lc.require_signed_telemetry
+    )
+    return SigningSetup(SigningParams(key=key, initial_timestamp=initial, accept_unsigned=rule), store)

@@ -168,11 +168,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     Exit codes: 0 = stopped or arrived, 1 = error, 2 = configuration error, 3 = stuck / timeout / link lost
     (only with exit_when_done).
     """
+    from apf_companion.builders import signing_setup
     from apf_companion.service import CompanionService, build_planner
 
     try:
         cfg, route = _effective_config(args)
         build_planner(cfg)  # validate planner parameters before opening anything
+        signing_setup(cfg)  # a key file others can read is refused here (exit 2)
     except ConfigError as err:
         print(f"apf-companion: config error: {err}", file=sys.stderr)
         return EXIT_CONFIG
@@ -209,12 +211,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_check(args: argparse.Namespace) -> int:
     """Validate a config file (keys, types, ranges, planner parameters, route file); print the effective
     configuration as JSON. Exit 0 if valid, 2 with the offending key otherwise."""
+    from apf_companion.builders import signing_setup
     from apf_companion.service import build_planner, initial_route
 
     try:
         cfg = load_config(args.config)
         build_planner(cfg)
         route = initial_route(cfg)
+        signing_setup(cfg)  # the key file's mode and contents, the timestamp file
     except ConfigError as err:
         print(f"{args.config}: {err}", file=sys.stderr)
         return EXIT_CONFIG

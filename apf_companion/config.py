@@ -94,6 +94,15 @@ class LinkConfig:
         heartbeat_timeout_s: No autopilot HEARTBEAT for this long -> LINK_LOST [s].
         telemetry_rate_hz: Rate requested for LOCAL_POSITION_NED and ATTITUDE (SET_MESSAGE_INTERVAL) [Hz].
         tlog: Path of the .tlog recording every frame in and out; "" = none.
+        signing_key_file: MAVLink 2 signing key (32 raw bytes or 64 hex digits; mode 600, else the service refuses
+            to start): every frame sent is signed and every frame received checked; "" = signing off.
+        signing_timestamp_file: Where the signing timestamp is kept across restarts (saved every 30 s and at
+            exit); "" = the key file's path plus ``.timestamp``.
+        require_signed_commands: With a key: act on commands (COMMAND_INT / COMMAND_LONG such as DO_REPOSITION,
+            SET_POSITION_TARGET_*, SET_MODE) only when signed with it; unsigned, wrongly signed or replayed ones
+            are dropped and counted.
+        require_signed_telemetry: With a key: drop every other message that is not signed with it too (turn on
+            when the autopilot signs: ArduPilot does on every channel once it has a key).
     """
 
     connect: str = "udpin:127.0.0.1:14540"
@@ -104,8 +113,21 @@ class LinkConfig:
     heartbeat_timeout_s: float = 3.0
     telemetry_rate_hz: float = 20.0
     tlog: str = ""
+    signing_key_file: str = ""
+    signing_timestamp_file: str = ""
+    require_signed_commands: bool = True
+    require_signed_telemetry: bool = False
 
     def __post_init__(self) -> None:
+        if not self.signing_key_file:
+            if self.require_signed_telemetry:
+                raise _fail("link.require_signed_telemetry", "false unless link.signing_key_file is set", True)
+            if self.signing_timestamp_file:
+                raise _fail(
+                    "link.signing_timestamp_file",
+                    "empty unless link.signing_key_file is set",
+                    self.signing_timestamp_file,
+                )
         if not self.connect.strip():
             raise _fail("link.connect", "an endpoint such as 'udpin:127.0.0.1:14540'", self.connect)
         _check_id("link.autopilot_sysid", self.autopilot_sysid)

@@ -49,7 +49,7 @@ from apf_companion.perception import PerceptionFrontEnd
 from apf_companion.reporter import ServiceCounters
 from apf_companion.streams import StreamKeeper, wanted_streams
 
-__all__ = ["AutopilotHandlers", "HandlerParams", "mode_is_ours"]
+__all__ = ["COMMAND_MESSAGES", "AutopilotHandlers", "HandlerParams", "mode_is_ours"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,15 @@ REBOOTING = frozenset({mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT})  # HEA
 RANGE_RECORDS = (ObstacleDistance, DistanceSensor, ObstacleDistance3d)
 # AP_Proximity.h PROXIMITY_SENSOR_ID_START (10): DISTANCE_SENSOR ids of the proximity sectors (8) and upward (+9)
 PROXIMITY_ECHO_IDS = range(10, 10 + 9)
+#: Messages that ask for action (goals, modes): with a signing key they are used only when signed with it
+#: (``link.require_signed_commands``; the link drops the others before any handler sees them).
+COMMAND_MESSAGES = (
+    "COMMAND_INT",
+    "COMMAND_LONG",
+    "SET_POSITION_TARGET_LOCAL_NED",
+    "SET_POSITION_TARGET_GLOBAL_INT",
+    "SET_MODE",
+)
 DEG_E7 = 1e-7
 MM = 1e-3
 # ArduCopter position_ok() (system.cpp ekf_has_absolute_position / _relative_position): a horizontal position, not

@@ -226,6 +226,15 @@ class _Counters:
     envelope_caps: int = 0  # feed-forward cut to the speed that can still stop short of the tracking clearance
     envelope_warnings: int = 0  # the reported velocity could carry the vehicle inside it before it can stop
 
+    def decision(self, reason: str) -> None:
+        """Count a planner decision by its ``Decision`` name."""
+        if reason == Decision.GREEDY.value:
+            self.greedy += 1
+        elif reason == Decision.RANDOM_WALK.value:
+            self.random_walk += 1
+        else:
+            self.local_minimum += 1
+
 
 @dataclass(slots=True)
 class _Leg:
@@ -770,15 +779,8 @@ class Navigator:
         dim = self.dim
         decision = self.planner.step(origin[:dim].copy(), leg.target_ned_m[:dim].copy(), obstacles[:, :dim], self.rng)
         reason = decision.reason.name
-        if reason == Decision.GREEDY.value:
-            self.counters.greedy += 1
-            leg.streak = 0
-        else:
-            leg.streak += 1
-            if reason == Decision.RANDOM_WALK.value:
-                self.counters.random_walk += 1
-            else:
-                self.counters.local_minimum += 1
+        leg.streak = 0 if reason == Decision.GREEDY.value else leg.streak + 1
+        self.counters.decision(reason)
         n = int(obstacles.shape[0])
         give_up = self._legs.give_up(leg, inp.now_s)
         if reason == Decision.GAVE_UP.value:

@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from apf_companion.errors import LinkError
+from apf_companion.links import SigningStats
 from apf_companion.navigator import CycleOutput, Navigator, State, StateChange
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd
@@ -27,6 +28,7 @@ from apf_companion.status import (
     NVI_REJECTED_LINK,
     NVI_REJECTED_POSES,
     NVI_REJECTED_SCANS,
+    NVI_REJECTED_SIGNING,
     encode_status_json,
     severity_for,
     statustext_for,
@@ -131,8 +133,10 @@ class StatusReporter:
         counters: ServiceCounters,
         zenoh: Any,
         now_s: float,
+        signing: SigningStats | None = None,
     ) -> None:
         self.params = params
+        self.signing = signing  # the autopilot link's signature verdicts (None: signing off)
         self.outbox = outbox
         self.navigator = navigator
         self.perception = perception
@@ -193,13 +197,15 @@ class StatusReporter:
 
     def rejected(self) -> dict[str, int]:
         """The rejected-input totals sent as NAMED_VALUE_INT (docs/hardening.md): poses, scans / memory clears,
-        link input (foreign, undecodable, bad goals) and errors caught or values not sendable."""
+        link input (foreign, undecodable, bad goals), frames refused by the signing check and errors caught or values
+        not sendable."""
         c, p, o = self.counters, self.perception.counters, self.outbox
         pose = p.bad_poses + p.stale_poses + p.out_of_bounds_poses + p.implausible_poses + p.pose_time_jumps
         return {
             NVI_REJECTED_POSES: pose,
             NVI_REJECTED_SCANS: p.bad_scans + p.clears_refused,
             NVI_REJECTED_LINK: c.foreign_messages + c.undecodable_messages + c.bad_goals + c.rejected_ranges,
+            NVI_REJECTED_SIGNING: 0 if self.signing is None else self.signing.rejected,
             NVI_ERRORS: c.handler_errors + o.send_errors + o.unsendable,
         }
 
@@ -213,9 +219,13 @@ class StatusReporter:
 
     # ---- records -----------------------------------------------------------------------------------------------
     def counts(self) -> dict[str, int]:
-        """Every edge counter: the service's, perception's and the setpoints / STATUSTEXTs sent."""
+        """Every edge counter: the service's, perception's, the setpoints / STATUSTEXTs sent and (``signing_``
+        prefixed) the signature verdicts."""
         sent = self.outbox.counts()
-        return dataclasses.asdict(self.counters) | dataclasses.asdict(self.perception.counters) | sent
+        out = dataclasses.asdict(self.counters) | dataclasses.asdict(self.perception.counters) | sent
+        if self.signing is not None:
+            out |= {f"signing_{k}": v for k, v in dataclasses.asdict(self.signing).items()}
+        return out
 
     def status_dict(self, now_s: float) -> dict[str, Any]:
         """The status record (see apf_companion.status for the schema)."""

@@ -29,7 +29,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +46,7 @@ from apf_companion.builders import (
     initial_route,
     perception_params,
     reporter_params,
+    signing_setup,
     takeover_params,
 )
 from apf_companion.config import ServiceConfig, ZenohSection
@@ -53,7 +54,7 @@ from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
 from apf_companion.forwarder import ObstacleForwarder
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
-from apf_companion.links import MavlinkLink
+from apf_companion.links import MavlinkLink, TimestampKeeper
 from apf_companion.links.messages import DECODERS, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State
 from apf_companion.observe import CycleObserver, Observers
@@ -188,6 +189,7 @@ class CompanionService:
         link: The open autopilot link (``open`` passes it), or None (nothing is sent or received).
         zenoh: The open zenoh link (``open`` passes it when enabled), or None.
         observers: Read-only watchers of each cycle; None = those ``[visualisation]`` asks for (Foxglove).
+        signing_keeper: Saves the link's signing timestamp (``open`` passes it when signing is configured).
     """
 
     def __init__(
@@ -200,8 +202,10 @@ class CompanionService:
         link: MavlinkLink | None = None,
         zenoh: Any = None,
         observers: Sequence[CycleObserver] | None = None,
+        signing_keeper: TimestampKeeper | None = None,
     ) -> None:
         self.config = config
+        self.signing_keeper = signing_keeper
         self.clock = clock or ServiceClock(config.cycle.time_scale)
         self.result_path = result_path
         self.link = link
@@ -232,6 +236,7 @@ class CompanionService:
             counters=self.counters,
             zenoh=zenoh,
             now_s=self.clock.now(),
+            signing=None if link is None or link.signing is None else link.signing.stats,
         )
         self.forwarder, self.takeover = self._drivers(config)
         self._stop = asyncio.Event()
@@ -277,18 +282,14 @@ class CompanionService:
         """
         build_planner(config)  # config errors (planner, route file) before any socket is opened
         route = route if route is not None else initial_route(config)
-        tlog = config.resolve(config.link.tlog) if config.link.tlog else None
-        link = await MavlinkLink.open(
-            config.link.connect,
-            source_system=config.link.autopilot_sysid,
-            source_component=config.link.component_id,
-            tlog_path=tlog,
-        )
+        link, keeper = await _open_mavlink(config)
         zenoh = None
         try:
             if config.zenoh.enabled:
                 zenoh = await _open_zenoh(config)
-            return cls(config, route=route, clock=clock, result_path=result_path, link=link, zenoh=zenoh)
+            return cls(
+                config, route=route, clock=clock, result_path=result_path, link=link, zenoh=zenoh, signing_keeper=keeper
+            )
         except BaseException:
             if zenoh is not None:
                 await zenoh.aclose()
@@ -300,6 +301,8 @@ class CompanionService:
         self.observers.close()
         if self.link is not None:
             await self.link.aclose()
+        if self.signing_keeper is not None:
+            self.signing_keeper.close()  # the last signing timestamp, after the last frame
         if self.zenoh is not None:
             zl, self.zenoh = self.zenoh, None
             self.reporter.zenoh = None
@@ -320,12 +323,7 @@ class CompanionService:
                     tg.create_task(self._periodic("status", self.reporter.due, 1.0), name="apf.status"),
                     tg.create_task(self._takeover_loop(), name="apf.takeover"),
                 ]
-                if self.forwarder.params.enabled:
-                    forward = self._periodic("forward", self.forwarder.due, self.forwarder.period_s)
-                    tasks.append(tg.create_task(forward, name="apf.forward"))
-                if self.zenoh is not None:
-                    zenoh_in = ZenohInputs(self.zenoh, self.config.zenoh, self)
-                    tasks.append(tg.create_task(zenoh_in.run(), name="apf.zenoh"))
+                tasks += [tg.create_task(coro, name=name) for name, coro in _optional_tasks(self)]
                 await self._stop.wait()
                 for task in tasks:
                     task.cancel()
@@ -584,6 +582,43 @@ def _open_observers(config: ServiceConfig, clock: ServiceClock) -> list[CycleObs
     mcap = mcap_path_in(config.resolve(vc.mcap_dir)) if vc.mcap_dir else None
     port = vc.foxglove_port if vc.foxglove else None
     return [FoxgloveSink(mcap_path=mcap, port=port, t0_s=clock.now())]
+
+
+def _optional_tasks(svc: CompanionService) -> list[tuple[str, Coroutine[Any, Any, None]]]:
+    """The service's tasks that run only when configured: forwarding, zenoh inputs, the signing timestamp."""
+    out: list[tuple[str, Coroutine[Any, Any, None]]] = []
+    if svc.forwarder.params.enabled:
+        out.append(("apf.forward", svc._periodic("forward", svc.forwarder.due, svc.forwarder.period_s)))
+    if svc.zenoh is not None:
+        out.append(("apf.zenoh", ZenohInputs(svc.zenoh, svc.config.zenoh, svc).run()))
+    if svc.signing_keeper is not None:
+        out.append(("apf.signing", svc.signing_keeper.run(lambda err: svc.faults.caught("signing", err))))
+    return out
+
+
+async def _open_mavlink(config: ServiceConfig) -> tuple[MavlinkLink, TimestampKeeper | None]:
+    """The autopilot link, signed when ``[link] signing_key_file`` is set (then with its timestamp keeper, which
+    has saved once: an unwritable timestamp file is a start-up error, not a surprise 30 s later)."""
+    lc = config.link
+    signing = signing_setup(config)  # key and timestamp files are checked before any socket is opened
+    link = await MavlinkLink.open(
+        lc.connect,
+        source_system=lc.autopilot_sysid,
+        source_component=lc.component_id,
+        tlog_path=config.resolve(lc.tlog) if lc.tlog else None,
+        signing=None if signing is None else signing.params,
+    )
+    if signing is None or link.signing is None:
+        return link, None
+    keeper = TimestampKeeper(link.signing, signing.timestamps)
+    try:
+        keeper.save()
+    except OSError as err:
+        await link.aclose()
+        msg = f"cannot write signing timestamp file {signing.timestamps.path}: {err.strerror}"
+        raise ConfigError(msg) from err
+    log.info("signing.on", extra={"timestamp": link.signing.timestamp, "timestamp_file": str(keeper.store.path)})
+    return link, keeper
 
 
 async def _open_zenoh(config: ServiceConfig) -> Any:

@@ -9,7 +9,8 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
      "distance_to_goal_m": 9.1 | null, "nearest_obstacle_m": 1.7 | null, "n_obstacles": 31,
      "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null, "decision": "GREEDY" | null,
      "autopilot": {"mode_ok": true, "armed": true, "link_alive": true}, "counters": {...},
-     "rejected": {"APF_RJPOSE": 0, "APF_RJSCAN": 0, "APF_RJLINK": 0, "APF_ERRORS": 0}}
+     "rejected": {"APF_RJPOSE": 0, "APF_RJSCAN": 0, "APF_RJLINK": 0, "APF_RJSIGN": 0,
+                  "APF_ERRORS": 0}}
 
 ``counters`` holds every edge, perception, outbox and (``nav_`` prefixed) navigator counter; ``rejected`` the
 totals also sent as NAMED_VALUE_INT (docs/hardening.md).
@@ -32,6 +33,7 @@ __all__ = [
     "NVI_REJECTED_LINK",
     "NVI_REJECTED_POSES",
     "NVI_REJECTED_SCANS",
+    "NVI_REJECTED_SIGNING",
     "STATUS_SCHEMA",
     "encode_status_json",
     "severity_for",
@@ -45,6 +47,7 @@ NVF_NEAREST_OBSTACLE = "APF_DOBS"
 NVI_REJECTED_POSES = "APF_RJPOSE"  # NAMED_VALUE_INT: rejected-input totals (docs/hardening.md)
 NVI_REJECTED_SCANS = "APF_RJSCAN"
 NVI_REJECTED_LINK = "APF_RJLINK"
+NVI_REJECTED_SIGNING = "APF_RJSIGN"  # frames refused by the signing check (docs/hardening.md#mavlink-2-signing)
 NVI_ERRORS = "APF_ERRORS"
 
 _SEVERITY: dict[State, int] = {

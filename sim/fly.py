@@ -57,7 +57,7 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
-from apf_companion.links import MavlinkLink
+from apf_companion.links import MavlinkLink, load_signing_key
 from sim.linkfaults import LinkFaults, LinkProxy
 
 if TYPE_CHECKING:
@@ -97,6 +97,7 @@ class FlyOptions:
     progress: bool = True
     service_args: tuple[str, ...] = field(default_factory=tuple)
     link_faults: LinkFaults | None = None
+    signing_key: Path | None = None  # both processes sign with this key file and require signed input
 
 
 def free_udp_port() -> int:
@@ -182,6 +183,7 @@ tlog = "{tlog}"
 # freezes its vehicle too, so a longer heartbeat timeout here flies nothing blind.
 heartbeat_timeout_s = {max(3.0, 1.0 * opt.speedup)}
 
+{_signing_toml(opt)}
 [autopilot]
 profile = "{opt.profile}"
 arm = true
@@ -214,6 +216,16 @@ def _visualisation_toml(opt: FlyOptions) -> str:
 [visualisation]
 mcap_dir = "{opt.out.resolve()}"
 """
+
+
+def _signing_toml(opt: FlyOptions) -> str:
+    if opt.signing_key is None:
+        return ""
+    key = opt.signing_key.resolve()
+    return (
+        f'signing_key_file = "{key}"\nsigning_timestamp_file = "{(opt.out / "signing.timestamp").resolve()}"\n'
+        "require_signed_telemetry = true\n"
+    )
 
 
 def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
@@ -249,6 +261,8 @@ def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
     ]
     if opt.noise_m > 0:
         argv += ["--param", f"SIM_POS_NOISE={opt.noise_m}"]
+    if opt.signing_key is not None:
+        argv += ["--signing-key", str(opt.signing_key.resolve())]
     if opt.world is not None:
         argv += ["--world", opt.world]
     else:
@@ -629,6 +643,13 @@ def _add_flight_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, help="write the result record here too")
     p.add_argument("--no-plot", action="store_true", help="skip the trajectory PNG")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument(
+        "--signing-key",
+        type=Path,
+        metavar="FILE",
+        help="MAVLink 2 signing key file (mode 600): the simulator and the service sign every frame and drop "
+        "unsigned ones (docs/hardening.md#mavlink-2-signing)",
+    )
 
 
 def _add_sweep_options(p: argparse.ArgumentParser) -> None:
@@ -684,6 +705,8 @@ def _start_goal(args: argparse.Namespace) -> tuple[tuple[float, float], tuple[fl
 def _cmd_fly(args: argparse.Namespace) -> int:
     try:
         start, goal = _start_goal(args)
+        if args.signing_key is not None:
+            load_signing_key(args.signing_key)  # a key file others can read: refused before anything starts
     except ApfCompanionError as err:
         print(f"apf-sim fly: {err}", file=sys.stderr)
         return 2
@@ -707,6 +730,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         plot=not args.no_plot,
         progress=not args.quiet,
         link_faults=args.link_faults,
+        signing_key=args.signing_key,
     )
     if args.trials <= 1:
         opt = dataclasses.replace(opt, obstacles=_densities(opt)[0])

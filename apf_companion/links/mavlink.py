@@ -8,7 +8,8 @@ overflow). Outgoing messages are packed with this link's system/component ids an
 and written to every connected peer (a ``udpin``/``tcpin`` link replies to all peers it has heard from, like
 pymavlink's ``udpin``). A ``tcp:`` client reconnects with exponential backoff. Every frame in and out can be
 recorded to a ``.tlog``. The link's background tasks (the transport's receive loop, one task per TCP client)
-run in one ``asyncio.TaskGroup``, owned by one supervisor task and ended by ``aclose``.
+run in one ``asyncio.TaskGroup``, owned by one supervisor task and ended by ``aclose``. With ``signing``
+(``SigningParams``) every frame out is signed and every frame in is checked (apf_companion.links.signing).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from typing import Any
 from apf_companion.errors import LinkError, LinkTimeout
 from apf_companion.links.endpoint import Endpoint, parse_endpoint
 from apf_companion.links.receiver import LinkStats, Receiver
+from apf_companion.links.signing import LinkSigning, SigningParams
 from apf_companion.links.tlog import TlogWriter
 from apf_companion.links.transports import TRANSPORTS
 
@@ -54,13 +56,17 @@ class MavlinkLink:
         dialect: str,
         tlog_path: Path | str | None,
         rx_queue_size: int,
+        signing: SigningParams | None = None,
     ) -> None:
         self.endpoint = endpoint
         self.dialect = load_dialect(dialect)
         self.mav: Any = self.dialect.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
         self.stats = LinkStats()
+        self.signing = LinkSigning(signing, self.mav) if signing is not None else None
         self._tlog = TlogWriter(tlog_path) if tlog_path is not None else None
-        self._receiver = Receiver(self.dialect, self.stats, queue_size=rx_queue_size, tlog=self._tlog)
+        self._receiver = Receiver(
+            self.dialect, self.stats, queue_size=rx_queue_size, tlog=self._tlog, signing=self.signing
+        )
         self._transport = TRANSPORTS[endpoint.kind](endpoint, self._receiver)
         self._supervisor: asyncio.Task[None] | None = None
         self._closed = False
@@ -76,8 +82,12 @@ class MavlinkLink:
         tlog_path: Path | str | None = None,
         dialect: str = "ardupilotmega",
         rx_queue_size: int = 4096,
+        signing: SigningParams | None = None,
     ) -> MavlinkLink:
         """Open a link. Listening kinds are bound when this returns; a ``tcp:`` client connects in the background.
+
+        With ``signing``, every frame sent is signed and every frame received is checked
+        (apf_companion.links.signing); ``link.signing`` holds the timestamp and the verdict counts.
 
         Raises:
             LinkError: the socket or serial port cannot be opened (address in use, no such device, ...).
@@ -90,6 +100,7 @@ class MavlinkLink:
             dialect=dialect,
             tlog_path=tlog_path,
             rx_queue_size=rx_queue_size,
+            signing=signing,
         )
         try:
             await link._transport.open()

@@ -2,7 +2,8 @@
 
 A transport hands every chunk it reads to ``Receiver.feed`` with a key naming the peer it came from (a UDP
 address, one key per TCP connection, ``"serial"``), so interleaved peers never corrupt each other's frames.
-Junk becomes counted bad frames, never exceptions. When the queue is full the OLDEST message is dropped and
+Junk becomes counted bad frames, never exceptions. With signing on, every good frame is checked (``LinkSigning``)
+and the ones it refuses are counted there and dropped. When the queue is full the OLDEST message is dropped and
 counted: telemetry is latest-wins.
 """
 
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
+from apf_companion.links.signing import LinkSigning
 from apf_companion.links.tlog import TlogWriter
 
 __all__ = ["LinkStats", "PeerKey", "Receiver"]
@@ -41,8 +43,17 @@ class LinkStats:
 class Receiver:
     """What a transport reports to its link: bytes per peer, and whether a peer is connected."""
 
-    def __init__(self, dialect: ModuleType, stats: LinkStats, *, queue_size: int, tlog: TlogWriter | None) -> None:
+    def __init__(
+        self,
+        dialect: ModuleType,
+        stats: LinkStats,
+        *,
+        queue_size: int,
+        tlog: TlogWriter | None,
+        signing: LinkSigning | None = None,
+    ) -> None:
         self.stats = stats
+        self.signing = signing
         self.queue: asyncio.Queue[Any] = asyncio.Queue(maxsize=queue_size)
         self.connected = asyncio.Event()  # set while ``wait_connected`` may return
         self._dialect = dialect
@@ -83,6 +94,8 @@ class Receiver:
         if msg.get_type() == "BAD_DATA":
             self.stats.bad_frames += 1
             return
+        if self.signing is not None and not self.signing.accept(msg):
+            return  # counted by the signing check
         self.stats.packets_received += 1
         if self._tlog is not None:
             self._tlog.write(bytes(msg.get_msgbuf()))

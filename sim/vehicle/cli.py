@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from apf_companion.errors import ApfCompanionError
+from apf_companion.links import load_signing_key
 from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SENSOR_COMPID, SensorOnlyConfig, SensorSimulator
@@ -33,6 +34,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     """Add ``vehicle`` and ``sensor`` to ``apf-sim``."""
     _register_vehicle(subparsers)
     _register_sensor(subparsers)
+
+
+def _startup_args(v: argparse.ArgumentParser) -> None:
+    """How the ArduPilot profile boots (sim/vehicle/startup.py, telemetry.py)."""
+    v.add_argument(
+        "--fast-start",
+        action="store_true",
+        help="EKF origin at boot (ArduPilot otherwise has no position for SIM_EKF_ORIGIN_S = 20 s, as on SITL)",
+    )
+    v.add_argument(
+        "--unasked-streams",
+        action="store_true",
+        help="stream telemetry without being asked (ArduPilot otherwise sends HEARTBEAT only until asked)",
+    )
 
 
 def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -71,22 +86,20 @@ def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: 
         help="horizontal actuation noise SD per 0.1 s [m] (SIM_POS_NOISE; the paper's is 0.1)",
     )
     v.add_argument("--airborne", action="store_true", help="start flying (armed, hovering) instead of landed")
-    v.add_argument(
-        "--fast-start",
-        action="store_true",
-        help="EKF origin at boot (ArduPilot otherwise has no position for SIM_EKF_ORIGIN_S = 20 s, as on SITL)",
-    )
-    v.add_argument(
-        "--unasked-streams",
-        action="store_true",
-        help="stream telemetry without being asked (ArduPilot otherwise sends HEARTBEAT only until asked)",
-    )
     v.add_argument("--alt", type=float, default=5.0, help="hover height for --airborne [m]")
     v.add_argument("--start", type=_pair, metavar="N,E", help="start north,east [m] (default: world start)")
     v.add_argument("--yaw", type=float, default=0.0, help="start heading [deg]")
     v.add_argument("--mode", help="start mode (GUIDED, LOITER, OFFBOARD, AUTO.LOITER, ...)")
     v.add_argument("--home", type=_triple, metavar="LAT,LON,ALT", help="home lat, lon [deg], alt AMSL [m]")
     v.add_argument("--physics-rate", type=float, default=100.0, help="physics steps per simulated s")
+    v.add_argument(
+        "--signing-key",
+        type=Path,
+        metavar="FILE",
+        help="MAVLink 2 signing key (32 raw bytes or 64 hex digits, mode 600): sign every frame, drop frames not "
+        "signed with it except RADIO_STATUS and a few others, as ArduPilot / PX4 do",
+    )
+    _startup_args(v)
     _sensor_args(v)
     v.set_defaults(func=run_vehicle)
 
@@ -231,12 +244,14 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         result_json=args.result_json,
         fast_start=args.fast_start,
         unasked_streams=True if args.unasked_streams else None,
+        signing_key=None if args.signing_key is None else load_signing_key(args.signing_key),
     )
     stop = asyncio.Event()
     _install_signals(stop)
     sim = await Simulator.start(cfg)
     print(
-        f"apf-sim vehicle ready: profile={args.profile} world={cfg.world.name} links={list(cfg.links)}",
+        f"apf-sim vehicle ready: profile={args.profile} world={cfg.world.name} links={list(cfg.links)}"
+        f"{' signed' if cfg.signing_key is not None else ''}",
         flush=True,
     )
     try:

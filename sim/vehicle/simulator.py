@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import math
 import os
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +33,7 @@ from typing import Any
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkError
-from apf_companion.links import MavlinkLink
+from apf_companion.links import MavlinkLink, SigningParams, accept_unsigned_only, signing_timestamp
 from sim.vehicle.config import AUTO_DYNAMICS, Dynamics, EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
 from sim.vehicle.engine import VehicleEngine
 from sim.vehicle.sensor import RangeSensorConfig, Scan
@@ -41,6 +43,13 @@ log = logging.getLogger(__name__)
 
 __all__ = ["SimConfig", "Simulator", "ZenohOutput", "scan_to_range_scan", "write_result_json"]
 
+#: With a signing key, the only messages taken unsigned or wrongly signed on a non-USB link: ArduPilot's
+#: ``accept_list`` (libraries/GCS_MAVLink/GCS_Signing.cpp ``accept_unsigned_callback``) and PX4's
+#: ``unsigned_messages`` (src/modules/mavlink/mavlink_sign_control.cpp ``accept_unsigned``, MAV_SIGN_CFG >= 1).
+UNSIGNED_ACCEPTED: dict[Autopilot, tuple[str, ...]] = {
+    Autopilot.ARDUPILOT: ("RADIO_STATUS", "RADIO"),
+    Autopilot.PX4: ("RADIO_STATUS", "ADSB_VEHICLE", "COLLISION"),
+}
 STEPS_PER_YIELD = 25  # as-fast-as-possible mode: let the readers run this often
 MAX_LAG_S = 0.5  # simulated seconds behind schedule before the clock is re-based
 
@@ -93,6 +102,9 @@ class SimConfig:
             with no position, no arming in GUIDED; see sim/vehicle/startup.py). For tests that do not test startup.
         unasked_streams: stream telemetry without being asked (the old behaviour); None = the profile's habit
             (ArduPilot: HEARTBEAT only until SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM; PX4: its default streams).
+        signing_key: MAVLink 2 signing key (32 bytes, ``apf_companion.links.load_signing_key``): every link signs
+            its frames (link id = link index, timestamp from the wall clock, as ArduPilot with a GPS fix) and
+            drops frames not signed with it, except the profile's ``UNSIGNED_ACCEPTED``; None = signing off.
     """
 
     links: Sequence[str] = ()
@@ -112,9 +124,13 @@ class SimConfig:
     result_json: Path | None = None
     fast_start: bool = False
     unasked_streams: bool | None = None
+    signing_key: bytes | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "links", tuple(self.links))
+        if self.signing_key is not None and len(self.signing_key) != 32:
+            msg = f"signing_key must be 32 bytes, got {len(self.signing_key)}"
+            raise ConfigError(msg)
         if isinstance(self.profile, str):
             try:
                 object.__setattr__(self, "profile", Autopilot(self.profile.lower()))
@@ -218,6 +234,18 @@ class ZenohPublisher:
         await self._link.aclose()
 
 
+def _signing(cfg: SimConfig, link_index: int) -> SigningParams | None:
+    if cfg.signing_key is None:
+        return None
+    assert isinstance(cfg.profile, Autopilot)
+    return SigningParams(
+        key=cfg.signing_key,
+        initial_timestamp=signing_timestamp(time.time()),  # GCS_Signing.cpp update_signing_timestamp (GPS time)
+        accept_unsigned=accept_unsigned_only(UNSIGNED_ACCEPTED[cfg.profile]),
+        link_id=link_index % 256,
+    )
+
+
 class Simulator:
     """A running simulator. Create with ``await Simulator.start(cfg)``; stop with ``await sim.aclose()``."""
 
@@ -250,7 +278,10 @@ class Simulator:
         try:
             for i, ep in enumerate(cfg.links):
                 tlog = tlog_path_for(cfg.tlog_path, i) if cfg.tlog_path is not None else None
-                links.append(await MavlinkLink.open(ep, source_system=1, source_component=1, tlog_path=tlog))
+                signing = _signing(cfg, i)
+                links.append(
+                    await MavlinkLink.open(ep, source_system=1, source_component=1, tlog_path=tlog, signing=signing)
+                )
             if cfg.zenoh is not None:
                 zenoh_pub = await ZenohPublisher.open(cfg.zenoh)
             sim = cls(cfg, links, zenoh_pub)
@@ -315,6 +346,8 @@ class Simulator:
         out["speedup"] = self.cfg.speedup if math.isfinite(self.cfg.speedup) else None
         out["links"] = [str(link.endpoint) for link in self.links]
         out["lag_resets"] = self.lag_resets  # times the host could not keep up with the speed-up
+        if self.cfg.signing_key is not None:  # per link: frames signed / unsigned / ... / rejected
+            out["signing"] = [dataclasses.asdict(lk.signing.stats) for lk in self.links if lk.signing is not None]
         return out
 
     async def wait_until(self, predicate: Any, *, timeout_s: float, poll_s: float = 0.005) -> bool:
