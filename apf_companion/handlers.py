@@ -1,8 +1,10 @@
 """The autopilot handlers: decoded MAVLink records in, to the part that owns what they carry.
 
 Messages are accepted only from the configured autopilot (sysid/compid), one handler per record type
-(``_AUTOPILOT``); the one exception is COMMAND_INT / COMMAND_LONG addressed to our component from a configured
-ground-station sysid (DO_REPOSITION). Everything else is counted (``foreign_messages``) and dropped.
+(``_AUTOPILOT``); the exceptions come from a configured ground-station sysid and are addressed to us: COMMAND_INT /
+COMMAND_LONG (DO_REPOSITION) and the parameter protocol (PARAM_*, to ``on_param``). "To us" is our sysid (the
+vehicle's) or 0 (broadcast, MAVProxy's default) and our component or 0 (all components). Everything else is
+counted (``foreign_messages``) and dropped.
 
 Owns what the autopilot says about itself: its mode and arming (HEARTBEAT), whether it has been heard, and the
 global reference (GLOBAL_POSITION_INT) that places global goals and the PX4 takeoff altitude.
@@ -31,6 +33,9 @@ from apf_companion.links.messages import (
     ObstacleDistance,
     ObstacleDistance3d,
     Odometry,
+    ParamRequestList,
+    ParamRequestRead,
+    ParamSet,
     Record,
     Source,
 )
@@ -45,6 +50,8 @@ log = logging.getLogger(__name__)
 
 NOT_A_VEHICLE = frozenset({mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GCS})  # their HEARTBEATs
 REBOOTING = frozenset({mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT})  # HEARTBEAT.system_status
+BROADCAST = 0  # target_system / target_component 0: every system / every component (MAVLink routing)
+ParamRecord = ParamRequestList | ParamRequestRead | ParamSet
 DEG_E7 = 1e-7
 MM = 1e-3
 
@@ -74,6 +81,7 @@ class AutopilotHandlers:
         set_route: Starts a goal (the service's; returns whether the navigator accepted it).
         on_pose: Called when the navigator accepted a new pose (it triggers a cycle).
         route_at_start: Flown once the autopilot is first heard.
+        on_param: Handles a PARAM_* addressed to us (apf_companion.params.ParamServer.handle); None = ignored.
     """
 
     def __init__(
@@ -87,6 +95,7 @@ class AutopilotHandlers:
         set_route: Callable[[Route, float], bool],
         on_pose: Callable[[], None],
         route_at_start: Route | None,
+        on_param: Callable[[ParamRecord], None] | None = None,
     ) -> None:
         self.params = params
         self.perception = perception
@@ -96,6 +105,7 @@ class AutopilotHandlers:
         self._set_route = set_route
         self._on_pose = on_pose
         self._route_at_start = route_at_start
+        self._on_param = on_param
         self.heard = False
         self.custom_mode: int | None = None
         self.base_mode = 0
@@ -117,6 +127,9 @@ class AutopilotHandlers:
                 handler(self, rec, now_s)
         elif isinstance(rec, CommandInt | CommandLong) and self._for_us(rec):
             self._on_command(rec, now_s)
+        elif isinstance(rec, ParamRecord) and self._on_param is not None and self._for_us(rec):
+            self.counters.param_requests += 1
+            self._on_param(rec)
         else:
             self.counters.foreign_messages += 1
 
@@ -127,12 +140,13 @@ class AutopilotHandlers:
         elif src != self.params.autopilot:
             self.counters.foreign_messages += 1
 
-    def _for_us(self, rec: CommandInt | CommandLong) -> bool:
+    def _for_us(self, rec: CommandInt | CommandLong | ParamRecord) -> bool:
+        """From a ground station, to our system (or all) and our component (or all): MAVLink routing's rule."""
         p = self.params
         return (
             rec.src.system in p.gcs_sysids
-            and rec.target_system == p.autopilot.system
-            and rec.target_component == p.component_id
+            and rec.target_system in (p.autopilot.system, BROADCAST)
+            and rec.target_component in (p.component_id, BROADCAST)
         )
 
     # ---- from the autopilot ------------------------------------------------------------------------------------
@@ -196,7 +210,10 @@ class AutopilotHandlers:
         self.counters.commands_for_us += 1
         src = rec.src
         if rec.command != mavlink.MAV_CMD_DO_REPOSITION:
-            self.outbox.ack(rec.command, mavlink.MAV_RESULT_UNSUPPORTED, src.system, src.component)
+            if rec.target_component != BROADCAST:
+                # To all components, the command is the autopilot's to answer: an UNSUPPORTED from us beside
+                # its ACCEPTED would read as a refusal.
+                self.outbox.ack(rec.command, mavlink.MAV_RESULT_UNSUPPORTED, src.system, src.component)
             return
         if isinstance(rec, CommandLong):
             self.outbox.ack(rec.command, mavlink.MAV_RESULT_COMMAND_INT_ONLY, src.system, src.component)

@@ -40,6 +40,7 @@ from apf_companion.builders import (
     build_planner,
     handler_params,
     initial_route,
+    navigator_params,
     perception_params,
     reporter_params,
     takeover_params,
@@ -50,8 +51,9 @@ from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.links import MavlinkLink
 from apf_companion.links.messages import DECODERS, decode, source
-from apf_companion.navigator import CycleOutput, Navigator, State
+from apf_companion.navigator import CycleOutput, Navigator, State, reconfigure
 from apf_companion.outbox import Outbox
+from apf_companion.params import ParamServer
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
 from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
 from apf_companion.setpoint import SetpointKind
@@ -187,6 +189,7 @@ class CompanionService:
             set_route=self.set_route,
             on_pose=self._pose_arrived,
             route_at_start=route if route is not None else initial_route(config),
+            on_param=lambda rec: self.params.handle(rec),
         )
         self.reporter = StatusReporter(
             reporter_params(config),
@@ -197,6 +200,13 @@ class CompanionService:
             counters=self.counters,
             zenoh=zenoh,
             now_s=now,
+        )
+        self.params = ParamServer(
+            config,
+            self.planner,
+            outbox=self.outbox,
+            apply=self._apply_params,
+            statustext=self.reporter.statustext,
         )
         self.takeover = TakeoverDriver(
             TakeoverController(takeover_params(config)),
@@ -272,6 +282,7 @@ class CompanionService:
                     tg.create_task(self._cycle_loop(), name="apf.cycle"),
                     tg.create_task(self._status_loop(), name="apf.status"),
                     tg.create_task(self._takeover_loop(), name="apf.takeover"),
+                    tg.create_task(self.params.run(), name="apf.params"),
                 ]
                 if self.zenoh is not None:
                     zenoh_in = ZenohInputs(self.zenoh, self.config.zenoh, self)
@@ -321,6 +332,12 @@ class CompanionService:
         else:
             self.counters.bad_goals += 1
         return accepted
+
+    def _apply_params(self, config: ServiceConfig, planner: Any) -> None:
+        """A PARAM_SET's validated config and planner (apf_companion.params) into service. Input handling and cycles
+        share one event loop, so this runs between two cycles."""
+        self.config, self.planner = config, planner
+        reconfigure(self.navigator, navigator_params(config, planner), planner)
 
     # ---- tasks -------------------------------------------------------------------------------------------------
     async def _rx(self) -> None:
