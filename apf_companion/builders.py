@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from apf_companion.adopt import AdoptParams
 from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.goal import Route, load_route
@@ -175,6 +176,7 @@ def handler_params(config: ServiceConfig) -> HandlerParams:
         dry_run=config.dry_run,
         mavlink_ranges=config.sensors.mavlink,
         telemetry_rate_hz=lc.telemetry_rate_hz,
+        adopt=AdoptParams(enabled=config.goal.adopt_autopilot_target, tolerance_m=config.goal.adopt_tolerance_m),
     )
 
 

@@ -215,12 +215,19 @@ class GoalConfig:
         north_m, east_m, down_m: A single goal in local NED [m]; ``down_m`` omitted = keep the altitude.
         route: A route file instead (TOML ``[[waypoint]]`` tables or CSV lines ``north,east[,down]``),
             relative paths resolved against the config file.
+        adopt_autopilot_target: Take the autopilot's new guided target (a ground station's "Fly here" / "Go to
+            location" / MAVProxy ``guided``, seen in POSITION_TARGET_GLOBAL_INT / _LOCAL_NED) as the goal and fly
+            there around obstacles (docs/ecosystem.md).
+        adopt_tolerance_m: A reported target within this of a setpoint the service sent (or of its goal, or of
+            the vehicle) is not a new goal [m].
     """
 
     north_m: float | None = None
     east_m: float | None = None
     down_m: float | None = None
     route: str = ""
+    adopt_autopilot_target: bool = False
+    adopt_tolerance_m: float = 1.0
 
     def __post_init__(self) -> None:
         if (self.north_m is None) != (self.east_m is None):
@@ -233,6 +240,7 @@ class GoalConfig:
             value = getattr(self, key)
             if value is not None:
                 _check_range(f"goal.{key}", value, -1e6, 1e6)
+        _check_range("goal.adopt_tolerance_m", self.adopt_tolerance_m, 0.1, 50.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

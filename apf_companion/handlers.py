@@ -15,11 +15,12 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.adopt import ECHO_WINDOW_S, AdoptParams, is_new_target
 from apf_companion.autopilot import Autopilot, CopterMode, Px4MainMode, Px4Mode
 from apf_companion.goal import GlobalReference, RepositionError, Route, local_goal_from_reposition
 from apf_companion.links.messages import (
@@ -36,6 +37,8 @@ from apf_companion.links.messages import (
     ParamRequestList,
     ParamRequestRead,
     ParamSet,
+    PositionTargetGlobalInt,
+    PositionTargetLocalNed,
     Record,
     Source,
 )
@@ -72,6 +75,7 @@ class HandlerParams:
     dry_run: bool = False
     mavlink_ranges: bool = True  # [sensors] mavlink
     telemetry_rate_hz: float = 20.0
+    adopt: AdoptParams = field(default_factory=AdoptParams)
 
 
 class AutopilotHandlers:
@@ -205,6 +209,44 @@ class AutopilotHandlers:
         if self.params.mavlink_ranges:
             self.perception.on_obstacle_distance_3d(rec, now_s)
 
+    # ---- the autopilot's guided target (apf_companion.adopt) -----------------------------------------------------
+    def _on_position_target_local(self, rec: PositionTargetLocalNed, now_s: float) -> None:
+        if self.params.adopt.enabled and rec.coordinate_frame == mavlink.MAV_FRAME_LOCAL_NED:
+            self._adopt((rec.x, rec.y, rec.z), rec.type_mask, now_s)
+
+    def _on_position_target_global(self, rec: PositionTargetGlobalInt, now_s: float) -> None:
+        if not self.params.adopt.enabled:
+            return
+        try:  # the frames and the flat-earth placement of DO_REPOSITION (apf_companion.goal)
+            route = local_goal_from_reposition(
+                frame=rec.coordinate_frame,
+                x=rec.lat_int,
+                y=rec.lon_int,
+                z=rec.alt,
+                reference=self.global_ref,
+                source="",
+            )
+        except RepositionError:
+            return  # no global reference yet, or a frame we cannot place (terrain): not a goal we can fly
+        n, e, d = (float(v) for v in route.waypoints_ned_m[-1])
+        self._adopt((n, e, d), rec.type_mask, now_s)
+
+    def _adopt(self, target: tuple[float, float, float], type_mask: int, now_s: float) -> None:
+        nav = self.navigator
+        if not self.mode_ok:
+            return
+        new = is_new_target(
+            target,
+            type_mask,
+            sent=self.outbox.sent.since(now_s - ECHO_WINDOW_S),
+            goal_ned_m=None if nav.route is None else nav.route.waypoints_ned_m[-1].tolist(),
+            pose_ned_m=None if nav.pose is None else nav.pose.pos_ned_m.tolist(),
+            tolerance_m=self.params.adopt.tolerance_m,
+        )
+        if new:
+            log.info("goal.adopted", extra={"source": "autopilot", "target_ned_m": list(target)})
+            self._set_route(Route.point(*target, source="autopilot-target"), now_s)
+
     # ---- commands for us ---------------------------------------------------------------------------------------
     def _on_command(self, rec: CommandInt | CommandLong, now_s: float) -> None:
         self.counters.commands_for_us += 1
@@ -251,5 +293,7 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     DistanceSensor: AutopilotHandlers._on_distance_sensor,
     ObstacleDistance3d: AutopilotHandlers._on_obstacle_distance_3d,
     Odometry: AutopilotHandlers._on_odometry,
+    PositionTargetLocalNed: AutopilotHandlers._on_position_target_local,
+    PositionTargetGlobalInt: AutopilotHandlers._on_position_target_global,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

@@ -19,6 +19,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.adopt import SentSetpoints
 from apf_companion.autopilot import PX4_OFFBOARD, Autopilot, CopterMode
 from apf_companion.links import MavlinkLink
 from apf_companion.setpoint import Setpoint, encode_setpoint
@@ -96,6 +97,7 @@ class Outbox:
         self._start_s = now_s()
         self.setpoints_sent = 0
         self.last_setpoint: Setpoint | None = None  # the newest one that went out
+        self.sent = SentSetpoints()  # their positions: the autopilot's echoes of them are not new goals
         self.statustexts_sent = 0
         self._statustext_id = 0  # id of the last chunked STATUSTEXT (uint16, never 0: 0 means "one chunk")
         self.clamped_values = 0  # report values clamped into float32's range
@@ -156,6 +158,7 @@ class Outbox:
         self.setpoints_sent += int(sent)
         if sent:
             self.last_setpoint = sp
+            self.sent.add(self._now_s(), sp.pos_ned_m)
 
     def heartbeat(self, system_status: int) -> None:
         self._send(
