@@ -23,6 +23,7 @@ from typing import Any
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ConfigError
+from apf_companion.links.endpoint import parse_endpoint
 from apf_companion.planning.params import Preset
 from apf_companion.planning.registry import ALL_PLANNER_NAMES, DEFAULT_PLANNER
 
@@ -94,6 +95,10 @@ class LinkConfig:
     def __post_init__(self) -> None:
         if not self.connect.strip():
             raise _fail("link.connect", "an endpoint such as 'udpin:127.0.0.1:14540'", self.connect)
+        try:  # the parse ``run`` uses to open the link, so check-config refuses what run would
+            parse_endpoint(self.connect)
+        except ConfigError as err:
+            raise ConfigError(f"link.connect: {err}") from err
         _check_id("link.autopilot_sysid", self.autopilot_sysid)
         _check_id("link.autopilot_compid", self.autopilot_compid)
         _check_id("link.component_id", self.component_id)

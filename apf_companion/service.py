@@ -50,6 +50,7 @@ from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.links import MavlinkLink
+from apf_companion.links.endpoint import connection_hint, parse_endpoint
 from apf_companion.links.messages import DECODERS, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State, reconfigure
 from apf_companion.outbox import Outbox
@@ -73,6 +74,8 @@ log = logging.getLogger(__name__)
 
 MIN_GAP_FRACTION = 0.8  # jitter margin: a pose stream at the cycle rate triggers every cycle
 TIMER_PERIODS = 1.25  # a timer cycle when no pose triggered one for this many periods
+NO_HEARTBEAT_WARN_S = 5.0  # no autopilot HEARTBEAT this long after start: a WARNING saying what to check [s]
+NO_HEARTBEAT_REPEAT_S = 60.0  # ... repeated this often while still nothing is heard [s]
 
 
 class Outcome(enum.StrEnum):
@@ -356,6 +359,20 @@ class CompanionService:
             if self._new_pose.is_set():
                 await asyncio.sleep(0)  # let the cycle run before more input is processed
 
+    def _warn_no_heartbeat(self) -> None:
+        lc = self.config.link
+        heard_others = self.link is not None and self.link.stats.packets_received > 0
+        hint = (
+            f"messages arrive but none from the autopilot: check link.autopilot_sysid ({lc.autopilot_sysid}) and "
+            f"link.autopilot_compid ({lc.autopilot_compid}) (ArduPilot SYSID_THISMAV, PX4 MAV_SYS_ID)"
+            if heard_others
+            else connection_hint(parse_endpoint(lc.connect))
+        )
+        log.warning(
+            "link.no_heartbeat",
+            extra={"connect": lc.connect, "waited_s": round(self.clock.now(), 1), "hint": hint},
+        )
+
     def _pose_arrived(self) -> None:
         self._trigger_rx_wall = time.perf_counter()
         self._new_pose.set()
@@ -435,10 +452,14 @@ class CompanionService:
         return None if self._first_nav_s is None else now - self._first_nav_s
 
     async def _status_loop(self) -> None:
+        warn_at = self.clock.now() + NO_HEARTBEAT_WARN_S
         while True:
             now = self.clock.now()
             try:
-                due = self.reporter.due(now)
+                if not self.handlers.heard and now >= warn_at:
+                    warn_at = now + NO_HEARTBEAT_REPEAT_S
+                    self._warn_no_heartbeat()
+                due = min(self.reporter.due(now), warn_at)
             except Exception as err:
                 self.faults.caught("status", err)
                 due = now + 1.0
