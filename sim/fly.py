@@ -409,6 +409,8 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
     svc_res = _read_json(opt.out / "service_result.json")
     outcome = "timeout" if timed_out and sim_res is not None else _outcome(sim_res, svc_res)
     record = _record(opt, outcome, sim_res, svc_res, wall_s, (service.returncode, vehicle.returncode), progress.texts)
+    if outcome == "error":
+        record["error"] = error_reason(opt.out, svc_res, sim_res, (service.returncode, vehicle.returncode))
     if proxy is not None:
         record["link_faults"] = str(opt.link_faults)
         record["link_stats"] = proxy.stats_dict()
@@ -473,6 +475,49 @@ def _record(
         "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
         "service_events": _service_events(opt.out / "service.log"),
     }
+
+
+def error_reason(
+    out: Path, svc_res: dict[str, Any] | None, sim_res: dict[str, Any] | None, exit_codes: tuple[int | None, int | None]
+) -> str:
+    """Why a flight ended in ``error``, for the user: the service's own error, else the last error line either
+    process logged (a config error is printed before any JSON log), else the exit codes."""
+    if svc_res and svc_res.get("error"):
+        return f"service: {svc_res['error']}"
+    for name, who in (("service.log", "service"), ("vehicle.log", "vehicle")):
+        line = _last_error_line(out / name)
+        if line:
+            return f"{who}: {line}"
+    if svc_res and svc_res.get("outcome") not in (None, "arrived"):
+        return f"service ended {svc_res['outcome']} in state {svc_res.get('state')}"
+    if sim_res is None:
+        return f"no vehicle result (exit codes: service {exit_codes[0]}, vehicle {exit_codes[1]})"
+    return f"exit codes: service {exit_codes[0]}, vehicle {exit_codes[1]}"
+
+
+def _last_error_line(path: Path) -> str | None:
+    """The last ERROR/CRITICAL JSON log event (with its error field) or plain ``prog: ...`` line of a log."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        text = line.strip()
+        if text.startswith("{"):
+            with contextlib.suppress(ValueError):
+                ev = json.loads(text)
+                if isinstance(ev, dict) and ev.get("level") in ("ERROR", "CRITICAL"):
+                    return f"{ev.get('event')}: {ev.get('error', '')}".rstrip(": ")
+            continue
+        if text.startswith(("apf-companion:", "apf-sim")) or "Error" in text:
+            return text
+    return None
+
+
+def output_files(out: Path) -> list[str]:
+    """The files a flight actually wrote (what ``apf-sim fly`` lists: never a file it did not write)."""
+    names = ("trajectory.png", "vehicle.tlog", "companion.tlog", "result.json", "service.log", "vehicle.log")
+    return [n for n in names if (out / n).is_file() and (out / n).stat().st_size > 0]
 
 
 def _write_result(opt: FlyOptions, record: dict[str, Any], sim_res: dict[str, Any] | None) -> None:
@@ -679,6 +724,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         print(f"apf-sim fly: {err}", file=sys.stderr)
         return 1
     clearance = rec["min_clearance_m"]
+    if rec["outcome"] == "error":
+        print(f"apf-sim fly: error: {rec.get('error', 'unknown')}", file=sys.stderr)
     print(
         f"outcome: {rec['outcome']}\n"
         f"planner: {rec['planner']} ({rec['profile']}), world: {rec['world']}, seed {rec['seed']}\n"
@@ -686,7 +733,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         f"min clearance: {'n/a' if clearance is None else f'{clearance:.3f} m'}\n"
         f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
         f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
-        f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs)"
+        f"output: {opt.out}/ ({', '.join(output_files(opt.out)) or 'nothing written'})"
     )
     return 0 if rec["outcome"] == "arrived" else 3
 
