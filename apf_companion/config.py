@@ -513,36 +513,78 @@ def _coerce(key: str, value: Any, annotation: str) -> Any:
     raise AssertionError(msg)
 
 
-def _build_section(name: str, cls: type[Any], table: Any) -> Any:
+def _own_error(prefix: str, err: ConfigError) -> bool:
+    """``err`` is about the key ``prefix`` itself (``link.connect``, ``link.gcs_sysids[]``), not a cross-key rule."""
+    text = str(err)
+    return text.startswith(prefix) and not (
+        text[len(prefix) : len(prefix) + 1].isalnum() or text[len(prefix) :][:1] in "_/"
+    )
+
+
+def _build_section(name: str, cls: type[Any], table: Any, errors: list[ConfigError]) -> Any:
+    """The section's dataclass, or None with every error found appended to ``errors``: unknown keys and type
+    errors key by key, then range errors (each key checked alone when the whole section fails, so that all of
+    them are reported, not only the first)."""
     if not isinstance(table, dict):
-        raise _fail(name, "a table", table)
+        errors.append(_fail(name, "a table", table))
+        return None
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs: dict[str, Any] = {}
+    n_before = len(errors)
     for key, value in table.items():
-        if key not in fields:
-            raise _unknown_key(f"{name}.{key}", list(fields))
-        kwargs[key] = _coerce(f"{name}.{key}", value, str(fields[key].type))
-    return cls(**kwargs)
+        try:
+            if key not in fields:
+                raise _unknown_key(f"{name}.{key}", list(fields))
+            kwargs[key] = _coerce(f"{name}.{key}", value, str(fields[key].type))
+        except ConfigError as err:
+            errors.append(err)
+    try:
+        section = cls(**kwargs)
+    except ConfigError as whole:
+        alone: list[ConfigError] = []
+        for key, value in kwargs.items():
+            try:
+                cls(**{key: value})
+            except ConfigError as err:
+                if _own_error(f"{name}.{key}", err):
+                    alone.append(err)
+        errors.extend(alone or [whole])
+        return None
+    return section if len(errors) == n_before else None
 
 
 def config_from_mapping(data: Mapping[str, Any], *, base_dir: Path | None = None) -> ServiceConfig:
     """Build and validate a ServiceConfig from parsed TOML (a nested dict).
 
     Raises:
-        ConfigError: naming the offending key and the allowed values.
+        ConfigError: naming the offending key and the allowed values; with several errors, all of them (one
+            per line), so a file is fixed in one pass.
     """
     kwargs: dict[str, Any] = {}
+    errors: list[ConfigError] = []
     for key, value in data.items():
-        if key in _SECTIONS:
-            kwargs[key] = _build_section(key, _SECTIONS[key], value)
-        elif key in _TOP_LEVEL:
-            ann = "float" if key == "max_flight_s" else "bool"
-            kwargs[key] = _coerce(key, value, ann)
-        else:
-            raise _unknown_key(key, [*_SECTIONS, *_TOP_LEVEL])
+        try:
+            if key in _SECTIONS:
+                kwargs[key] = _build_section(key, _SECTIONS[key], value, errors)
+            elif key in _TOP_LEVEL:
+                ann = "float" if key == "max_flight_s" else "bool"
+                kwargs[key] = _coerce(key, value, ann)
+            else:
+                raise _unknown_key(key, [*_SECTIONS, *_TOP_LEVEL])
+        except ConfigError as err:
+            errors.append(err)
     if base_dir is not None:
         kwargs["base_dir"] = base_dir
-    return ServiceConfig(**kwargs)
+    if not errors:
+        try:
+            return ServiceConfig(**kwargs)
+        except ConfigError as err:
+            errors.append(err)
+    if len(errors) == 1:
+        raise errors[0]
+    lines = "\n".join(f"  - {e}" for e in errors)
+    msg = f"{len(errors)} config errors:\n{lines}"
+    raise ConfigError(msg)
 
 
 def load_config(path: Path | str) -> ServiceConfig:
