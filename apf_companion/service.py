@@ -568,11 +568,11 @@ class ZenohInputs:
 
 async def _open_zenoh(config: ServiceConfig) -> Any:
     """Open the zenoh session and subscribe: sensor topic latest-wins, goal topic FIFO (bounded)."""
-    from apf_companion.links.zenoh import Overflow, ZenohConfig, ZenohLink
+    from apf_companion.links.zenoh import Overflow, ZenohConfig, open_with_retry
 
     zc = config.zenoh
     config_file = str(config.resolve(zc.config_file)) if zc.config_file else None
-    link = await ZenohLink.open(
+    link = await open_with_retry(
         ZenohConfig(mode=zc.mode, connect=zc.connect, listen=zc.listen, config_file=config_file)
     )
     try:
