@@ -242,3 +242,17 @@ async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
     async with asyncio.timeout(HANG_S):
         _, err = await bad.communicate()
     assert bad.returncode == 2 and b"GUID_TIMEOUT 99 not in [0.1, 5]" in err
+
+
+def test_long_statustext_goes_in_chunks() -> None:
+    """A parameter refusal longer than 50 characters arrives whole, in MAVLink 2 chunks sharing one id."""
+    rig = Rig()
+    name = next(iter(dict(rig.engine.params.items())))
+    rig.engine.handle(wire(GCS.param_set_encode(1, 1, name.encode(), float("nan"), m.MAV_PARAM_TYPE_REAL32)), 0)
+    texts = [wire(msg) for _, msg in rig.out if msg.get_type() == "STATUSTEXT"]
+    assert texts, "a refused value is announced"
+    rig.out.clear()
+    rig.engine.statustext(m.MAV_SEVERITY_WARNING, "x" * 60 + "END")
+    chunks = [wire(msg) for _, msg in rig.out if msg.get_type() == "STATUSTEXT"]
+    assert [c.chunk_seq for c in chunks] == [0, 1] and len({c.id for c in chunks}) == 1 and chunks[0].id != 0
+    assert "".join(c.text for c in chunks) == "x" * 60 + "END"
