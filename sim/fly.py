@@ -752,7 +752,10 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 def _sweep_loop(
     base: FlyOptions, trials: int, records: list[dict[str, Any]], fields: list[npt.NDArray[np.float64]]
 ) -> None:
+    from sim.study.cli import eta_text
+
     densities = _densities(base)
+    started = time.monotonic()
     for k in range(trials):
         seed = base.seed + k
         opt = dataclasses.replace(
@@ -777,7 +780,8 @@ def _sweep_loop(
         clearance_txt = f"{clearance:.3f} m" if isinstance(clearance, float) else "-"
         print(
             f"[{k + 1}/{trials}] seed {seed}: {rec['outcome']:9s} world {rec.get('world')} "
-            f"clearance {clearance_txt} steps {rec.get('steps')}  (success so far {ok}/{k + 1})",
+            f"clearance {clearance_txt} steps {rec.get('steps')}  (success so far {ok}/{k + 1})"
+            f"{eta_text(k + 1, trials, time.monotonic() - started)}",
             flush=True,
         )
 
