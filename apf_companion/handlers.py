@@ -165,7 +165,7 @@ class AutopilotHandlers:
         self.base_mode = rec.base_mode
         self.navigator.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok)
         if first:
-            self.outbox.request_streams(self.params.telemetry_rate_hz)
+            self.outbox.request_streams(self.params.telemetry_rate_hz, targets=self.params.adopt.enabled)
             if self._route_at_start is not None:
                 route, self._route_at_start = self._route_at_start, None
                 self._set_route(route, now_s)

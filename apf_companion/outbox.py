@@ -32,7 +32,7 @@ FLOAT32_MAX = 3.4028234663852886e38  # MAVLink float fields are IEEE float32
 
 STATUSTEXT_BYTES = 50  # one STATUSTEXT's text field
 STATUSTEXT_MAX_CHUNKS = 4  # a longer text is cut at 200 bytes: a report, not a log
-GLOBAL_POSITION_INTERVAL_US = 200_000.0  # GLOBAL_POSITION_INT at 5 Hz: only the takeoff and DO_REPOSITION use it
+GLOBAL_POSITION_INTERVAL_US = 200_000.0  # 5 Hz: GLOBAL_POSITION_INT (takeoff, global goals), POSITION_TARGET_*
 UINT32_MASK = 0xFFFFFFFF
 
 STREAM_INTERVALS: tuple[int, ...] = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE)
@@ -212,13 +212,18 @@ class Outbox:
     def takeoff(self, param7_m: float) -> None:
         self.command_long(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, param7_m)
 
-    def request_streams(self, telemetry_rate_hz: float) -> None:
-        """SET_MESSAGE_INTERVAL for the pose streams, and GLOBAL_POSITION_INT at 5 Hz."""
+    def request_streams(self, telemetry_rate_hz: float, *, targets: bool = False) -> None:
+        """SET_MESSAGE_INTERVAL for the pose streams, and GLOBAL_POSITION_INT at 5 Hz; with ``targets`` (goal
+        adoption, apf_companion.adopt) also the autopilot's POSITION_TARGET_* reports at 5 Hz (ArduPilot sends them
+        in its EXTENDED_STATUS stream, which a companion port may not have)."""
         interval_us = 1e6 / telemetry_rate_hz
         for msg_id in STREAM_INTERVALS:
             self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval_us)
-        self.command_long(
-            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
-            float(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT),
-            GLOBAL_POSITION_INTERVAL_US,
-        )
+        slow = [mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT]
+        if targets:
+            slow += [
+                mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT,
+                mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED,
+            ]
+        for msg_id in slow:
+            self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), GLOBAL_POSITION_INTERVAL_US)

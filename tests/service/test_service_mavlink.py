@@ -147,6 +147,14 @@ async def test_identity_heartbeat_and_stream_requests() -> None:
         assert svc.navigator.state is State.IDLE and not ap.setpoints()
 
 
+async def test_goal_adoption_asks_for_the_autopilot_target_reports() -> None:
+    async with rig(fast_config(goal={"adopt_autopilot_target": True})) as (_svc, ap):
+        await until(lambda: len(ap.of_type("COMMAND_LONG")) >= 5, 5.0, "stream requests")
+        intervals = {int(m.param1): m.param2 for m in ap.of_type("COMMAND_LONG") if m.command == 511}
+        assert intervals[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT] == pytest.approx(200_000.0)
+        assert intervals[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED] == pytest.approx(200_000.0)
+
+
 async def test_takeover_guided_then_fly_to_goal() -> None:
     route = Route.point(3.0, 0.0, -5.0, source="test")
     async with rig(route=route) as (svc, ap):
