@@ -12,8 +12,8 @@ MAVLink messages are decoded once into typed records (apf_companion.links.messag
 ``asyncio.TaskGroup`` runs the named tasks: ``apf.rx`` (the autopilot link), ``apf.cycle`` (a planning cycle when a
 new pose arrives, at most ``rate_hz``, and on a timer one period after the last cycle otherwise, so a frozen pose
 is noticed within one cycle), ``apf.status`` (HEARTBEAT at 1 Hz, NAMED_VALUE_FLOAT and the zenoh status at their
-rates), ``apf.takeover`` (steps the takeover controller) and ``apf.zenoh`` (scans and goals from zenoh, when
-enabled).
+rates), ``apf.takeover`` (steps the takeover controller), ``apf.params`` (the paced PARAM_VALUE list of
+apf_companion.params) and ``apf.zenoh`` (scans and goals from zenoh, when enabled).
 
 Clock: ``ServiceClock`` is monotonic and scaled by ``cycle.time_scale`` (vehicle seconds per wall second), so a
 simulated vehicle running N times faster than real time keeps every limit's meaning in vehicle seconds.

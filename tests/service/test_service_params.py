@@ -75,6 +75,12 @@ def test_the_table_names_fit_and_map_to_real_keys() -> None:
         config_with(cfg, planner, spec, value)
 
 
+def test_the_docs_table_lists_every_parameter() -> None:
+    page = (Path(__file__).resolve().parents[2] / "docs" / "ecosystem.md").read_text()
+    for spec in PARAMS:
+        assert f"| `{spec.name}` | `{spec.key}` |" in page, spec.name
+
+
 async def test_list_read_by_name_and_index() -> None:
     async with rig(route=Route.point(20.0, 0.0, -5.0, source="test")) as (svc, _ap), gcs_for(svc) as gcs:
         gcs.send(gcs.mav.param_request_list_encode(1, 191))
