@@ -224,7 +224,8 @@ async def test_mavproxy_param_module_fetches_and_sets(tmp_path: Path) -> None:
                 await read_until("APF_RHO_L refused")
         finally:
             if proc.returncode is None:
-                proc.terminate()
+                type_in("exit")  # an interactive MAVProxy waits long on SIGTERM; "exit" ends it at once
+                proc.stdin.close()
                 try:
                     async with asyncio.timeout(HANG_S):
                         await proc.wait()
