@@ -10,7 +10,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.adopt import SentSetpoints, is_new_target
-from apf_companion.autopilot import MASK_POSITION, MASK_VELOCITY
+from apf_companion.autopilot import MASK_POSITION, MASK_VELOCITY, CopterMode
+from apf_companion.goal import EARTH_RADIUS_M
 from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
 from apf_companion.service import CompanionService
@@ -20,6 +21,7 @@ from sim.world import World
 from tests.conftest import HANG_S, SimulatorClock
 from tests.service import test_service_flight as flights
 from tests.service.test_service_flight import running, service_config, wait_state
+from tests.service.test_service_mavlink import fast_config, rig, until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.usefixtures("simulator_yields_every_step")]
 
@@ -91,3 +93,39 @@ async def test_fly_here_sent_to_the_autopilot_is_adopted_and_flown_around_an_obs
     assert not res["collided"]
     assert math.dist(res["final_pos_ned_m"][:2], TARGET[:2]) <= 0.7 + 0.3
     assert res["min_clearance_m"] >= 0.25  # flew around the pillar, not through it
+
+
+async def test_global_target_report_is_placed_and_adopted_only_in_guided() -> None:
+    """ArduCopter reports a guided destination in POSITION_TARGET_GLOBAL_INT: placed about GLOBAL_POSITION_INT,
+    adopted in GUIDED only; a terrain-relative one cannot be placed and is left alone."""
+    lat0, lon0 = -35.3632621, 149.1652374
+    north_m = 10.0
+    lat1 = lat0 + math.degrees(north_m / EARTH_RADIUS_M)
+    async with rig(fast_config(goal={"adopt_autopilot_target": True})) as (svc, ap):
+        mav = ap.link.mav
+        gpi = mav.global_position_int_encode(0, round(lat0 * 1e7), round(lon0 * 1e7), 589_000, 5_000, 0, 0, 0, 0)
+
+        def placed() -> bool:  # a reference needs a pose first: send until one was heard
+            ap.link.send(gpi)
+            return svc.handlers.global_ref is not None
+
+        await until(placed, 5.0, "global reference")
+
+        def report(frame: int) -> None:
+            ap.link.send(
+                mav.position_target_global_int_encode(
+                    0, frame, MASK_POSITION, round(lat1 * 1e7), round(lon0 * 1e7), 5.0, 0, 0, 0, 0, 0, 0, 0, 0
+                )
+            )
+
+        report(mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)  # in LOITER: not a command to us
+        ap.custom_mode = int(CopterMode.GUIDED)
+        await until(lambda: svc.handlers.mode_ok, 5.0, "GUIDED heard")
+        assert svc.navigator.route is None
+        report(mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)
+        report(mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+        await until(lambda: svc.navigator.route is not None, 5.0, "adopted")
+        route = svc.navigator.route
+        assert route is not None and route.source == "autopilot-target"
+        assert route.waypoints_ned_m[-1].tolist() == pytest.approx([north_m, 0.0, -5.0], abs=0.01)
+        assert svc.counters.goals == 1
