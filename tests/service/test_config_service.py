@@ -150,3 +150,15 @@ def test_every_error_in_a_file_is_reported_at_once(tmp_path: Path) -> None:
 def test_a_cross_key_rule_is_still_reported() -> None:
     with pytest.raises(ConfigError, match=r"^goal.north_m/goal.east_m must be both set"):
         config_from_mapping({"goal": {"north_m": 5.0}})
+
+
+def test_every_planner_parameter_error_is_reported_at_once() -> None:
+    cfg = config_from_mapping(
+        {"planner": {"params": {"step_m": -1.0, "n_bacteria": 0, "rho_l_m": 5.0, "rho_u_m": 6.0, "nope": 1}}}
+    )
+    with pytest.raises(ConfigError) as exc:
+        build_planner(cfg)
+    text = str(exc.value)
+    assert text.startswith("3 config errors:"), text
+    assert "planner.params.nope" in text and "PlannerParams.step_m" in text and "PlannerParams.n_bacteria" in text
+    assert "PlannerParams.rho_" not in text  # rho_l 5 with rho_u 6 is valid together: not blamed
