@@ -128,7 +128,9 @@ async def test_set_valid_value_is_used_by_the_running_planner() -> None:
 
         await until(lambda: len(speeds()) > 10, 10.0, "setpoints after the change")
         assert max(speeds()) <= 0.3 + 1e-6  # the feed-forward follows the new cruise speed
-        assert svc.params.sets == 2 and svc.params.refused == 0
+        msg = await set_param(gcs, "APF_SILENT_DRIFT", 0.5)  # 16 characters: param_id without a NUL
+        assert msg.param_value == pytest.approx(0.5) and svc.navigator.params.silent_drift_m == 0.5
+        assert svc.params.sets == 3 and svc.params.refused == 0
         assert svc.navigator.state is State.NAVIGATING
         assert svc.navigator.last_output is not None
         sp = svc.navigator.last_output.setpoint
