@@ -204,13 +204,7 @@ class CompanionService:
             zenoh=zenoh,
             now_s=now,
         )
-        self.params = ParamServer(
-            config,
-            self.planner,
-            outbox=self.outbox,
-            apply=self._apply_params,
-            statustext=self.reporter.statustext,
-        )
+        self.params = _param_server(self)
         self.takeover = TakeoverDriver(
             TakeoverController(takeover_params(config)),
             navigator=self.navigator,
@@ -336,12 +330,6 @@ class CompanionService:
             self.counters.bad_goals += 1
         return accepted
 
-    def _apply_params(self, config: ServiceConfig, planner: Any) -> None:
-        """A PARAM_SET's validated config and planner (apf_companion.params) into service. Input handling and cycles
-        share one event loop, so this runs between two cycles."""
-        self.config, self.planner = config, planner
-        reconfigure(self.navigator, navigator_params(config, planner), planner)
-
     # ---- tasks -------------------------------------------------------------------------------------------------
     async def _rx(self) -> None:
         assert self.link is not None
@@ -358,20 +346,6 @@ class CompanionService:
                 self.faults.caught("rx", err)
             if self._new_pose.is_set():
                 await asyncio.sleep(0)  # let the cycle run before more input is processed
-
-    def _warn_no_heartbeat(self) -> None:
-        lc = self.config.link
-        heard_others = self.link is not None and self.link.stats.packets_received > 0
-        hint = (
-            f"messages arrive but none from the autopilot: check link.autopilot_sysid ({lc.autopilot_sysid}) and "
-            f"link.autopilot_compid ({lc.autopilot_compid}) (ArduPilot SYSID_THISMAV, PX4 MAV_SYS_ID)"
-            if heard_others
-            else connection_hint(parse_endpoint(lc.connect))
-        )
-        log.warning(
-            "link.no_heartbeat",
-            extra={"connect": lc.connect, "waited_s": round(self.clock.now(), 1), "hint": hint},
-        )
 
     def _pose_arrived(self) -> None:
         self._trigger_rx_wall = time.perf_counter()
@@ -458,7 +432,7 @@ class CompanionService:
             try:
                 if not self.handlers.heard and now >= warn_at:
                     warn_at = now + NO_HEARTBEAT_REPEAT_S
-                    self._warn_no_heartbeat()
+                    _warn_no_heartbeat(self)
                 due = min(self.reporter.due(now), warn_at)
             except Exception as err:
                 self.faults.caught("status", err)
@@ -564,6 +538,31 @@ class ZenohInputs:
             return
         p = goal.pos_ned_m
         self.service.set_route(Route.point(float(p[0]), float(p[1]), float(p[2]), source="zenoh"), now)
+
+
+def _param_server(svc: CompanionService) -> ParamServer:
+    """The service's parameter server: an accepted PARAM_SET's config and planner (apf_companion.params) go into
+    service at once. Input handling and cycles share one event loop, so that is between two cycles."""
+
+    def apply(config: ServiceConfig, planner: Any) -> None:
+        svc.config, svc.planner = config, planner
+        reconfigure(svc.navigator, navigator_params(config, planner), planner)
+
+    return ParamServer(svc.config, svc.planner, outbox=svc.outbox, apply=apply, statustext=svc.reporter.statustext)
+
+
+def _warn_no_heartbeat(svc: CompanionService) -> None:
+    """Nothing heard from the autopilot yet: a WARNING with what to check for this link."""
+    lc = svc.config.link
+    heard_others = svc.link is not None and svc.link.stats.packets_received > 0
+    hint = (
+        f"messages arrive but none from the autopilot: check link.autopilot_sysid ({lc.autopilot_sysid}) and "
+        f"link.autopilot_compid ({lc.autopilot_compid}) (ArduPilot SYSID_THISMAV, PX4 MAV_SYS_ID)"
+        if heard_others
+        else connection_hint(parse_endpoint(lc.connect))
+    )
+    extra = {"connect": lc.connect, "waited_s": round(svc.clock.now(), 1), "hint": hint}
+    log.warning("link.no_heartbeat", extra=extra)
 
 
 async def _open_zenoh(config: ServiceConfig) -> Any:

@@ -409,8 +409,6 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
     svc_res = _read_json(opt.out / "service_result.json")
     outcome = "timeout" if timed_out and sim_res is not None else _outcome(sim_res, svc_res)
     record = _record(opt, outcome, sim_res, svc_res, wall_s, (service.returncode, vehicle.returncode), progress.texts)
-    if outcome == "error":
-        record["error"] = error_reason(opt.out, svc_res, sim_res, (service.returncode, vehicle.returncode))
     if proxy is not None:
         record["link_faults"] = str(opt.link_faults)
         record["link_stats"] = proxy.stats_dict()
@@ -474,7 +472,7 @@ def _record(
         # The goal was lost without arriving: LINK_LOST, or IDLE after a failed takeover / mode loss.
         "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
         "service_events": _service_events(opt.out / "service.log"),
-    }
+    } | ({"error": error_reason(opt.out, svc_res, sim_res, exit_codes)} if outcome == "error" else {})
 
 
 def error_reason(
