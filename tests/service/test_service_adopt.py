@@ -23,7 +23,7 @@ from tests.service import test_service_flight as flights
 from tests.service.test_service_flight import running, service_config, wait_state
 from tests.service.test_service_mavlink import fast_config, rig, until
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.usefixtures("simulator_yields_every_step")]
+pytestmark = pytest.mark.timeout(600)
 
 START = (3.0, 3.0)
 TARGET = (17.0, 3.0, -5.0)  # the GCS's "fly here"; a pillar stands on the straight line
@@ -51,6 +51,8 @@ def test_own_echoes_are_not_new_goals() -> None:
     assert not no_pose
 
 
+@pytest.mark.slow
+@pytest.mark.usefixtures("simulator_yields_every_step")
 async def test_fly_here_sent_to_the_autopilot_is_adopted_and_flown_around_an_obstacle() -> None:
     world = World.from_obstacles([[10.0, 3.0]], 1.2, name="pillar")
     cfg = service_config(planner="bapf-nav", goal={"adopt_autopilot_target": True})
