@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from apf_companion.adopt import AdoptParams
 from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.forwarder import ForwarderParams
@@ -52,35 +53,53 @@ def build_planner(config: ServiceConfig) -> Any:
     """The configured planner: preset, then ``[planner.params]`` overrides, then ``dim``.
 
     Raises:
-        ConfigError: unknown planner parameter or a value the planner refuses.
+        ConfigError: unknown planner parameters or values the planner refuses (all of them, one per line).
     """
     pc = config.planner
     params = PlannerParams.from_preset(pc.preset)
     current = {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
     overrides: dict[str, Any] = {}
+    errors: list[str] = []
     for key, raw in pc.params.items():
-        value: Any = raw
-        if key not in current or key == "dim":
-            allowed = ", ".join(sorted(k for k in current if k != "dim"))
-            msg = f"unknown planner parameter planner.params.{key} (allowed: {allowed}; dim is planner.dim)"
-            raise ConfigError(msg)
-        old = current[key]
-        if isinstance(old, enum.Enum):
-            try:
-                value = type(old)(value)
-            except ValueError as err:
-                allowed = ", ".join(repr(m.value) for m in type(old))
-                msg = f"planner.params.{key} must be one of {allowed}, got {value!r}"
-                raise ConfigError(msg) from err
-        elif isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        overrides[key] = value
+        try:
+            overrides[key] = _override(key, raw, current)
+        except ConfigError as err:
+            errors.append(str(err))
     try:
-        params = dataclasses.replace(params, **overrides, dim=pc.dim)
-    except ConfigError as err:
-        msg = f"planner.params: {err}"
-        raise ConfigError(msg) from err
-    return get_planner(pc.name, params)
+        planner = get_planner(pc.name, dataclasses.replace(params, **overrides, dim=pc.dim))
+        if not errors:
+            return planner
+    except ConfigError as whole:
+        for key, value in overrides.items():  # each override alone: every refused value, not only the first
+            try:
+                dataclasses.replace(params, **{key: value}, dim=pc.dim)
+            except ConfigError as err:
+                if f"PlannerParams.{key} " in str(err):  # about this key, not a rule it shares with a default
+                    errors.append(f"planner.params: {err}")
+        errors = errors or [f"planner.params: {whole}"]
+    if len(errors) == 1:
+        raise ConfigError(errors[0])
+    lines = "\n".join(f"  - {e}" for e in errors)
+    raise ConfigError(f"{len(errors)} config errors:\n{lines}")
+
+
+def _override(key: str, value: Any, current: dict[str, Any]) -> Any:
+    """One ``[planner.params]`` value as the PlannerParams field's type; ConfigError naming the key."""
+    if key not in current or key == "dim":
+        allowed = ", ".join(sorted(k for k in current if k != "dim"))
+        msg = f"unknown planner parameter planner.params.{key} (allowed: {allowed}; dim is planner.dim)"
+        raise ConfigError(msg)
+    old = current[key]
+    if isinstance(old, enum.Enum):
+        try:
+            return type(old)(value)
+        except ValueError as err:
+            allowed = ", ".join(repr(m.value) for m in type(old))
+            msg = f"planner.params.{key} must be one of {allowed}, got {value!r}"
+            raise ConfigError(msg) from err
+    if isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
 
 
 #: Planners whose bacteria points keep rho_l from every known obstacle (Eq. (13)'s +inf inside rho_l).
@@ -197,6 +216,7 @@ def handler_params(config: ServiceConfig) -> HandlerParams:
         telemetry_rate_hz=lc.telemetry_rate_hz,
         sensor_sources=tuple(Source(system, component) for system, component in config.sensors.source_ids()),
         forwarding=config.sensors.forward_obstacle_distance,
+        adopt=AdoptParams(enabled=config.goal.adopt_autopilot_target, tolerance_m=config.goal.adopt_tolerance_m),
     )
 
 

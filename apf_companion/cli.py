@@ -79,6 +79,27 @@ def _setup_logging(level: str, fmt: str) -> None:
     root.setLevel(level.upper())
 
 
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+LOG_FORMATS = ("text", "json")
+
+
+def _log_level(text: str) -> str:
+    """``--log-level`` / $APF_LOG_LEVEL, any case; argparse reports a bad one (exit 2), not a traceback."""
+    if text.upper() not in LOG_LEVELS:
+        msg = f"invalid log level {text!r} (choose from {', '.join(LOG_LEVELS)}; also $APF_LOG_LEVEL)"
+        raise argparse.ArgumentTypeError(msg)
+    return text.upper()
+
+
+def _log_format(text: str) -> str:
+    """``--log-format`` / $APF_LOG_FORMAT: checked even when it comes from the environment (argparse's
+    ``choices`` would not check a default)."""
+    if text.lower() not in LOG_FORMATS:
+        msg = f"invalid log format {text!r} (choose from {', '.join(LOG_FORMATS)}; also $APF_LOG_FORMAT)"
+        raise argparse.ArgumentTypeError(msg)
+    return text.lower()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="apf-companion",
@@ -93,12 +114,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {version}")
     parser.add_argument(
         "--log-level",
+        type=_log_level,
         default=os.environ.get("APF_LOG_LEVEL", "INFO"),
         help="DEBUG, INFO, WARNING, ERROR (default: $APF_LOG_LEVEL or INFO)",
     )
     parser.add_argument(
         "--log-format",
-        choices=("text", "json"),
+        type=_log_format,
         default=os.environ.get("APF_LOG_FORMAT", "text"),
         help="log lines as text or one JSON object per line (default: $APF_LOG_FORMAT or text)",
     )

@@ -23,6 +23,7 @@ from typing import Any
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ConfigError
+from apf_companion.links.endpoint import parse_endpoint
 from apf_companion.planning.params import Preset
 from apf_companion.planning.registry import ALL_PLANNER_NAMES, DEFAULT_PLANNER
 
@@ -130,6 +131,10 @@ class LinkConfig:
                 )
         if not self.connect.strip():
             raise _fail("link.connect", "an endpoint such as 'udpin:127.0.0.1:14540'", self.connect)
+        try:  # the parse ``run`` uses to open the link, so check-config refuses what run would
+            parse_endpoint(self.connect)
+        except ConfigError as err:
+            raise ConfigError(f"link.connect: {err}") from err
         _check_id("link.autopilot_sysid", self.autopilot_sysid)
         _check_id("link.autopilot_compid", self.autopilot_compid)
         _check_id("link.component_id", self.component_id)
@@ -256,12 +261,19 @@ class GoalConfig:
         north_m, east_m, down_m: A single goal in local NED [m]; ``down_m`` omitted = keep the altitude.
         route: A route file instead (TOML ``[[waypoint]]`` tables or CSV lines ``north,east[,down]``),
             relative paths resolved against the config file.
+        adopt_autopilot_target: Take the autopilot's new guided target (a ground station's "Fly here" / "Go to
+            location" / MAVProxy ``guided``, seen in POSITION_TARGET_GLOBAL_INT / _LOCAL_NED) as the goal and fly
+            there around obstacles (docs/ecosystem.md).
+        adopt_tolerance_m: A reported target within this of a setpoint the service sent (or of its goal, or of
+            the vehicle) is not a new goal [m].
     """
 
     north_m: float | None = None
     east_m: float | None = None
     down_m: float | None = None
     route: str = ""
+    adopt_autopilot_target: bool = False
+    adopt_tolerance_m: float = 1.0
 
     def __post_init__(self) -> None:
         if (self.north_m is None) != (self.east_m is None):
@@ -274,6 +286,7 @@ class GoalConfig:
             value = getattr(self, key)
             if value is not None:
                 _check_range(f"goal.{key}", value, -1e6, 1e6)
+        _check_range("goal.adopt_tolerance_m", self.adopt_tolerance_m, 0.1, 50.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -604,36 +617,78 @@ def _coerce(key: str, value: Any, annotation: str) -> Any:
     raise AssertionError(msg)
 
 
-def _build_section(name: str, cls: type[Any], table: Any) -> Any:
+def _own_error(prefix: str, err: ConfigError) -> bool:
+    """``err`` is about the key ``prefix`` itself (``link.connect``, ``link.gcs_sysids[]``), not a cross-key rule."""
+    text = str(err)
+    return text.startswith(prefix) and not (
+        text[len(prefix) : len(prefix) + 1].isalnum() or text[len(prefix) :][:1] in "_/"
+    )
+
+
+def _build_section(name: str, cls: type[Any], table: Any, errors: list[ConfigError]) -> Any:
+    """The section's dataclass, or None with every error found appended to ``errors``: unknown keys and type
+    errors key by key, then range errors (each key checked alone when the whole section fails, so that all of
+    them are reported, not only the first)."""
     if not isinstance(table, dict):
-        raise _fail(name, "a table", table)
+        errors.append(_fail(name, "a table", table))
+        return None
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs: dict[str, Any] = {}
+    n_before = len(errors)
     for key, value in table.items():
-        if key not in fields:
-            raise _unknown_key(f"{name}.{key}", list(fields))
-        kwargs[key] = _coerce(f"{name}.{key}", value, str(fields[key].type))
-    return cls(**kwargs)
+        try:
+            if key not in fields:
+                raise _unknown_key(f"{name}.{key}", list(fields))
+            kwargs[key] = _coerce(f"{name}.{key}", value, str(fields[key].type))
+        except ConfigError as err:
+            errors.append(err)
+    try:
+        section = cls(**kwargs)
+    except ConfigError as whole:
+        alone: list[ConfigError] = []
+        for key, value in kwargs.items():
+            try:
+                cls(**{key: value})
+            except ConfigError as err:
+                if _own_error(f"{name}.{key}", err):
+                    alone.append(err)
+        errors.extend(alone or [whole])
+        return None
+    return section if len(errors) == n_before else None
 
 
 def config_from_mapping(data: Mapping[str, Any], *, base_dir: Path | None = None) -> ServiceConfig:
     """Build and validate a ServiceConfig from parsed TOML (a nested dict).
 
     Raises:
-        ConfigError: naming the offending key and the allowed values.
+        ConfigError: naming the offending key and the allowed values; with several errors, all of them (one
+            per line), so a file is fixed in one pass.
     """
     kwargs: dict[str, Any] = {}
+    errors: list[ConfigError] = []
     for key, value in data.items():
-        if key in _SECTIONS:
-            kwargs[key] = _build_section(key, _SECTIONS[key], value)
-        elif key in _TOP_LEVEL:
-            ann = "float" if key == "max_flight_s" else "bool"
-            kwargs[key] = _coerce(key, value, ann)
-        else:
-            raise _unknown_key(key, [*_SECTIONS, *_TOP_LEVEL])
+        try:
+            if key in _SECTIONS:
+                kwargs[key] = _build_section(key, _SECTIONS[key], value, errors)
+            elif key in _TOP_LEVEL:
+                ann = "float" if key == "max_flight_s" else "bool"
+                kwargs[key] = _coerce(key, value, ann)
+            else:
+                raise _unknown_key(key, [*_SECTIONS, *_TOP_LEVEL])
+        except ConfigError as err:
+            errors.append(err)
     if base_dir is not None:
         kwargs["base_dir"] = base_dir
-    return ServiceConfig(**kwargs)
+    if not errors:
+        try:
+            return ServiceConfig(**kwargs)
+        except ConfigError as err:
+            errors.append(err)
+    if len(errors) == 1:
+        raise errors[0]
+    lines = "\n".join(f"  - {e}" for e in errors)
+    msg = f"{len(errors)} config errors:\n{lines}"
+    raise ConfigError(msg)
 
 
 def load_config(path: Path | str) -> ServiceConfig:

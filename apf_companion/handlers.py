@@ -1,10 +1,11 @@
 """The autopilot handlers: decoded MAVLink records in, to the part that owns what they carry.
 
 Messages are accepted only from the configured autopilot (sysid/compid), one handler per record type
-(``_AUTOPILOT``); the exceptions are COMMAND_INT / COMMAND_LONG addressed to our component from a configured
-ground-station sysid (DO_REPOSITION), and range messages from a configured sensor (``[sensors] mavlink_sources``).
-Range messages from anyone else are counted in ``rejected_ranges``, everything else in ``foreign_messages``;
-both are dropped.
+(``_AUTOPILOT``); the exceptions come from a configured ground-station sysid and are addressed to us: COMMAND_INT /
+COMMAND_LONG (DO_REPOSITION) and the parameter protocol (PARAM_*, to ``on_param``). "To us" is our sysid (the
+vehicle's) or 0 (broadcast, MAVProxy's default) and our component or 0 (all components). Range messages come from
+the autopilot or a configured sensor (``[sensors] mavlink_sources``); from anyone else they are counted in
+``rejected_ranges``, everything else in ``foreign_messages``; both are dropped.
 
 While the service forwards its obstacles (OBSTACLE_DISTANCE), the autopilot's DISTANCE_SENSOR with ids 10-18 is
 its proximity library reporting those same sectors back (``GCS_Common.cpp`` ``send_proximity``:
@@ -20,11 +21,12 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.adopt import ECHO_WINDOW_S, AdoptParams, is_new_target
 from apf_companion.autopilot import Autopilot, CopterMode, Px4MainMode, Px4Mode
 from apf_companion.goal import GlobalReference, RepositionError, Route, local_goal_from_reposition
 from apf_companion.links.messages import (
@@ -40,6 +42,11 @@ from apf_companion.links.messages import (
     ObstacleDistance,
     ObstacleDistance3d,
     Odometry,
+    ParamRequestList,
+    ParamRequestRead,
+    ParamSet,
+    PositionTargetGlobalInt,
+    PositionTargetLocalNed,
     Record,
     Source,
 )
@@ -67,6 +74,8 @@ COMMAND_MESSAGES = (
     "SET_POSITION_TARGET_GLOBAL_INT",
     "SET_MODE",
 )
+BROADCAST = 0  # target_system / target_component 0: every system / every component (MAVLink routing)
+ParamRecord = ParamRequestList | ParamRequestRead | ParamSet
 DEG_E7 = 1e-7
 MM = 1e-3
 # ArduCopter position_ok() (system.cpp ekf_has_absolute_position / _relative_position): a horizontal position, not
@@ -98,6 +107,7 @@ class HandlerParams:
     telemetry_rate_hz: float = 20.0
     sensor_sources: tuple[Source, ...] = ()  # [sensors] mavlink_sources
     forwarding: bool = False  # [sensors] forward_obstacle_distance
+    adopt: AdoptParams = field(default_factory=AdoptParams)
 
 
 class AutopilotHandlers:
@@ -107,6 +117,7 @@ class AutopilotHandlers:
         set_route: Starts a goal (the service's; returns whether the navigator accepted it).
         on_pose: Called when the navigator accepted a new pose (it triggers a cycle).
         route_at_start: Flown once the autopilot is first heard.
+        on_param: Handles a PARAM_* addressed to us (apf_companion.params.ParamServer.handle); None = ignored.
     """
 
     def __init__(
@@ -120,6 +131,7 @@ class AutopilotHandlers:
         set_route: Callable[[Route, float], bool],
         on_pose: Callable[[], None],
         route_at_start: Route | None,
+        on_param: Callable[[ParamRecord], None] | None = None,
     ) -> None:
         self.params = params
         self.perception = perception
@@ -129,11 +141,14 @@ class AutopilotHandlers:
         self._set_route = set_route
         self._on_pose = on_pose
         self._route_at_start = route_at_start
+        self._on_param = on_param
         self.heard = False
         self.custom_mode: int | None = None
         self.base_mode = 0
         self.global_ref: GlobalReference | None = None
-        self.streams = StreamKeeper(wanted_streams(params.profile, params.telemetry_rate_hz))
+        self.streams = StreamKeeper(
+            wanted_streams(params.profile, params.telemetry_rate_hz, targets=params.adopt.enabled)
+        )
         self.ekf_flags: int | None = None  # latest EKF_STATUS_REPORT.flags; None: the autopilot sends none
         self.acks: dict[int, tuple[int, float]] = {}  # command -> (result, service time) of its latest ACK to us
 
@@ -173,6 +188,9 @@ class AutopilotHandlers:
                 _AUTOPILOT[type(rec)](self, rec, now_s)
             else:
                 self.counters.rejected_ranges += 1
+        elif isinstance(rec, ParamRecord) and self._on_param is not None and self._for_us(rec):
+            self.counters.param_requests += 1
+            self._on_param(rec)
         else:
             self.counters.foreign_messages += 1
 
@@ -183,12 +201,13 @@ class AutopilotHandlers:
         elif src != self.params.autopilot:
             self.counters.foreign_messages += 1
 
-    def _for_us(self, rec: CommandInt | CommandLong) -> bool:
+    def _for_us(self, rec: CommandInt | CommandLong | ParamRecord) -> bool:
+        """From a ground station, to our system (or all) and our component (or all): MAVLink routing's rule."""
         p = self.params
         return (
             rec.src.system in p.gcs_sysids
-            and rec.target_system == p.autopilot.system
-            and rec.target_component == p.component_id
+            and rec.target_system in (p.autopilot.system, BROADCAST)
+            and rec.target_component in (p.component_id, BROADCAST)
         )
 
     # ---- from the autopilot ------------------------------------------------------------------------------------
@@ -264,12 +283,53 @@ class AutopilotHandlers:
         if self.params.mavlink_ranges:
             self.perception.on_obstacle_distance_3d(rec, now_s)
 
+    # ---- the autopilot's guided target (apf_companion.adopt) -----------------------------------------------------
+    def _on_position_target_local(self, rec: PositionTargetLocalNed, now_s: float) -> None:
+        if self.params.adopt.enabled and rec.coordinate_frame == mavlink.MAV_FRAME_LOCAL_NED:
+            self._adopt((rec.x, rec.y, rec.z), rec.type_mask, now_s)
+
+    def _on_position_target_global(self, rec: PositionTargetGlobalInt, now_s: float) -> None:
+        if not self.params.adopt.enabled:
+            return
+        try:  # the frames and the flat-earth placement of DO_REPOSITION (apf_companion.goal)
+            route = local_goal_from_reposition(
+                frame=rec.coordinate_frame,
+                x=rec.lat_int,
+                y=rec.lon_int,
+                z=rec.alt,
+                reference=self.global_ref,
+                source="",
+            )
+        except RepositionError:
+            return  # no global reference yet, or a frame we cannot place (terrain): not a goal we can fly
+        n, e, d = (float(v) for v in route.waypoints_ned_m[-1])
+        self._adopt((n, e, d), rec.type_mask, now_s)
+
+    def _adopt(self, target: tuple[float, float, float], type_mask: int, now_s: float) -> None:
+        nav = self.navigator
+        if not self.mode_ok:
+            return
+        new = is_new_target(
+            target,
+            type_mask,
+            sent=self.outbox.sent.since(now_s - ECHO_WINDOW_S),
+            goal_ned_m=None if nav.route is None else nav.route.waypoints_ned_m[-1].tolist(),
+            pose_ned_m=None if nav.pose is None else nav.pose.pos_ned_m.tolist(),
+            tolerance_m=self.params.adopt.tolerance_m,
+        )
+        if new:
+            log.info("goal.adopted", extra={"source": "autopilot", "target_ned_m": list(target)})
+            self._set_route(Route.point(*target, source="autopilot-target"), now_s)
+
     # ---- commands for us ---------------------------------------------------------------------------------------
     def _on_command(self, rec: CommandInt | CommandLong, now_s: float) -> None:
         self.counters.commands_for_us += 1
         src = rec.src
         if rec.command != mavlink.MAV_CMD_DO_REPOSITION:
-            self.outbox.ack(rec.command, mavlink.MAV_RESULT_UNSUPPORTED, src.system, src.component)
+            if rec.target_component != BROADCAST:
+                # To all components, the command is the autopilot's to answer: an UNSUPPORTED from us beside
+                # its ACCEPTED would read as a refusal.
+                self.outbox.ack(rec.command, mavlink.MAV_RESULT_UNSUPPORTED, src.system, src.component)
             return
         if isinstance(rec, CommandLong):
             self.outbox.ack(rec.command, mavlink.MAV_RESULT_COMMAND_INT_ONLY, src.system, src.component)
@@ -309,5 +369,7 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     Odometry: AutopilotHandlers._on_odometry,
     EkfStatusReport: AutopilotHandlers._on_ekf_status,
     CommandAck: AutopilotHandlers._on_command_ack,
+    PositionTargetLocalNed: AutopilotHandlers._on_position_target_local,
+    PositionTargetGlobalInt: AutopilotHandlers._on_position_target_global,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

@@ -55,6 +55,7 @@ __all__ = [
     "Recovery",
     "State",
     "StateChange",
+    "reconfigure",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -833,3 +834,20 @@ _HANDLERS: dict[State, Callable[[Navigator, _Inputs], CycleOutput]] = {
     State.STUCK: Navigator._on_done,
 }
 """One handler per state, for a cycle with the autopilot link alive."""
+
+
+def reconfigure(nav: Navigator, params: NavigatorParams, planner: PlannerLike) -> None:
+    """Swap the navigator's parameters and planner (a PARAM_SET at run time, apf_companion.params).
+
+    Called between cycles (the service runs input handling and cycles on one event loop). The bacteria point
+    being flown to was planned with the old parameters, so it is dropped and the next cycle plans afresh; the
+    goal, the leg's progress and the state are kept. The dimension cannot change at run time.
+    """
+    if params.dim != nav.dim:
+        msg = f"internal: the dimension cannot change at run time ({nav.dim} -> {params.dim})"
+        raise AssertionError(msg)
+    nav.params = params
+    nav.planner = planner
+    nav._steps.p = params  # the navigator's own parts, in its own module
+    nav._legs.p = params
+    nav._steps.target = None

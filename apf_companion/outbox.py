@@ -11,6 +11,7 @@ or sending error is counted in ``send_errors`` and logged once per kind.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Callable, Iterable, Mapping
@@ -18,17 +19,19 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.adopt import SentSetpoints
 from apf_companion.autopilot import PX4_OFFBOARD, Autopilot, CopterMode
 from apf_companion.links import MavlinkLink
 from apf_companion.setpoint import Setpoint, encode_setpoint
 
-__all__ = ["FLOAT32_MAX", "Outbox", "float32_ok"]
+__all__ = ["FLOAT32_MAX", "Outbox", "float32_ok", "statustext_chunks"]
 
 log = logging.getLogger(__name__)
 
 FLOAT32_MAX = 3.4028234663852886e38  # MAVLink float fields are IEEE float32
 
 STATUSTEXT_BYTES = 50  # one STATUSTEXT's text field
+STATUSTEXT_MAX_CHUNKS = 4  # a longer text is cut at 200 bytes: a report, not a log
 UINT32_MASK = 0xFFFFFFFF
 
 
@@ -40,6 +43,28 @@ def float32_ok(values: Iterable[float]) -> bool:
 def clamp_float32(value: float) -> float:
     """``value`` clamped into float32's finite range (NaN stays NaN)."""
     return value if math.isnan(value) else max(-FLOAT32_MAX, min(FLOAT32_MAX, value))
+
+
+def _encode_statustext(severity: int, text: bytes, chunk_id: int, chunk_seq: int, mav: Any) -> Any:
+    return mav.statustext_encode(severity, text, chunk_id, chunk_seq)
+
+
+def statustext_chunks(text: str, last_id: int) -> list[tuple[int, int, bytes]]:
+    """(id, chunk_seq, text bytes) of each STATUSTEXT carrying ``text``.
+
+    common.xml STATUSTEXT: ``id`` 0 marks a text that fits one message; a longer one shares a non-zero ``id``
+    over chunks numbered from 0 by ``chunk_seq``, and a NUL in a chunk's text ends it. A text filling its last
+    chunk exactly is followed by an empty chunk, so the receiver need not wait for a timeout. Cut at
+    ``STATUSTEXT_MAX_CHUNKS`` chunks; non-ASCII characters become '?'.
+    """
+    data = text.encode("ascii", "replace")[: STATUSTEXT_BYTES * STATUSTEXT_MAX_CHUNKS]
+    if len(data) <= STATUSTEXT_BYTES:
+        return [(0, 0, data)]
+    chunk_id = last_id % 0xFFFF + 1  # 1..65535, wrapping past 0
+    parts = [data[i : i + STATUSTEXT_BYTES] for i in range(0, len(data), STATUSTEXT_BYTES)]
+    if len(parts[-1]) == STATUSTEXT_BYTES and len(parts) < STATUSTEXT_MAX_CHUNKS:
+        parts.append(b"")
+    return [(chunk_id, seq, part) for seq, part in enumerate(parts)]
 
 
 class Outbox:
@@ -68,8 +93,10 @@ class Outbox:
         self._start_s = now_s()
         self.setpoints_sent = 0
         self.last_setpoint: Setpoint | None = None  # the newest one that went out
+        self.sent = SentSetpoints()  # their positions: the autopilot's echoes of them are not new goals
         self.statustexts_sent = 0
         self.obstacle_distances_sent = 0
+        self._statustext_id = 0  # id of the last chunked STATUSTEXT (uint16, never 0: 0 means "one chunk")
         self.clamped_values = 0  # report values clamped into float32's range
         self.unsendable = 0  # setpoints / commands with a value float32 cannot carry: not sent
         self.send_errors = 0  # packing or sending raised: counted, logged once per kind
@@ -131,6 +158,7 @@ class Outbox:
         self.setpoints_sent += int(sent)
         if sent:
             self.last_setpoint = sp
+            self.sent.add(self._now_s(), sp.pos_ned_m)
 
     def heartbeat(self, system_status: int) -> None:
         self._send(
@@ -144,9 +172,18 @@ class Outbox:
         )
 
     def statustext(self, severity: int, text: str) -> None:
-        payload = text.encode("ascii", "replace")[:STATUSTEXT_BYTES]
-        sent = self._send(lambda mav: mav.statustext_encode(severity, payload))
-        self.statustexts_sent += int(sent)
+        """STATUSTEXT; a text longer than one message goes in chunks (MAVLink 2 ``id`` / ``chunk_seq``)."""
+        for chunk_id, seq, payload in statustext_chunks(text, self._statustext_id):
+            self._statustext_id = chunk_id or self._statustext_id
+            sent = self._send(functools.partial(_encode_statustext, severity, payload, chunk_id, seq))
+            self.statustexts_sent += int(sent)
+
+    def param_value(self, name: str, value: float, mav_type: int, count: int, index: int) -> None:
+        """PARAM_VALUE (apf_companion.params): ``index`` -1 answers a PARAM_SET (uint16 on the wire: 65535, as
+        ArduPilot's -1 arrives)."""
+        v = clamp_float32(float(value))
+        i = index & 0xFFFF
+        self._send(lambda mav: mav.param_value_encode(name.encode("ascii"), v, mav_type, count, i))
 
     def obstacle_distance(self, time_usec: int, distances_cm: tuple[int, ...], min_cm: int, max_cm: int) -> bool:
         """OBSTACLE_DISTANCE in body FRD: element j at j * 5 deg clockwise from the nose (AP_Proximity_MAV.cpp

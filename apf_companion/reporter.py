@@ -53,6 +53,7 @@ class ServiceCounters:
     goals: int = 0
     bad_goals: int = 0
     commands_for_us: int = 0
+    param_requests: int = 0  # PARAM_* from a ground station addressed to us
     mode_requests: int = 0
     handler_errors: int = 0  # an exception escaped a handler / cycle / report: caught, the task goes on
     rejected_ranges: int = 0  # range messages from neither the autopilot nor a [sensors] mavlink_sources id

@@ -12,8 +12,9 @@ MAVLink messages are decoded once into typed records (apf_companion.links.messag
 ``asyncio.TaskGroup`` runs the named tasks: ``apf.rx`` (the autopilot link), ``apf.cycle`` (a planning cycle when a
 new pose arrives, at most ``rate_hz``, and on a timer one period after the last cycle otherwise, so a frozen pose
 is noticed within one cycle), ``apf.status`` (HEARTBEAT at 1 Hz, NAMED_VALUE_FLOAT and the zenoh status at their
-rates), ``apf.takeover`` (steps the takeover controller), ``apf.forward`` (OBSTACLE_DISTANCE to the autopilot,
-when ``[sensors] forward_obstacle_distance``) and ``apf.zenoh`` (scans and goals from zenoh, when enabled).
+rates), ``apf.takeover`` (steps the takeover controller), ``apf.params`` (the paced PARAM_VALUE list of
+apf_companion.params), ``apf.forward`` (OBSTACLE_DISTANCE to the autopilot, when ``[sensors]
+forward_obstacle_distance``) and ``apf.zenoh`` (scans and goals from zenoh, when enabled).
 
 Clock: ``ServiceClock`` is monotonic and scaled by ``cycle.time_scale`` (vehicle seconds per wall second), so a
 simulated vehicle running N times faster than real time keeps every limit's meaning in vehicle seconds.
@@ -44,6 +45,7 @@ from apf_companion.builders import (
     forwarder_params,
     handler_params,
     initial_route,
+    navigator_params,
     perception_params,
     reporter_params,
     signing_setup,
@@ -55,10 +57,12 @@ from apf_companion.forwarder import ObstacleForwarder
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.links import MavlinkLink, TimestampKeeper
+from apf_companion.links.endpoint import connection_hint, parse_endpoint
 from apf_companion.links.messages import DECODERS, decode, source
-from apf_companion.navigator import CycleOutput, Navigator, State
+from apf_companion.navigator import CycleOutput, Navigator, State, reconfigure
 from apf_companion.observe import CycleObserver, Observers
 from apf_companion.outbox import Outbox
+from apf_companion.params import ParamServer
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
 from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
 from apf_companion.setpoint import SetpointKind
@@ -78,6 +82,8 @@ log = logging.getLogger(__name__)
 
 MIN_GAP_FRACTION = 0.8  # jitter margin: a pose stream at the cycle rate triggers every cycle
 TIMER_PERIODS = 1.25  # a timer cycle when no pose triggered one for this many periods
+NO_HEARTBEAT_WARN_S = 5.0  # no autopilot HEARTBEAT this long after start: a WARNING saying what to check [s]
+NO_HEARTBEAT_REPEAT_S = 60.0  # ... repeated this often while still nothing is heard [s]
 
 
 class Outcome(enum.StrEnum):
@@ -226,6 +232,7 @@ class CompanionService:
             set_route=self.set_route,
             on_pose=self._pose_arrived,
             route_at_start=route if route is not None else initial_route(config),
+            on_param=lambda rec: self.params.handle(rec),
         )
         self.reporter = StatusReporter(
             reporter_params(config),
@@ -239,6 +246,7 @@ class CompanionService:
             signing=None if link is None or link.signing is None else link.signing.stats,
         )
         self.forwarder, self.takeover = self._drivers(config)
+        self.params = _param_server(self)
         self._stop = asyncio.Event()
         self._new_pose = asyncio.Event()
         self._trigger_rx_wall: float | None = None  # wall time the triggering pose was read
@@ -320,8 +328,9 @@ class CompanionService:
                 tasks = [
                     tg.create_task(self._rx(), name="apf.rx"),
                     tg.create_task(self._cycle_loop(), name="apf.cycle"),
-                    tg.create_task(self._periodic("status", self.reporter.due, 1.0), name="apf.status"),
+                    tg.create_task(self._periodic("status", _status_due(self), 1.0), name="apf.status"),
                     tg.create_task(self._takeover_loop(), name="apf.takeover"),
+                    tg.create_task(self.params.run(), name="apf.params"),
                 ]
                 tasks += [tg.create_task(coro, name=name) for name, coro in _optional_tasks(self)]
                 await self._stop.wait()
@@ -621,13 +630,61 @@ async def _open_mavlink(config: ServiceConfig) -> tuple[MavlinkLink, TimestampKe
     return link, keeper
 
 
+def _param_server(svc: CompanionService) -> ParamServer:
+    """The service's parameter server: an accepted PARAM_SET's config and planner (apf_companion.params) go into
+    service at once. Input handling and cycles share one event loop, so that is between two cycles."""
+
+    def apply(config: ServiceConfig, planner: Any) -> None:
+        svc.config, svc.planner = config, planner
+        reconfigure(svc.navigator, navigator_params(config, planner), planner)
+
+    return ParamServer(svc.config, svc.planner, outbox=svc.outbox, apply=apply, statustext=svc.reporter.statustext)
+
+
+def _warn_no_heartbeat(svc: CompanionService) -> None:
+    """Nothing heard from the autopilot yet: a WARNING with what to check for this link."""
+    lc = svc.config.link
+    heard_others = svc.link is not None and svc.link.stats.packets_received > 0
+    hint = (
+        f"messages arrive but none from the autopilot: check link.autopilot_sysid ({lc.autopilot_sysid}) and "
+        f"link.autopilot_compid ({lc.autopilot_compid}) (ArduPilot SYSID_THISMAV, PX4 MAV_SYS_ID)"
+        if heard_others
+        else connection_hint(parse_endpoint(lc.connect))
+    )
+    extra = {"connect": lc.connect, "waited_s": round(svc.clock.now(), 1), "hint": hint}
+    log.warning("link.no_heartbeat", extra=extra)
+
+
+def _status_due(svc: CompanionService) -> Callable[[float], float]:
+    """The status task's schedule: the reporter's, and the warning while the autopilot is silent."""
+    warning = NoHeartbeatWarning(svc)
+    return lambda now: min(svc.reporter.due(now), warning.due(now))
+
+
+class NoHeartbeatWarning:
+    """Nothing heard from the autopilot: a WARNING with what to check, ``NO_HEARTBEAT_WARN_S`` after the start and
+    then every ``NO_HEARTBEAT_REPEAT_S`` while it stays silent. ``due`` fits ``CompanionService._periodic``."""
+
+    def __init__(self, svc: CompanionService) -> None:
+        self.svc = svc
+        self.warn_at_s = svc.clock.now() + NO_HEARTBEAT_WARN_S
+
+    def due(self, now_s: float) -> float:
+        if self.svc.handlers.heard:
+            return math.inf
+        if now_s >= self.warn_at_s:
+            self.warn_at_s = now_s + NO_HEARTBEAT_REPEAT_S
+            _warn_no_heartbeat(self.svc)
+        return self.warn_at_s
+
+
 async def _open_zenoh(config: ServiceConfig) -> Any:
     """Open the zenoh session and subscribe: sensor topic latest-wins, goal topic FIFO (bounded)."""
-    from apf_companion.links.zenoh import Overflow, ZenohConfig, ZenohLink
+    from apf_companion.links.zenoh import Overflow, ZenohConfig, open_with_retry
 
     zc = config.zenoh
     config_file = str(config.resolve(zc.config_file)) if zc.config_file else None
-    link = await ZenohLink.open(
+    link = await open_with_retry(
         ZenohConfig(mode=zc.mode, connect=zc.connect, listen=zc.listen, config_file=config_file)
     )
     try:

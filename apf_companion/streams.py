@@ -27,9 +27,11 @@ GLOBAL_POSITION_HZ = 5.0  # only the takeoff (PX4: AMSL) and DO_REPOSITION use i
 EKF_STATUS_HZ = 2.0  # readiness before taking over (ArduPilot)
 
 
-def wanted_streams(profile: Autopilot, telemetry_rate_hz: float) -> dict[int, float]:
+def wanted_streams(profile: Autopilot, telemetry_rate_hz: float, *, targets: bool = False) -> dict[int, float]:
     """The messages the service consumes from the autopilot, with their rates [Hz]: the pose at the telemetry
-    rate, the global reference for goals and the PX4 takeoff, and (ArduPilot) the EKF status."""
+    rate, the global reference for goals and the PX4 takeoff, (ArduPilot) the EKF status, and with ``targets``
+    (goal adoption, apf_companion.adopt) the autopilot's POSITION_TARGET_* reports (ArduPilot sends them in its
+    EXTENDED_STATUS stream, which a companion port may not have)."""
     out = {
         mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: telemetry_rate_hz,
         mavlink.MAVLINK_MSG_ID_ATTITUDE: telemetry_rate_hz,
@@ -37,6 +39,9 @@ def wanted_streams(profile: Autopilot, telemetry_rate_hz: float) -> dict[int, fl
     }
     if profile is Autopilot.ARDUPILOT:
         out[mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT] = EKF_STATUS_HZ
+    if targets:
+        out[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT] = GLOBAL_POSITION_HZ
+        out[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED] = GLOBAL_POSITION_HZ
     return out
 
 

@@ -500,31 +500,77 @@ def _record(
     statustexts: list[str],
 ) -> dict[str, Any]:
     """The flight's result record from the vehicle's and the service's result files."""
-    return {
-        "outcome": outcome,
-        "steps": int(svc_res["steps"]) if svc_res else 0,
-        "min_clearance_m": sim_res.get("min_clearance_m") if sim_res else None,
-        "path_length_m": float(sim_res["path_length_m"]) if sim_res else 0.0,
-        "sim_time_s": float(sim_res["sim_time_s"]) if sim_res else 0.0,
-        "flight_time_s": float(svc_res["flight_time_s"]) if svc_res else 0.0,
-        "planner": opt.planner,
-        "profile": opt.profile,
-        "dynamics": (sim_res or {}).get("dynamics", opt.dynamics),  # the vehicle's own (auto resolved)
-        "world": (sim_res or {}).get("world", {}).get("name", opt.world),
-        "seed": opt.seed,
-        "speedup": opt.speedup,
-        "wall_time_s": round(wall_s, 3),
-        "service_state": svc_res.get("state") if svc_res else None,
-        "latency_ms_p99": svc_res.get("latency_ms_p99") if svc_res else None,
-        "service_exit_code": exit_codes[0],
-        "vehicle_exit_code": exit_codes[1],
-        "statustexts": statustexts[-20:],
-        "service_outcome": svc_res.get("outcome") if svc_res else None,
-        # The goal was lost without arriving: LINK_LOST, or IDLE after a failed takeover / mode loss.
-        "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
-        "service_events": _service_events(opt.out / "service.log"),
-        "mcap": next((str(p) for p in sorted(opt.out.glob("apf-*.mcap"))), None),
-    }
+    return (
+        {
+            "outcome": outcome,
+            "steps": int(svc_res["steps"]) if svc_res else 0,
+            "min_clearance_m": sim_res.get("min_clearance_m") if sim_res else None,
+            "path_length_m": float(sim_res["path_length_m"]) if sim_res else 0.0,
+            "sim_time_s": float(sim_res["sim_time_s"]) if sim_res else 0.0,
+            "flight_time_s": float(svc_res["flight_time_s"]) if svc_res else 0.0,
+            "planner": opt.planner,
+            "profile": opt.profile,
+            "dynamics": (sim_res or {}).get("dynamics", opt.dynamics),  # the vehicle's own (auto resolved)
+            "world": (sim_res or {}).get("world", {}).get("name", opt.world),
+            "seed": opt.seed,
+            "speedup": opt.speedup,
+            "wall_time_s": round(wall_s, 3),
+            "service_state": svc_res.get("state") if svc_res else None,
+            "latency_ms_p99": svc_res.get("latency_ms_p99") if svc_res else None,
+            "service_exit_code": exit_codes[0],
+            "vehicle_exit_code": exit_codes[1],
+            "statustexts": statustexts[-20:],
+            "service_outcome": svc_res.get("outcome") if svc_res else None,
+            # The goal was lost without arriving: LINK_LOST, or IDLE after a failed takeover / mode loss.
+            "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
+            "service_events": _service_events(opt.out / "service.log"),
+            "mcap": next((str(p) for p in sorted(opt.out.glob("apf-*.mcap"))), None),
+        }
+        | ({"error": error_reason(opt.out, svc_res, sim_res, exit_codes)} if outcome == "error" else {})
+    )
+
+
+def error_reason(
+    out: Path, svc_res: dict[str, Any] | None, sim_res: dict[str, Any] | None, exit_codes: tuple[int | None, int | None]
+) -> str:
+    """Why a flight ended in ``error``, for the user: the service's own error, else the last error line either
+    process logged (a config error is printed before any JSON log), else the exit codes."""
+    if svc_res and svc_res.get("error"):
+        return f"service: {svc_res['error']}"
+    for name, who in (("service.log", "service"), ("vehicle.log", "vehicle")):
+        line = _last_error_line(out / name)
+        if line:
+            return f"{who}: {line}"
+    if svc_res and svc_res.get("outcome") not in (None, "arrived"):
+        return f"service ended {svc_res['outcome']} in state {svc_res.get('state')}"
+    if sim_res is None:
+        return f"no vehicle result (exit codes: service {exit_codes[0]}, vehicle {exit_codes[1]})"
+    return f"exit codes: service {exit_codes[0]}, vehicle {exit_codes[1]}"
+
+
+def _last_error_line(path: Path) -> str | None:
+    """The last ERROR/CRITICAL JSON log event (with its error field) or plain ``prog: ...`` line of a log."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        text = line.strip()
+        if text.startswith("{"):
+            with contextlib.suppress(ValueError):
+                ev = json.loads(text)
+                if isinstance(ev, dict) and ev.get("level") in ("ERROR", "CRITICAL"):
+                    return f"{ev.get('event')}: {ev.get('error', '')}".rstrip(": ")
+            continue
+        if text.startswith(("apf-companion:", "apf-sim")) or "Error" in text:
+            return text
+    return None
+
+
+def output_files(out: Path) -> list[str]:
+    """The files a flight actually wrote (what ``apf-sim fly`` lists: never a file it did not write)."""
+    names = ("trajectory.png", "vehicle.tlog", "companion.tlog", "result.json", "service.log", "vehicle.log")
+    return [n for n in names if (out / n).is_file() and (out / n).stat().st_size > 0]
 
 
 def _write_result(opt: FlyOptions, record: dict[str, Any], sim_res: dict[str, Any] | None) -> None:
@@ -742,6 +788,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         print(f"apf-sim fly: {err}", file=sys.stderr)
         return 1
     clearance = rec["min_clearance_m"]
+    if rec["outcome"] == "error":
+        print(f"apf-sim fly: error: {rec.get('error', 'unknown')}", file=sys.stderr)
     print(
         f"outcome: {rec['outcome']}\n"
         f"planner: {rec['planner']} ({rec['profile']}), world: {rec['world']}, seed {rec['seed']}\n"
@@ -749,8 +797,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         f"min clearance: {'n/a' if clearance is None else f'{clearance:.3f} m'}\n"
         f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
         f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
-        f"output: {opt.out}/ (trajectory.png, vehicle.tlog, companion.tlog, result.json, logs"
-        + (f", {Path(rec['mcap']).name}: apf-sim mcap-plot, or open it in Foxglove)" if rec["mcap"] else ")")
+        f"output: {opt.out}/ ({', '.join(output_files(opt.out)) or 'nothing written'})"
+        + (f"; {Path(rec['mcap']).name}: apf-sim mcap-plot, or open it in Foxglove" if rec["mcap"] else "")
     )
     return 0 if rec["outcome"] == "arrived" else 3
 
@@ -769,7 +817,10 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 def _sweep_loop(
     base: FlyOptions, trials: int, records: list[dict[str, Any]], fields: list[npt.NDArray[np.float64]]
 ) -> None:
+    from sim.study.cli import eta_text
+
     densities = _densities(base)
+    started = time.monotonic()
     for k in range(trials):
         seed = base.seed + k
         opt = dataclasses.replace(
@@ -794,7 +845,8 @@ def _sweep_loop(
         clearance_txt = f"{clearance:.3f} m" if isinstance(clearance, float) else "-"
         print(
             f"[{k + 1}/{trials}] seed {seed}: {rec['outcome']:9s} world {rec.get('world')} "
-            f"clearance {clearance_txt} steps {rec.get('steps')}  (success so far {ok}/{k + 1})",
+            f"clearance {clearance_txt} steps {rec.get('steps')}  (success so far {ok}/{k + 1})"
+            f"{eta_text(k + 1, trials, time.monotonic() - started)}",
             flush=True,
         )
 

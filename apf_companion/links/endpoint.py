@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 from apf_companion.errors import ConfigError
 
+__all__ = ["DEFAULT_BAUD", "Endpoint", "EndpointKind", "connection_hint", "parse_endpoint"]
+
 DEFAULT_BAUD = 57600
 
 
@@ -119,6 +121,28 @@ def _parse_host_port(kind: EndpointKind, rest: str, original: str) -> Endpoint:
         msg = f"endpoint {original!r}: port {port} outside {low}..65535"
         raise ConfigError(msg)
     return Endpoint(kind, host=host, port=port)
+
+
+def connection_hint(endpoint: Endpoint) -> str:
+    """What to check when nothing is heard on ``endpoint`` (logged with the no-heartbeat warning)."""
+    if endpoint.kind is EndpointKind.SERIAL:
+        return (
+            f"check the wiring (TX to RX), the baud rate ({endpoint.baud}; ArduPilot SERIALn_BAUD, PX4 SER_TELn_BAUD) "
+            "and that the port speaks MAVLink 2 (ArduPilot SERIALn_PROTOCOL = 2; PX4 MAV_n_CONFIG / MAV_n_MODE = "
+            "Onboard); the device must be readable by this user (group dialout)"
+        )
+    where = f"{endpoint.host or '*'}:{endpoint.port}"
+    if endpoint.kind is EndpointKind.UDPIN:
+        return (
+            f"nothing sends to {where}: the autopilot, SITL or mavlink-router must send UDP to this port "
+            "(e.g. mavlink-router's UdpEndpoint Mode=Normal Address=<this host> Port=" + str(endpoint.port) + ")"
+        )
+    if endpoint.kind is EndpointKind.TCPIN:
+        return f"no autopilot has connected to {where}: point its TCP client (or mavlink-router) at this port"
+    return (
+        f"is the autopilot, SITL or mavlink-router listening at {where}? check the host, the port "
+        "(SITL: tcp:127.0.0.1:5760, udp 14550/14540) and a firewall"
+    )
 
 
 def parse_endpoint(text: str) -> Endpoint:

@@ -30,6 +30,11 @@ __all__ = [
     "ObstacleDistance",
     "ObstacleDistance3d",
     "Odometry",
+    "ParamRequestList",
+    "ParamRequestRead",
+    "ParamSet",
+    "PositionTargetGlobalInt",
+    "PositionTargetLocalNed",
     "Record",
     "Source",
     "decode",
@@ -169,6 +174,56 @@ class EkfStatusReport:
     flags: int  # EKF_STATUS_FLAGS bits (ardupilotmega.xml)
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ParamRequestList:
+    src: Source
+    target_system: int
+    target_component: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ParamRequestRead:
+    src: Source
+    target_system: int
+    target_component: int
+    param_id: str  # NUL padding stripped
+    param_index: int  # -1: look up by param_id
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ParamSet:
+    src: Source
+    target_system: int
+    target_component: int
+    param_id: str
+    param_value: float  # float32 on the wire; integers are cast (ArduPilot's encoding, not byte-wise)
+    param_type: int  # MAV_PARAM_TYPE
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PositionTargetLocalNed:
+    """The autopilot's current guided target (its echo of SET_POSITION_TARGET_*, or a GCS's "fly here")."""
+
+    src: Source
+    time_boot_ms: int
+    coordinate_frame: int  # MAV_FRAME
+    type_mask: int  # POSITION_TARGET_TYPEMASK ignore bits
+    x: float  # north [m], local NED
+    y: float  # east [m]
+    z: float  # down [m]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PositionTargetGlobalInt:
+    src: Source
+    time_boot_ms: int
+    coordinate_frame: int  # MAV_FRAME (GLOBAL_INT, GLOBAL_RELATIVE_ALT_INT, GLOBAL_TERRAIN_ALT_INT)
+    type_mask: int
+    lat_int: int  # [degE7]
+    lon_int: int  # [degE7]
+    alt: float  # [m], meaning set by the frame
+
+
 Record = (
     Heartbeat
     | LocalPositionNed
@@ -182,6 +237,11 @@ Record = (
     | CommandInt
     | CommandAck
     | EkfStatusReport
+    | ParamRequestList
+    | ParamRequestRead
+    | ParamSet
+    | PositionTargetLocalNed
+    | PositionTargetGlobalInt
 )
 
 
@@ -317,6 +377,63 @@ def _ekf_status_report(msg: Any) -> EkfStatusReport:
     return EkfStatusReport(src=_src(msg), flags=int(msg.flags))
 
 
+def _param_id(raw: Any) -> str:
+    if isinstance(raw, bytes):
+        raw = raw.decode("ascii", "replace")
+    return str(raw).split("\x00", 1)[0]
+
+
+def _param_request_list(msg: Any) -> ParamRequestList:
+    return ParamRequestList(
+        src=_src(msg), target_system=int(msg.target_system), target_component=int(msg.target_component)
+    )
+
+
+def _param_request_read(msg: Any) -> ParamRequestRead:
+    return ParamRequestRead(
+        src=_src(msg),
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        param_id=_param_id(msg.param_id),
+        param_index=int(msg.param_index),
+    )
+
+
+def _param_set(msg: Any) -> ParamSet:
+    return ParamSet(
+        src=_src(msg),
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        param_id=_param_id(msg.param_id),
+        param_value=float(msg.param_value),
+        param_type=int(msg.param_type),
+    )
+
+
+def _position_target_local_ned(msg: Any) -> PositionTargetLocalNed:
+    return PositionTargetLocalNed(
+        src=_src(msg),
+        time_boot_ms=int(msg.time_boot_ms),
+        coordinate_frame=int(msg.coordinate_frame),
+        type_mask=int(msg.type_mask),
+        x=float(msg.x),
+        y=float(msg.y),
+        z=float(msg.z),
+    )
+
+
+def _position_target_global_int(msg: Any) -> PositionTargetGlobalInt:
+    return PositionTargetGlobalInt(
+        src=_src(msg),
+        time_boot_ms=int(msg.time_boot_ms),
+        coordinate_frame=int(msg.coordinate_frame),
+        type_mask=int(msg.type_mask),
+        lat_int=int(msg.lat_int),
+        lon_int=int(msg.lon_int),
+        alt=float(msg.alt),
+    )
+
+
 DECODERS: dict[str, Callable[[Any], Record]] = {
     "HEARTBEAT": _heartbeat,
     "LOCAL_POSITION_NED": _local_position_ned,
@@ -330,6 +447,11 @@ DECODERS: dict[str, Callable[[Any], Record]] = {
     "COMMAND_INT": _command_int,
     "COMMAND_ACK": _command_ack,
     "EKF_STATUS_REPORT": _ekf_status_report,
+    "PARAM_REQUEST_LIST": _param_request_list,
+    "PARAM_REQUEST_READ": _param_request_read,
+    "PARAM_SET": _param_set,
+    "POSITION_TARGET_LOCAL_NED": _position_target_local_ned,
+    "POSITION_TARGET_GLOBAL_INT": _position_target_global_int,
 }
 """Message type name -> decoder, for every message the service consumes."""
 

@@ -58,6 +58,7 @@ __all__ = [
     "ZenohLink",
     "ZenohSample",
     "ZenohSubscription",
+    "open_with_retry",
 ]
 
 log = logging.getLogger(__name__)
@@ -471,3 +472,38 @@ class ZenohLink:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         await self.aclose()
+
+
+CLIENT_RETRY_MIN_S = 0.5  # first wait after a failed client open [s]
+CLIENT_RETRY_MAX_S = 5.0  # the backoff doubles up to this [s]
+CLIENT_RETRY_TOTAL_S = 60.0  # give up (LinkError) after waiting this long in all [s]
+
+
+async def open_with_retry(cfg: ZenohConfig, *, total_s: float = CLIENT_RETRY_TOTAL_S) -> ZenohLink:
+    """``ZenohLink.open``; in client mode a router that is not up yet (zenoh refuses at once) is retried with a
+    doubling backoff (``CLIENT_RETRY_MIN_S`` .. ``CLIENT_RETRY_MAX_S``), each failure logged at WARNING, for at
+    most ``total_s``. Peer and router modes are not retried (their failures are configuration errors, e.g. a
+    listen port in use).
+
+    Raises:
+        LinkError: the last failure, once ``total_s`` has been waited.
+    """
+    waited_s, backoff_s = 0.0, CLIENT_RETRY_MIN_S
+    while True:
+        try:
+            return await ZenohLink.open(cfg)
+        except LinkError as err:
+            if cfg.mode != "client" or waited_s + backoff_s > total_s:
+                raise
+            log.warning(
+                "zenoh.router_unreachable",
+                extra={
+                    "connect": list(cfg.connect),
+                    "error": str(err),
+                    "retry_s": backoff_s,
+                    "hint": "is zenohd (or the router) running and listening at these endpoints?",
+                },
+            )
+            await asyncio.sleep(backoff_s)
+            waited_s += backoff_s
+            backoff_s = min(2.0 * backoff_s, CLIENT_RETRY_MAX_S)

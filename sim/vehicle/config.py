@@ -32,6 +32,7 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "EXTENDED_SYS_STATE": 1.0,
     "HOME_POSITION": 0.5,
     "POSITION_TARGET_LOCAL_NED": 5.0,
+    "POSITION_TARGET_GLOBAL_INT": 0.0,  # ArduPilot profile, guided position-only targets: when requested
     "VFR_HUD": 4.0,
     "SYSTEM_TIME": 0.0,
     "AUTOPILOT_VERSION": 0.0,

@@ -25,6 +25,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError
+from apf_companion.outbox import statustext_chunks
 from sim.vehicle.config import (
     DEFAULT_RATES_HZ,
     Dynamics,
@@ -97,6 +98,7 @@ class VehicleEngine:
         self.t_s = 0.0
         self._steps = 0
         self.statustexts: list[StatusText] = []
+        self._statustext_id = 0  # id of the last chunked STATUSTEXT
         self.scan_listeners: list[Callable[[Scan], None]] = []
         self.crash_listeners: list[Callable[[], None]] = []
         self.last_scan: Scan | None = None
@@ -205,8 +207,11 @@ class VehicleEngine:
         self._emit(link, msg)
 
     def statustext(self, severity: int, text: str) -> None:
+        """STATUSTEXT on every link; a long text in MAVLink 2 chunks (id / chunk_seq), as the companion sends."""
         self.statustexts.append(StatusText(self.t_s, severity, text))
-        self._emit(None, self.mav.statustext_encode(severity, text.encode()[:50]))
+        for chunk_id, seq, part in statustext_chunks(text, self._statustext_id):
+            self._statustext_id = chunk_id or self._statustext_id
+            self._emit(None, self.mav.statustext_encode(severity, part, chunk_id, seq))
 
     def warn_once_per_s(self, key: str, severity: int, text: str) -> None:
         last = self._last_warn.get(key)

@@ -48,7 +48,7 @@ def _on_param_set(v: VehicleEngine, msg: Any, link: int) -> None:
         return  # ArduPilot and PX4 stay silent about unknown parameters
     err = v.params.set(name, float(msg.param_value))
     if err is not None:
-        v.statustext(mavlink.MAV_SEVERITY_WARNING, err[:50])
+        v.statustext(mavlink.MAV_SEVERITY_WARNING, err)  # sent in chunks when longer than one STATUSTEXT
     v.emit(None, param_value(v, name))
 
 

@@ -16,7 +16,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.autopilot import ACC_IGNORE, VEL_IGNORE, YAW_ALL_IGNORE, Autopilot
 from sim.vehicle.config import DEFAULT_RATES_HZ
+from sim.vehicle.dynamics import TargetKind
 from sim.vehicle.geo import ne_to_latlon
 from sim.vehicle.profiles import Behaviour
 
@@ -213,6 +215,28 @@ def _ekf_status_report(v: VehicleEngine) -> Any:
     return v.mav.ekf_status_report_encode(v.startup.flags, EKF_VARIANCE, EKF_VARIANCE, EKF_VARIANCE, EKF_VARIANCE, 0.0)
 
 
+def _position_target_global_int(v: VehicleEngine) -> Any:
+    """ArduCopter reports a guided target as a location only in its position-only submodes (WP, Pos:
+    ``ModeGuided::get_wp``), not for position+velocity targets (a companion's stream), in MAV_FRAME_GLOBAL with
+    the altitude AMSL (``GCS_MAVLINK_Copter::send_position_target_global_int``)."""
+    sp = v.guided.sp
+    if v.profile_rules.autopilot is not Autopilot.ARDUPILOT or sp is None or v.behaviour() is not Behaviour.GUIDED:
+        return None
+    if sp.kind is not TargetKind.POSITION or sp.pos is None or sp.vel is not None or sp.acc is not None:
+        return None
+    home = v.cfg.home
+    lat, lon = ne_to_latlon(home, float(sp.pos[0]), float(sp.pos[1]))
+    return v.mav.position_target_global_int_encode(
+        v.time_boot_ms,
+        mavlink.MAV_FRAME_GLOBAL,
+        int(VEL_IGNORE | ACC_IGNORE | YAW_ALL_IGNORE),
+        round(lat * 1e7),
+        round(lon * 1e7),
+        home.alt_amsl_m - float(sp.pos[2]),
+        *([0.0] * 8),
+    )
+
+
 def _vfr_hud(v: VehicleEngine) -> Any:
     vel = v.state.vel_ned_m_s
     gs = float(np.hypot(vel[0], vel[1]))
@@ -244,6 +268,7 @@ BUILDERS: dict[int, Builder] = {
     mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: _extended_sys_state,
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: _home_position,
     mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: _position_target_local_ned,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT: _position_target_global_int,
     mavlink.MAVLINK_MSG_ID_VFR_HUD: _vfr_hud,
     mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: _system_time,
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,

@@ -23,6 +23,11 @@ from apf_companion.links.messages import (
     ObstacleDistance,
     ObstacleDistance3d,
     Odometry,
+    ParamRequestList,
+    ParamRequestRead,
+    ParamSet,
+    PositionTargetGlobalInt,
+    PositionTargetLocalNed,
     Source,
     decode,
     source,
@@ -114,6 +119,40 @@ CASES: list[tuple[str, Any, type[Any], dict[str, Any]]] = [
         lambda m: m.ekf_status_report_encode(mavlink.EKF_ATTITUDE | mavlink.EKF_CONST_POS_MODE, 0, 0, 0, 0, 0),
         EkfStatusReport,
         {"flags": mavlink.EKF_ATTITUDE | mavlink.EKF_CONST_POS_MODE},
+    ),
+    (
+        "PARAM_REQUEST_LIST",
+        lambda m: m.param_request_list_encode(1, 0),
+        ParamRequestList,
+        {"target_system": 1, "target_component": 0},
+    ),
+    (
+        "PARAM_REQUEST_READ",
+        lambda m: m.param_request_read_encode(1, 191, b"APF_RHO_L", -1),
+        ParamRequestRead,
+        {"param_id": "APF_RHO_L", "param_index": -1},
+    ),
+    (
+        "PARAM_SET",
+        lambda m: m.param_set_encode(1, 191, b"APF_SILENT_DRIFT", 0.5, mavlink.MAV_PARAM_TYPE_REAL32),
+        ParamSet,
+        {"param_id": "APF_SILENT_DRIFT", "param_value": 0.5, "param_type": mavlink.MAV_PARAM_TYPE_REAL32},
+    ),
+    (
+        "POSITION_TARGET_LOCAL_NED",
+        lambda m: m.position_target_local_ned_encode(
+            9, mavlink.MAV_FRAME_LOCAL_NED, 0x0DC0, 1, 2, -5, 0, 0, 0, 0, 0, 0, 0, 0
+        ),
+        PositionTargetLocalNed,
+        {"coordinate_frame": mavlink.MAV_FRAME_LOCAL_NED, "type_mask": 0x0DC0, "x": 1.0, "z": -5.0},
+    ),
+    (
+        "POSITION_TARGET_GLOBAL_INT",
+        lambda m: m.position_target_global_int_encode(
+            9, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0x0DF8, -353632621, 1491652374, 5.0, 0, 0, 0, 0, 0, 0, 0, 0
+        ),
+        PositionTargetGlobalInt,
+        {"lat_int": -353632621, "lon_int": 1491652374, "alt": 5.0, "type_mask": 0x0DF8},
     ),
 ]
 

@@ -26,6 +26,7 @@ from apf_companion.links.zenoh import (
     ZenohLink,
     ZenohSample,
     ZenohSubscription,
+    open_with_retry,
 )
 from apf_companion.perception import (
     GoalCommand,
@@ -332,3 +333,30 @@ async def test_client_without_router_fails_at_open() -> None:
     port = free_port()
     with pytest.raises(LinkError, match="failed to open"):
         await ZenohLink.open(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)), timeout=HANG_S)
+
+
+async def test_client_retries_a_router_that_is_not_up_yet(caplog: pytest.LogCaptureFixture) -> None:
+    """zenoh refuses a client at once when no router listens; the service's open retries with backoff."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    task = asyncio.create_task(open_with_retry(ZenohConfig(mode="client", connect=(endpoint,))))
+    router = None
+    try:
+        await until(lambda: any(r.getMessage() == "zenoh.router_unreachable" for r in caplog.records), HANG_S, "1st")
+        assert not task.done()
+        router = await ZenohLink.open(ZenohConfig(mode="router", listen=(endpoint,)))
+        async with asyncio.timeout(HANG_S):
+            client = await task
+        await client.aclose()
+    finally:
+        task.cancel()
+        if router is not None:
+            await router.aclose()
+    warning = next(r for r in caplog.records if r.getMessage() == "zenoh.router_unreachable")
+    assert warning.levelname == "WARNING" and warning.connect == [endpoint]  # type: ignore[attr-defined]
+
+
+async def test_client_retry_is_bounded() -> None:
+    cfg = ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{free_port()}",))
+    with pytest.raises(LinkError, match="Unable to connect"):
+        await open_with_retry(cfg, total_s=1.0)  # 0.5 s, then the next wait (1 s) would pass the bound

@@ -150,3 +150,39 @@ def test_sensor_sources_and_forwarding_keys() -> None:
     for rate in (2.0, 60.0):  # below 2.5 Hz ArduPilot's 0.5 s proximity timeout would flicker
         with pytest.raises(ConfigError, match=r"sensors\.forward_rate_hz"):
             config_from_mapping({"sensors": {"forward_rate_hz": rate}})
+
+
+def test_every_error_in_a_file_is_reported_at_once(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(
+        "dry_run = 'yes'\n"
+        "[cycle]\nrate_hz = 500\ncruise_speed_m_s = -1\n"
+        "[link]\nconect = 'udpin:127.0.0.1:14540'\n"
+        "[goal]\nnorth_m = 5.0\neast_m = 1.0\nadopt_tolerance_m = 0\n"
+        "[safety]\nsectors = 2\n"
+    )
+    with pytest.raises(ConfigError) as exc:
+        load_config(bad)
+    text = str(exc.value)
+    assert text.startswith("6 config errors:")
+    for key in ("dry_run", "cycle.rate_hz", "cycle.cruise_speed_m_s", "'link.conect'", "goal.adopt_tolerance_m"):
+        assert key in text, key
+    assert "safety.sectors" in text and "did you mean 'connect'" in text
+    assert "goal.north_m/goal.east_m" not in text  # a key checked alone is not blamed for a rule about two keys
+
+
+def test_a_cross_key_rule_is_still_reported() -> None:
+    with pytest.raises(ConfigError, match=r"^goal.north_m/goal.east_m must be both set"):
+        config_from_mapping({"goal": {"north_m": 5.0}})
+
+
+def test_every_planner_parameter_error_is_reported_at_once() -> None:
+    cfg = config_from_mapping(
+        {"planner": {"params": {"step_m": -1.0, "n_bacteria": 0, "rho_l_m": 5.0, "rho_u_m": 6.0, "nope": 1}}}
+    )
+    with pytest.raises(ConfigError) as exc:
+        build_planner(cfg)
+    text = str(exc.value)
+    assert text.startswith("3 config errors:"), text
+    assert "planner.params.nope" in text and "PlannerParams.step_m" in text and "PlannerParams.n_bacteria" in text
+    assert "PlannerParams.rho_" not in text  # rho_l 5 with rho_u 6 is valid together: not blamed

@@ -77,3 +77,36 @@ def test_run_dry_run_process_stops_cleanly_on_sigint(tmp_path: Path) -> None:
     rec = json.loads(result.read_text())
     assert rec["outcome"] == "stopped" and rec["state"] == "IDLE"
     assert rec["counters"]["setpoints_sent"] == 0
+
+
+def test_check_config_refuses_a_connection_string_run_would_refuse(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[link]\nconnect = "udpin:127.0.0.1"\n')  # no port
+    assert main(["check-config", str(bad)]) == 2
+    assert "link.connect" in capsys.readouterr().err
+    bad.write_text('[link]\nconnect = "com3:57600"\n')
+    assert main(["check-config", str(bad)]) == 2
+    assert "unknown scheme 'com3'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "env", "says"),
+    [
+        (["--log-level", "LOUD", "check-config", "x.toml"], {}, "invalid log level 'LOUD'"),
+        (["--log-format", "xml", "check-config", "x.toml"], {}, "invalid log format 'xml'"),
+        (["check-config", "x.toml"], {"APF_LOG_FORMAT": "yaml"}, "invalid log format 'yaml'"),
+        (["check-config", "x.toml"], {"APF_LOG_LEVEL": "verbose"}, "invalid log level 'verbose'"),
+    ],
+)
+def test_bad_log_level_or_format_is_a_clear_error(
+    argv: list[str], env: dict[str, str], says: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err

@@ -147,6 +147,14 @@ async def test_identity_heartbeat_and_stream_requests() -> None:
         assert svc.navigator.state is State.IDLE and not ap.setpoints()
 
 
+async def test_goal_adoption_asks_for_the_autopilot_target_reports() -> None:
+    async with rig(fast_config(goal={"adopt_autopilot_target": True})) as (_svc, ap):
+        await until(lambda: len(ap.of_type("COMMAND_LONG")) >= 5, 5.0, "stream requests")
+        intervals = {int(m.param1): m.param2 for m in ap.of_type("COMMAND_LONG") if m.command == 511}
+        assert intervals[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT] == pytest.approx(200_000.0)
+        assert intervals[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED] == pytest.approx(200_000.0)
+
+
 async def test_takeover_guided_then_fly_to_goal() -> None:
     route = Route.point(3.0, 0.0, -5.0, source="test")
     async with rig(route=route) as (svc, ap):
@@ -295,6 +303,32 @@ async def test_do_reposition_from_gcs_replaces_goal() -> None:
             await until(lambda: svc.navigator.state is State.ARRIVED, 20.0, "arrived at the new goal")
             assert math.dist(ap.pos[:2], (0.0, 5.0)) <= 0.7 + 0.1
             assert svc.reporter.counters.foreign_messages >= 1
+        finally:
+            await gcs.aclose()
+
+
+async def test_commands_broadcast_to_system_0_are_answered() -> None:
+    """MAVProxy addresses commands to target_system 0 by default: they are ours too (MAVLink routing)."""
+    async with rig(route=Route.point(30.0, 0.0, -5.0, source="test")) as (svc, ap):
+        await until(lambda: len(ap.setpoints()) > 5, 10.0, "flying")
+        port = svc.link.local_address[1]  # type: ignore[union-attr,index]
+        gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+        try:
+            local = mavlink.MAV_FRAME_LOCAL_NED
+            reposition = mavlink.MAV_CMD_DO_REPOSITION
+            gcs.send(gcs.mav.command_int_encode(0, 0, local, reposition, 0, 0, -1, 1, 0, math.nan, 0, 40000, -5.0))
+            ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+            assert (ack.command, ack.result) == (reposition, mavlink.MAV_RESULT_ACCEPTED)
+            await until(
+                lambda: svc.navigator.route is not None and svc.navigator.route.source == "mavlink:255/190", 2.0, "goal"
+            )
+            # a command we do not handle: UNSUPPORTED when addressed to our component, left to the autopilot when
+            # addressed to all components (our UNSUPPORTED beside its ACCEPTED would read as a refusal)
+            gcs.send(gcs.mav.command_long_encode(0, 0, mavlink.MAV_CMD_DO_SET_SERVO, 0, 1, 1500, 0, 0, 0, 0, 0))
+            gcs.send(gcs.mav.command_long_encode(0, 191, mavlink.MAV_CMD_DO_SET_HOME, 0, 1, 0, 0, 0, 0, 0, 0))
+            ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+            assert (ack.command, ack.result) == (mavlink.MAV_CMD_DO_SET_HOME, mavlink.MAV_RESULT_UNSUPPORTED)
+            assert svc.counters.commands_for_us == 3
         finally:
             await gcs.aclose()
 

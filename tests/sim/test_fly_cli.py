@@ -91,3 +91,25 @@ def test_outcome_rules() -> None:
     assert _outcome({"collided": False}, {"outcome": "error"}) == "error"
     assert _outcome({"collided": False}, {"outcome": "stopped"}) == "error"
     assert _outcome({"collided": False}, None) == "error"
+
+
+def test_fly_error_prints_the_reason_and_only_outputs_it_wrote(tmp_path: Path) -> None:
+    """A planner typo reaches the service, which refuses its config: the reason is printed, and the output line
+    lists only files that exist (no companion.tlog: the service never opened its link)."""
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "sim", "fly", "--planner", "cr-bapff", "--out", str(out), "--quiet", "--no-plot"],
+        capture_output=True,
+        text=True,
+        timeout=110,
+        env=os.environ | {"OPENBLAS_NUM_THREADS": "1"},
+        check=False,
+    )
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    assert "outcome: error" in proc.stdout
+    assert "apf-sim fly: error: service: apf-companion: config error: planner.name must be one of" in proc.stderr
+    assert "'cr-bapff'" in proc.stderr
+    listed = proc.stdout.split("output:")[1]
+    assert "companion.tlog" not in listed and "trajectory.png" not in listed
+    assert not (out / "companion.tlog").exists() and not (out / "trajectory.png").exists()
+    assert "planner.name" in json.loads((out / "result.json").read_text())["error"]

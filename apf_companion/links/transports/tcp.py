@@ -12,7 +12,7 @@ import contextlib
 import itertools
 import logging
 
-from apf_companion.links.endpoint import Endpoint
+from apf_companion.links.endpoint import Endpoint, connection_hint
 from apf_companion.links.receiver import Receiver
 from apf_companion.links.transports.base import MAX_WRITE_BUFFER_B
 
@@ -92,7 +92,13 @@ class TcpClient:
             try:
                 reader, writer = await asyncio.open_connection(ep.host, ep.port)
             except OSError as err:
-                log.debug("mavlink.tcp_connect_failed", extra={"endpoint": str(ep), "error": str(err)})
+                # The first failure of a streak is a WARNING saying what to check; the retries stay at DEBUG.
+                first = backoff_s == TCP_BACKOFF_MIN_S
+                log.log(
+                    logging.WARNING if first else logging.DEBUG,
+                    "mavlink.tcp_connect_failed",
+                    extra={"endpoint": str(ep), "error": str(err), "hint": connection_hint(ep), "retry_s": backoff_s},
+                )
                 await asyncio.sleep(backoff_s)
                 backoff_s = min(backoff_s * 2, TCP_BACKOFF_MAX_S)
                 continue

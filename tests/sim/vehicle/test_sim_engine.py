@@ -16,10 +16,12 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from apf_companion.autopilot import MASK_POSITION, MASK_VELOCITY, Autopilot, CopterMode
+from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY, Autopilot, CopterMode
 from apf_companion.errors import ConfigError
 from apf_companion.links import MavlinkLink
 from sim.vehicle import Dynamics, EngineConfig, SimConfig, SpawnConfig, VehicleEngine
+from sim.vehicle.geo import latlon_to_ne
+from sim.vehicle.telemetry import build
 from sim.world import World, load_world
 from tests.conftest import HANG_S, free_port
 
@@ -249,3 +251,33 @@ def test_auto_dynamics_is_the_profiles_own_vehicle() -> None:
     assert SimConfig(profile="ardupilot", dynamics="auto").dynamics is Dynamics.ARDUCOPTER
     assert SimConfig(profile="px4", dynamics="auto").dynamics is Dynamics.SIMPLE
     assert SimConfig(profile="ardupilot").dynamics is Dynamics.SIMPLE  # the in-process API keeps its default
+
+
+def test_long_statustext_goes_in_chunks() -> None:
+    """A parameter refusal longer than 50 characters arrives whole, in MAVLink 2 chunks sharing one id."""
+    rig = Rig()
+    name = next(iter(dict(rig.engine.params.items())))
+    rig.engine.handle(wire(GCS.param_set_encode(1, 1, name.encode(), float("nan"), m.MAV_PARAM_TYPE_REAL32)), 0)
+    texts = [wire(msg) for _, msg in rig.out if msg.get_type() == "STATUSTEXT"]
+    assert texts, "a refused value is announced"
+    rig.out.clear()
+    rig.engine.statustext(m.MAV_SEVERITY_WARNING, "x" * 60 + "END")
+    chunks = [wire(msg) for _, msg in rig.out if msg.get_type() == "STATUSTEXT"]
+    assert [c.chunk_seq for c in chunks] == [0, 1] and len({c.id for c in chunks}) == 1 and chunks[0].id != 0
+    assert "".join(c.text for c in chunks) == "x" * 60 + "END"
+
+
+def test_arducopter_reports_a_position_only_guided_target_as_a_location() -> None:
+    """GCS_MAVLINK_Copter::send_position_target_global_int: WP/Pos submodes only, MAV_FRAME_GLOBAL, AMSL."""
+    rig = Rig(spawn=SpawnConfig(airborne=True, mode="GUIDED"))
+    rig.run(0.2)
+    rig.setpoint(MASK_POSITION, (12.0, -4.0, -7.0))
+    rig.run(0.1)
+    msg = wire(build(rig.engine, m.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT))
+    assert msg.coordinate_frame == m.MAV_FRAME_GLOBAL and msg.type_mask == MASK_POSITION
+    home = rig.engine.cfg.home
+    assert latlon_to_ne(home, msg.lat_int * 1e-7, msg.lon_int * 1e-7) == pytest.approx((12.0, -4.0), abs=0.02)
+    assert msg.alt == pytest.approx(home.alt_amsl_m + 7.0)
+    rig.setpoint(MASK_POS_VEL, (12.0, -4.0, -7.0), (1.0, 0.0, 0.0))  # a companion's stream: PosVelAccel
+    rig.run(0.1)
+    assert build(rig.engine, m.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT) is None

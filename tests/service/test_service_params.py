@@ -1,0 +1,238 @@
+"""Planner and safety parameters over MAVLink: a pymavlink ground station lists, reads and sets them over loopback
+UDP while the service flies the scripted autopilot; refused values are echoed back unchanged with a STATUSTEXT."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import shutil
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from apf_companion.config import config_from_mapping
+from apf_companion.goal import Route
+from apf_companion.links import MavlinkLink
+from apf_companion.navigator import State
+from apf_companion.params import PARAMS, config_with
+from apf_companion.planning.params import PlannerParams
+from apf_companion.service import CompanionService
+from apf_companion.setpoint import SetpointKind
+from tests.conftest import HANG_S
+from tests.service.test_service_mavlink import fast_config, rig, until
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@contextlib.asynccontextmanager
+async def gcs_for(svc: CompanionService) -> AsyncIterator[MavlinkLink]:
+    assert svc.link is not None and svc.link.local_address is not None
+    gcs = await MavlinkLink.open(
+        f"udpout:127.0.0.1:{svc.link.local_address[1]}", source_system=255, source_component=190
+    )
+    try:
+        yield gcs
+    finally:
+        await gcs.aclose()
+
+
+async def param_values(gcs: MavlinkLink, n: int, timeout_s: float = 5.0) -> list[Any]:
+    out: list[Any] = []
+    while len(out) < n:
+        msg = await gcs.recv_match(type="PARAM_VALUE", timeout=timeout_s)
+        out.append(msg)
+    return out
+
+
+async def set_param(
+    gcs: MavlinkLink, name: str, value: float, seen: list[Any] | None = None, target: tuple[int, int] = (1, 191)
+) -> Any:
+    """PARAM_SET, then the PARAM_VALUE answering it; every other message read meanwhile goes to ``seen``."""
+    gcs.send(gcs.mav.param_set_encode(*target, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32))
+    while True:
+        msg = await gcs.recv(timeout=5.0)
+        if msg.get_type() == "PARAM_VALUE" and msg.param_id == name:
+            return msg
+        if seen is not None:
+            seen.append(msg)
+
+
+def test_the_table_names_fit_and_map_to_real_keys() -> None:
+    cfg = fast_config()
+    names = [p.name for p in PARAMS]
+    assert len(set(names)) == len(names) and all(len(n) <= 16 for n in names)
+    planner = CompanionService(cfg).planner
+    for spec in PARAMS:  # every key resolves, and setting it to its own value validates
+        value = float(getattr(planner.params, spec.key.split(".")[-1], math.nan))
+        if math.isnan(value):
+            section, field = spec.key.split(".")
+            value = float(getattr(getattr(cfg, section), field))
+        config_with(cfg, planner, spec, value)
+
+
+def test_the_docs_table_lists_every_parameter() -> None:
+    page = (Path(__file__).resolve().parents[2] / "docs" / "ecosystem.md").read_text()
+    for spec in PARAMS:
+        assert f"| `{spec.name}` | `{spec.key}` |" in page, spec.name
+
+
+async def test_list_read_by_name_and_index() -> None:
+    async with rig(route=Route.point(20.0, 0.0, -5.0, source="test")) as (svc, _ap), gcs_for(svc) as gcs:
+        gcs.send(gcs.mav.param_request_list_encode(1, 191))
+        listed = await param_values(gcs, len(PARAMS))
+        assert [m.param_index for m in listed] == list(range(len(PARAMS)))
+        assert {m.param_count for m in listed} == {len(PARAMS)}
+        assert all(m.get_srcComponent() == 191 for m in listed)
+        by_name = {m.param_id: m for m in listed}
+        assert by_name["APF_RHO_L"].param_value == pytest.approx(PlannerParams().rho_l_m)
+        assert by_name["APF_N_BACT"].param_type == mavlink.MAV_PARAM_TYPE_INT32
+        assert by_name["APF_RESUME_LINK"].param_value == 1.0
+        # read by name (param_index -1) and by index; an unknown name gets no answer
+        gcs.send(gcs.mav.param_request_read_encode(1, 191, b"APF_NOGOOD", -1))
+        gcs.send(gcs.mav.param_request_read_encode(1, 191, b"APF_CRUISE_SPD", -1))
+        msg = (await param_values(gcs, 1))[0]
+        assert msg.param_id == "APF_CRUISE_SPD" and msg.param_value == pytest.approx(1.0)
+        gcs.send(gcs.mav.param_request_read_encode(1, 191, b"", 2))
+        msg = (await param_values(gcs, 1))[0]
+        assert (msg.param_id, msg.param_index) == (PARAMS[2].name, 2)
+        # a broadcast list (target_system 0, target_component 0) is answered too; another component's is not
+        gcs.send(gcs.mav.param_request_list_encode(1, 1))
+        gcs.send(gcs.mav.param_request_list_encode(0, 0))
+        again = await param_values(gcs, len(PARAMS))
+        assert [m.param_index for m in again] == list(range(len(PARAMS)))
+        assert svc.counters.param_requests == 5
+
+
+async def test_set_valid_value_is_used_by_the_running_planner() -> None:
+    cfg = fast_config(cycle={"cruise_speed_m_s": 2.0})
+    async with rig(cfg, route=Route.point(40.0, 0.0, -5.0, source="test")) as (svc, ap), gcs_for(svc) as gcs:
+        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
+        msg = await set_param(gcs, "APF_RHO_L", 0.6)
+        assert msg.param_value == pytest.approx(0.6) and msg.param_index == 65535  # -1 in a uint16
+        assert svc.params.planner.params.rho_l_m == 0.6  # the float32 meant, not 0.6000000238418579
+        assert svc.config.planner.params["rho_l_m"] == 0.6
+        msg = await set_param(gcs, "APF_CRUISE_SPD", 0.3)
+        assert msg.param_value == pytest.approx(0.3)
+        assert svc.navigator.params.cruise_speed_m_s == pytest.approx(0.3)
+        assert svc.navigator.planner is svc.params.planner
+        n_before = len(ap.setpoints())
+
+        def speeds() -> list[float]:
+            new = ap.setpoints()[n_before:]
+            return [math.hypot(m.vx, m.vy) for _, m in new if math.hypot(m.vx, m.vy) > 0]
+
+        await until(lambda: len(speeds()) > 10, 10.0, "setpoints after the change")
+        assert max(speeds()) <= 0.3 + 1e-6  # the feed-forward follows the new cruise speed
+        msg = await set_param(gcs, "APF_SILENT_DRIFT", 0.5)  # 16 characters: param_id without a NUL
+        assert msg.param_value == pytest.approx(0.5) and svc.navigator.params.silent_drift_m == 0.5
+        assert svc.params.sets == 3 and svc.params.refused == 0
+        assert svc.navigator.state is State.NAVIGATING
+        assert svc.navigator.last_output is not None
+        sp = svc.navigator.last_output.setpoint
+        assert sp is not None and sp.kind is SetpointKind.NAVIGATE
+
+
+async def test_refused_value_is_echoed_old_with_a_statustext() -> None:
+    async with rig(route=Route.point(20.0, 0.0, -5.0, source="test")) as (svc, ap), gcs_for(svc) as gcs:
+        await until(lambda: len(ap.setpoints()) > 3, 10.0, "flying")
+        old_planner = svc.navigator.planner
+        seen: list[Any] = []
+        msg = await set_param(gcs, "APF_CRUISE_SPD", -1.0, seen)  # cycle.cruise_speed_m_s must be in (0, 20]
+        assert msg.param_value == pytest.approx(1.0)
+        msg = await set_param(gcs, "APF_N_BACT", 2.5, seen)  # an integer parameter
+        assert msg.param_value == pytest.approx(PlannerParams().n_bacteria)
+        msg = await set_param(gcs, "APF_RHO_U", math.nan, seen)
+        assert msg.param_value == pytest.approx(PlannerParams().rho_u_m)
+        texts = [m.text for m in seen if m.get_type() == "STATUSTEXT"]
+        while sum("refused" in t for t in texts) < 3:
+            st = await gcs.recv_match(type="STATUSTEXT", timeout=5.0)
+            texts.append(st.text)
+        joined = " ".join(texts)
+        assert "APF_CRUISE_SPD refused" in joined and "APF_N_BACT refused" in joined
+        assert svc.navigator.planner is old_planner and svc.params.refused == 3
+        # an unknown name gets no answer at all (ArduPilot and PX4 stay silent)
+        gcs.send(gcs.mav.param_set_encode(1, 191, b"APF_NOGOOD", 1.0, mavlink.MAV_PARAM_TYPE_REAL32))
+        gcs.send(gcs.mav.param_request_read_encode(1, 191, b"APF_STEP", -1))
+        msg = (await param_values(gcs, 1))[0]
+        assert msg.param_id == "APF_STEP"
+
+
+def test_config_with_validates_like_the_toml_file() -> None:
+    cfg = config_from_mapping({"planner": {"name": "cr-bapf*"}})
+    planner = CompanionService(cfg).planner
+    by_name = {p.name: p for p in PARAMS}
+    new, new_planner = config_with(cfg, planner, by_name["APF_MARGIN"], 0.25)
+    assert new.planner.params["safety_margin_m"] == 0.25 and new_planner.params.safety_margin_m == 0.25
+    new, _ = config_with(cfg, planner, by_name["APF_RESUME_LINK"], 0.0)
+    assert new.safety.resume_after_link_lost is False
+    for name, bad, says in (
+        ("APF_RESUME_LINK", 2.0, "0 or 1"),
+        ("APF_SILENT_DRIFT", 11.0, "safety.silent_drift_m"),
+        ("APF_RHO_L", 10.0, "rho_l"),  # the planner's own check: rho_l < rho_u
+        ("APF_RW_BUDGET", 0.0, "planner.random_walk_budget"),
+    ):
+        with pytest.raises(ValueError, match=says):
+            config_with(cfg, planner, by_name[name], bad)
+
+
+def _mavproxy() -> str | None:
+    """mavproxy.py beside this interpreter (installed --no-deps in the venv), else on PATH."""
+    beside = Path(sys.executable).parent / "mavproxy.py"
+    return str(beside) if beside.is_file() else shutil.which("mavproxy.py")
+
+
+@pytest.mark.skipif(_mavproxy() is None, reason="MAVProxy not installed (pip install --no-deps MAVProxy)")
+async def test_mavproxy_param_module_fetches_and_sets(tmp_path: Path) -> None:
+    """MAVProxy's own param module, typed at its prompt: fetch the list, set a value, have one refused."""
+    mavproxy = _mavproxy()
+    assert mavproxy is not None
+    async with rig(route=Route.point(30.0, 0.0, -5.0, source="test")) as (svc, _ap):
+        assert svc.link is not None and svc.link.local_address is not None
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-u", mavproxy, f"--master=udpout:127.0.0.1:{svc.link.local_address[1]}",
+            "--target-system=1", "--target-component=191", f"--state-basedir={tmp_path}",
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
+            cwd=tmp_path,
+        )  # fmt: skip
+        assert proc.stdin is not None and proc.stdout is not None
+        lines: list[str] = []
+
+        async def read_until(needle: str) -> None:
+            assert proc.stdout is not None
+            while not any(needle in line for line in lines):
+                line = (await proc.stdout.readline()).decode(errors="replace")
+                if not line:
+                    raise AssertionError(f"MAVProxy exited; output: {lines}")
+                lines.append(line.rstrip())
+
+        def type_in(command: str) -> None:
+            assert proc.stdin is not None
+            proc.stdin.write(command.encode() + b"\n")
+
+        try:
+            async with asyncio.timeout(HANG_S * 2):  # MAVProxy starts slowly on a loaded machine
+                await read_until("Detected vehicle 1:191")
+                type_in("set param_ftp false")  # no MAVLink FTP here: the plain PARAM_REQUEST_LIST
+                type_in("param fetch")
+                await read_until(f"Received {len(PARAMS)} parameters")
+                type_in("param set APF_CRUISE_SPD 0.5")
+                await until(lambda: svc.navigator.params.cruise_speed_m_s == 0.5, HANG_S, "set by MAVProxy")
+                type_in("param set APF_RHO_L 9")
+                await read_until("APF_RHO_L refused")
+        finally:
+            if proc.returncode is None:
+                type_in("exit")  # an interactive MAVProxy waits long on SIGTERM; "exit" ends it at once
+                proc.stdin.close()
+                try:
+                    async with asyncio.timeout(HANG_S):
+                        await proc.wait()
+                except TimeoutError:
+                    proc.kill()
+                    await proc.wait()
+        assert svc.params.sets == 1 and svc.params.refused == 1
+        assert svc.params.planner.params.rho_l_m == PlannerParams().rho_l_m
