@@ -6,11 +6,16 @@ chunks (``sim.study.engine.make_tasks``), so every grid point sees the same obst
 counts equal those of ``apf-sim study`` with the same parameters and seed. Chunks run on any
 ``concurrent.futures.Executor`` (the local process pool, or Dask with ``--dask``).
 
-Scenarios are obstacle densities today. ``scenario_tasks`` is the one place that turns a scenario into chunk
-tasks: a world source (``--world`` of the study) becomes a second scenario kind there.
+A scenario is an obstacle density (random fields) or a world (a ``WorldCase`` of ``apf-sim study --world``: a
+bundled name or a TOML file). ``scenario_tasks`` is the one place that turns a scenario into chunk tasks: a density
+into the study's ``ChunkTask``, a world into the world study's ``WorldTask`` (``sim.study.worldstudy``), so a world
+cell is seeded, sampled and judged (collisions on the true geometry) exactly as ``apf-sim study --world``, and every
+grid point sees the same noise streams on it.
 
-Path length is measured per trial from the recorded positions (the sum of the distances between the positions at
-the start of consecutive iterations, start to end, noise included) and averaged over successful trials, like M_s.
+Path length is measured per trial and averaged over successful trials, like M_s. On random fields it is the sum of
+the distances between the recorded positions at the start of consecutive iterations (start to end, noise
+included); on worlds it is the engine's own per-trial path (``TrialRecords.path_m``, the sum of the moves, noise
+included), the world study's "mean path".
 """
 
 from __future__ import annotations
@@ -38,17 +43,25 @@ from sim.study.engine import (
     simulate,
 )
 from sim.study.metrics import Outcome, Summary, TrialRecords, summarize
+from sim.study.worldstudy import WorldCase, WorldTask, make_world_tasks, run_world_chunk
 from sim.sweep_grid import ParamValue, SweepParam, grid_points
 
 FloatArray = npt.NDArray[np.float64]
 
-Scenario = Density
-"""Where a cell's worlds come from (see the module docstring)."""
+Scenario = Density | WorldCase
+"""Where a cell's obstacles come from (see the module docstring)."""
+
+SweepTask = ChunkTask | WorldTask
+
+
+def scenario_label(scenario: Scenario) -> str:
+    """``N 20-45`` for a density, the world's name (file stem or bundled name) for a world."""
+    return f"N {scenario.label}" if isinstance(scenario, Density) else scenario.label
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SweepChunkResult:
-    task: ChunkTask
+    task: SweepTask
     records: TrialRecords
     path_length_m: FloatArray
     """(A,) length of each trial's path [m]."""
@@ -65,11 +78,16 @@ def path_lengths(trace: Trace) -> FloatArray:
     return out
 
 
-def run_sweep_chunk(task: ChunkTask) -> SweepChunkResult:
+def run_sweep_chunk(task: SweepTask) -> SweepChunkResult:
     """One chunk with its path lengths (module level so process pools and Dask can pickle it).
 
-    The same worlds and motion streams as ``engine.run_chunk``: recording the trace draws no random numbers.
+    Random fields: the same worlds and motion streams as ``engine.run_chunk`` (recording the trace draws no random
+    numbers). Worlds: ``worldstudy.run_world_chunk`` itself.
     """
+    if isinstance(task, WorldTask):
+        records = run_world_chunk(task).records
+        assert records.path_m is not None  # simulate() always measures it
+        return SweepChunkResult(task=task, records=records, path_length_m=records.path_m)
     worlds = chunk_worlds(task)
     _, motion_rng = chunk_generators(task.seed, task.density, task.chunk_index)
     result = simulate(task.config, task.planner_name, worlds, motion_rng, record=True)
@@ -104,7 +122,7 @@ class SweepPlan:
 
     cells: list[tuple[str, dict[str, ParamValue], Scenario]]
     spans: list[tuple[int, int]]
-    tasks: list[ChunkTask]
+    tasks: list[SweepTask]
 
 
 def point_config(config: StudyConfig, point: dict[str, ParamValue]) -> StudyConfig:
@@ -116,9 +134,22 @@ def point_config(config: StudyConfig, point: dict[str, ParamValue]) -> StudyConf
 
 def scenario_tasks(
     config: StudyConfig, planner_name: str, scenario: Scenario, trials: int, seed: int
-) -> list[ChunkTask]:
-    """The seeded chunks of one cell."""
-    return make_tasks(config, (planner_name,), (scenario,), trials, seed)
+) -> list[SweepTask]:
+    """The seeded chunks of one cell: the study's (random fields) or the world study's (worlds)."""
+    if isinstance(scenario, WorldCase):
+        return list(make_world_tasks(config, (planner_name,), (scenario,), trials, seed))
+    return list(make_tasks(config, (planner_name,), (scenario,), trials, seed))
+
+
+def check_scenarios(config: StudyConfig, scenarios: Sequence[Scenario]) -> None:
+    """``ConfigError`` for no scenario, a repeated one, two worlds with one name, or worlds in a 3D preset."""
+    if not scenarios:
+        raise ConfigError("sweep: no densities and no worlds to run")
+    labels = [scenario_label(s) for s in scenarios]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"sweep: each density and world must appear once (worlds by file stem), got {labels}")
+    if config.dim != 2 and any(isinstance(s, WorldCase) for s in scenarios):
+        raise ConfigError(f"sweep: world files are 2D; preset {config.preset} is {config.dim}D")
 
 
 def plan_sweep(
@@ -131,6 +162,7 @@ def plan_sweep(
 ) -> SweepPlan:
     """Planners outer, grid points (first parameter slowest), scenarios inner. Every invalid grid point (e.g.
     rho_l >= rho_u) is reported in one ``ConfigError`` before anything runs."""
+    check_scenarios(config, scenarios)
     points = grid_points(swept)
     configs: list[StudyConfig] = []
     errors: list[str] = []

@@ -1,11 +1,14 @@
-"""``apf-sim sweep``: R_s and path length over a grid of planner parameters and obstacle densities.
+"""``apf-sim sweep``: R_s and path length over a grid of planner parameters and obstacle densities or worlds.
 
     apf-sim sweep --planners cr-bapf* --param mu_o=100,500,1000 --param rho_l=0.2,0.4 --trials 200 --out sweep-out
     apf-sim sweep --param step=0.2:0.6:5 --densities 20-45,70-95 --dask local --workers 2
+    apf-sim sweep --param rho_l=0.2,0.4 --worlds u-trap,forest-dense,my-world.toml            # worlds only
+    apf-sim sweep --param rho_l=0.2,0.4 --worlds u-trap --densities 20-45                   # both
     apf-sim sweep --list-params
 
 Writes sweep.csv, sweep.json and heatmap_<planner>.png (R_s and mean path length) into --out and prints the table.
-Every grid point sees the same seeded worlds (see sim/sweep.py); runs here, or on Dask with --dask.
+Every grid point sees the same seeded fields and noise (see sim/sweep.py); runs here, or on Dask with --dask.
+Worlds (bundled names or TOML files) run as in ``apf-sim study --world``.
 """
 
 from __future__ import annotations
@@ -15,17 +18,21 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from apf_companion.errors import ConfigError
 from sim.study.config import DEFAULT_DENSITIES, PRESET_NAMES, Density, StudyConfig, check_planner_names
 from sim.sweep_grid import format_value, parse_params, sweepable_fields
+
+if TYPE_CHECKING:
+    from sim.sweep import Scenario
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add ``sweep`` to ``apf-sim``."""
     p = subparsers.add_parser(
         "sweep",
-        help="R_s and path length over a grid of planner parameters and densities",
+        help="R_s and path length over a grid of planner parameters and densities or worlds",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -42,8 +49,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--planners", default="cr-bapf*", help="comma-separated planners (default cr-bapf*)")
     p.add_argument(
         "--densities",
-        default=",".join(d.label for d in DEFAULT_DENSITIES),
-        help="obstacle-count ranges N_l-N_u, comma separated (default 20-45,45-70,70-95)",
+        default=None,
+        help="obstacle-count ranges N_l-N_u, comma separated (default 20-45,45-70,70-95 without --worlds, none "
+        "with it)",
+    )
+    p.add_argument(
+        "--worlds",
+        default=None,
+        metavar="NAME|FILE,...",
+        help="world files or bundled worlds (u-trap, forest-dense, ...), comma separated, run as in apf-sim study "
+        "--world: a sweep axis beside or instead of the densities",
+    )
+    p.add_argument(
+        "--surface-spacing",
+        type=float,
+        default=None,
+        metavar="M",
+        help="spacing of the surface samples the planners see on worlds [m] (default 0.2, as apf-sim study)",
     )
     p.add_argument("--preset", choices=PRESET_NAMES, default="reference", help="study rules (default reference)")
     p.add_argument("--trials", type=int, default=200, help="trials per cell (default 200)")
@@ -75,6 +97,33 @@ def _list_params(config: StudyConfig) -> int:
     return 0
 
 
+def _scenarios(args: argparse.Namespace) -> tuple[Scenario, ...]:
+    """The densities, then the worlds (each loaded, sampled and given its optimum as ``apf-sim study --world``
+    does); every world that cannot be loaded is reported in one ``ConfigError``."""
+    from sim.study.worldstudy import load_case
+    from sim.world.geometry import SURFACE_SPACING_M
+
+    density_text = args.densities
+    if density_text is None:
+        density_text = "" if args.worlds else ",".join(d.label for d in DEFAULT_DENSITIES)
+    densities = [Density.parse(d) for d in density_text.split(",") if d.strip()]
+    spacing = SURFACE_SPACING_M if args.surface_spacing is None else args.surface_spacing
+    if not spacing > 0:
+        raise ConfigError(f"--surface-spacing: need > 0, got {spacing}")
+    worlds: list[Scenario] = []
+    errors: list[str] = []
+    for name in (w.strip() for w in (args.worlds or "").split(",")):
+        if not name:
+            continue
+        try:
+            worlds.append(load_case(name, spacing_m=spacing))
+        except ConfigError as err:
+            errors.append(str(err))
+    if errors:
+        raise ConfigError("--worlds: " + "; ".join(errors))
+    return (*densities, *worlds)
+
+
 def _run(args: argparse.Namespace) -> int:
     from sim.study.cli import ProgressBar
     from sim.study.executors import study_executor
@@ -94,8 +143,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers: need >= 1, got {args.workers}")
     swept = parse_params(args.param, config.planner_params)
     planners = check_planner_names(tuple(p.strip() for p in args.planners.split(",") if p.strip()))
-    densities = tuple(Density.parse(d) for d in args.densities.split(",") if d.strip())
-    plan = plan_sweep(config, planners, swept, densities, args.trials, args.seed)
+    plan = plan_sweep(config, planners, swept, _scenarios(args), args.trials, args.seed)
 
     with study_executor(args.dask, args.workers) as (executor, ran_on):
         progress = None if args.no_progress else ProgressBar(sys.stderr, label="sweep")

@@ -1,7 +1,8 @@
 """Output of ``apf-sim sweep``: a markdown table, ``sweep.csv``, ``sweep.json`` and heatmaps (matplotlib, Agg).
 
-One row per (planner, grid point, scenario). Heatmaps: one PNG per planner, rows = grid points, columns =
-scenarios, two panels: R_s and the mean path length of successful trials.
+One row per (planner, grid point, scenario); a scenario is a density (``n_low``, ``n_high``) or a world (``world``),
+the other columns are empty (CSV) or null (JSON). Heatmaps: one PNG per planner, rows = grid points, columns =
+scenarios (densities, then worlds, as given), two panels: R_s and the mean path length of successful trials.
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from sim.study.config import StudyConfig
-from sim.sweep import SweepCell
+from sim.study.config import Density, StudyConfig
+from sim.sweep import SweepCell, scenario_label
 from sim.sweep_grid import SweepParam, format_value, point_label
 
-JSON_SCHEMA_VERSION = 1
+JSON_SCHEMA_VERSION = 2
+"""2: a ``world`` key in every row (null on densities; ``n_low``/``n_high`` null on worlds)."""
 
-CSV_FIELDS_BEFORE = ("planner", "n_low", "n_high")
+CSV_FIELDS_BEFORE = ("planner", "world", "n_low", "n_high")
 CSV_FIELDS_AFTER = (
     "trials",
     "R_s",
@@ -48,10 +50,12 @@ def _fmt(x: float, digits: int) -> str:
 
 def cell_row(cell: SweepCell) -> dict[str, Any]:
     s = cell.summary
+    density = cell.scenario if isinstance(cell.scenario, Density) else None
     row: dict[str, Any] = {
         "planner": cell.planner_name,
-        "n_low": cell.scenario.n_low,
-        "n_high": cell.scenario.n_high,
+        "world": None if density is not None else cell.scenario.label,
+        "n_low": None if density is None else density.n_low,
+        "n_high": None if density is None else density.n_high,
     }
     row.update({k: format_value(v) for k, v in cell.point.items()})
     row.update(
@@ -73,7 +77,7 @@ def cell_row(cell: SweepCell) -> dict[str, Any]:
 
 
 def markdown_table(cells: Sequence[SweepCell]) -> str:
-    head = "| planner | parameters | N | trials | R_s [95% CI] | M_s | path length (m) | S (m) |"
+    head = "| planner | parameters | N or world | trials | R_s [95% CI] | M_s | path length (m) | S (m) |"
     lines = [head, "|" + "---|" * 8]
     for c in cells:
         s = c.summary
@@ -130,11 +134,11 @@ def _file_stem(planner_name: str) -> str:
 def _grid(cells: Sequence[SweepCell]) -> tuple[list[str], list[str], np.ndarray, np.ndarray]:
     """Row labels (grid points), column labels (scenarios), and the R_s and path-length matrices."""
     rows = list(dict.fromkeys(point_label(c.point) for c in cells))
-    cols = list(dict.fromkeys(c.scenario.label for c in cells))
+    cols = list(dict.fromkeys(scenario_label(c.scenario) for c in cells))
     rs = np.full((len(rows), len(cols)), np.nan)
     length = np.full_like(rs, np.nan)
     for c in cells:
-        i, j = rows.index(point_label(c.point)), cols.index(c.scenario.label)
+        i, j = rows.index(point_label(c.point)), cols.index(scenario_label(c.scenario))
         rs[i, j] = c.summary.R_s
         length[i, j] = c.mean_path_length_m
     return rows, cols, rs, length
@@ -169,7 +173,7 @@ def plot_heatmaps(out_dir: Path, cells: Sequence[SweepCell]) -> list[Path]:
         panels = ((rs, "R_s", "viridis", (0.0, 1.0)), (length, "mean path length (m), successes", "magma_r", None))
         for k, (ax, (data, title, cmap, limits)) in enumerate(zip(axes[0], panels, strict=True)):
             _panel(fig, ax, data, cmap, limits)
-            ax.set_xticks(range(len(cols)), [f"N {c}" for c in cols])
+            ax.set_xticks(range(len(cols)), cols, rotation=30 if len(cols) > 4 else 0)
             ax.set_yticks(range(len(rows)), rows if k == 0 else [""] * len(rows))
             ax.set_title(f"{planner_name}: {title}", fontsize=9)
         path = out_dir / f"heatmap_{_file_stem(planner_name)}.png"

@@ -152,8 +152,9 @@ def test_sweep_on_a_running_scheduler_writes_the_serial_table(
     def sweep(argv: list[str]) -> str:
         parser = argparse.ArgumentParser()
         register_sweep(parser.add_subparsers(dest="command", required=True))
-        args = parser.parse_args(["sweep", "--param", "rho_l=0.3,0.5", "--densities", "45-70", "--trials", "8",
-                                  "--chunk-trials", "4", "--no-plots", "--no-progress", *argv])  # fmt: skip
+        args = parser.parse_args(["sweep", "--param", "rho_l=0.3,0.5", "--densities", "45-70",
+                                  "--worlds", "corridor-bend", "--trials", "8", "--chunk-trials", "4",
+                                  "--no-plots", "--no-progress", *argv])  # fmt: skip
         assert args.func(args) == 0
         return capsys.readouterr().out
 
@@ -161,6 +162,6 @@ def test_sweep_on_a_running_scheduler_writes_the_serial_table(
     dask_out = sweep(["--dask", loopback_cluster.scheduler_address, "--out", str(tmp_path / "dask")])
     assert f"with 2 Dask worker(s) at {loopback_cluster.scheduler_address}" in dask_out
     table = [line for line in serial_out.splitlines() if line.startswith("|")]
-    assert len(table) == 2 + 2
+    assert len(table) == 2 + 2 * 2  # 2 grid points x (1 density + 1 world)
     assert table == [line for line in dask_out.splitlines() if line.startswith("|")]
     assert (tmp_path / "serial" / "sweep.csv").read_text() == (tmp_path / "dask" / "sweep.csv").read_text()

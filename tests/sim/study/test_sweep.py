@@ -16,7 +16,8 @@ from apf_companion.planning import PlannerParams, RandomWalkRule
 from sim.study.cli import eta_text
 from sim.study.config import Density, StudyConfig
 from sim.study.engine import Trace, run_tasks
-from sim.sweep import path_lengths, plan_sweep, point_config, run_sweep
+from sim.study.worldstudy import WorldCase, load_case, run_world_study
+from sim.sweep import path_lengths, plan_sweep, point_config, run_sweep, scenario_label
 from sim.sweep_cli import register
 from sim.sweep_grid import grid_points, parse_params, resolve_name, sweepable_fields
 
@@ -148,7 +149,8 @@ def test_cli_writes_table_csv_json_and_heatmaps(tmp_path: Path, capsys: pytest.C
     with (out / "sweep.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 16
-    assert list(rows[0])[:5] == ["planner", "n_low", "n_high", "mu_o_per_m2", "n_bacteria"]
+    assert list(rows[0])[:6] == ["planner", "world", "n_low", "n_high", "mu_o_per_m2", "n_bacteria"]
+    assert {r["world"] for r in rows} == {""}
     assert {r["n_bacteria"] for r in rows} == {"30", "60"}
     doc = json.loads((out / "sweep.json").read_text())
     assert doc["grid"] == [
@@ -163,6 +165,76 @@ def test_cli_writes_table_csv_json_and_heatmaps(tmp_path: Path, capsys: pytest.C
         )
     for name in ("heatmap_bapf.png", "heatmap_cr-bapf-star.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_world_cells_are_the_world_studys_trials() -> None:
+    config = dataclasses.replace(StudyConfig.reference(), chunk_trials=3)
+    cases = (load_case("corridor-bend"), load_case("forest"))
+    swept = parse_params(["rho_l=0.3,0.5"], config.planner_params)
+    plan = plan_sweep(config, ("cr-bapf*",), swept, (Density(n_low=45, n_high=70), *cases), 5, 4)
+    cells = run_sweep(plan)
+    assert [scenario_label(c.scenario) for c in cells] == ["N 45-70", "corridor-bend", "forest"] * 2
+    world_cells = [c for c in cells if isinstance(c.scenario, WorldCase)]
+    for cell in world_cells:
+        assert isinstance(cell.scenario, WorldCase)
+        cfg = point_config(config, cell.point)
+        (study,) = run_world_study(cfg, (cell.planner_name,), (cell.scenario,), 5, 4)
+        np.testing.assert_array_equal(cell.records.outcome, study.records.outcome)
+        np.testing.assert_array_equal(cell.records.clearance_m, study.records.clearance_m)  # the true geometry's
+        np.testing.assert_array_equal(cell.path_length_m, study.records.path_m)
+    # The grid point reaches the planner: the same noise streams, other paths.
+    low, high = (c for c in world_cells if scenario_label(c.scenario) == "corridor-bend")
+    assert (low.point, high.point) == ({"rho_l_m": 0.3}, {"rho_l_m": 0.5})
+    assert not np.array_equal(low.path_length_m, high.path_length_m)
+
+
+def test_cli_sweeps_worlds_instead_of_densities(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "sweep"
+    argv = ["--param", "rho_l=0.3,0.5", "--worlds", "corridor-bend, forest", "--trials", "2", "--workers", "1",
+            "--out", str(out)]  # fmt: skip
+    assert _run(argv) == 0
+    stdout, stderr = capsys.readouterr()
+    assert "| cr-bapf* | rho_l_m=0.5 | forest | 2 |" in stdout
+    assert "8/8 trials" in stderr  # 2 points x 2 worlds x 2 trials: no densities unless asked for
+    with (out / "sweep.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["world"], r["n_low"], r["rho_l_m"]) for r in rows] == [
+        ("corridor-bend", "", "0.3"),
+        ("forest", "", "0.3"),
+        ("corridor-bend", "", "0.5"),
+        ("forest", "", "0.5"),
+    ]
+    doc = json.loads((out / "sweep.json").read_text())
+    assert doc["schema"] == 2
+    assert [(r["world"], r["n_low"], r["n_high"]) for r in doc["rows"][:2]] == [
+        ("corridor-bend", None, None),
+        ("forest", None, None),
+    ]
+    assert (out / "heatmap_cr-bapf-star.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_world_axis_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = ["--param", "rho_l=0.3", "--trials", "1", "--workers", "1", "--out", str(tmp_path)]
+    assert _run([*base, "--worlds", "no-such-world,missing.toml"]) == 2
+    err = capsys.readouterr().err
+    assert "no example world 'no-such-world'" in err
+    assert "cannot read world file missing.toml" in err
+    assert _run([*base, "--worlds", "forest,forest"]) == 2
+    assert "each density and world must appear once" in capsys.readouterr().err
+    assert _run([*base, "--densities", ","]) == 2
+    assert "no densities and no worlds" in capsys.readouterr().err
+    assert _run([*base, "--worlds", "forest", "--surface-spacing", "0"]) == 2
+    assert "--surface-spacing: need > 0" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+    config_3d = dataclasses.replace(
+        StudyConfig.reference(),
+        planner_params=PlannerParams.reference(dim=3),
+        start_m=(3.0, 3.0, 3.0),
+        target_m=(22.0, 22.0, 22.0),
+    )
+    swept = parse_params(["rho_l=0.3"], config_3d.planner_params)
+    with pytest.raises(ConfigError, match="world files are 2D"):
+        plan_sweep(config_3d, ("cr-bapf*",), swept, (load_case("forest"),), 1, 0)
 
 
 def test_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
