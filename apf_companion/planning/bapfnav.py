@@ -40,7 +40,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
+from apf_companion.planning.clearance import near_obstacles, sweep_and_probes_sq
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navstate import NavMode, NavState
@@ -196,15 +196,20 @@ class BapfNavPlanner(StatefulPlanner):
         clear_k = np.empty((n_agents, n_points))
         clear_0 = np.empty(n_agents)
         look_k = np.zeros((n_agents, n_points))
+        lookahead = self.params.nav_lookahead_m > 0.0 and self.params.nav_lookahead_penalty_m > 0.0
         for lo in range(0, n_agents, _GROUP):
             g = slice(lo, min(lo + _GROUP, n_agents))
             mask = None if obstacle_mask is None else obstacle_mask[g]
             rel, valid = near_obstacles(positions_m[g], obstacles_m[g], mask, self._reach_m)
-            feasible[g], seg2[g] = self._feasible(rel, valid)
-            clear_k[g], clear_0[g] = self._clearance_terms(rel, valid)
-            rows = np.flatnonzero(direct[g])
-            if rows.size and rel.shape[1]:
-                look_k[lo + rows] = self._lookahead(rel[rows], valid[rows], to_goal[g][rows], g_k[g][rows])
+            if rel.shape[1] == 0:
+                feasible[g], seg2[g], clear_k[g], clear_0[g] = True, np.inf, 0.0, 0.0
+                continue
+            probes = self._probes(to_goal[g], g_k[g]) if lookahead and direct[g].any() else None
+            r2 = np.einsum("amd,amd->am", rel, rel)
+            seg2[g], end2, look2 = sweep_and_probes_sq(rel, valid, self.bacteria_offsets_m, r2, probes)
+            feasible[g], clear_k[g], clear_0[g] = self._sweep(valid, r2, seg2[g], end2)
+            if look2 is not None:  # the probe comes closer than the clearance: DIRECT agents pay the penalty
+                look_k[g] = np.where((look2 < self._c2) & direct[g, None], self.params.nav_lookahead_penalty_m, 0.0)
         return feasible, seg2, clear_k, clear_0, look_k
 
     def _progress(self, state: NavState, g0: FloatArray) -> None:
@@ -217,56 +222,40 @@ class BapfNavPlanner(StatefulPlanner):
         state.field[leave] = None
         state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
-    def _feasible(self, rel: FloatArray, valid: BoolArray) -> tuple[BoolArray, FloatArray]:
-        """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out),
-        and the swept squared clearance of every move (A, K)."""
-        seg2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
-        r2 = np.einsum("amd,amd->am", rel, rel)
-        d0 = np.min(np.where(valid, r2, np.inf), axis=1, initial=np.inf)
+    def _sweep(
+        self, valid: BoolArray, r2: FloatArray, seg2: FloatArray, end2: FloatArray
+    ) -> tuple[BoolArray, FloatArray, FloatArray]:
+        """Feasible moves (A, K): the whole segment keeps the clearance (or, from inside it, gets no closer and
+        ends out); the Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path.
+        ``r2`` (A, M) and ``end2`` (M, A, K): squared distances of the obstacles to the agent and the points."""
+        p = self.params
+        n_agents = r2.shape[0]
+        all_valid = n_agents == 1 or bool(valid.all())  # one agent: near_obstacles returns only real rows
+        if p.nav_clearance_gain_m == 0.0:
+            clear_k, clear_0 = np.zeros(seg2.shape), np.zeros(n_agents)
+        else:
+            kw = {"alpha_o": p.nav_clearance_gain_m, "mu_o_per_m2": p.nav_clearance_decay_per_m2}
+            terms = obstacle_potential(end2, **kw)
+            at_agent = obstacle_potential(r2, **kw)
+            if not all_valid:
+                np.copyto(terms, 0.0, where=~valid.T[:, :, None])
+                at_agent = np.where(valid, at_agent, 0.0)
+            clear_k, clear_0 = np.add.reduce(terms, axis=0), at_agent.sum(axis=1)
+        d0 = np.min(r2 if all_valid else np.where(valid, r2, np.inf), axis=1, initial=np.inf)
         ok = seg2 >= self._c2
         inside = d0 < self._c2
         if inside.any():
-            end2 = self._end_dist_sq(rel, r2)
-            np.copyto(end2, np.inf, where=~valid.T[:, :, None])
+            if not all_valid:
+                np.copyto(end2, np.inf, where=~valid.T[:, :, None])
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
-        return np.asarray(ok), seg2
+        return np.asarray(ok), clear_k, clear_0
 
-    def _end_dist_sq(self, rel: FloatArray, r2: FloatArray) -> FloatArray:
-        """(M, A, K) squared distance from each obstacle to each bacteria point: |rel|^2 - 2 rel.o + |o|^2."""
-        offsets = self.bacteria_offsets_m
-        dot = np.ascontiguousarray(rel[:, :, 0].T)[:, :, None] * (-2.0 * offsets[:, 0])
-        for d in range(1, offsets.shape[1]):
-            dot += np.ascontiguousarray(rel[:, :, d].T)[:, :, None] * (-2.0 * offsets[:, d])
-        dot += r2.T[:, :, None]
-        dot += self._o2
-        return np.maximum(dot, 0.0, out=dot)
-
-    def _clearance_terms(self, rel: FloatArray, valid: BoolArray) -> tuple[FloatArray, FloatArray]:
-        """Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path."""
-        p = self.params
-        n_agents = rel.shape[0]
-        if rel.shape[1] == 0 or p.nav_clearance_gain_m == 0.0:
-            return np.zeros((n_agents, self._o2.shape[0])), np.zeros(n_agents)
-        r2 = np.einsum("amd,amd->am", rel, rel)
-        kw = {"alpha_o": p.nav_clearance_gain_m, "mu_o_per_m2": p.nav_clearance_decay_per_m2}
-        terms = obstacle_potential(self._end_dist_sq(rel, r2), **kw)
-        np.copyto(terms, 0.0, where=~valid.T[:, :, None])
-        at_agent = np.where(valid, obstacle_potential(r2, **kw), 0.0).sum(axis=1)
-        return np.add.reduce(terms, axis=0), at_agent
-
-    def _lookahead(self, rel: FloatArray, valid: BoolArray, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
-        """(A, K) penalty where the probe from the point towards the goal comes closer than the clearance."""
-        p = self.params
-        n_agents, n_points = g_k.shape
-        if p.nav_lookahead_m == 0.0 or p.nav_lookahead_penalty_m == 0.0 or rel.shape[1] == 0:
-            return np.zeros((n_agents, n_points))
-        length = np.minimum(g_k, p.nav_lookahead_m)
+    def _probes(self, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
+        """(A, K, D) look-ahead probes: from each point towards the goal, ``nav_lookahead_m`` long (or to it)."""
+        length = np.minimum(g_k, self.params.nav_lookahead_m)
         with np.errstate(invalid="ignore", divide="ignore"):
-            vec = np.where(g_k[..., None] > 0.0, to_goal * (length / g_k)[..., None], 0.0)
-        starts = np.broadcast_to(self.bacteria_offsets_m, vec.shape)
-        blocked = segments_clearance_sq(rel, valid, starts, vec) < self._c2
-        return np.where(blocked, p.nav_lookahead_penalty_m, 0.0)
+            return np.where(g_k[..., None] > 0.0, to_goal * (length / g_k)[..., None], 0.0)
 
     def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
         """Best passing point, with the turn hysteresis; -1 where none passes."""
