@@ -40,7 +40,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import near_obstacles, sweep_and_probes_sq
+from apf_companion.planning.clearance import MoveSweep, near_obstacles
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navstate import NavMode, NavState
@@ -63,6 +63,8 @@ _GAVE_UP = np.int8(NavMode.GAVE_UP)
 _GREEDY_CODE = np.int8(DecisionReason.GREEDY)
 _LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
 _GAVE_UP_CODE = np.int8(DecisionReason.GAVE_UP)
+#: Smallest normal float64 (the divisor where a distance is zero, ``_probes``).
+_TINY = float(np.finfo(np.float64).tiny)
 #: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
 _GROUP = 16
 
@@ -81,6 +83,7 @@ class BapfNavPlanner(StatefulPlanner):
         offsets = self.bacteria_offsets_m
         self._units = offsets / p.step_m
         self._o2 = np.einsum("kd,kd->k", offsets, offsets)
+        self._sweep_moves = MoveSweep(offsets)
         self._escape = EscapeMaps(p, offsets, self.clearance_m)
         self._cos_hold = math.cos(math.radians(p.nav_hold_angle_deg))
         # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
@@ -101,8 +104,9 @@ class BapfNavPlanner(StatefulPlanner):
         state: AgentState,
     ) -> BatchDecision:
         assert isinstance(state, NavState)
-        changed = ~np.all(state.target_m == targets_m, axis=1)
-        if changed.any():
+        same = (state.target_m == targets_m).all(axis=1)
+        if not same.all():
+            changed = ~same
             state.restart(np.flatnonzero(changed), targets_m[changed])
         offsets = self.bacteria_offsets_m
         goal_vec = targets_m - positions_m
@@ -120,7 +124,8 @@ class BapfNavPlanner(StatefulPlanner):
         active = state.mode != _GAVE_UP
         passing = feasible & (cost < cost0[:, None]) & active[:, None]
 
-        escaping = self._escaping(state, passing, feasible, g0)
+        any_feasible: BoolArray = np.asarray(feasible.any(axis=1))
+        escaping = self._escaping(state, direct, passing, any_feasible, g0)
         if escaping.any():
             rows = np.flatnonzero(escaping)
             self._escape_scores(
@@ -139,23 +144,25 @@ class BapfNavPlanner(StatefulPlanner):
             )
 
         chosen = self._choose(cost, cost0, passing, state.prev_dir)
-        self._squeeze_out(chosen, ~feasible.any(axis=1) & active, seg2)
-        moved = chosen >= 0
+        self._squeeze_out(chosen, ~any_feasible & active, seg2)
         gave_up = state.mode == _GAVE_UP
-        reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
-        reason[gave_up] = _GAVE_UP_CODE
         chosen[gave_up] = -1
         moved = chosen >= 0
+        reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
+        reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
         state.since_field[state.mode == _ESCAPE] += 1
         return decision_from_choice(positions_m, offsets, chosen, reason, passing.sum(axis=1), feasible.sum(axis=1))
 
     @staticmethod
-    def _escaping(state: NavState, passing: BoolArray, feasible: BoolArray, g0: FloatArray) -> BoolArray:
+    def _escaping(
+        state: NavState, direct: BoolArray, passing: BoolArray, any_feasible: BoolArray, g0: FloatArray
+    ) -> BoolArray:
         """(A,) agents that plan on the escape potential: those already escaping, and those whose direct step
-        found no passing point (they enter ESCAPE here, remembering where: Bug2's leave rule)."""
+        found no passing point (they enter ESCAPE here, remembering where: Bug2's leave rule). ``direct``: the
+        agents in DIRECT mode; ``any_feasible``: the agents with a feasible move."""
         escaping = state.mode == _ESCAPE
-        trapped = (state.mode == _DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
+        trapped = direct & ~passing.any(axis=1) & any_feasible
         if trapped.any():
             rows = np.flatnonzero(trapped)
             state.mode[rows] = _ESCAPE
@@ -206,7 +213,7 @@ class BapfNavPlanner(StatefulPlanner):
                 continue
             probes = self._probes(to_goal[g], g_k[g]) if lookahead and direct[g].any() else None
             r2 = np.einsum("amd,amd->am", rel, rel)
-            seg2[g], end2, look2 = sweep_and_probes_sq(rel, valid, self.bacteria_offsets_m, r2, probes)
+            seg2[g], end2, look2 = self._sweep_moves(rel, valid, r2, probes)
             feasible[g], clear_k[g], clear_0[g] = self._sweep(valid, r2, seg2[g], end2)
             if look2 is not None:  # the probe comes closer than the clearance: DIRECT agents pay the penalty
                 look_k[g] = np.where((look2 < self._c2) & direct[g, None], self.params.nav_lookahead_penalty_m, 0.0)
@@ -215,11 +222,14 @@ class BapfNavPlanner(StatefulPlanner):
     def _progress(self, state: NavState, g0: FloatArray) -> None:
         """Closest approach, the escape's leave rule and the give-up by patience."""
         improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
-        state.best_dist_m = np.where(improved, g0, state.best_dist_m)
-        state.since_best = np.where(improved, 0, state.since_best + 1).astype(np.int32)
-        leave = (state.mode == _ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m)
-        state.mode[leave] = _DIRECT
-        state.field[leave] = None
+        np.copyto(state.best_dist_m, g0, where=improved)
+        state.since_best += 1
+        state.since_best[improved] = 0
+        escaping = state.mode == _ESCAPE
+        if escaping.any():
+            leave = escaping & (g0 < state.hit_dist_m - self.params.step_m)
+            state.mode[leave] = _DIRECT
+            state.field[leave] = None
         state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
     def _sweep(
@@ -252,10 +262,11 @@ class BapfNavPlanner(StatefulPlanner):
         return np.asarray(ok), clear_k, clear_0
 
     def _probes(self, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
-        """(A, K, D) look-ahead probes: from each point towards the goal, ``nav_lookahead_m`` long (or to it)."""
-        length = np.minimum(g_k, self.params.nav_lookahead_m)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(g_k[..., None] > 0.0, to_goal * (length / g_k)[..., None], 0.0)
+        """(A, K, D) look-ahead probes: from each point towards the goal, ``nav_lookahead_m`` long (or to it).
+        A point on the goal (g = 0) gets a zero probe: min(g, L) / max(g, tiny) = 0 there, no 0/0."""
+        scale = np.minimum(g_k, self.params.nav_lookahead_m)
+        scale /= np.maximum(g_k, _TINY)
+        return to_goal * scale[..., None]
 
     def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
         """Best passing point, with the turn hysteresis; -1 where none passes."""

@@ -12,15 +12,18 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = [
+    "MoveSweep",
     "near_obstacles",
     "point_clearance_sq",
     "segment_clearance_sq",
     "segments_clearance_sq",
-    "sweep_and_probes_sq",
 ]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+
+#: Smallest normal float64: the divisor of zero-length probes (``MoveSweep``).
+_TINY = float(np.finfo(np.float64).tiny)
 
 
 def near_obstacles(
@@ -104,70 +107,86 @@ def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatAr
     return _segment_min(axes, _dot(axes, offsets_m), offsets_m, valid)
 
 
-def sweep_and_probes_sq(
-    rel_m: FloatArray, valid: BoolArray, offsets_m: FloatArray, r2_m2: FloatArray, probes_m: FloatArray | None
-) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+class MoveSweep:
     """The moves' swept clearance, the end points' distances and, optionally, probes from the end points, in one
-    pass over the obstacles (fewer, larger array operations: at one agent numpy's per-call cost dominates).
+    pass over the obstacles, with what depends only on the moves computed once (at one agent numpy's per-call
+    cost dominates, so fewer and larger array operations are what makes a step fast).
+
+    Every result equals, bit for bit, what ``segment_clearance_sq`` / ``segments_clearance_sq`` return: the same
+    operations in the same order on the same values (tests/planning/test_planning_nav_digest.py pins it).
 
     Parameters
     ----------
-    rel_m : (A, M, D) obstacles relative to the agents, M > 0; valid : (A, M).
-    offsets_m : (K, D) the moves (non-zero length).
-    r2_m2 : (A, M) |rel|^2, the caller's.
-    probes_m : (A, K, D) segments from the end point offset_k along probes_m[a, k] (zero length: the point),
-        or None.
-
-    Returns
-    -------
-    (A, K) ``segment_clearance_sq`` of the moves; (M, A, K) squared distance from every obstacle to every end
-    point, |rel|^2 - 2 rel.o + |o|^2 (>= 0; rows of padding obstacles hold meaningless values, the caller masks
-    them); (A, K) ``segments_clearance_sq`` of the probes, or None. All equal, bit for bit, to the separate
-    functions: the same operations in the same order on the same values.
+    offsets_m : (K, D) the moves (bacteria offsets), all of non-zero length.
     """
-    n_agents, width, dim = rel_m.shape
-    n_points = offsets_m.shape[0]
-    axes = _axes(rel_m)
-    if probes_m is None:
-        dot = _dot(axes, offsets_m)
-        end2 = _end_sq(dot, offsets_m, r2_m2)
-        return _segment_min(axes, dot, offsets_m, valid), end2, None
-    # Moves (start 0, vector o_k) and probes (start o_k, vector p_ak) as 2K segments of each agent.
-    starts = np.zeros((n_agents, 2 * n_points, dim))
-    starts[:, n_points:] = offsets_m
-    vectors = np.empty((n_agents, 2 * n_points, dim))
-    vectors[:, :n_points] = offsets_m
-    vectors[:, n_points:] = probes_m
-    r2 = np.zeros((width, n_agents, 2 * n_points))
-    dot = np.zeros((width, n_agents, 2 * n_points))
-    for d in range(dim):
-        rel = axes[d][:, :, None] - starts[:, :, d]  # (M, A, 2K): obstacle minus segment start
-        r2 += rel * rel
-        rel *= vectors[:, :, d]
-        dot += rel
-    end2 = _end_sq(dot[:, :, :n_points], offsets_m, r2_m2)
-    v2 = np.empty((n_agents, 2 * n_points))
-    v2[:, :n_points] = np.einsum("kd,kd->k", offsets_m, offsets_m)
-    v2[:, n_points:] = np.einsum("akd,akd->ak", probes_m, probes_m)
-    with np.errstate(invalid="ignore", divide="ignore"):
+
+    def __init__(self, offsets_m: FloatArray) -> None:
+        n_points, dim = offsets_m.shape
+        self.offsets_m = offsets_m
+        self.o2 = np.einsum("kd,kd->k", offsets_m, offsets_m)
+        # Moves (start 0, vector o_k) then probes (start o_k): the starts of the 2K segments, one array per axis.
+        self._starts = [np.concatenate([np.zeros(n_points), offsets_m[:, d]]) for d in range(dim)]
+
+    def __call__(
+        self, rel_m: FloatArray, valid: BoolArray, r2_m2: FloatArray, probes_m: FloatArray | None
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Sweep the moves (and probes) of A agents.
+
+        Parameters
+        ----------
+        rel_m : (A, M, D) obstacles relative to the agents, M > 0; valid : (A, M).
+        r2_m2 : (A, M) |rel|^2, the caller's.
+        probes_m : (A, K, D) segments from the end point o_k along probes_m[a, k] (zero length: the point), or None.
+
+        Returns
+        -------
+        (A, K) ``segment_clearance_sq`` of the moves; (M, A, K) squared distance from every obstacle to every end
+        point, |rel|^2 - 2 rel.o + |o|^2 (>= 0; rows of padding obstacles hold meaningless values, the caller
+        masks them); (A, K) ``segments_clearance_sq`` of the probes, or None.
+        """
+        offsets_m = self.offsets_m
+        n_agents, width, dim = rel_m.shape
+        n_points = offsets_m.shape[0]
+        axes = _axes(rel_m)
+        if probes_m is None:
+            dot = _dot(axes, offsets_m)
+            end2 = _end_sq(dot, self.o2, r2_m2)
+            return _segment_min(axes, dot, offsets_m, valid), end2, None
+        vectors = np.empty((n_agents, 2 * n_points, dim))
+        vectors[:, :n_points] = offsets_m
+        vectors[:, n_points:] = probes_m
+        r2 = np.zeros((width, n_agents, 2 * n_points))
+        dot = np.zeros((width, n_agents, 2 * n_points))
+        for d in range(dim):
+            rel = axes[d][:, :, None] - self._starts[d]  # (M, A, 2K): obstacle minus segment start
+            r2 += rel * rel
+            rel *= vectors[:, :, d]
+            dot += rel
+        end2 = _end_sq(dot[:, :, :n_points], self.o2, r2_m2)
+        v2 = np.empty((n_agents, 2 * n_points))
+        v2[:, :n_points] = self.o2
+        v2[:, n_points:] = np.einsum("akd,akd->ak", probes_m, probes_m)
+        # A zero-length probe has dot = 0: dividing by the smallest normal float gives t = 0 (its start point),
+        # as segments_clearance_sq's NaN rule does, without a floating-point error state to switch off.
+        np.maximum(v2, _TINY, out=v2)
         t = dot / v2
-    t[~(t > 0.0)] = 0.0  # also NaN from a zero-length probe: the probe is its start point
-    np.minimum(t, 1.0, out=t)
-    dot *= 2.0
-    dot -= t * v2
-    dot *= t
-    r2 -= dot
-    np.maximum(r2, 0.0, out=r2)
-    _invalid_to_inf(r2, valid)
-    both = np.minimum.reduce(r2, axis=0)
-    return both[:, :n_points], end2, both[:, n_points:]
+        np.maximum(t, 0.0, out=t)
+        np.minimum(t, 1.0, out=t)
+        dot *= 2.0
+        dot -= t * v2
+        dot *= t
+        r2 -= dot
+        np.maximum(r2, 0.0, out=r2)
+        _invalid_to_inf(r2, valid)
+        both = np.minimum.reduce(r2, axis=0)
+        return both[:, :n_points], end2, both[:, n_points:]
 
 
-def _end_sq(dot: FloatArray, offsets_m: FloatArray, r2_m2: FloatArray) -> FloatArray:
+def _end_sq(dot: FloatArray, o2: FloatArray, r2_m2: FloatArray) -> FloatArray:
     """(M, A, K) |rel - o_k|^2 = |rel|^2 - 2 rel.o_k + |o_k|^2 from the dot products rel.o_k (not consumed)."""
     end2 = dot * -2.0  # exact: scaling by 2 commutes with rounding, so this equals the sum of rel_d (-2 o_d)
     end2 += r2_m2.T[:, :, None]
-    end2 += np.einsum("kd,kd->k", offsets_m, offsets_m)
+    end2 += o2
     return np.maximum(end2, 0.0, out=end2)
 
 
