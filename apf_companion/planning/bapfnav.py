@@ -45,7 +45,6 @@ from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import PlannerParams
-from apf_companion.planning.potentials import obstacle_potential
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
 
 __all__ = ["BapfNavPlanner"]
@@ -197,26 +196,42 @@ class BapfNavPlanner(StatefulPlanner):
         stay small (megabyte temporaries cost page faults on every call, several times the arithmetic), and a
         group pays only for its own crowd. An agent's result does not depend on its group.
         """
-        n_agents, n_points = g_k.shape
-        feasible = np.empty((n_agents, n_points), dtype=bool)
-        seg2 = np.empty((n_agents, n_points))
-        clear_k = np.empty((n_agents, n_points))
-        clear_0 = np.empty(n_agents)
-        look_k = np.zeros((n_agents, n_points))
-        lookahead = self.params.nav_lookahead_m > 0.0 and self.params.nav_lookahead_penalty_m > 0.0
+        n_agents = g_k.shape[0]
+        if n_agents <= _GROUP:  # one group (always for the service's single agent): its arrays as they are
+            return self._group(positions_m, obstacles_m, obstacle_mask, to_goal, g_k, direct)
+        parts = []
         for lo in range(0, n_agents, _GROUP):
             g = slice(lo, min(lo + _GROUP, n_agents))
             mask = None if obstacle_mask is None else obstacle_mask[g]
-            rel, valid = near_obstacles(positions_m[g], obstacles_m[g], mask, self._reach_m)
-            if rel.shape[1] == 0:
-                feasible[g], seg2[g], clear_k[g], clear_0[g] = True, np.inf, 0.0, 0.0
-                continue
-            probes = self._probes(to_goal[g], g_k[g]) if lookahead and direct[g].any() else None
-            r2 = np.einsum("amd,amd->am", rel, rel)
-            seg2[g], end2, look2 = self._sweep_moves(rel, valid, r2, probes)
-            feasible[g], clear_k[g], clear_0[g] = self._sweep(valid, r2, seg2[g], end2)
-            if look2 is not None:  # the probe comes closer than the clearance: DIRECT agents pay the penalty
-                look_k[g] = np.where((look2 < self._c2) & direct[g, None], self.params.nav_lookahead_penalty_m, 0.0)
+            parts.append(self._group(positions_m[g], obstacles_m[g], mask, to_goal[g], g_k[g], direct[g]))
+        feasible, seg2, clear_k, clear_0, look_k = (np.concatenate(arrays) for arrays in zip(*parts, strict=True))
+        return feasible, seg2, clear_k, clear_0, look_k
+
+    def _group(
+        self,
+        positions_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        to_goal: FloatArray,
+        g_k: FloatArray,
+        direct: BoolArray,
+    ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """``_geometry`` of one group of agents."""
+        p = self.params
+        rel, valid = near_obstacles(positions_m, obstacles_m, obstacle_mask, self._reach_m)
+        if rel.shape[1] == 0:
+            seg2 = np.full(g_k.shape, np.inf)
+            zeros = np.zeros(g_k.shape)
+            return np.ones(g_k.shape, dtype=bool), seg2, zeros, np.zeros(g_k.shape[0]), zeros
+        lookahead = p.nav_lookahead_m > 0.0 and p.nav_lookahead_penalty_m > 0.0 and direct.any()
+        probes = self._probes(to_goal, g_k) if lookahead else None
+        r2 = np.einsum("amd,amd->am", rel, rel)
+        seg2, end2, look2 = self._sweep_moves(rel, valid, r2, probes)
+        feasible, clear_k, clear_0 = self._sweep(valid, r2, seg2, end2)
+        if look2 is None:
+            return feasible, seg2, clear_k, clear_0, np.zeros(g_k.shape)
+        # The probe comes closer than the clearance: DIRECT agents pay the penalty.
+        look_k = np.where((look2 < self._c2) & direct[:, None], p.nav_lookahead_penalty_m, 0.0)
         return feasible, seg2, clear_k, clear_0, look_k
 
     def _progress(self, state: NavState, g0: FloatArray) -> None:
@@ -244,14 +259,13 @@ class BapfNavPlanner(StatefulPlanner):
         if p.nav_clearance_gain_m == 0.0:
             clear_k, clear_0 = np.zeros(seg2.shape), np.zeros(n_agents)
         else:
-            kw = {"alpha_o": p.nav_clearance_gain_m, "mu_o_per_m2": p.nav_clearance_decay_per_m2}
-            terms = obstacle_potential(end2, **kw)
-            at_agent = obstacle_potential(r2, **kw)
+            terms = self._clearance_potential(end2)
+            at_agent = self._clearance_potential(r2)
             if not all_valid:
                 np.copyto(terms, 0.0, where=~valid.T[:, :, None])
                 at_agent = np.where(valid, at_agent, 0.0)
             clear_k, clear_0 = np.add.reduce(terms, axis=0), at_agent.sum(axis=1)
-        d0 = np.min(r2 if all_valid else np.where(valid, r2, np.inf), axis=1, initial=np.inf)
+        d0 = (r2 if all_valid else np.where(valid, r2, np.inf)).min(axis=1, initial=np.inf)
         ok = seg2 >= self._c2
         inside = d0 < self._c2
         if inside.any():
@@ -260,6 +274,14 @@ class BapfNavPlanner(StatefulPlanner):
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
         return np.asarray(ok), clear_k, clear_0
+
+    def _clearance_potential(self, dist_sq_m2: FloatArray) -> FloatArray:
+        """Eq. (2) at product scale, ``potentials.obstacle_potential`` with one temporary (the same operations)."""
+        p = self.params
+        out = dist_sq_m2 * -p.nav_clearance_decay_per_m2
+        np.exp(out, out=out)
+        out *= p.nav_clearance_gain_m
+        return out
 
     def _probes(self, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
         """(A, K, D) look-ahead probes: from each point towards the goal, ``nav_lookahead_m`` long (or to it).
@@ -271,15 +293,15 @@ class BapfNavPlanner(StatefulPlanner):
     def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
         """Best passing point, with the turn hysteresis; -1 where none passes."""
         masked = np.where(passing, cost, np.inf)
-        best = np.argmin(masked, axis=1)
+        best = masked.argmin(axis=1)
         any_pass = passing.any(axis=1)
         cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)  # (A, K); 0 without a previous move
-        has_prev = np.any(prev_dir != 0.0, axis=1)
+        has_prev = (prev_dir != 0.0).any(axis=1)
         rows = np.arange(cost.shape[0])
         sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
         if sharp.any():
             held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
-            alt = np.argmin(held, axis=1)
+            alt = held.argmin(axis=1)
             alt_ok = np.isfinite(held[rows, alt])
             with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
                 gain_best = cost0 - masked[rows, best]

@@ -47,9 +47,10 @@ def near_obstacles(
     if n_obs == 0:
         return np.zeros((n_agents, 0, dim)), np.zeros((n_agents, 0), dtype=bool)
     rel = obstacles_m - positions_m[:, None, :]
-    with np.errstate(invalid="ignore"):
-        d2 = np.einsum("and,and->an", rel, rel)
-        within = d2 <= reach_m * reach_m
+    # Non-finite obstacles give inf or NaN here, never a floating-point error (squares are >= 0; NaN is quiet),
+    # and compare False.
+    d2 = np.einsum("and,and->an", rel, rel)
+    within = d2 <= reach_m * reach_m
     if mask is not None:
         within &= mask
     if n_agents == 1:  # one agent (the service's step): its near obstacles directly, all valid
@@ -84,7 +85,8 @@ def _axes(rel_m: FloatArray) -> list[FloatArray]:
 
 def _invalid_to_inf(d2: FloatArray, valid: BoolArray) -> None:
     """Set the (M, A, K) rows of padding obstacles to +inf, in place."""
-    np.copyto(d2, np.inf, where=~valid.T[:, :, None])
+    if not valid.all():  # e.g. one agent from near_obstacles: every row is real
+        np.copyto(d2, np.inf, where=~valid.T[:, :, None])
 
 
 def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatArray) -> FloatArray:
