@@ -39,8 +39,11 @@ _Scalar = TypeVar("_Scalar", np.float64, np.bool_)
 _MAX_ROUNDS = 40
 #: Convergence: a round that lowers no cell by more than this ends the sweeps [m].
 _CONVERGED_M = 1e-9
-#: Agents whose fields are computed in one array program (bounds the temporaries).
-_BATCH = 16
+#: Agents whose fields are computed in one array program. One: at n = 54 a field costs the same alone as in a
+#: batch of 16 (the arrays are large enough), each agent stops at its own convergence instead of the slowest's,
+#: and an agent's field depends on nothing but its own map (the segment offset ``big`` and the number of rounds
+#: were batch-wide, which moved values by rounding, about 1e-10 m).
+_BATCH = 1
 
 
 class NavGrid:
