@@ -62,6 +62,11 @@ _GAVE_UP = np.int8(NavMode.GAVE_UP)
 _GREEDY_CODE = np.int8(DecisionReason.GREEDY)
 _LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
 _GAVE_UP_CODE = np.int8(DecisionReason.GAVE_UP)
+# The reductions behind ndarray.any / all / sum, called directly: the methods add a Python frame each, which at
+# one agent is a noticeable share of a step (same ufunc reductions, same values).
+_any = np.logical_or.reduce
+_all = np.logical_and.reduce
+_sum = np.add.reduce
 #: Smallest normal float64 (the divisor where a distance is zero, ``_probes``).
 _TINY = float(np.finfo(np.float64).tiny)
 #: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
@@ -103,8 +108,8 @@ class BapfNavPlanner(StatefulPlanner):
         state: AgentState,
     ) -> BatchDecision:
         assert isinstance(state, NavState)
-        same = (state.target_m == targets_m).all(axis=1)
-        if not same.all():
+        same = _all(state.target_m == targets_m, axis=1)
+        if not _all(same, axis=None):
             changed = ~same
             state.restart(np.flatnonzero(changed), targets_m[changed])
         offsets = self.bacteria_offsets_m
@@ -123,9 +128,9 @@ class BapfNavPlanner(StatefulPlanner):
         active = state.mode != _GAVE_UP
         passing = feasible & (cost < cost0[:, None]) & active[:, None]
 
-        any_feasible: BoolArray = np.asarray(feasible.any(axis=1))
+        any_feasible: BoolArray = _any(feasible, axis=1)
         escaping = self._escaping(state, direct, passing, any_feasible, g0)
-        if escaping.any():
+        if _any(escaping, axis=None):
             rows = np.flatnonzero(escaping)
             self._escape_scores(
                 rows,
@@ -151,7 +156,7 @@ class BapfNavPlanner(StatefulPlanner):
         reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
         state.since_field[state.mode == _ESCAPE] += 1
-        return decision_from_choice(positions_m, offsets, chosen, reason, passing.sum(axis=1), feasible.sum(axis=1))
+        return decision_from_choice(positions_m, offsets, chosen, reason, _sum(passing, axis=1), _sum(feasible, axis=1))
 
     @staticmethod
     def _escaping(
@@ -161,8 +166,8 @@ class BapfNavPlanner(StatefulPlanner):
         found no passing point (they enter ESCAPE here, remembering where: Bug2's leave rule). ``direct``: the
         agents in DIRECT mode; ``any_feasible``: the agents with a feasible move."""
         escaping = state.mode == _ESCAPE
-        trapped = direct & ~passing.any(axis=1) & any_feasible
-        if trapped.any():
+        trapped = direct & ~_any(passing, axis=1) & any_feasible
+        if _any(trapped, axis=None):
             rows = np.flatnonzero(trapped)
             state.mode[rows] = _ESCAPE
             state.hit_dist_m[rows] = g0[rows]
@@ -174,7 +179,7 @@ class BapfNavPlanner(StatefulPlanner):
         """Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
         into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
         margin; never closer. Without this the agent would sit there until its patience ran out."""
-        if boxed.any():
+        if _any(boxed, axis=None):
             rows = np.flatnonzero(boxed)
             room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
             widest = np.argmax(room, axis=1)
@@ -223,7 +228,7 @@ class BapfNavPlanner(StatefulPlanner):
             seg2 = np.full(g_k.shape, np.inf)
             zeros = np.zeros(g_k.shape)
             return np.ones(g_k.shape, dtype=bool), seg2, zeros, np.zeros(g_k.shape[0]), zeros
-        lookahead = p.nav_lookahead_m > 0.0 and p.nav_lookahead_penalty_m > 0.0 and direct.any()
+        lookahead = p.nav_lookahead_m > 0.0 and p.nav_lookahead_penalty_m > 0.0 and _any(direct, axis=None)
         probes = self._probes(to_goal, g_k) if lookahead else None
         r2 = np.einsum("amd,amd->am", rel, rel)
         seg2, end2, look2 = self._sweep_moves(rel, valid, r2, probes)
@@ -241,7 +246,7 @@ class BapfNavPlanner(StatefulPlanner):
         state.since_best += 1
         state.since_best[improved] = 0
         escaping = state.mode == _ESCAPE
-        if escaping.any():
+        if _any(escaping, axis=None):
             leave = escaping & (g0 < state.hit_dist_m - self.params.step_m)
             state.mode[leave] = _DIRECT
             state.field[leave] = None
@@ -255,7 +260,7 @@ class BapfNavPlanner(StatefulPlanner):
         ``r2`` (A, M) and ``end2`` (M, A, K): squared distances of the obstacles to the agent and the points."""
         p = self.params
         n_agents = r2.shape[0]
-        all_valid = n_agents == 1 or bool(valid.all())  # one agent: near_obstacles returns only real rows
+        all_valid = n_agents == 1 or bool(_all(valid, axis=None))  # one agent: near_obstacles returns only real rows
         if p.nav_clearance_gain_m == 0.0:
             clear_k, clear_0 = np.zeros(seg2.shape), np.zeros(n_agents)
         else:
@@ -264,11 +269,11 @@ class BapfNavPlanner(StatefulPlanner):
             if not all_valid:
                 np.copyto(terms, 0.0, where=~valid.T[:, :, None])
                 at_agent = np.where(valid, at_agent, 0.0)
-            clear_k, clear_0 = np.add.reduce(terms, axis=0), at_agent.sum(axis=1)
+            clear_k, clear_0 = np.add.reduce(terms, axis=0), _sum(at_agent, axis=1)
         d0 = (r2 if all_valid else np.where(valid, r2, np.inf)).min(axis=1, initial=np.inf)
         ok = seg2 >= self._c2
         inside = d0 < self._c2
-        if inside.any():
+        if _any(inside, axis=None):
             if not all_valid:
                 np.copyto(end2, np.inf, where=~valid.T[:, :, None])
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
@@ -294,12 +299,12 @@ class BapfNavPlanner(StatefulPlanner):
         """Best passing point, with the turn hysteresis; -1 where none passes."""
         masked = np.where(passing, cost, np.inf)
         best = masked.argmin(axis=1)
-        any_pass = passing.any(axis=1)
+        any_pass = _any(passing, axis=1)
         cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)  # (A, K); 0 without a previous move
-        has_prev = (prev_dir != 0.0).any(axis=1)
+        has_prev = _any(prev_dir != 0.0, axis=1)
         rows = np.arange(cost.shape[0])
         sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
-        if sharp.any():
+        if _any(sharp, axis=None):
             held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
             alt = held.argmin(axis=1)
             alt_ok = np.isfinite(held[rows, alt])
