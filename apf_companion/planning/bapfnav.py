@@ -130,7 +130,8 @@ class BapfNavPlanner(StatefulPlanner):
 
         any_feasible: BoolArray = _any(feasible, axis=1)
         escaping = self._escaping(state, direct, passing, any_feasible, g0)
-        if _any(escaping, axis=None):
+        some_escape = bool(_any(escaping, axis=None))
+        if some_escape:
             rows = np.flatnonzero(escaping)
             self._escape_scores(
                 rows,
@@ -150,12 +151,16 @@ class BapfNavPlanner(StatefulPlanner):
         chosen = self._choose(cost, cost0, passing, state.prev_dir)
         self._squeeze_out(chosen, ~any_feasible & active, seg2)
         gave_up = state.mode == _GAVE_UP
-        chosen[gave_up] = -1
+        some_gave_up = bool(_any(gave_up, axis=None))
+        if some_gave_up:
+            chosen[gave_up] = -1
         moved = chosen >= 0
         reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
-        reason[gave_up] = _GAVE_UP_CODE
+        if some_gave_up:
+            reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
-        state.since_field[state.mode == _ESCAPE] += 1
+        if some_escape:  # only agents in `escaping` can be in ESCAPE now
+            state.since_field[state.mode == _ESCAPE] += 1
         return decision_from_choice(positions_m, offsets, chosen, reason, _sum(passing, axis=1), _sum(feasible, axis=1))
 
     @staticmethod
