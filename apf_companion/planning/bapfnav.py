@@ -40,12 +40,11 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
+from apf_companion.planning.clearance import MoveSweep, near_obstacles
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import PlannerParams
-from apf_companion.planning.potentials import obstacle_potential
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
 
 __all__ = ["BapfNavPlanner"]
@@ -63,6 +62,13 @@ _GAVE_UP = np.int8(NavMode.GAVE_UP)
 _GREEDY_CODE = np.int8(DecisionReason.GREEDY)
 _LOCAL_MINIMUM_CODE = np.int8(DecisionReason.LOCAL_MINIMUM)
 _GAVE_UP_CODE = np.int8(DecisionReason.GAVE_UP)
+# The reductions behind ndarray.any / all / sum, called directly: the methods add a Python frame each, which at
+# one agent is a noticeable share of a step (same ufunc reductions, same values).
+_any = np.logical_or.reduce
+_all = np.logical_and.reduce
+_sum = np.add.reduce
+#: Smallest normal float64 (the divisor where a distance is zero, ``_probes``).
+_TINY = float(np.finfo(np.float64).tiny)
 #: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
 _GROUP = 16
 
@@ -81,6 +87,7 @@ class BapfNavPlanner(StatefulPlanner):
         offsets = self.bacteria_offsets_m
         self._units = offsets / p.step_m
         self._o2 = np.einsum("kd,kd->k", offsets, offsets)
+        self._sweep_moves = MoveSweep(offsets)
         self._escape = EscapeMaps(p, offsets, self.clearance_m)
         self._cos_hold = math.cos(math.radians(p.nav_hold_angle_deg))
         # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
@@ -101,8 +108,9 @@ class BapfNavPlanner(StatefulPlanner):
         state: AgentState,
     ) -> BatchDecision:
         assert isinstance(state, NavState)
-        changed = ~np.all(state.target_m == targets_m, axis=1)
-        if changed.any():
+        same = _all(state.target_m == targets_m, axis=1)
+        if not _all(same, axis=None):
+            changed = ~same
             state.restart(np.flatnonzero(changed), targets_m[changed])
         offsets = self.bacteria_offsets_m
         goal_vec = targets_m - positions_m
@@ -120,33 +128,41 @@ class BapfNavPlanner(StatefulPlanner):
         active = state.mode != _GAVE_UP
         passing = feasible & (cost < cost0[:, None]) & active[:, None]
 
-        escaping = self._escaping(state, passing, feasible, g0)
-        if escaping.any():
+        any_feasible: BoolArray = _any(feasible, axis=1)
+        escaping = self._escaping(state, direct, passing, any_feasible, g0)
+        some_escape = bool(_any(escaping, axis=None))
+        if some_escape:
             world = (positions_m, targets_m, obstacles_m, obstacle_mask, state)
             self._escape_scores(np.flatnonzero(escaping), *world, feasible, clear_k, clear_0, cost, cost0, passing)
 
         chosen = self._choose(cost, cost0, passing, state.prev_dir)
-        self._squeeze_out(chosen, ~feasible.any(axis=1) & active, seg2)
-        moved = chosen >= 0
+        self._squeeze_out(chosen, ~any_feasible & active, seg2)
         gave_up = state.mode == _GAVE_UP
-        reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
-        reason[gave_up] = _GAVE_UP_CODE
-        chosen[gave_up] = -1
+        some_gave_up = bool(_any(gave_up, axis=None))
+        if some_gave_up:
+            chosen[gave_up] = -1
         moved = chosen >= 0
+        reason = np.where(moved, _GREEDY_CODE, _LOCAL_MINIMUM_CODE)
+        if some_gave_up:
+            reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
-        state.since_field[state.mode == _ESCAPE] += 1
+        if some_escape:  # only agents in `escaping` can be in ESCAPE now
+            state.since_field[state.mode == _ESCAPE] += 1
         scores = np.where(passing, cost, np.inf)  # what the viz colours the candidates by
         return decision_from_choice(
-            positions_m, offsets, chosen, reason, passing.sum(axis=1), feasible.sum(axis=1), candidate_cost=scores
+            positions_m, offsets, chosen, reason, _sum(passing, axis=1), _sum(feasible, axis=1), candidate_cost=scores
         )
 
     @staticmethod
-    def _escaping(state: NavState, passing: BoolArray, feasible: BoolArray, g0: FloatArray) -> BoolArray:
+    def _escaping(
+        state: NavState, direct: BoolArray, passing: BoolArray, any_feasible: BoolArray, g0: FloatArray
+    ) -> BoolArray:
         """(A,) agents that plan on the escape potential: those already escaping, and those whose direct step
-        found no passing point (they enter ESCAPE here, remembering where: Bug2's leave rule)."""
+        found no passing point (they enter ESCAPE here, remembering where: Bug2's leave rule). ``direct``: the
+        agents in DIRECT mode; ``any_feasible``: the agents with a feasible move."""
         escaping = state.mode == _ESCAPE
-        trapped = (state.mode == _DIRECT) & ~passing.any(axis=1) & feasible.any(axis=1)
-        if trapped.any():
+        trapped = direct & ~_any(passing, axis=1) & any_feasible
+        if _any(trapped, axis=None):
             rows = np.flatnonzero(trapped)
             state.mode[rows] = _ESCAPE
             state.hit_dist_m[rows] = g0[rows]
@@ -158,7 +174,7 @@ class BapfNavPlanner(StatefulPlanner):
         """Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
         into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
         margin; never closer. Without this the agent would sit there until its patience ran out."""
-        if boxed.any():
+        if _any(boxed, axis=None):
             rows = np.flatnonzero(boxed)
             room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
             widest = np.argmax(room, axis=1)
@@ -180,96 +196,112 @@ class BapfNavPlanner(StatefulPlanner):
         stay small (megabyte temporaries cost page faults on every call, several times the arithmetic), and a
         group pays only for its own crowd. An agent's result does not depend on its group.
         """
-        n_agents, n_points = g_k.shape
-        feasible = np.empty((n_agents, n_points), dtype=bool)
-        seg2 = np.empty((n_agents, n_points))
-        clear_k = np.empty((n_agents, n_points))
-        clear_0 = np.empty(n_agents)
-        look_k = np.zeros((n_agents, n_points))
+        n_agents = g_k.shape[0]
+        if n_agents <= _GROUP:  # one group (always for the service's single agent): its arrays as they are
+            return self._group(positions_m, obstacles_m, obstacle_mask, to_goal, g_k, direct)
+        parts = []
         for lo in range(0, n_agents, _GROUP):
             g = slice(lo, min(lo + _GROUP, n_agents))
             mask = None if obstacle_mask is None else obstacle_mask[g]
-            rel, valid = near_obstacles(positions_m[g], obstacles_m[g], mask, self._reach_m)
-            feasible[g], seg2[g] = self._feasible(rel, valid)
-            clear_k[g], clear_0[g] = self._clearance_terms(rel, valid)
-            rows = np.flatnonzero(direct[g])
-            if rows.size and rel.shape[1]:
-                look_k[lo + rows] = self._lookahead(rel[rows], valid[rows], to_goal[g][rows], g_k[g][rows])
+            parts.append(self._group(positions_m[g], obstacles_m[g], mask, to_goal[g], g_k[g], direct[g]))
+        feasible, seg2, clear_k, clear_0, look_k = (np.concatenate(arrays) for arrays in zip(*parts, strict=True))
+        return feasible, seg2, clear_k, clear_0, look_k
+
+    def _group(
+        self,
+        positions_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        to_goal: FloatArray,
+        g_k: FloatArray,
+        direct: BoolArray,
+    ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """``_geometry`` of one group of agents."""
+        p = self.params
+        rel, valid = near_obstacles(positions_m, obstacles_m, obstacle_mask, self._reach_m)
+        if rel.shape[1] == 0:
+            seg2 = np.full(g_k.shape, np.inf)
+            zeros = np.zeros(g_k.shape)
+            return np.ones(g_k.shape, dtype=bool), seg2, zeros, np.zeros(g_k.shape[0]), zeros
+        lookahead = p.nav_lookahead_m > 0.0 and p.nav_lookahead_penalty_m > 0.0 and _any(direct, axis=None)
+        probes = self._probes(to_goal, g_k) if lookahead else None
+        r2 = np.einsum("amd,amd->am", rel, rel)
+        seg2, end2, look2 = self._sweep_moves(rel, valid, r2, probes)
+        feasible, clear_k, clear_0 = self._sweep(valid, r2, seg2, end2)
+        if look2 is None:
+            return feasible, seg2, clear_k, clear_0, np.zeros(g_k.shape)
+        # The probe comes closer than the clearance: DIRECT agents pay the penalty.
+        look_k = np.where((look2 < self._c2) & direct[:, None], p.nav_lookahead_penalty_m, 0.0)
         return feasible, seg2, clear_k, clear_0, look_k
 
     def _progress(self, state: NavState, g0: FloatArray) -> None:
         """Closest approach, the escape's leave rule and the give-up by patience."""
         improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
-        state.best_dist_m = np.where(improved, g0, state.best_dist_m)
-        state.since_best = np.where(improved, 0, state.since_best + 1).astype(np.int32)
-        leave = (state.mode == _ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m)
-        state.mode[leave] = _DIRECT
-        state.field[leave] = None
+        np.copyto(state.best_dist_m, g0, where=improved)
+        state.since_best += 1
+        state.since_best[improved] = 0
+        escaping = state.mode == _ESCAPE
+        if _any(escaping, axis=None):
+            leave = escaping & (g0 < state.hit_dist_m - self.params.step_m)
+            state.mode[leave] = _DIRECT
+            state.field[leave] = None
         state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
-    def _feasible(self, rel: FloatArray, valid: BoolArray) -> tuple[BoolArray, FloatArray]:
-        """(A, K) moves whose whole segment keeps the clearance (or, from inside it, gets no closer and ends out),
-        and the swept squared clearance of every move (A, K)."""
-        seg2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
-        r2 = np.einsum("amd,amd->am", rel, rel)
-        d0 = np.min(np.where(valid, r2, np.inf), axis=1, initial=np.inf)
+    def _sweep(
+        self, valid: BoolArray, r2: FloatArray, seg2: FloatArray, end2: FloatArray
+    ) -> tuple[BoolArray, FloatArray, FloatArray]:
+        """Feasible moves (A, K): the whole segment keeps the clearance (or, from inside it, gets no closer and
+        ends out); the Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path.
+        ``r2`` (A, M) and ``end2`` (M, A, K): squared distances of the obstacles to the agent and the points."""
+        p = self.params
+        n_agents = r2.shape[0]
+        all_valid = n_agents == 1 or bool(_all(valid, axis=None))  # one agent: near_obstacles returns only real rows
+        if p.nav_clearance_gain_m == 0.0:
+            clear_k, clear_0 = np.zeros(seg2.shape), np.zeros(n_agents)
+        else:
+            terms = self._clearance_potential(end2)
+            at_agent = self._clearance_potential(r2)
+            if not all_valid:
+                np.copyto(terms, 0.0, where=~valid.T[:, :, None])
+                at_agent = np.where(valid, at_agent, 0.0)
+            clear_k, clear_0 = np.add.reduce(terms, axis=0), _sum(at_agent, axis=1)
+        d0 = (r2 if all_valid else np.where(valid, r2, np.inf)).min(axis=1, initial=np.inf)
         ok = seg2 >= self._c2
         inside = d0 < self._c2
-        if inside.any():
-            end2 = self._end_dist_sq(rel, r2)
-            np.copyto(end2, np.inf, where=~valid.T[:, :, None])
+        if _any(inside, axis=None):
+            if not all_valid:
+                np.copyto(end2, np.inf, where=~valid.T[:, :, None])
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
-        return np.asarray(ok), seg2
+        return np.asarray(ok), clear_k, clear_0
 
-    def _end_dist_sq(self, rel: FloatArray, r2: FloatArray) -> FloatArray:
-        """(M, A, K) squared distance from each obstacle to each bacteria point: |rel|^2 - 2 rel.o + |o|^2."""
-        offsets = self.bacteria_offsets_m
-        dot = np.ascontiguousarray(rel[:, :, 0].T)[:, :, None] * (-2.0 * offsets[:, 0])
-        for d in range(1, offsets.shape[1]):
-            dot += np.ascontiguousarray(rel[:, :, d].T)[:, :, None] * (-2.0 * offsets[:, d])
-        dot += r2.T[:, :, None]
-        dot += self._o2
-        return np.maximum(dot, 0.0, out=dot)
-
-    def _clearance_terms(self, rel: FloatArray, valid: BoolArray) -> tuple[FloatArray, FloatArray]:
-        """Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path."""
+    def _clearance_potential(self, dist_sq_m2: FloatArray) -> FloatArray:
+        """Eq. (2) at product scale, ``potentials.obstacle_potential`` with one temporary (the same operations)."""
         p = self.params
-        n_agents = rel.shape[0]
-        if rel.shape[1] == 0 or p.nav_clearance_gain_m == 0.0:
-            return np.zeros((n_agents, self._o2.shape[0])), np.zeros(n_agents)
-        r2 = np.einsum("amd,amd->am", rel, rel)
-        kw = {"alpha_o": p.nav_clearance_gain_m, "mu_o_per_m2": p.nav_clearance_decay_per_m2}
-        terms = obstacle_potential(self._end_dist_sq(rel, r2), **kw)
-        np.copyto(terms, 0.0, where=~valid.T[:, :, None])
-        at_agent = np.where(valid, obstacle_potential(r2, **kw), 0.0).sum(axis=1)
-        return np.add.reduce(terms, axis=0), at_agent
+        out = dist_sq_m2 * -p.nav_clearance_decay_per_m2
+        np.exp(out, out=out)
+        out *= p.nav_clearance_gain_m
+        return out
 
-    def _lookahead(self, rel: FloatArray, valid: BoolArray, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
-        """(A, K) penalty where the probe from the point towards the goal comes closer than the clearance."""
-        p = self.params
-        n_agents, n_points = g_k.shape
-        if p.nav_lookahead_m == 0.0 or p.nav_lookahead_penalty_m == 0.0 or rel.shape[1] == 0:
-            return np.zeros((n_agents, n_points))
-        length = np.minimum(g_k, p.nav_lookahead_m)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            vec = np.where(g_k[..., None] > 0.0, to_goal * (length / g_k)[..., None], 0.0)
-        starts = np.broadcast_to(self.bacteria_offsets_m, vec.shape)
-        blocked = segments_clearance_sq(rel, valid, starts, vec) < self._c2
-        return np.where(blocked, p.nav_lookahead_penalty_m, 0.0)
+    def _probes(self, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
+        """(A, K, D) look-ahead probes: from each point towards the goal, ``nav_lookahead_m`` long (or to it).
+        A point on the goal (g = 0) gets a zero probe: min(g, L) / max(g, tiny) = 0 there, no 0/0."""
+        scale = np.minimum(g_k, self.params.nav_lookahead_m)
+        scale /= np.maximum(g_k, _TINY)
+        return to_goal * scale[..., None]
 
     def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
         """Best passing point, with the turn hysteresis; -1 where none passes."""
         masked = np.where(passing, cost, np.inf)
-        best = np.argmin(masked, axis=1)
-        any_pass = passing.any(axis=1)
+        best = masked.argmin(axis=1)
+        any_pass = _any(passing, axis=1)
         cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)  # (A, K); 0 without a previous move
-        has_prev = np.any(prev_dir != 0.0, axis=1)
+        has_prev = _any(prev_dir != 0.0, axis=1)
         rows = np.arange(cost.shape[0])
         sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
-        if sharp.any():
+        if _any(sharp, axis=None):
             held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
-            alt = np.argmin(held, axis=1)
+            alt = held.argmin(axis=1)
             alt_ok = np.isfinite(held[rows, alt])
             with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
                 gain_best = cost0 - masked[rows, best]

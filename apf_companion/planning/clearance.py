@@ -11,10 +11,19 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["near_obstacles", "point_clearance_sq", "segment_clearance_sq", "segments_clearance_sq"]
+__all__ = [
+    "MoveSweep",
+    "near_obstacles",
+    "point_clearance_sq",
+    "segment_clearance_sq",
+    "segments_clearance_sq",
+]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+
+#: Smallest normal float64: the divisor of zero-length probes (``MoveSweep``).
+_TINY = float(np.finfo(np.float64).tiny)
 
 
 def near_obstacles(
@@ -38,17 +47,21 @@ def near_obstacles(
     if n_obs == 0:
         return np.zeros((n_agents, 0, dim)), np.zeros((n_agents, 0), dtype=bool)
     rel = obstacles_m - positions_m[:, None, :]
-    with np.errstate(invalid="ignore"):
-        d2 = np.einsum("and,and->an", rel, rel)
-        within = d2 <= reach_m * reach_m
+    # Non-finite obstacles give inf or NaN here, never a floating-point error (squares are >= 0; NaN is quiet),
+    # and compare False.
+    d2 = np.einsum("and,and->an", rel, rel)
+    within = d2 <= reach_m * reach_m
     if mask is not None:
         within &= mask
+    if n_agents == 1:  # one agent (the service's step): its near obstacles directly, all valid
+        idx = np.flatnonzero(within[0])
+        return rel[:, idx], np.ones((1, idx.size), dtype=bool)
     counts = within.sum(axis=1)
     width = int(counts.max())
     if width == 0:
         return np.zeros((n_agents, 0, dim)), np.zeros((n_agents, 0), dtype=bool)
-    # One agent: its indices directly; a batch: stable argsort puts each row's near obstacles first.
-    idx = np.flatnonzero(within[0])[None, :] if n_agents == 1 else np.argsort(~within, axis=1, kind="stable")[:, :width]
+    # Stable argsort puts each row's near obstacles first.
+    idx = np.argsort(~within, axis=1, kind="stable")[:, :width]
     valid = np.take_along_axis(within, idx, axis=1)
     gathered = np.take_along_axis(rel, idx[:, :, None], axis=1)
     gathered = np.where(valid[:, :, None], gathered, 0.0)
@@ -72,7 +85,8 @@ def _axes(rel_m: FloatArray) -> list[FloatArray]:
 
 def _invalid_to_inf(d2: FloatArray, valid: BoolArray) -> None:
     """Set the (M, A, K) rows of padding obstacles to +inf, in place."""
-    np.copyto(d2, np.inf, where=~valid.T[:, :, None])
+    if not valid.all():  # e.g. one agent from near_obstacles: every row is real
+        np.copyto(d2, np.inf, where=~valid.T[:, :, None])
 
 
 def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatArray) -> FloatArray:
@@ -88,15 +102,109 @@ def segment_clearance_sq(rel_m: FloatArray, valid: BoolArray, offsets_m: FloatAr
     -------
     (A, K) min over obstacles of the squared distance to the segment [0, offset_k] [m^2]; inf without obstacles.
     """
-    n_agents, width, dim = rel_m.shape
+    n_agents, width, _ = rel_m.shape
     if width == 0:
         return np.full((n_agents, offsets_m.shape[0]), np.inf)
     axes = _axes(rel_m)
-    o2 = np.einsum("kd,kd->k", offsets_m, offsets_m)
-    dot = axes[0][:, :, None] * offsets_m[:, 0]  # (M, A, K)
-    r2 = axes[0] * axes[0]
-    for d in range(1, dim):
+    return _segment_min(axes, _dot(axes, offsets_m), offsets_m, valid)
+
+
+class MoveSweep:
+    """The moves' swept clearance, the end points' distances and, optionally, probes from the end points, in one
+    pass over the obstacles, with what depends only on the moves computed once (at one agent numpy's per-call
+    cost dominates, so fewer and larger array operations are what makes a step fast).
+
+    Every result equals, bit for bit, what ``segment_clearance_sq`` / ``segments_clearance_sq`` return: the same
+    operations in the same order on the same values (tests/planning/test_planning_nav_digest.py pins it).
+
+    Parameters
+    ----------
+    offsets_m : (K, D) the moves (bacteria offsets), all of non-zero length.
+    """
+
+    def __init__(self, offsets_m: FloatArray) -> None:
+        n_points, dim = offsets_m.shape
+        self.offsets_m = offsets_m
+        self.o2 = np.einsum("kd,kd->k", offsets_m, offsets_m)
+        # Moves (start 0, vector o_k) then probes (start o_k): the starts of the 2K segments, one array per axis.
+        self._starts = [np.concatenate([np.zeros(n_points), offsets_m[:, d]]) for d in range(dim)]
+
+    def __call__(
+        self, rel_m: FloatArray, valid: BoolArray, r2_m2: FloatArray, probes_m: FloatArray | None
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Sweep the moves (and probes) of A agents.
+
+        Parameters
+        ----------
+        rel_m : (A, M, D) obstacles relative to the agents, M > 0; valid : (A, M).
+        r2_m2 : (A, M) |rel|^2, the caller's.
+        probes_m : (A, K, D) segments from the end point o_k along probes_m[a, k] (zero length: the point), or None.
+
+        Returns
+        -------
+        (A, K) ``segment_clearance_sq`` of the moves; (M, A, K) squared distance from every obstacle to every end
+        point, |rel|^2 - 2 rel.o + |o|^2 (>= 0; rows of padding obstacles hold meaningless values, the caller
+        masks them); (A, K) ``segments_clearance_sq`` of the probes, or None.
+        """
+        offsets_m = self.offsets_m
+        n_agents, width, dim = rel_m.shape
+        n_points = offsets_m.shape[0]
+        axes = _axes(rel_m)
+        if probes_m is None:
+            dot = _dot(axes, offsets_m)
+            end2 = _end_sq(dot, self.o2, r2_m2)
+            return _segment_min(axes, dot, offsets_m, valid), end2, None
+        vectors = np.empty((n_agents, 2 * n_points, dim))
+        vectors[:, :n_points] = offsets_m
+        vectors[:, n_points:] = probes_m
+        r2 = np.zeros((width, n_agents, 2 * n_points))
+        dot = np.zeros((width, n_agents, 2 * n_points))
+        for d in range(dim):
+            rel = axes[d][:, :, None] - self._starts[d]  # (M, A, 2K): obstacle minus segment start
+            r2 += rel * rel
+            rel *= vectors[:, :, d]
+            dot += rel
+        end2 = _end_sq(dot[:, :, :n_points], self.o2, r2_m2)
+        v2 = np.empty((n_agents, 2 * n_points))
+        v2[:, :n_points] = self.o2
+        v2[:, n_points:] = np.einsum("akd,akd->ak", probes_m, probes_m)
+        # A zero-length probe has dot = 0: dividing by the smallest normal float gives t = 0 (its start point),
+        # as segments_clearance_sq's NaN rule does, without a floating-point error state to switch off.
+        np.maximum(v2, _TINY, out=v2)
+        t = dot / v2
+        np.maximum(t, 0.0, out=t)
+        np.minimum(t, 1.0, out=t)
+        dot *= 2.0
+        dot -= t * v2
+        dot *= t
+        r2 -= dot
+        np.maximum(r2, 0.0, out=r2)
+        _invalid_to_inf(r2, valid)
+        both = np.minimum.reduce(r2, axis=0)
+        return both[:, :n_points], end2, both[:, n_points:]
+
+
+def _end_sq(dot: FloatArray, o2: FloatArray, r2_m2: FloatArray) -> FloatArray:
+    """(M, A, K) |rel - o_k|^2 = |rel|^2 - 2 rel.o_k + |o_k|^2 from the dot products rel.o_k (not consumed)."""
+    end2 = dot * -2.0  # exact: scaling by 2 commutes with rounding, so this equals the sum of rel_d (-2 o_d)
+    end2 += r2_m2.T[:, :, None]
+    end2 += o2
+    return np.maximum(end2, 0.0, out=end2)
+
+
+def _dot(axes: list[FloatArray], offsets_m: FloatArray) -> FloatArray:
+    """(M, A, K) rel . offset_k."""
+    dot = axes[0][:, :, None] * offsets_m[:, 0]
+    for d in range(1, len(axes)):
         dot += axes[d][:, :, None] * offsets_m[:, d]
+    return dot
+
+
+def _segment_min(axes: list[FloatArray], dot: FloatArray, offsets_m: FloatArray, valid: BoolArray) -> FloatArray:
+    """(A, K) min over valid obstacles of the squared distance to the segments [0, offset_k]; ``dot`` is consumed."""
+    o2 = np.einsum("kd,kd->k", offsets_m, offsets_m)
+    r2 = axes[0] * axes[0]
+    for d in range(1, len(axes)):
         r2 += axes[d] * axes[d]
     t = dot / o2
     np.maximum(t, 0.0, out=t)

@@ -139,10 +139,10 @@ class EscapeMaps:
         """Potential at the points (R, K) and at the agents (R,) of ``rows`` (inf where unreachable)."""
         offsets = self._offsets
         pts = positions_m[rows][:, None, :] + np.vstack([offsets, np.zeros((1, offsets.shape[1]))])[None]
-        values = np.empty(pts.shape[:2])
-        for i, r in enumerate(rows):
-            f = state.field[r]
-            values[i] = self.grid.sample(f.origin_m, f.dist_m, pts[i, :, :2])
+        fields = [state.field[r] for r in rows]
+        origins = np.stack([f.origin_m for f in fields])
+        dists = np.stack([f.dist_m for f in fields])
+        values = self.grid.sample_many(origins, dists, pts[:, :, :2])
         if self.params.dim == 3:
             dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
             values = np.sqrt(values * values + dz * dz)

@@ -39,8 +39,11 @@ _Scalar = TypeVar("_Scalar", np.float64, np.bool_)
 _MAX_ROUNDS = 40
 #: Convergence: a round that lowers no cell by more than this ends the sweeps [m].
 _CONVERGED_M = 1e-9
-#: Agents whose fields are computed in one array program (bounds the temporaries).
-_BATCH = 16
+#: Agents whose fields are computed in one array program. One: at n = 54 a field costs the same alone as in a
+#: batch of 16 (the arrays are large enough), each agent stops at its own convergence instead of the slowest's,
+#: and an agent's field depends on nothing but its own map (the segment offset ``big`` and the number of rounds
+#: were batch-wide, which moved values by rounding, about 1e-10 m).
+_BATCH = 1
 
 
 class NavGrid:
@@ -209,19 +212,25 @@ class NavGrid:
             pos = (np.arange(view.shape[axis], dtype=np.float64) * cost).reshape(shape)
             fwd = pos + np.cumsum(bview, axis=axis) * big
             bwd = pos + np.cumsum(np.flip(bview, axis), axis=axis) * big
-            prepared.append((view, axis, fwd, bwd, bview.copy()))
+            # Work buffers allocated once: fresh megabyte temporaries on every sweep cost page faults.
+            prepared.append((view, np.flip(view, axis), axis, fwd, bwd, bview.copy(), np.empty(view.shape)))
+        before = np.empty(d_grid.shape)
+        work = np.empty(d_grid.shape)
         for _ in range(_MAX_ROUNDS):
-            before = d_grid.copy()
-            for view, axis, fwd, bwd, bview in prepared:
-                cand = np.minimum.accumulate(view - fwd, axis=axis)
+            np.copyto(before, d_grid)
+            for view, rview, axis, fwd, bwd, bview, cand in prepared:
+                np.subtract(view, fwd, out=cand)
+                np.minimum.accumulate(cand, axis=axis, out=cand)
                 cand += fwd
                 np.minimum(view, cand, out=view)
-                rview = np.flip(view, axis)
-                cand = np.minimum.accumulate(rview - bwd, axis=axis)
+                np.subtract(rview, bwd, out=cand)
+                np.minimum.accumulate(cand, axis=axis, out=cand)
                 cand += bwd
                 np.minimum(rview, cand, out=rview)
                 np.copyto(view, np.inf, where=bview)
-            if not np.any(d_grid < np.minimum(before, half) - _CONVERGED_M):
+            np.minimum(before, half, out=before)
+            before -= _CONVERGED_M
+            if not np.less(d_grid, before, out=work).any():
                 break
         out = d_grid.reshape(n_batch, -1).copy()
         out[out >= half] = np.inf
@@ -231,24 +240,32 @@ class NavGrid:
 
     def sample(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
         """Bilinear value of one field at points (P, 2), over the finite corners only; inf outside or enclosed."""
+        return np.asarray(self.sample_many(origin_m[None], dist_m[None], points_xy_m[None])[0], dtype=np.float64)
+
+    def sample_many(self, origins_m: FloatArray, dists_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
+        """``sample`` for R fields at once: origins (R, 2), fields (R, n^2), points (R, P, 2) -> (R, P).
+
+        Element for element the same arithmetic as one field at a time, so the values do not depend on R.
+        """
         n, h = self.n, self.cell_m
-        rel = (points_xy_m - origin_m) / h - 0.5
-        i0 = np.floor(rel[:, 0]).astype(np.intp)
-        j0 = np.floor(rel[:, 1]).astype(np.intp)
-        fi = rel[:, 0] - i0
-        fj = rel[:, 1] - j0
-        num = np.zeros(points_xy_m.shape[0])
-        den = np.zeros(points_xy_m.shape[0])
+        rel = (points_xy_m - origins_m[:, None, :]) / h - 0.5
+        i0 = np.floor(rel[..., 0]).astype(np.intp)
+        j0 = np.floor(rel[..., 1]).astype(np.intp)
+        fi = rel[..., 0] - i0
+        fj = rel[..., 1] - j0
+        num = np.zeros(points_xy_m.shape[:2])
+        den = np.zeros(points_xy_m.shape[:2])
+        rows = np.arange(origins_m.shape[0])[:, None]
         for oi, wi in ((0, 1.0 - fi), (1, fi)):
             for oj, wj in ((0, 1.0 - fj), (1, fj)):
                 ii = np.clip(i0 + oi, 0, n - 1)
                 jj = np.clip(j0 + oj, 0, n - 1)
-                val = dist_m[ii * n + jj]
+                val = dists_m[rows, ii * n + jj]
                 w = wi * wj
                 ok = np.isfinite(val) & (w > 0.0)
                 num += np.where(ok, w * np.where(ok, val, 0.0), 0.0)
                 den += np.where(ok, w, 0.0)
-        inside = (rel[:, 0] >= -0.5) & (rel[:, 0] <= n - 0.5) & (rel[:, 1] >= -0.5) & (rel[:, 1] <= n - 0.5)
+        inside = (rel[..., 0] >= -0.5) & (rel[..., 0] <= n - 0.5) & (rel[..., 1] >= -0.5) & (rel[..., 1] <= n - 0.5)
         with np.errstate(invalid="ignore", divide="ignore"):
             out = np.where(inside & (den > 0.0), num / den, np.inf)
         return np.asarray(out, dtype=np.float64)

@@ -37,16 +37,17 @@ def decision_from_choice(
 ) -> BatchDecision:
     """The batch decision of agents that move to bacteria point ``chosen`` (row of ``offsets_m``; -1: no move);
     ``candidate_cost`` (A, N_b): each point's score, +inf where it does not pass (``BatchDecision``)."""
-    moved = chosen >= 0
-    next_points = np.full(positions_m.shape, np.nan)
-    next_points[moved] = positions_m[moved] + offsets_m[chosen[moved]]
+    next_points = positions_m + offsets_m[chosen]  # rows with chosen = -1 are overwritten below
+    next_points[chosen < 0] = np.nan
+    mu_o_k = np.empty(positions_m.shape[0])
+    mu_o_k.fill(np.nan)
     return BatchDecision(
         next_points_m=next_points,
         reason=reason,
-        chosen_index=chosen.astype(np.int64),
-        mu_o_k=np.full(positions_m.shape[0], np.nan),
-        n_passing=n_passing.astype(np.int64),
-        n_safe=n_safe.astype(np.int64),
+        chosen_index=np.asarray(chosen, dtype=np.int64),
+        mu_o_k=mu_o_k,
+        n_passing=np.asarray(n_passing, dtype=np.int64),
+        n_safe=np.asarray(n_safe, dtype=np.int64),
         candidate_cost=candidate_cost,
     )
 

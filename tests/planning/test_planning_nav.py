@@ -123,8 +123,14 @@ def test_no_move_ends_or_passes_within_the_clearance(
         pos = decision.next_point_m
 
 
+# Obstacles at least 1 mm from the agent: the sweep works on squared distances, |rel|^2 - t (2 rel.o - t |o|^2),
+# whose rounding is ~1e-17 m^2 (a few nanometres); a point within that of the vehicle's centre (it has collided;
+# ranges never come closer than a sensor's range_min) makes "no closer than d0" meaningless (docs/planner.md).
+_not_on_the_agent = st.tuples(_coords, _coords).filter(lambda p: math.hypot(p[0], p[1]) >= 1e-3)
+
+
 @settings(max_examples=80, deadline=None)
-@given(obstacles=st.lists(st.tuples(_coords, _coords), min_size=1, max_size=20))
+@given(obstacles=st.lists(_not_on_the_agent, min_size=1, max_size=20))
 def test_from_inside_the_clearance_a_move_never_gets_closer(obstacles: list[tuple[float, float]]) -> None:
     """Noise may put the agent inside the clearance: its next move gets no closer anywhere and ends farther out."""
     params = PlannerParams()
