@@ -13,6 +13,7 @@ from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.goal import Route, load_route
 from apf_companion.handlers import HandlerParams
+from apf_companion.linkquality import CautionParams
 from apf_companion.links import MavlinkLink
 from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
@@ -101,6 +102,13 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         reset_hold_s=config.safety.reset_hold_s,
         silent_horizon_s=config.safety.guid_timeout_s,
         silent_drift_m=config.safety.silent_drift_m,
+        caution=CautionParams(
+            min_scale=config.safety.caution_min_scale,
+            full_loss=config.safety.caution_full_loss,
+            ok_age_s=config.safety.caution_ok_age_s,
+            full_age_s=config.cycle.pose_max_age_s,
+            window_s=config.safety.caution_window_s,
+        ),
         resume_after_link_lost=config.safety.resume_after_link_lost,
     )
 

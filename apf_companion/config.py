@@ -362,6 +362,14 @@ class SafetyConfig:
         sector_max_age_s: A sector without a reading for this long is unknown: no motion towards it [s].
         resume_after_link_lost: When the autopilot's heartbeat returns, fly on to the goal (only in GUIDED /
             OFFBOARD, with fresh inputs); False: hold and wait for a new goal.
+        caution_min_scale: Fewer setpoints, more caution: on a lossy link each setpoint reaches only a fraction
+            of a planner step ahead, and its feed-forward speed and silent drift shrink by that fraction; this is
+            the smallest fraction; 1 = off.
+        caution_full_loss: Pose loss share (poses the autopilot sent that did not arrive) or setpoint send
+            failure share at which the fraction reaches ``caution_min_scale`` (linear from 1 at no loss).
+        caution_ok_age_s: A pose up to this old when the cycle runs costs no caution; older poses lower the
+            fraction linearly down to ``caution_min_scale`` at ``cycle.pose_max_age_s`` [s].
+        caution_window_s: Pose loss and send failures are measured over this long [s].
     """
 
     max_speed_m_s: float = 15.0
@@ -378,8 +386,16 @@ class SafetyConfig:
     sectors: int = 16
     sector_max_age_s: float = 1.0
     resume_after_link_lost: bool = True
+    caution_min_scale: float = 0.3
+    caution_full_loss: float = 0.5
+    caution_ok_age_s: float = 0.2
+    caution_window_s: float = 2.0
 
     def __post_init__(self) -> None:
+        _check_range("safety.caution_min_scale", self.caution_min_scale, 0.0, 1.0, lo_open=True)
+        _check_range("safety.caution_full_loss", self.caution_full_loss, 0.0, 1.0, lo_open=True)
+        _check_range("safety.caution_ok_age_s", self.caution_ok_age_s, 0.0, 10.0)
+        _check_range("safety.caution_window_s", self.caution_window_s, 0.1, 60.0)
         _check_range("safety.max_speed_m_s", self.max_speed_m_s, 0.1, 100.0)
         _check_range("safety.max_accel_m_s2", self.max_accel_m_s2, 0.1, 100.0)
         _check_range("safety.pose_noise_m", self.pose_noise_m, 0.0, 10.0)
@@ -429,6 +445,8 @@ class ServiceConfig:
         _check_range("max_flight_s", self.max_flight_s, 0.0, 86400.0)
         if self.sensors.zenoh and not self.zenoh.enabled:
             raise _fail("sensors.zenoh", "false unless zenoh.enabled is true", True)
+        if self.safety.caution_ok_age_s >= self.cycle.pose_max_age_s:
+            raise _fail("safety.caution_ok_age_s", "less than cycle.pose_max_age_s", self.safety.caution_ok_age_s)
 
     def resolve(self, path: str) -> Path:
         """A path from the config, relative to ``base_dir``."""

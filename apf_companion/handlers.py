@@ -72,7 +72,8 @@ class AutopilotHandlers:
 
     Args:
         set_route: Starts a goal (the service's; returns whether the navigator accepted it).
-        on_pose: Called when the navigator accepted a new pose (it triggers a cycle).
+        on_pose: Called with the autopilot's ``time_boot_ms`` when the navigator accepted a new pose (it triggers
+            a cycle, and the stream's gaps measure the link's loss).
         route_at_start: Flown once the autopilot is first heard.
     """
 
@@ -85,7 +86,7 @@ class AutopilotHandlers:
         outbox: Outbox,
         counters: ServiceCounters,
         set_route: Callable[[Route, float], bool],
-        on_pose: Callable[[], None],
+        on_pose: Callable[[int], None],
         route_at_start: Route | None,
     ) -> None:
         self.params = params
@@ -158,7 +159,7 @@ class AutopilotHandlers:
         if reset is not None:
             self.navigator.recovery.position_reset(now_s, reset)
         if pose is not None and self.navigator.update_pose(pose):
-            self._on_pose()
+            self._on_pose(rec.time_boot_ms)
 
     def _on_odometry(self, rec: Odometry, now_s: float) -> None:
         self.perception.gate.note_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate

@@ -48,6 +48,7 @@ from apf_companion.config import ServiceConfig, ZenohSection
 from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
+from apf_companion.linkquality import LinkMeter
 from apf_companion.links import MavlinkLink
 from apf_companion.links.messages import DECODERS, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State
@@ -175,6 +176,7 @@ class CompanionService:
         self.planner = build_planner(config)
         self.perception = PerceptionFrontEnd(perception_params(config))
         self.navigator = build_navigator(config, self.planner, self.perception)
+        self.link_meter = LinkMeter(self.navigator.params.caution)  # pose loss and send failures: caution
         self.outbox = build_outbox(config, link, self.clock.now)
         self.counters = ServiceCounters()
         self.faults = FaultLog(self.counters)
@@ -339,7 +341,8 @@ class CompanionService:
             if self._new_pose.is_set():
                 await asyncio.sleep(0)  # let the cycle run before more input is processed
 
-    def _pose_arrived(self) -> None:
+    def _pose_arrived(self, time_boot_ms: int) -> None:
+        self.link_meter.pose(time_boot_ms)
         self._trigger_rx_wall = time.perf_counter()
         self._new_pose.set()
 
@@ -376,14 +379,17 @@ class CompanionService:
 
     def run_cycle(self, now: float, trigger_wall: float | None = None) -> CycleOutput:
         """One navigator cycle at ``now``: send its setpoint, report its changes, end the run if it is done."""
-        out = self.navigator.cycle(now)
+        pose_t_s = None if self.navigator.pose is None else self.navigator.pose.t_s
+        out = self.navigator.cycle(now, self.link_meter.quality(now, pose_t_s))
         sp = out.setpoint
         if sp is not None:
             if sp.kind is SetpointKind.PRESTREAM:
                 self.takeover.controller.note_prestream(now)
             elif sp.kind is SetpointKind.NAVIGATE and self._first_nav_s is None:
                 self._first_nav_s = now
-            self.outbox.setpoint(sp)
+            sent = self.outbox.setpoint(sp)
+            if not self.outbox.silent:  # dry run: nothing is sent, nothing failed
+                self.link_meter.sent(sent, now)
             self.reporter.cycle_sent(out, trigger_wall, time.perf_counter())
             log.debug(
                 "cycle.setpoint",
