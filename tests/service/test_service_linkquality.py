@@ -275,7 +275,6 @@ async def _flight_through(faults: LinkFaults) -> AsyncIterator[tuple[CompanionSe
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-@pytest.mark.usefixtures("simulator_yields_every_step")
 async def test_steps_are_shorter_through_a_lossy_proxy() -> None:
     n = 40  # navigation setpoints looked at in each flight
     async with _flight_through(LinkFaults()) as (_, clean):

@@ -22,8 +22,6 @@ from sim.vehicle.testing import simulator_with_client
 from sim.world import World
 from tests.conftest import HANG_S, free_port
 
-pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
-
 YAW_DEG = 30.0
 FREE_CM = 801
 UINT16_MAX = 65535
