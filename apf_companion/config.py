@@ -386,7 +386,7 @@ class SafetyConfig:
     sectors: int = 16
     sector_max_age_s: float = 1.0
     resume_after_link_lost: bool = True
-    caution_min_scale: float = 0.3
+    caution_min_scale: float = 0.5
     caution_full_loss: float = 0.5
     caution_ok_age_s: float = 0.2
     caution_window_s: float = 2.0

@@ -41,7 +41,7 @@ class CautionParams:
         window_s: Loss and send failures are measured over this long [s].
     """
 
-    min_scale: float = 0.3
+    min_scale: float = 0.5
     full_loss: float = 0.5
     ok_age_s: float = 0.2
     full_age_s: float = 0.5

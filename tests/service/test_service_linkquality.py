@@ -30,7 +30,7 @@ from tests.conftest import SimulatorClock, until
 from tests.service.test_service_flight import SPEEDUP, running, service_config
 from tests.service.test_service_navigator import feed, make
 
-P = CautionParams()  # min_scale 0.3, full_loss 0.5, ok_age_s 0.2, full_age_s 0.5, window_s 2
+P = CautionParams(min_scale=0.3, full_loss=0.5, ok_age_s=0.2, full_age_s=0.5, window_s=2.0)
 
 
 # ---- caution_scale -------------------------------------------------------------------------------------------------
@@ -176,7 +176,8 @@ def test_lossy_link_shortens_the_step_the_speed_and_the_drift() -> None:
     _, clean = _first_step(CLEAN_LINK)
     nav, lossy = _first_step(LinkQuality(pose_loss=0.3))
     c = caution_scale(LinkQuality(pose_loss=0.3), nav.params.caution)
-    assert c == pytest.approx(0.58)
+    p = nav.params.caution
+    assert c == pytest.approx(1.0 - (1.0 - p.min_scale) * 0.3 / p.full_loss)
     assert clean.caution == 1.0 and lossy.caution == pytest.approx(c)
     assert clean.setpoint is not None and lossy.setpoint is not None
     assert lossy.setpoint.kind is SetpointKind.NAVIGATE and lossy.decision == clean.decision == "GREEDY"
@@ -216,12 +217,12 @@ def test_config_keys_are_validated(section: str, key: str, value: float) -> None
 def test_config_reaches_the_navigator() -> None:
     cfg = config_from_mapping(
         {
-            "safety": {"caution_min_scale": 0.5, "caution_full_loss": 0.4, "caution_ok_age_s": 0.1},
+            "safety": {"caution_min_scale": 0.4, "caution_full_loss": 0.4, "caution_ok_age_s": 0.1},
             "cycle": {"pose_max_age_s": 0.8},
         }
     )
     assert make(cfg).params.caution == CautionParams(
-        min_scale=0.5, full_loss=0.4, ok_age_s=0.1, full_age_s=0.8, window_s=2.0
+        min_scale=0.4, full_loss=0.4, ok_age_s=0.1, full_age_s=0.8, window_s=2.0
     )
 
 
@@ -290,7 +291,7 @@ async def test_steps_are_shorter_through_a_lossy_proxy() -> None:
     cautions = np.array([s.caution for s in lossy[5:n]])
     assert float(np.median(cautions)) < 0.9
     reach = (float(np.percentile(lossy_steps, 90)), float(np.percentile(clean_steps, 90)))
-    assert reach[0] < 0.8 * reach[1], reach
+    assert reach[0] < 0.85 * reach[1], reach
     speeds = (float(np.median([s.speed_m_s for s in lossy[5:n]])), float(np.median([s.speed_m_s for s in clean[5:n]])))
-    assert speeds[0] < 0.8 * speeds[1], speeds
+    assert speeds[0] < 0.85 * speeds[1], speeds
     assert svc.navigator.counts()["shortened_setpoints"] > 0
