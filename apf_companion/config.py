@@ -116,7 +116,8 @@ class AutopilotConfig:
         takeover: Switch the autopilot to GUIDED / OFFBOARD when a goal arrives. False: wait for the pilot.
         arm: Arm the vehicle (simulated flights only; off by default).
         takeoff_alt_m: With ``arm``: take off to this height above home before navigating [m]; 0 = no takeoff.
-        mode_timeout_s: Give up a mode switch not confirmed by HEARTBEAT.custom_mode within this [s].
+        mode_timeout_s: Give up a mode switch (or arming) not confirmed by HEARTBEAT.custom_mode within this, once
+            3 HEARTBEATs said "not yet" (fewer, on a lossy link: up to twice this) [s].
         offboard_prestream_s: PX4: stream setpoints this long before asking for OFFBOARD (PX4 wants > 1 s) [s].
     """
 

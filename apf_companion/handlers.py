@@ -98,6 +98,7 @@ class AutopilotHandlers:
         self._on_pose = on_pose
         self._route_at_start = route_at_start
         self.heard = False
+        self.heartbeats = 0  # autopilot HEARTBEATs heard (the takeover weighs its evidence by them)
         self.custom_mode: int | None = None
         self.base_mode = 0
         self.global_ref: GlobalReference | None = None
@@ -144,6 +145,7 @@ class AutopilotHandlers:
         if (self.heard and first) or rec.system_status in REBOOTING:
             self.perception.gate.note_reboot()  # boot evidence: a pose may start a new time base
         self.heard = True
+        self.heartbeats += 1
         self.custom_mode = rec.custom_mode
         self.base_mode = rec.base_mode
         self.navigator.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok)

@@ -474,6 +474,7 @@ class TakeoverDriver:
             armed=ap.armed,
             down_m=None if pose is None else float(pose.pos_ned_m[2]),
             home_amsl_m=ap.home_amsl_m(),
+            heartbeats=ap.heartbeats,
         )
         for action in self.controller.step(now, inputs):
             self._carry_out(action, now)
