@@ -17,6 +17,7 @@ from apf_companion.errors import ConfigError
 from apf_companion.forwarder import ForwarderParams
 from apf_companion.goal import Route, load_route
 from apf_companion.handlers import COMMAND_MESSAGES, HandlerParams
+from apf_companion.linkquality import CautionParams
 from apf_companion.links import (
     MavlinkLink,
     SigningParams,
@@ -139,6 +140,13 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         brake_accel_m_s2=config.safety.brake_accel_m_s2,
         brake_latency_s=config.safety.brake_latency_s,
         tracking_clearance_m=tracking_m,
+        caution=CautionParams(
+            min_scale=config.safety.caution_min_scale,
+            full_loss=config.safety.caution_full_loss,
+            ok_age_s=config.safety.caution_ok_age_s,
+            full_age_s=config.cycle.pose_max_age_s,
+            window_s=config.safety.caution_window_s,
+        ),
         resume_after_link_lost=config.safety.resume_after_link_lost,
     )
 

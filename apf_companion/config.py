@@ -157,7 +157,8 @@ class AutopilotConfig:
         takeover: Switch the autopilot to GUIDED / OFFBOARD when a goal arrives. False: wait for the pilot.
         arm: Arm the vehicle (simulated flights only; off by default).
         takeoff_alt_m: With ``arm``: take off to this height above home before navigating [m]; 0 = no takeoff.
-        mode_timeout_s: Give up a mode switch not confirmed by HEARTBEAT.custom_mode within this [s].
+        mode_timeout_s: Give up a mode switch (or arming) not confirmed by HEARTBEAT.custom_mode within this, once
+            3 HEARTBEATs said "not yet" (fewer, on a lossy link: up to twice this) [s].
         offboard_prestream_s: PX4: stream setpoints this long before asking for OFFBOARD (PX4 wants > 1 s) [s].
         ready_timeout_s: Before taking over (mode, arming) wait at most this long for a position (LOCAL_POSITION_NED
             fresh) and, where the autopilot reports it, an EKF with a horizontal position (EKF_STATUS_REPORT); the
@@ -467,6 +468,14 @@ class SafetyConfig:
             (WPNAV_ACCEL / PSC_JERK_XY / 2 = 0.25 s) and the attitude lag (ATC_INPUT_TC 0.15 s) [s].
         resume_after_link_lost: When the autopilot's heartbeat returns, fly on to the goal (only in GUIDED /
             OFFBOARD, with fresh inputs); False: hold and wait for a new goal.
+        caution_min_scale: Fewer setpoints, more caution: on a lossy link each setpoint reaches only a fraction
+            of a planner step ahead, and its feed-forward speed and silent drift shrink by that fraction; this is
+            the smallest fraction; 1 = off.
+        caution_full_loss: Pose loss share (poses the autopilot sent that did not arrive) or setpoint send
+            failure share at which the fraction reaches ``caution_min_scale`` (linear from 1 at no loss).
+        caution_ok_age_s: A pose up to this old when the cycle runs costs no caution; older poses lower the
+            fraction linearly down to ``caution_min_scale`` at ``cycle.pose_max_age_s`` [s].
+        caution_window_s: Pose loss and send failures are measured over this long [s].
     """
 
     max_speed_m_s: float = 15.0
@@ -485,8 +494,16 @@ class SafetyConfig:
     brake_accel_m_s2: float = 2.5
     brake_latency_s: float = 0.5
     resume_after_link_lost: bool = True
+    caution_min_scale: float = 0.5
+    caution_full_loss: float = 0.5
+    caution_ok_age_s: float = 0.2
+    caution_window_s: float = 2.0
 
     def __post_init__(self) -> None:
+        _check_range("safety.caution_min_scale", self.caution_min_scale, 0.0, 1.0, lo_open=True)
+        _check_range("safety.caution_full_loss", self.caution_full_loss, 0.0, 1.0, lo_open=True)
+        _check_range("safety.caution_ok_age_s", self.caution_ok_age_s, 0.0, 10.0)
+        _check_range("safety.caution_window_s", self.caution_window_s, 0.1, 60.0)
         _check_range("safety.max_speed_m_s", self.max_speed_m_s, 0.1, 100.0)
         _check_range("safety.max_accel_m_s2", self.max_accel_m_s2, 0.1, 100.0)
         _check_range("safety.pose_noise_m", self.pose_noise_m, 0.0, 10.0)
@@ -545,6 +562,8 @@ class ServiceConfig:
         for system, component in self.sensors.source_ids():
             if (system, component) in ours:
                 raise _fail("sensors.mavlink_sources[]", "not our own or the autopilot's ids", f"{system}/{component}")
+        if self.safety.caution_ok_age_s >= self.cycle.pose_max_age_s:
+            raise _fail("safety.caution_ok_age_s", "less than cycle.pose_max_age_s", self.safety.caution_ok_age_s)
 
     def resolve(self, path: str) -> Path:
         """A path from the config, relative to ``base_dir``."""

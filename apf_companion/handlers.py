@@ -115,7 +115,8 @@ class AutopilotHandlers:
 
     Args:
         set_route: Starts a goal (the service's; returns whether the navigator accepted it).
-        on_pose: Called when the navigator accepted a new pose (it triggers a cycle).
+        on_pose: Called with the autopilot's ``time_boot_ms`` when the navigator accepted a new pose (it triggers
+            a cycle, and the stream's gaps measure the link's loss).
         route_at_start: Flown once the autopilot is first heard.
         on_param: Handles a PARAM_* addressed to us (apf_companion.params.ParamServer.handle); None = ignored.
     """
@@ -129,7 +130,7 @@ class AutopilotHandlers:
         outbox: Outbox,
         counters: ServiceCounters,
         set_route: Callable[[Route, float], bool],
-        on_pose: Callable[[], None],
+        on_pose: Callable[[int], None],
         route_at_start: Route | None,
         on_param: Callable[[ParamRecord], None] | None = None,
     ) -> None:
@@ -143,6 +144,7 @@ class AutopilotHandlers:
         self._route_at_start = route_at_start
         self._on_param = on_param
         self.heard = False
+        self.heartbeats = 0  # autopilot HEARTBEATs heard (the takeover weighs its evidence by them)
         self.custom_mode: int | None = None
         self.base_mode = 0
         self.global_ref: GlobalReference | None = None
@@ -220,6 +222,7 @@ class AutopilotHandlers:
         if first or rec.system_status in REBOOTING:
             self.streams.restart()  # a rebooted autopilot has forgotten our stream requests
         self.heard = True
+        self.heartbeats += 1
         self.custom_mode = rec.custom_mode
         self.base_mode = rec.base_mode
         self.navigator.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok)
@@ -238,7 +241,7 @@ class AutopilotHandlers:
         if reset is not None:
             self.navigator.recovery.position_reset(now_s, reset)
         if pose is not None and self.navigator.update_pose(pose):
-            self._on_pose()
+            self._on_pose(rec.time_boot_ms)
 
     def _on_odometry(self, rec: Odometry, now_s: float) -> None:
         self.perception.gate.note_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate

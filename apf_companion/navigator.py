@@ -42,6 +42,7 @@ import numpy.typing as npt
 
 from apf_companion.envelope import BrakingEnvelope
 from apf_companion.goal import Route
+from apf_companion.linkquality import CLEAN_LINK, CautionParams, LinkQuality, caution_scale
 from apf_companion.perception import Pose
 from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity
 
@@ -56,6 +57,7 @@ __all__ = [
     "State",
     "StateChange",
     "reconfigure",
+    "shortened",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -145,6 +147,8 @@ class NavigatorParams:
             (``apf_companion.envelope``): the feed-forward never exceeds the speed that can still stop
             ``tracking_clearance_m`` short of a remembered point along the step; cycles whose reported velocity
             could carry the vehicle closer than that are counted (``envelope_warnings``). 0 = off.
+        caution: Fewer setpoints, more caution: on a lossy link (``apf_companion.linkquality``) each setpoint
+            reaches a fraction of a step ahead and its feed-forward speed and silent drift shrink by that fraction.
         resume_after_link_lost: LINK_LOST keeps the goal; when the heartbeat returns with the autopilot still in
             GUIDED / OFFBOARD the service holds, then navigates on once the inputs are fresh. False: the goal is
             dropped (IDLE once the link is back; motion only after a new goal).
@@ -171,6 +175,7 @@ class NavigatorParams:
     brake_accel_m_s2: float = 0.0
     brake_latency_s: float = 0.5
     tracking_clearance_m: float = 0.0
+    caution: CautionParams = dataclasses.field(default_factory=CautionParams)
     resume_after_link_lost: bool = True
 
 
@@ -198,6 +203,7 @@ class CycleOutput:
         distance_to_goal_m: Distance to the active waypoint (horizontal in 2D), if a goal and pose exist.
         nearest_obstacle_m: Distance to the nearest remembered obstacle point, if any.
         n_obstacles: Remembered obstacle points used this cycle.
+        caution: The step fraction the link quality allowed (1 = a clean link; ``linkquality.caution_scale``).
     """
 
     t_s: float
@@ -208,6 +214,7 @@ class CycleOutput:
     distance_to_goal_m: float | None = None
     nearest_obstacle_m: float | None = None
     n_obstacles: int = 0
+    caution: float = 1.0
 
 
 @dataclass(slots=True)
@@ -235,6 +242,8 @@ class _Counters:
             self.random_walk += 1
         else:
             self.local_minimum += 1
+
+    shortened_setpoints: int = 0  # navigation setpoints shortened for a lossy link (``caution`` < 1)
 
 
 @dataclass(slots=True)
@@ -265,6 +274,20 @@ def _into_unknown(view: ObstacleView, sp: Setpoint | None, pos: FloatArray, now_
     return math.hypot(d[0], d[1]) >= 1e-9 and not view.direction_fresh(math.atan2(d[1], d[0]), now_s)
 
 
+def shortened(pos: FloatArray, target: FloatArray, *, fraction: float, step_m: float, dim: int) -> FloatArray:
+    """``target``, or the point ``fraction`` of a step (``step_m``) from ``pos`` on the way to it when it is further
+    (horizontally in 2D; the target's altitude is kept). A target more than a step away (the vehicle lags behind
+    its bacteria point) is shortened to ``fraction`` of the way. ``fraction`` 1 returns ``target``."""
+    d = target[:dim] - pos[:dim]
+    gap = float(np.sqrt(d @ d))
+    reach_m = fraction * max(gap, step_m)
+    if gap <= reach_m:
+        return target
+    aim = target.copy()
+    aim[:dim] = pos[:dim] + d * (reach_m / gap)
+    return aim
+
+
 class _StepTracker:
     """The bacteria point being flown to, and the feed-forward speed towards it."""
 
@@ -279,6 +302,7 @@ class _StepTracker:
             clearance_m=params.tracking_clearance_m,
             dim=params.dim,
         )
+        self.caution = 1.0  # this cycle's ``caution_scale``: the step, speed and silent drift fraction
 
     def set(self, target: FloatArray, now_s: float) -> None:
         self.target = target
@@ -312,20 +336,26 @@ class _StepTracker:
         return self.setpoint(pos, target, self.approach_speed(gap, nearest_m), obstacles)
 
     def setpoint(self, pos: FloatArray, target: FloatArray, speed_m_s: float, obstacles: FloatArray) -> Setpoint:
-        """Fly to ``target`` at ``speed_m_s``, with the feed-forward cut to what can still stop short of the
-        tracking clearance (``BrakingEnvelope``) and to what is safe if nothing follows."""
+        """Fly towards ``target`` at ``speed_m_s``, with the feed-forward cut to what can still stop short of the
+        tracking clearance (``BrakingEnvelope``) and to what is safe if nothing follows.
+
+        On a lossy link (``caution`` < 1) the setpoint's position is only that fraction of a step ahead on the
+        way to ``target`` (``shortened``) and the silent drift allowed shrinks by the same fraction.
+        """
         p = self.p
         cap = self.envelope.speed_cap_m_s(pos, target - pos, obstacles)
         if cap < speed_m_s:
             self.counters.envelope_caps += 1
             speed_m_s = cap
-        sp = navigate(pos, target, cruise_speed_m_s=speed_m_s, dim=p.dim)
+        self.counters.shortened_setpoints += self.caution < 1.0
+        aim = shortened(pos, target, fraction=self.caution, step_m=p.step_m, dim=p.dim)
+        sp = navigate(pos, aim, cruise_speed_m_s=speed_m_s, dim=p.dim)
         vel = silent_safe_velocity(
-            target,
+            aim,
             sp.vel_ned_m_s,
             obstacles,
             horizon_s=p.silent_horizon_s,
-            max_drift_m=p.silent_drift_m,
+            max_drift_m=p.silent_drift_m * self.caution,
             clearance_m=p.clearance_m,
             dim=p.dim,
         )
@@ -356,7 +386,7 @@ class _StepTracker:
         near obstacles (``clearance_m``): a vehicle that reaches a bacteria point at speed swings on along its old
         heading when the next step turns, towards the obstacle it is turning away from."""
         p = self.p
-        speed = p.cruise_speed_m_s * min(1.0, gap_m / p.step_m)
+        speed = p.cruise_speed_m_s * self.caution * min(1.0, gap_m / p.step_m)
         if p.clearance_m > 0.0 and nearest_m is not None:
             span = 2.0 * p.step_m
             frac = min(1.0, max(0.0, (nearest_m - p.clearance_m) / span))
@@ -655,9 +685,10 @@ class Navigator:
         return self._steps.approach_speed(gap_m, nearest_m)
 
     # ---- the cycle ---------------------------------------------------------------------------------------------
-    def cycle(self, now_s: float) -> CycleOutput:
-        """Run one cycle at service time ``now_s``: update the state and decide the setpoint (or silence)."""
+    def cycle(self, now_s: float, link: LinkQuality = CLEAN_LINK) -> CycleOutput:
+        """One cycle at service time ``now_s``: state and setpoint (or silence); a lossy ``link`` shortens steps."""
         self.counters.cycles += 1
+        self._steps.caution = caution_scale(link, self.params.caution)
         if not self.link_alive(now_s):
             self.recovery.link_dead(now_s)
             out = CycleOutput(t_s=now_s, state=self.state, setpoint=None)
@@ -670,7 +701,7 @@ class Navigator:
             self.counters.setpoints += 1
         changes = tuple(self._pending)
         self._pending.clear()
-        out = dataclasses.replace(out, state=self.state, changes=changes)
+        out = dataclasses.replace(out, state=self.state, changes=changes, caution=self._steps.caution)
         self.last_output = out
         return out
 

@@ -146,10 +146,11 @@ class Outbox:
     def ack(self, command: int, result: int, target_system: int, target_component: int) -> None:
         self._send(lambda mav: mav.command_ack_encode(command, result, 0, 0, target_system, target_component))
 
-    def setpoint(self, sp: Setpoint) -> None:
+    def setpoint(self, sp: Setpoint) -> bool:
+        """Send ``sp``; False when it could not be sent (unsendable, a send error, or silent)."""
         if not float32_ok((*sp.pos_ned_m, *sp.vel_ned_m_s)):
             self.unsendable += 1
-            return
+            return False
         sent = self._send(
             lambda mav: encode_setpoint(
                 mav, sp, time_boot_ms=self.boot_ms(), target_system=self.target[0], target_component=self.target[1]
@@ -159,6 +160,7 @@ class Outbox:
         if sent:
             self.last_setpoint = sp
             self.sent.add(self._now_s(), sp.pos_ned_m)
+        return sent
 
     def heartbeat(self, system_status: int) -> None:
         self._send(

@@ -56,6 +56,7 @@ from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
 from apf_companion.forwarder import ObstacleForwarder
 from apf_companion.goal import Route
 from apf_companion.handlers import AutopilotHandlers
+from apf_companion.linkquality import LinkMeter
 from apf_companion.links import MavlinkLink, TimestampKeeper
 from apf_companion.links.endpoint import connection_hint, parse_endpoint
 from apf_companion.links.messages import DECODERS, decode, source
@@ -65,7 +66,7 @@ from apf_companion.outbox import Outbox
 from apf_companion.params import ParamServer
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
 from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
-from apf_companion.setpoint import SetpointKind
+from apf_companion.setpoint import Setpoint, SetpointKind
 from apf_companion.takeover import Action, ActionKind, TakeoverController, TakeoverInputs
 
 __all__ = [
@@ -222,6 +223,7 @@ class CompanionService:
         self.faults = FaultLog(self.counters)
         self.observers = Observers(self.faults)
         self.navigator = build_navigator(config, self.observers.tap(self.planner), self.perception)
+        self.link_meter = LinkMeter(self.navigator.params.caution)  # pose loss and send failures: caution
         self.outbox = build_outbox(config, link, self.clock.now)
         self.handlers = AutopilotHandlers(
             handler_params(config),
@@ -385,7 +387,8 @@ class CompanionService:
             if self._new_pose.is_set():
                 await asyncio.sleep(0)  # let the cycle run before more input is processed
 
-    def _pose_arrived(self) -> None:
+    def _pose_arrived(self, time_boot_ms: int) -> None:
+        self.link_meter.pose(time_boot_ms)
         self._trigger_rx_wall = time.perf_counter()
         self._new_pose.set()
 
@@ -422,26 +425,19 @@ class CompanionService:
 
     def run_cycle(self, now: float, trigger_wall: float | None = None) -> CycleOutput:
         """One navigator cycle at ``now``: send its setpoint, report its changes, end the run if it is done."""
-        out = self.navigator.cycle(now)
+        pose_t_s = None if self.navigator.pose is None else self.navigator.pose.t_s
+        out = self.navigator.cycle(now, self.link_meter.quality(now, pose_t_s))
         sp = out.setpoint
         if sp is not None:
             if sp.kind is SetpointKind.PRESTREAM:
                 self.takeover.controller.note_prestream(now)
             elif sp.kind is SetpointKind.NAVIGATE and self._first_nav_s is None:
                 self._first_nav_s = now
-            self.outbox.setpoint(sp)
+            sent = self.outbox.setpoint(sp)
+            if not self.outbox.silent:  # dry run: nothing is sent, nothing failed
+                self.link_meter.sent(sent, now)
             self.reporter.cycle_sent(out, trigger_wall, time.perf_counter())
-            log.debug(
-                "cycle.setpoint",
-                extra={
-                    "state": out.state.value,
-                    "kind": sp.kind.value,
-                    "pos_ned_m": sp.pos_ned_m,
-                    "vel_ned_m_s": sp.vel_ned_m_s,
-                    "decision": out.decision,
-                    "dry_run": self.config.dry_run,
-                },
-            )
+            _log_setpoint(out, sp, dry_run=self.config.dry_run)
         self.reporter.changes([*out.changes, *self.navigator.drain_changes()])
         self.observers.cycle(out, self.navigator, self.perception)
         self._check_done(now)
@@ -517,6 +513,7 @@ class TakeoverDriver:
             waiting=nav.state is State.HOLDING and not nav.engaged,
             ekf_ready=ap.ekf_ready,
             takeoff_ack_s=ap.ack_time(mavlink.MAV_CMD_NAV_TAKEOFF),
+            heartbeats=ap.heartbeats,
         )
         for action in self.controller.step(now, inputs):
             self._carry_out(action, now)
@@ -653,6 +650,13 @@ def _warn_no_heartbeat(svc: CompanionService) -> None:
     )
     extra = {"connect": lc.connect, "waited_s": round(svc.clock.now(), 1), "hint": hint}
     log.warning("link.no_heartbeat", extra=extra)
+
+
+def _log_setpoint(out: CycleOutput, sp: Setpoint, *, dry_run: bool) -> None:
+    extra = {"state": out.state.value, "kind": sp.kind.value, "pos_ned_m": sp.pos_ned_m}
+    log.debug(
+        "cycle.setpoint", extra=extra | {"vel_ned_m_s": sp.vel_ned_m_s, "decision": out.decision, "dry_run": dry_run}
+    )
 
 
 def _status_due(svc: CompanionService) -> Callable[[float], float]:

@@ -29,6 +29,8 @@ from apf_companion.autopilot import Autopilot
 
 __all__ = [
     "COMMAND_RETRY_S",
+    "HARD_TIMEOUT_FACTOR",
+    "HEARTBEATS_TO_FAIL",
     "TAKEOFF_CLIMBING_M",
     "Action",
     "ActionKind",
@@ -46,6 +48,11 @@ ACTIVE_POLL_S = 0.02  # tick while a phase waits for its condition
 TAKEOFF_S_PER_M = 4.0  # the takeoff phase's timeout grows by this much per metre of height
 TAKEOFF_CLIMBING_M = 0.1  # above the start: the takeoff is under way, NAV_TAKEOFF is not resent
 PRESTREAM_EXTRA_S = 5.0  # the pre-stream phase may take this much longer than a mode change
+# GUIDED / OFFBOARD and arming are confirmed only by the autopilot's HEARTBEAT (1 Hz). Past its deadline such a
+# phase fails only once this many HEARTBEATs since it began said "not yet": on a lossy link (or with the autopilot
+# behind the service's clock) fewer arrived, and it waits on, up to HARD_TIMEOUT_FACTOR times its timeout.
+HEARTBEATS_TO_FAIL = 3
+HARD_TIMEOUT_FACTOR = 2.0
 
 
 class Phase(enum.Enum):
@@ -106,6 +113,7 @@ class TakeoverInputs:
             pose yet: the takeover starts and waits in READY).
         ekf_ready: The autopilot's EKF has a horizontal position (True when it does not report one).
         takeoff_ack_s: When NAV_TAKEOFF was last ACCEPTED (service time), None if not (or its latest ACK failed).
+        heartbeats: Autopilot HEARTBEATs heard so far, or None (not counted: the deadline alone decides).
     """
 
     navigating: bool
@@ -118,6 +126,10 @@ class TakeoverInputs:
     waiting: bool = False
     ekf_ready: bool = True
     takeoff_ack_s: float | None = None
+    heartbeats: int | None = None
+
+
+_HEARTBEAT_PHASES = (Phase.MODE, Phase.MODE_BEFORE_ARM, Phase.ARMING)
 
 
 class TakeoverController:
@@ -136,6 +148,7 @@ class TakeoverController:
         self._takeoff_param_m = params.takeoff_alt_m
         self._prestream_since_s: float | None = None
         self._last_prestream_s: float | None = None
+        self._hb_at_enter: int | None = None  # HEARTBEATs heard when the phase began
 
     @property
     def poll_interval_s(self) -> float:
@@ -157,12 +170,14 @@ class TakeoverController:
                 return acts
             self._start(now_s, inp, acts)
         while self.phase is not Phase.IDLE:
+            if self._hb_at_enter is None:
+                self._hb_at_enter = inp.heartbeats
             if self._condition(now_s, inp):
                 self._advance(now_s, inp, acts)
                 continue
             if inp.route is not self._route:
                 self._fail(f"{self._what()}: goal replaced", inp, acts)
-            elif now_s > self._deadline_s:
+            elif now_s > self._deadline_s and self._enough_evidence(now_s, inp):
                 self._fail(f"{self._what()} not confirmed within {self._timeout_s():.1f} s", inp, acts)
             else:
                 resend = self._command(inp)
@@ -194,6 +209,13 @@ class TakeoverController:
         else:
             self._enter(self._after_arming(), now_s)
 
+    def _enough_evidence(self, now_s: float, inp: TakeoverInputs) -> bool:
+        """Past the deadline: fail unless the phase's only evidence (HEARTBEAT) has mostly been lost so far."""
+        if inp.heartbeats is None or self._hb_at_enter is None or self.phase not in _HEARTBEAT_PHASES:
+            return True
+        heard = inp.heartbeats - self._hb_at_enter
+        return heard >= HEARTBEATS_TO_FAIL or now_s > self._deadline_s + (HARD_TIMEOUT_FACTOR - 1.0) * self._timeout_s()
+
     def _after_arming(self) -> Phase:
         return Phase.MODE if self._ardupilot else Phase.PRESTREAM
 
@@ -202,6 +224,7 @@ class TakeoverController:
         self._deadline_s = now_s + self._timeout_s()
         self._next_send_s = now_s
         self._phase_start_s = now_s
+        self._hb_at_enter = None
 
     def _timeout_s(self) -> float:
         p = self.params

@@ -291,7 +291,15 @@ class LinkProxy:
     """The running proxy. Open with ``await LinkProxy.open(faults, companion_port=..., seed=...)``; point the
     vehicle at ``127.0.0.1:vehicle_port``. ``stats`` has the counters per direction."""
 
-    def __init__(self, faults: LinkFaults, *, seed: int, time_scale: float, reorder_hold_s: float) -> None:
+    def __init__(
+        self,
+        faults: LinkFaults,
+        *,
+        seed: int,
+        time_scale: float,
+        reorder_hold_s: float,
+        clock: Callable[[], float] | None = None,
+    ) -> None:
         if not (math.isfinite(time_scale) and time_scale > 0.0):
             msg = f"link proxy time_scale must be a finite number > 0, got {time_scale!r}"
             raise ConfigError(msg)
@@ -304,6 +312,7 @@ class LinkProxy:
         }
         self._loop = asyncio.get_running_loop()
         self._opened_wall = self._loop.time()
+        self._clock = clock
         self._flight_start_s: float | None = None
         self._expected_flight_s: float | None = None
         self._vehicle_addr: tuple[str, int] | None = None
@@ -322,10 +331,13 @@ class LinkProxy:
         time_scale: float = 1.0,
         listen_port: int = 0,
         reorder_hold_s: float = 0.2,
+        clock: Callable[[], float] | None = None,
     ) -> LinkProxy:
         """Listen for the vehicle on 127.0.0.1:``listen_port`` (0 = any free port) and forward to the companion
-        on 127.0.0.1:``companion_port``. ``reorder_hold_s``: longest a reordered datagram waits [vehicle s]."""
-        proxy = cls(faults, seed=seed, time_scale=time_scale, reorder_hold_s=reorder_hold_s)
+        on 127.0.0.1:``companion_port``. ``reorder_hold_s``: longest a reordered datagram waits [vehicle s].
+        ``clock``: the proxy's time [vehicle s]; default wall seconds since open times ``time_scale`` (a test
+        passes its own, so that blackout windows and delays are decided on its time, not on the wall clock)."""
+        proxy = cls(faults, seed=seed, time_scale=time_scale, reorder_hold_s=reorder_hold_s, clock=clock)
         proxy._companion_addr = ("127.0.0.1", companion_port)
         loop = proxy._loop
         vehicle_side, _ = await loop.create_datagram_endpoint(
@@ -342,7 +354,9 @@ class LinkProxy:
 
     # ---- clock and windows ---------------------------------------------------------------------------------
     def now_s(self) -> float:
-        """Proxy clock [vehicle s since open]."""
+        """Proxy clock [vehicle s since open, or the injected clock's reading]."""
+        if self._clock is not None:
+            return self._clock()
         return (self._loop.time() - self._opened_wall) * self.time_scale
 
     def start_flight(self, expected_flight_s: float) -> None:
@@ -449,8 +463,8 @@ class LinkProxy:
     def _arm(self, direction: Direction) -> None:
         lane = self._lanes[direction]
         due = lane.queue[0][0]
-        wall = self._opened_wall + due / self.time_scale
-        lane.timer = self._loop.call_at(wall, self._drain, direction)
+        # Due in vehicle seconds; on another clock than the wall's, _drain re-arms until the datagram is due.
+        lane.timer = self._loop.call_later(max(0.0, due - self.now_s()) / self.time_scale, self._drain, direction)
 
     def _drain(self, direction: Direction) -> None:
         lane = self._lanes[direction]

@@ -46,6 +46,23 @@ async def until(condition: Callable[[], object], timeout_s: float = HANG_S, what
         raise AssertionError(msg) from None
 
 
+async def within(
+    now_s: Callable[[], float], condition: Callable[[], object], within_s: float, what: str, hang_s: float = HANG_S
+) -> None:
+    """Wait until ``condition()``; fail if the test's own clock ``now_s`` (simulated or scripted time, never wall
+    time) moves on by ``within_s`` first. ``hang_s`` wall seconds only bound a hang."""
+    deadline_s = now_s() + within_s
+    await until(lambda: condition() or now_s() > deadline_s, hang_s, what)
+    assert condition(), f"{what}: not within {within_s} s of the test's clock"
+
+
+async def counter_advances(read: Callable[[], int], by: int, what: str, hang_s: float = HANG_S) -> None:
+    """Wait until the counter ``read()`` has grown by ``by`` from now: for checks that something did NOT happen,
+    a positive event (cycles run, steps taken, messages received) proves that enough happened meanwhile."""
+    target = read() + by
+    await until(lambda: read() >= target, hang_s, f"{what}: {by} more")
+
+
 class _HasSimTime(Protocol):
     @property
     def t_s(self) -> float: ...
@@ -164,19 +181,6 @@ class StepWatch(Generic[_SampleT]):
                 return sample
         msg = f"no step at or after {t_s} s yet (last {self.t_s[-1] if self.t_s else None})"
         raise AssertionError(msg)
-
-
-@pytest.fixture
-def simulator_yields_every_step(monkeypatch: pytest.MonkeyPatch) -> None:
-    """An in-process simulator that is behind schedule yields to the event loop after every physics step.
-
-    By default it catches up in bursts of ``STEPS_PER_YIELD`` (25) steps between yields. A service in the
-    same event loop handles about one pose per loop pass, so on a loaded machine, where the simulator is
-    always behind, it falls further behind the vehicle every pass: heartbeats are read seconds (simulated)
-    late (LINK_LOST) and setpoints act on old poses (crashes). One step per pass keeps both in step; the
-    simulator just runs slower. (The simulator owns this constant; see docs/testing.md.)
-    """
-    monkeypatch.setattr("sim.vehicle.simulator.STEPS_PER_YIELD", 1)
 
 
 @pytest.fixture

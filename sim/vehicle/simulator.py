@@ -50,7 +50,7 @@ UNSIGNED_ACCEPTED: dict[Autopilot, tuple[str, ...]] = {
     Autopilot.ARDUPILOT: ("RADIO_STATUS", "RADIO"),
     Autopilot.PX4: ("RADIO_STATUS", "ADSB_VEHICLE", "COLLISION"),
 }
-STEPS_PER_YIELD = 25  # as-fast-as-possible mode: let the readers run this often
+STEPS_PER_YIELD = 25  # as-fast-as-possible mode (speedup inf) only: let the readers run this often
 MAX_LAG_S = 0.5  # simulated seconds behind schedule before the clock is re-based
 
 
@@ -429,10 +429,13 @@ class Simulator:
                     self.lag_resets += 1
                     behind = 0.0
                 steps = int(behind / dt + 1e-9)
-                for _ in range(min(steps, STEPS_PER_YIELD)):
+                if steps > 0:
                     engine.step()
                 self.wall_time_s = loop.time() - started
-                if steps > STEPS_PER_YIELD:
+                if steps > 1:
+                    # Behind schedule: one step per event-loop pass while catching up, so readers in this loop
+                    # (its own links; an in-process service or test) see every step's messages in step; a burst
+                    # of steps between yields would leave them ever further behind the vehicle on a loaded host.
                     await asyncio.sleep(0)
                     continue
                 next_wall = wall0 + (engine.t_s + dt - sim0) / speedup

@@ -216,8 +216,14 @@ async def test_sensor_json_and_cdr_and_goal_end_to_end(pair: tuple[ZenohLink, Ze
 async def test_close_behaviour(pair: tuple[ZenohLink, ZenohLink]) -> None:
     a, b = pair
     sub = await a.subscribe("apf/close/test")
-    consumer = asyncio.create_task(sub.recv(timeout=30.0))
-    await asyncio.sleep(0.05)
+    waiting = asyncio.Event()
+
+    async def consume() -> ZenohSample:
+        waiting.set()  # recv runs on without a pause until it waits for a sample
+        return await sub.recv(timeout=HANG_S)
+
+    consumer = asyncio.create_task(consume())
+    await waiting.wait()  # resumed only once the consumer has paused: inside recv, waiting
     await a.aclose()
     with pytest.raises(LinkError, match="closed"):
         await consumer
@@ -290,8 +296,11 @@ async def test_link_samples_merges_subscriptions(pair: tuple[ZenohLink, ZenohLin
     while sensors.try_recv() or goals.try_recv():
         pass
 
+    waiting = asyncio.Event()
+
     async def collect(n: int) -> list[tuple[str, bytes]]:
         out: list[tuple[str, bytes]] = []
+        waiting.set()  # samples() runs on without a pause until it waits for a sample
         async for s in a.samples():
             out.append((s.key_expr, s.payload))
             if len(out) == n:
@@ -306,10 +315,24 @@ async def test_link_samples_merges_subscriptions(pair: tuple[ZenohLink, ZenohLin
     # FIFO order within the goal subscription is kept.
     assert [p for k, p in got if k == DEFAULT_GOAL_KEY] == [b"g1", b"g2"]
 
+    waiting.clear()
     ended = asyncio.create_task(collect(100))
-    await asyncio.sleep(0)  # let it start waiting
+    await waiting.wait()  # resumed only once collect has paused: waiting for a sample
     await a.aclose()
     assert await asyncio.wait_for(ended, timeout=HANG_S) == []
+
+
+async def _refuse_one_connect(port: int) -> None:
+    """Accept one TCP connection on 127.0.0.1:``port`` and hang up: proof that a peer tried it and failed."""
+    loop = asyncio.get_running_loop()
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as srv:
+        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        srv.bind(("127.0.0.1", port))
+        srv.listen(1)
+        srv.setblocking(False)
+        async with asyncio.timeout(HANG_S):
+            conn, _ = await loop.sock_accept(srv)
+        conn.close()
 
 
 async def test_peer_connects_to_a_late_listener() -> None:
@@ -319,7 +342,7 @@ async def test_peer_connects_to_a_late_listener() -> None:
     late: ZenohLink | None = None
     try:
         sub = await early.subscribe(DEFAULT_SENSOR_KEY)
-        await asyncio.sleep(0.3)  # the early peer's first connect attempts fail: the case under test
+        await _refuse_one_connect(port)  # the early peer's connect attempt fails: the case under test
         late = await ZenohLink.open(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",)))
         sample = await _publish_until_received(late, sub, DEFAULT_SENSOR_KEY, b"late", "text/plain")
         assert sample.payload == b"late"

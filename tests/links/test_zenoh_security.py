@@ -22,7 +22,7 @@ from apf_companion.errors import ConfigError, LinkError
 from apf_companion.links.zenoh import Overflow, ZenohConfig, ZenohLink, ZenohSubscription
 from apf_companion.perception import GoalCommand, encode_goal_json
 from apf_companion.service import CompanionService
-from tests.conftest import free_port
+from tests.conftest import HANG_S, free_port, until
 
 pytestmark = [
     pytest.mark.timeout(90),
@@ -116,11 +116,16 @@ async def _collect(sub: ZenohSubscription, into: list[tuple[str, str]]) -> None:
         into.append((sample.key_expr, sample.payload.decode()))
 
 
-async def _until(cond: Callable[[], bool], action: Callable[[], None], timeout_s: float = 20.0) -> None:
+REPEAT_S = 0.05  # how often ``_until`` repeats its action: a rate, not a wait
+
+
+async def _until(cond: Callable[[], bool], action: Callable[[], None], timeout_s: float = HANG_S) -> None:
+    """Repeat ``action`` every ``REPEAT_S`` until ``cond()`` (samples of a best-effort put may be lost, so the
+    put is repeated); the wait is on the condition, ``timeout_s`` only bounds a hang."""
     async with asyncio.timeout(timeout_s):
         while not cond():
             action()
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(REPEAT_S)  # pacing of the repeated action
 
 
 async def test_acl_only_sensor_publishes_ranges_only_operator_publishes_goals(
@@ -243,6 +248,10 @@ async def test_service_connects_over_tls_and_acl_filters_its_inputs(pki: Path, r
     assert [s for s in intruder_statuses if b"spoofed" not in s] == []
 
 
+async def _counted_after(heard: Callable[[], int], before: int) -> None:
+    await until(lambda: heard() != before, HANG_S, "the service counted the goal")
+
+
 async def _lockstep(session: zenoh.Session, goal: bytes, heard: Callable[[], int], rounds: int = 3) -> int:
     """Put one goal at a time and wait until the service has counted it (``rounds`` in a row each counted
     exactly once, so nothing else is in flight); returns the count."""
@@ -250,9 +259,7 @@ async def _lockstep(session: zenoh.Session, goal: bytes, heard: Callable[[], int
     while exact < rounds:
         before = heard()
         session.put(GOAL, goal)
-        async with asyncio.timeout(20.0):
-            while heard() == before:
-                await asyncio.sleep(0.01)
+        await _counted_after(heard, before)
         exact = exact + 1 if heard() == before + 1 else 0
     return heard()
 

@@ -18,10 +18,10 @@ from apf_companion.service import CompanionService
 from sim.vehicle import RangeSensorConfig, SimConfig, Simulator, SpawnConfig
 from sim.vehicle.geo import ne_to_latlon
 from sim.world import World
-from tests.conftest import HANG_S, SimulatorClock
+from tests.conftest import HANG_S, SimulatorClock, within
 from tests.service import test_service_flight as flights
 from tests.service.test_service_flight import running, service_config, wait_state
-from tests.service.test_service_mavlink import fast_config, rig, until
+from tests.service.test_service_mavlink import fast_config, rig
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -52,7 +52,6 @@ def test_own_echoes_are_not_new_goals() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.usefixtures("simulator_yields_every_step")
 async def test_fly_here_sent_to_the_autopilot_is_adopted_and_flown_around_an_obstacle() -> None:
     world = World.from_obstacles([[10.0, 3.0]], 1.2, name="pillar")
     cfg = service_config(planner="bapf-nav", goal={"adopt_autopilot_target": True})
@@ -111,7 +110,7 @@ async def test_global_target_report_is_placed_and_adopted_only_in_guided() -> No
             ap.link.send(gpi)
             return svc.handlers.global_ref is not None
 
-        await until(placed, 5.0, "global reference")
+        await within(svc.clock.now, placed, 5.0, "global reference")
 
         def report(frame: int) -> None:
             ap.link.send(
@@ -122,11 +121,11 @@ async def test_global_target_report_is_placed_and_adopted_only_in_guided() -> No
 
         report(mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)  # in LOITER: not a command to us
         ap.custom_mode = int(CopterMode.GUIDED)
-        await until(lambda: svc.handlers.mode_ok, 5.0, "GUIDED heard")
+        await within(svc.clock.now, lambda: svc.handlers.mode_ok, 5.0, "GUIDED heard")
         assert svc.navigator.route is None
         report(mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)
         report(mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
-        await until(lambda: svc.navigator.route is not None, 5.0, "adopted")
+        await within(svc.clock.now, lambda: svc.navigator.route is not None, 5.0, "adopted")
         route = svc.navigator.route
         assert route is not None and route.source == "autopilot-target"
         assert route.waypoints_ned_m[-1].tolist() == pytest.approx([north_m, 0.0, -5.0], abs=0.01)

@@ -27,7 +27,7 @@ from sim.vehicle import SimConfig, Simulator, SpawnConfig, ZenohOutput
 from sim.world import World, paper_field
 from tests.conftest import HANG_S, SimulatorClock, free_port, until, until_sim_time
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.usefixtures("simulator_yields_every_step")]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 SPEEDUP = 4.0
 GOAL = (22.0, 22.0, -5.0)

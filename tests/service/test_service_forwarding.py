@@ -22,10 +22,10 @@ from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.proximity import PROXIMITY_TIMEOUT_S, ProximityStatus
 from sim.vehicle.testing import command_long, drain
 from sim.world import World
-from tests.conftest import HANG_S, SimulatorClock, StepWatch, until, wait_sim_time
+from tests.conftest import HANG_S, SimulatorClock, StepWatch, counter_advances, until, wait_sim_time
 from tests.service.test_service_mavlink import fast_config, rig
 
-pytestmark = [pytest.mark.timeout(120), pytest.mark.usefixtures("simulator_yields_every_step")]
+pytestmark = [pytest.mark.timeout(120)]
 
 FREE = 801
 PRX = m.MAV_SYS_STATUS_SENSOR_PROXIMITY
@@ -98,7 +98,8 @@ async def test_forwarding_sends_body_frd_sectors_and_ignores_the_echo() -> None:
         ap.send_pose = False
         await until(lambda: svc.counters.forward_skipped >= 3, 5.0, "skipped without a pose")
         sent = svc.outbox.obstacle_distances_sent
-        await asyncio.sleep(0.3)
+        # an absence: three more forwarding periods pass (counted as skipped), and still nothing was sent
+        await counter_advances(lambda: svc.counters.forward_skipped, 3, "forwarding periods without a pose")
         assert svc.outbox.obstacle_distances_sent == sent
         assert svc.reporter.status_dict(svc.clock.now())["counters"]["obstacle_distances_sent"] == sent
 

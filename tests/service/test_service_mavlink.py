@@ -4,6 +4,10 @@ goals from a ground station, staleness and link loss.
 The scripted autopilot is a plain ``MavlinkLink`` whose every message the test controls, so that faults a
 real vehicle seldom produces (NaN poses, frozen timestamps, garbage bytes, a rogue sysid) can be injected.
 Flights against the bundled simulator are in test_service_flight.py.
+
+Time is the scripted autopilot's: its clock advances one ``TICK_S`` per stream pass, and the service runs on a
+``SimulatorClock`` that follows it, so a loaded machine only slows both down together. Waits are on conditions
+within autopilot seconds (``within``); absence checks wait for the service's own cycles (``counter_advances``).
 """
 
 from __future__ import annotations
@@ -12,8 +16,7 @@ import asyncio
 import contextlib
 import dataclasses
 import math
-import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
@@ -25,19 +28,21 @@ from apf_companion.goal import Route
 from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
 from apf_companion.service import CompanionService
+from tests.conftest import SimulatorClock, counter_advances, within
 
 pytestmark = pytest.mark.timeout(60)
 
 UINT16_MAX = 65535
+TICK_S = 0.05  # the scripted autopilot's stream period: its clock (and the service's) moves one tick per pass
 
 
 class ScriptedAutopilot:
     """Heartbeat, LOCAL_POSITION_NED, ATTITUDE and an all-free OBSTACLE_DISTANCE, each switchable; follows
-    DO_SET_MODE; records what the companion sends."""
+    DO_SET_MODE; records what the companion sends, stamped with its own clock (``t_s``)."""
 
     def __init__(self, link: MavlinkLink) -> None:
         self.link = link
-        self.t0 = time.monotonic()
+        self.ticks = 0  # stream passes so far: the autopilot's clock
         self.pos = [0.0, 0.0, -5.0]
         self.custom_mode = int(CopterMode.LOITER)
         self.send_heartbeat = True
@@ -49,8 +54,17 @@ class ScriptedAutopilot:
         self.received: list[tuple[float, Any]] = []
         self.sent_by: dict[str, tuple[int, int]] = {}
 
+    @property
+    def t_s(self) -> float:
+        """The autopilot's clock [s]; the service's ``SimulatorClock`` follows it."""
+        return self.ticks * TICK_S
+
     def boot_ms(self) -> int:
-        return int((time.monotonic() - self.t0) * 1000)
+        return int(self.t_s * 1000)
+
+    async def ticks_pass(self, n: int) -> None:
+        """Wait until the autopilot's clock has moved on by ``n`` ticks."""
+        await counter_advances(lambda: self.ticks, n, "autopilot ticks")
 
     def setpoints(self) -> list[tuple[float, Any]]:
         return [(t, m) for t, m in self.received if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
@@ -65,7 +79,7 @@ class ScriptedAutopilot:
 
     async def _rx(self) -> None:
         async for msg in self.link.messages():
-            self.received.append((time.monotonic(), msg))
+            self.received.append((self.t_s, msg))
             kind = msg.get_type()
             self.sent_by[kind] = (msg.get_srcSystem(), msg.get_srcComponent())
             if kind == "COMMAND_LONG" and msg.command == 176:
@@ -76,8 +90,8 @@ class ScriptedAutopilot:
 
     async def _tx(self) -> None:
         mav = self.link.mav
-        n = 0
         while True:
+            n = self.ticks
             ms = self.boot_ms()
             if n % 20 == 0 and self.send_heartbeat:
                 self.link.send(mav.heartbeat_encode(2, 3, 1 | 128, self.custom_mode, 4))
@@ -88,8 +102,10 @@ class ScriptedAutopilot:
             if n % 2 == 0 and self.send_ranges:
                 cm = self.ranges_cm if self.ranges_cm is not None else [801] * 72
                 self.link.send(mav.obstacle_distance_encode(ms * 1000, 0, cm, 0, 20, 800, 5.0, 0.0, 12))
-            n += 1
-            await asyncio.sleep(0.05)
+            self.ticks += 1
+            # Pacing, not a wait: the stream's rate on the wall clock. Time itself is the tick count, which the
+            # service's clock follows, so a starved task slows both sides and changes no result.
+            await asyncio.sleep(TICK_S)
 
 
 def fast_config(**sections: dict[str, Any]) -> ServiceConfig:
@@ -108,11 +124,13 @@ async def rig(
     cfg: ServiceConfig | None = None, route: Route | None = None
 ) -> AsyncIterator[tuple[CompanionService, ScriptedAutopilot]]:
     cfg = cfg or fast_config()
-    svc = await CompanionService.open(cfg, route=route)
+    clock = SimulatorClock(1.0)
+    svc = await CompanionService.open(cfg, route=route, clock=clock)
     assert svc.link is not None and svc.link.local_address is not None
     port = svc.link.local_address[1]
     ap_link = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
     ap = ScriptedAutopilot(ap_link)
+    clock.follow(ap)
     async with asyncio.TaskGroup() as tg:
         svc_task = tg.create_task(svc.run())
         ap_task = tg.create_task(ap.run())
@@ -125,17 +143,10 @@ async def rig(
             await ap_link.aclose()
 
 
-async def until(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
-    async with asyncio.timeout(timeout_s):
-        while not cond():
-            await asyncio.sleep(0.01)
-    assert cond(), what
-
-
 async def test_identity_heartbeat_and_stream_requests() -> None:
     cfg = fast_config(link={"component_id": 196})
     async with rig(cfg) as (svc, ap):
-        await until(lambda: len(ap.of_type("HEARTBEAT")) >= 2, 5.0, "companion heartbeats")
+        await within(svc.clock.now, lambda: len(ap.of_type("HEARTBEAT")) >= 2, 5.0, "companion heartbeats")
         hb = ap.of_type("HEARTBEAT")[-1]
         assert hb.type == 18  # MAV_TYPE_ONBOARD_CONTROLLER
         assert hb.autopilot == 8  # MAV_AUTOPILOT_INVALID
@@ -148,8 +159,8 @@ async def test_identity_heartbeat_and_stream_requests() -> None:
 
 
 async def test_goal_adoption_asks_for_the_autopilot_target_reports() -> None:
-    async with rig(fast_config(goal={"adopt_autopilot_target": True})) as (_svc, ap):
-        await until(lambda: len(ap.of_type("COMMAND_LONG")) >= 5, 5.0, "stream requests")
+    async with rig(fast_config(goal={"adopt_autopilot_target": True})) as (svc, ap):
+        await within(svc.clock.now, lambda: len(ap.of_type("COMMAND_LONG")) >= 5, 5.0, "stream requests")
         intervals = {int(m.param1): m.param2 for m in ap.of_type("COMMAND_LONG") if m.command == 511}
         assert intervals[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT] == pytest.approx(200_000.0)
         assert intervals[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED] == pytest.approx(200_000.0)
@@ -158,24 +169,26 @@ async def test_goal_adoption_asks_for_the_autopilot_target_reports() -> None:
 async def test_takeover_guided_then_fly_to_goal() -> None:
     route = Route.point(3.0, 0.0, -5.0, source="test")
     async with rig(route=route) as (svc, ap):
-        await until(lambda: svc.navigator.state is State.ARRIVED, 20.0, "arrived")
+        await within(svc.clock.now, lambda: svc.navigator.state is State.ARRIVED, 20.0, "arrived")
         modes = [m for m in ap.of_type("COMMAND_LONG") if m.command == 176]
         assert modes and modes[0].param1 == 1 and modes[0].param2 == CopterMode.GUIDED
         sps = [m for _, m in ap.setpoints()]
         assert all(m.coordinate_frame == 1 and m.type_mask == MASK_POS_VEL for m in sps)
         assert ap.sent_by["SET_POSITION_TARGET_LOCAL_NED"] == (1, 191)
         assert all(m.target_system == 1 and m.target_component == 1 for m in sps)
-        await until(lambda: any("ARRIVED" in m.text for m in ap.of_type("STATUSTEXT")), 2.0, "ARRIVED text")
+        await within(
+            svc.clock.now, lambda: any("ARRIVED" in m.text for m in ap.of_type("STATUSTEXT")), 2.0, "ARRIVED text"
+        )
         texts = [m.text for m in ap.of_type("STATUSTEXT")]
         assert any("NAVIGATING" in t for t in texts)
-        await until(lambda: len(ap.of_type("NAMED_VALUE_FLOAT")) > 0, 3.0, "named values")
+        await within(svc.clock.now, lambda: len(ap.of_type("NAMED_VALUE_FLOAT")) > 0, 3.0, "named values")
         names = {m.name for m in ap.of_type("NAMED_VALUE_FLOAT")}
         assert "APF_DGOAL" in names
 
 
 async def test_bad_input_is_counted_and_never_a_setpoint() -> None:
     async with rig() as (svc, ap):
-        await until(lambda: svc.navigator.pose is not None, 5.0, "pose")
+        await within(svc.clock.now, lambda: svc.navigator.pose is not None, 5.0, "pose")
         link = ap.link
         # Garbage bytes, a NaN pose, a rogue system's pose, out-of-range / malformed sectors.
         link.send_bytes(b"\xfd\x09\x00\x00\x00garbage" * 10)
@@ -191,7 +204,8 @@ async def test_bad_input_is_counted_and_never_a_setpoint() -> None:
         bad = [0] * 10 + [10] * 10 + [UINT16_MAX] * 52  # 0 and below-min readings are invalid
         link.send(link.mav.obstacle_distance_encode(ap.boot_ms() * 1000, 0, bad, 0, 20, 800, 5.0, 0.0, 12))
         link.send(link.mav.obstacle_distance_encode(ap.boot_ms() * 1000, 0, [100] * 72, 0, 20, 800, 0.0, 0.0, 12))
-        await until(
+        await within(
+            svc.clock.now,
             lambda: (
                 svc.reporter.counters.foreign_messages >= 2
                 and svc.perception.counters.bad_poses >= 1
@@ -204,7 +218,7 @@ async def test_bad_input_is_counted_and_never_a_setpoint() -> None:
             "all bad input counted",
         )
         await rogue.aclose()
-        await asyncio.sleep(0.3)
+        await counter_advances(lambda: svc.navigator.counters.cycles, 6, "cycles after the bad input")
         # No goal: none of it may have produced a setpoint; the rogue pose never became ours.
         assert not ap.setpoints()
         assert svc.navigator.state is State.IDLE
@@ -215,14 +229,14 @@ async def test_bad_input_is_counted_and_never_a_setpoint() -> None:
 async def test_nan_and_rogue_pose_during_flight_do_not_move_setpoints() -> None:
     route = Route.point(30.0, 0.0, -5.0, source="test")
     async with rig(route=route) as (svc, ap):
-        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 10, 10.0, "flying")
         ap.send_pose = False
-        await asyncio.sleep(0.1)
+        await ap.ticks_pass(2)
         n0 = len(ap.setpoints())
-        for k in range(10):  # only NaN poses now: the service must fall to HOLDING, never follow them
+        for _ in range(10):  # only NaN poses now: the service must fall to HOLDING, never follow them
             ap.link.send(ap.link.mav.local_position_ned_encode(ap.boot_ms(), math.nan, math.nan, -5.0, 0, 0, 0))
-            await asyncio.sleep(0.05 + 0.0 * k)
-        await until(lambda: svc.navigator.state is State.HOLDING, 3.0, "holding")
+            await ap.ticks_pass(1)
+        await within(svc.clock.now, lambda: svc.navigator.state is State.HOLDING, 3.0, "holding")
         for _, m in ap.setpoints()[n0:]:
             assert all(math.isfinite(v) for v in (m.x, m.y, m.z, m.vx, m.vy, m.vz))
         assert svc.perception.counters.bad_poses >= 10
@@ -233,51 +247,56 @@ async def test_frozen_pose_holds_within_one_cycle() -> None:
     # Ranges may be late on a loaded machine; only the pose's limit is under test here.
     cfg = fast_config(cycle={"rate_hz": 20.0, "pose_max_age_s": 0.3, "ranges_max_age_s": 5.0})
     async with rig(cfg, route) as (svc, ap):
-        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
-        frozen_at = time.monotonic()
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 10, 10.0, "flying")
+        frozen_at = ap.t_s
         ap.freeze_pose_ms = ap.boot_ms()  # same timestamp and position over and over
-        await until(lambda: svc.navigator.state is State.HOLDING, 3.0, "holding")
+        await within(svc.clock.now, lambda: svc.navigator.state is State.HOLDING, 3.0, "holding")
 
         # The HOLDING transition came on the first cycle after the pose aged past its limit:
         # the hold setpoint is the first one after the freeze that is not a navigation step.
         def holds() -> list[tuple[float, Any]]:
             return [(t, m) for t, m in ap.setpoints() if t > frozen_at and m.vx == 0 and m.vy == 0]
 
-        await until(lambda: bool(holds()), 2.0, "the hold setpoint arrives")
+        await within(svc.clock.now, lambda: bool(holds()), 2.0, "the hold setpoint arrives")
         hold_t = holds()[0][0]
         nav_after = [m for t, m in ap.setpoints() if frozen_at < t < hold_t and m.vx != 0]
         # At most pose_max_age_s * rate_hz (+1 for the cycle in flight) steps on the frozen pose.
         assert len(nav_after) <= int(0.3 * 20) + 1
-        await until(lambda: any(m.get_type() == "STATUSTEXT" for t, m in ap.received if t > frozen_at), 2.0, "text")
+        await within(
+            svc.clock.now,
+            lambda: any(m.get_type() == "STATUSTEXT" for t, m in ap.received if t > frozen_at),
+            2.0,
+            "text",
+        )
         changes = [m.text for t, m in ap.received if t > frozen_at and m.get_type() == "STATUSTEXT"]
         assert changes and "HOLDING" in changes[0] and "pose" in changes[0]
         ap.freeze_pose_ms = None
-        await until(lambda: svc.navigator.state is State.NAVIGATING, 3.0, "navigating again")
+        await within(svc.clock.now, lambda: svc.navigator.state is State.NAVIGATING, 3.0, "navigating again")
 
 
 async def test_heartbeat_lost_means_silence() -> None:
     route = Route.point(30.0, 0.0, -5.0, source="test")
     cfg = fast_config(safety={"resume_after_link_lost": False})  # resuming: test_service_hardening.py
     async with rig(cfg, route) as (svc, ap):
-        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 10, 10.0, "flying")
         ap.send_heartbeat = False
-        await until(lambda: svc.navigator.state is State.LINK_LOST, 4.0, "link lost")
+        await within(svc.clock.now, lambda: svc.navigator.state is State.LINK_LOST, 4.0, "link lost")
         # Counted where the service sends, not timed where the autopilot receives: exact under any load.
         sent_at_loss = svc.outbox.setpoints_sent
-        t_lost = time.monotonic()
-        await asyncio.sleep(0.8)  # an absence check: a loaded machine can only make it pass too easily
+        t_lost = ap.t_s
+        await counter_advances(lambda: svc.navigator.counters.cycles, 16, "cycles in LINK_LOST")  # 0.8 s at 20 Hz
         assert svc.outbox.setpoints_sent == sent_at_loss
         assert not [m for t, m in ap.received if t > t_lost + 0.2 and m.get_type() == "STATUSTEXT"]
         ap.send_heartbeat = True
-        await until(lambda: svc.navigator.state is State.IDLE, 3.0, "idle after link back")
-        await asyncio.sleep(0.3)
+        await within(svc.clock.now, lambda: svc.navigator.state is State.IDLE, 3.0, "idle after link back")
+        await counter_advances(lambda: svc.navigator.counters.cycles, 6, "cycles after the link is back")
         assert svc.outbox.setpoints_sent == sent_at_loss  # no motion without a new goal
 
 
 async def test_do_reposition_from_gcs_replaces_goal() -> None:
     route = Route.point(30.0, 0.0, -5.0, source="test")
     async with rig(route=route) as (svc, ap):
-        await until(lambda: len(ap.setpoints()) > 5, 10.0, "flying")
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 5, 10.0, "flying")
         port = svc.link.local_address[1]  # type: ignore[union-attr,index]
         gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
         try:
@@ -289,7 +308,7 @@ async def test_do_reposition_from_gcs_replaces_goal() -> None:
             assert ack.command == 192 and ack.result == 0
             assert ack.target_system == 255 and ack.target_component == 190
             target = svc.navigator.active_target_ned_m
-            await until(lambda: svc.navigator.active_target_ned_m is not None, 2.0, "target")
+            await within(svc.clock.now, lambda: svc.navigator.active_target_ned_m is not None, 2.0, "target")
             target = svc.navigator.active_target_ned_m
             assert target is not None and target.tolist() == pytest.approx([0.0, 5.0, -5.0])
             assert svc.navigator.route is not None and svc.navigator.route.source == "mavlink:255/190"
@@ -300,7 +319,7 @@ async def test_do_reposition_from_gcs_replaces_goal() -> None:
             gcs.send(gcs.mav.command_int_encode(1, 191, 12, 192, 0, 0, -1, 1, 0, math.nan, 0, 0, -5.0))
             ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
             assert ack.result == 3
-            await until(lambda: svc.navigator.state is State.ARRIVED, 20.0, "arrived at the new goal")
+            await within(svc.clock.now, lambda: svc.navigator.state is State.ARRIVED, 20.0, "arrived at the new goal")
             assert math.dist(ap.pos[:2], (0.0, 5.0)) <= 0.7 + 0.1
             assert svc.reporter.counters.foreign_messages >= 1
         finally:
@@ -310,7 +329,7 @@ async def test_do_reposition_from_gcs_replaces_goal() -> None:
 async def test_commands_broadcast_to_system_0_are_answered() -> None:
     """MAVProxy addresses commands to target_system 0 by default: they are ours too (MAVLink routing)."""
     async with rig(route=Route.point(30.0, 0.0, -5.0, source="test")) as (svc, ap):
-        await until(lambda: len(ap.setpoints()) > 5, 10.0, "flying")
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 5, 10.0, "flying")
         port = svc.link.local_address[1]  # type: ignore[union-attr,index]
         gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
         try:
@@ -319,8 +338,11 @@ async def test_commands_broadcast_to_system_0_are_answered() -> None:
             gcs.send(gcs.mav.command_int_encode(0, 0, local, reposition, 0, 0, -1, 1, 0, math.nan, 0, 40000, -5.0))
             ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
             assert (ack.command, ack.result) == (reposition, mavlink.MAV_RESULT_ACCEPTED)
-            await until(
-                lambda: svc.navigator.route is not None and svc.navigator.route.source == "mavlink:255/190", 2.0, "goal"
+            await within(
+                svc.clock.now,
+                lambda: svc.navigator.route is not None and svc.navigator.route.source == "mavlink:255/190",
+                2.0,
+                "goal",
             )
             # a command we do not handle: UNSUPPORTED when addressed to our component, left to the autopilot when
             # addressed to all components (our UNSUPPORTED beside its ACCEPTED would read as a refusal)
@@ -335,14 +357,14 @@ async def test_commands_broadcast_to_system_0_are_answered() -> None:
 
 async def test_global_reposition_is_placed_about_the_vehicle() -> None:
     async with rig() as (svc, ap):
-        await until(lambda: svc.navigator.pose is not None, 5.0, "pose")
+        await within(svc.clock.now, lambda: svc.navigator.pose is not None, 5.0, "pose")
         lat0, lon0 = 47.0, 8.0
         ap.link.send(
             ap.link.mav.global_position_int_encode(
                 ap.boot_ms(), int(lat0 * 1e7), int(lon0 * 1e7), 500_000, 5_000, 0, 0, 0, 0
             )
         )
-        await until(lambda: svc.handlers.global_ref is not None, 2.0, "global reference")
+        await within(svc.clock.now, lambda: svc.handlers.global_ref is not None, 2.0, "global reference")
         port = svc.link.local_address[1]  # type: ignore[union-attr,index]
         gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
         try:
@@ -366,7 +388,7 @@ async def test_dry_run_sends_nothing() -> None:
     route = Route.point(3.0, 0.0, -5.0, source="test")
     async with rig(cfg, route) as (svc, ap):
         # Dry run plans from the pose every cycle (nothing moves the vehicle along the plan) and logs it.
-        await until(lambda: svc.navigator.counters.planner_steps > 10, 10.0, "planning")
+        await within(svc.clock.now, lambda: svc.navigator.counters.planner_steps > 10, 10.0, "planning")
         assert svc.navigator.last_output is not None and svc.navigator.last_output.decision == "GREEDY"
         assert not ap.received
         assert svc.outbox.setpoints_sent == 0

@@ -23,8 +23,8 @@ from apf_companion.params import PARAMS, config_with
 from apf_companion.planning.params import PlannerParams
 from apf_companion.service import CompanionService
 from apf_companion.setpoint import SetpointKind
-from tests.conftest import HANG_S
-from tests.service.test_service_mavlink import fast_config, rig, until
+from tests.conftest import HANG_S, until, within
+from tests.service.test_service_mavlink import fast_config, rig
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -111,7 +111,7 @@ async def test_list_read_by_name_and_index() -> None:
 async def test_set_valid_value_is_used_by_the_running_planner() -> None:
     cfg = fast_config(cycle={"cruise_speed_m_s": 2.0})
     async with rig(cfg, route=Route.point(40.0, 0.0, -5.0, source="test")) as (svc, ap), gcs_for(svc) as gcs:
-        await until(lambda: len(ap.setpoints()) > 10, 10.0, "flying")
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 10, 10.0, "flying")
         msg = await set_param(gcs, "APF_RHO_L", 0.6)
         assert msg.param_value == pytest.approx(0.6) and msg.param_index == 65535  # -1 in a uint16
         assert svc.params.planner.params.rho_l_m == 0.6  # the float32 meant, not 0.6000000238418579
@@ -126,7 +126,7 @@ async def test_set_valid_value_is_used_by_the_running_planner() -> None:
             new = ap.setpoints()[n_before:]
             return [math.hypot(m.vx, m.vy) for _, m in new if math.hypot(m.vx, m.vy) > 0]
 
-        await until(lambda: len(speeds()) > 10, 10.0, "setpoints after the change")
+        await within(svc.clock.now, lambda: len(speeds()) > 10, 10.0, "setpoints after the change")
         assert max(speeds()) <= 0.3 + 1e-6  # the feed-forward follows the new cruise speed
         msg = await set_param(gcs, "APF_SILENT_DRIFT", 0.5)  # 16 characters: param_id without a NUL
         assert msg.param_value == pytest.approx(0.5) and svc.navigator.params.silent_drift_m == 0.5
@@ -139,7 +139,7 @@ async def test_set_valid_value_is_used_by_the_running_planner() -> None:
 
 async def test_refused_value_is_echoed_old_with_a_statustext() -> None:
     async with rig(route=Route.point(20.0, 0.0, -5.0, source="test")) as (svc, ap), gcs_for(svc) as gcs:
-        await until(lambda: len(ap.setpoints()) > 3, 10.0, "flying")
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 3, 10.0, "flying")
         old_planner = svc.navigator.planner
         seen: list[Any] = []
         msg = await set_param(gcs, "APF_CRUISE_SPD", -1.0, seen)  # cycle.cruise_speed_m_s must be in (0, 20]

@@ -200,7 +200,6 @@ async def _sim_flight(
 
 
 @pytest.mark.slow
-@pytest.mark.usefixtures("simulator_yields_every_step")
 async def test_signed_service_takes_over_and_flies_the_signed_simulator(tmp_path: Path) -> None:
     key = key_file(tmp_path)
     cfg = service_config(link={"signing_key_file": str(key), "require_signed_telemetry": True})
@@ -215,7 +214,6 @@ async def test_signed_service_takes_over_and_flies_the_signed_simulator(tmp_path
 
 
 @pytest.mark.slow
-@pytest.mark.usefixtures("simulator_yields_every_step")
 async def test_the_signed_simulator_ignores_an_unsigned_service(tmp_path: Path) -> None:
     """As ArduPilot with a key: the unsigned mode request and setpoints are dropped; the takeover times out."""
     cfg = service_config(autopilot={"mode_timeout_s": 2.0})

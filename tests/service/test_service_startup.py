@@ -25,7 +25,7 @@ from apf_companion.streams import STREAM_RETRY_S, STREAM_STALE_S
 from sim.vehicle import RangeSensorConfig, SimConfig, Simulator, SpawnConfig
 from tests.conftest import HANG_S, SimulatorClock, until, until_sim_time
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.usefixtures("simulator_yields_every_step")]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 SPEEDUP = 10.0
 ORIGIN_S = 20.0  # the simulator's SIM_EKF_ORIGIN_S default (ArduCopter SITL: about 20 s)

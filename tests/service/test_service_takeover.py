@@ -9,6 +9,8 @@ import pytest
 from apf_companion.autopilot import Autopilot
 from apf_companion.takeover import (
     COMMAND_RETRY_S,
+    HARD_TIMEOUT_FACTOR,
+    HEARTBEATS_TO_FAIL,
     Action,
     ActionKind,
     Phase,
@@ -230,3 +232,32 @@ def test_position_estimate_wait_is_bounded() -> None:
     assert kinds(out) == [ActionKind.FAILED] and out[0].drop_goal
     assert out[0].reason == "position estimate not confirmed within 30.0 s"
     assert phase(c) is Phase.IDLE
+
+
+def test_on_a_lossy_link_a_mode_phase_waits_for_heartbeat_evidence_before_failing() -> None:
+    """GUIDED is confirmed only by HEARTBEAT: past the deadline the phase fails once HEARTBEATS_TO_FAIL of them
+    said "not yet"; with fewer (lost on the way) it waits on, resending, up to HARD_TIMEOUT_FACTOR x its timeout."""
+    c = ctl(mode_timeout_s=2.0)
+    heard = dataclasses.replace(GROUND, heartbeats=10)
+    c.step(0.0, heard)
+    out = c.step(2.5, dataclasses.replace(heard, heartbeats=11))  # one heartbeat in 2.5 s: the rest were lost
+    assert kinds(out) == [ActionKind.SET_MODE] and phase(c) is Phase.MODE
+    assert kinds(c.step(3.0, dataclasses.replace(heard, heartbeats=12, mode_ok=True))) == [ActionKind.DONE]
+
+
+def test_enough_heartbeats_saying_not_yet_fail_at_the_deadline() -> None:
+    c = ctl(mode_timeout_s=2.0)
+    c.step(0.0, dataclasses.replace(GROUND, heartbeats=0))
+    assert kinds(c.step(1.9, dataclasses.replace(GROUND, heartbeats=HEARTBEATS_TO_FAIL))) == [ActionKind.SET_MODE]
+    out = c.step(2.01, dataclasses.replace(GROUND, heartbeats=HEARTBEATS_TO_FAIL))
+    assert kinds(out) == [ActionKind.FAILED] and out[0].drop_goal
+
+
+def test_without_heartbeats_the_phase_still_fails_at_the_hard_limit() -> None:
+    c = ctl(arm=True, mode_timeout_s=2.0)
+    guided = dataclasses.replace(GROUND, mode_ok=True, heartbeats=5)
+    c.step(0.0, guided)
+    assert phase(c) is Phase.ARMING  # arming is confirmed by HEARTBEAT too
+    assert ActionKind.FAILED not in kinds(c.step(HARD_TIMEOUT_FACTOR * 2.0 - 0.01, guided))
+    out = c.step(HARD_TIMEOUT_FACTOR * 2.0 + 0.01, guided)
+    assert kinds(out) == [ActionKind.RESUME, ActionKind.FAILED] and out[1].reason.startswith("arming")

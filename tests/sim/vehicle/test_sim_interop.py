@@ -20,7 +20,7 @@ from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.testing import command_long
 from tests.conftest import HANG_S, free_port, wait_for
 
-pytestmark = [pytest.mark.interop, pytest.mark.usefixtures("simulator_yields_every_step")]
+pytestmark = pytest.mark.interop
 
 
 @pytest.mark.parametrize("profile", ["px4", "ardupilot"])

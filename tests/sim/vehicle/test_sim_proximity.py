@@ -22,8 +22,6 @@ from sim.vehicle.proximity import PROXIMITY_TIMEOUT_S, Proximity, ProximityStatu
 from sim.vehicle.testing import command_long, drain, simulator_with_client, wait_sim_time
 from tests.conftest import HANG_S, StepWatch
 
-pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
-
 PRX = m.MAV_SYS_STATUS_SENSOR_PROXIMITY
 ACCEPTED = m.MAV_RESULT_ACCEPTED
 FORCE_REBOOT = 20190226

@@ -24,8 +24,6 @@ from sim.vehicle.testing import simulator_with_client
 from sim.world import World
 from tests.conftest import HANG_S, free_port, until
 
-pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
-
 YAW_DEG = 30.0
 FREE_CM = 801
 UINT16_MAX = 65535
@@ -185,8 +183,14 @@ async def test_sensor_only_follows_an_external_autopilot() -> None:
         assert od.time_usec % 1000 == 0  # the autopilot's time_boot_ms of the pose used
         assert (od.get_srcSystem(), od.get_srcComponent()) == (1, m.MAV_COMP_ID_PERIPHERAL)  # not the autopilot's
         assert sensor.sysid == 1
-        # the sensor asked the autopilot for 20 Hz position and attitude
-        await asyncio.sleep(0.3)
+        # the sensor asked the autopilot for 20 Hz position and attitude (the autopilot's link 0 now streams so)
+        telemetry = autopilot.engine.telemetry
+
+        def streams_at_20_hz() -> bool:
+            ids = (m.MAVLINK_MSG_ID_LOCAL_POSITION_NED, m.MAVLINK_MSG_ID_ATTITUDE)
+            return all(telemetry.interval_us(0, i) == 50_000 for i in ids)
+
+        await until(streams_at_20_hz, HANG_S, "20 Hz position and attitude")
         t = [(await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)).time_usec for _ in range(3)]
         assert t == sorted(t)
         res = sensor.result()

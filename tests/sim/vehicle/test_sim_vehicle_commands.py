@@ -20,8 +20,6 @@ from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.testing import command_int, command_long, simulator_with_client
 from tests.conftest import HANG_S, wait_for
 
-pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
-
 ACCEPTED = m.MAV_RESULT_ACCEPTED
 FAILED = m.MAV_RESULT_FAILED
 TEMP_REJECTED = m.MAV_RESULT_TEMPORARILY_REJECTED

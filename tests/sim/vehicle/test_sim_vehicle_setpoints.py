@@ -34,8 +34,6 @@ from sim.vehicle.testing import command_long, simulator_with_client
 from sim.world import World
 from tests.conftest import HANG_S, StepWatch, wait_for, wait_sim_time
 
-pytestmark = pytest.mark.usefixtures("simulator_yields_every_step")
-
 MASK_VEL_ACCEL = 0x0C07  # velocity + acceleration, no yaw
 MASK_VEL_YAW_RATE = 0x05C7  # velocity + yaw rate
 ARDU = {"WP_YAW_BEHAVIOR": 0.0}  # keep the heading fixed so body frames are checkable

@@ -19,7 +19,7 @@ from sim.vehicle.cli import main as vehicle_main
 from sim.vehicle.testing import simulator_with_client
 from tests.conftest import HANG_S, until
 
-pytestmark = [pytest.mark.timeout(60), pytest.mark.usefixtures("simulator_yields_every_step")]
+pytestmark = [pytest.mark.timeout(60)]
 
 KEY = bytes(range(7, 39))
 
