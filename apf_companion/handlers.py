@@ -157,6 +157,7 @@ class AutopilotHandlers:
         reset = self.perception.take_reset()
         if reset is not None:
             self.navigator.recovery.position_reset(now_s, reset)
+        self.navigator.recovery.pose_confirmed = self.perception.gate.confirmed
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose()
 

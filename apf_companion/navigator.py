@@ -42,7 +42,7 @@ import numpy.typing as npt
 
 from apf_companion.goal import Route
 from apf_companion.perception import Pose
-from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity
+from apf_companion.setpoint import Setpoint, SetpointKind, brake, hold, navigate, silent_safe_velocity
 
 __all__ = [
     "CycleOutput",
@@ -214,6 +214,7 @@ class _Counters:
     goals: int = 0
     dropped_targets: int = 0
     unknown_direction_holds: int = 0  # a step towards a sector without recent ranges: held instead
+    unconfirmed_pose_cycles: int = 0  # braked or silent: the pose gate's anchor is not confirmed yet
 
 
 @dataclass(slots=True)
@@ -430,6 +431,18 @@ class Recovery:
     def __init__(self, nav: Navigator) -> None:
         self.nav = nav
         self.hold_until_s = -math.inf  # a position reset holds until then
+        self.pose_confirmed = True  # the pose gate's anchor is confirmed (set by the handler on every pose)
+
+    def brake(self, inp: _Inputs) -> CycleOutput:
+        """The pose is not confirmed (docs/hardening.md): while flying for a goal (engaged), stop where the vehicle
+        is, with no position in the setpoint; silence before that (nothing was commanded yet) and once the pose is
+        stale. No hold point, step or arrival is taken from an unconfirmed pose."""
+        nav = self.nav
+        nav._steps.target = None
+        nav._hold.reset()
+        nav.counters.unconfirmed_pose_cycles += 1
+        sp = brake() if inp.pose_ok and nav.engaged else None
+        return CycleOutput(t_s=inp.now_s, state=nav.state, setpoint=sp, nearest_obstacle_m=inp.nearest_m)
 
     def holding(self, now_s: float) -> bool:
         return now_s < self.hold_until_s
@@ -641,7 +654,7 @@ class Navigator:
             return self._silent(inp)
         if self.suspended:
             return self._silent(inp)
-        return None
+        return None if self.recovery.pose_confirmed else self.recovery.brake(inp)
 
     def _distance_to_goal(self) -> float:
         assert self.route is not None and self.pose is not None

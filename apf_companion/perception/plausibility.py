@@ -18,6 +18,11 @@ from the previous one) and with no accepted pose in between, the gate re-anchors
 must hold and announce it before motion resumes. Interleaved genuine poses restart the count, so a spoofed stream
 beside the real one never takes over. Where the autopilot streams ODOMETRY, a change of its ``reset_counter`` is
 direct evidence: a jump within the next ``reset_samples`` poses re-anchors at once (``note_reset_counter``).
+
+An anchor taken on evidence alone (the first pose, a reboot, an announced reset: one pose) is not ``confirmed``
+until ``reset_samples`` poses in all, each a plausible successor of the last, agree with it: a single spoofed pose
+that rides on forged evidence (a HEARTBEAT in MAV_STATE_BOOT, an ODOMETRY reset counter change) must not become a
+hold point or a planning origin. A re-anchor on a consistent candidate track is confirmed at once.
 """
 
 from __future__ import annotations
@@ -74,6 +79,12 @@ class PoseGate:
         self._reboot_evidence = False
         self._reset_counter: int | None = None
         self._reset_window = 0  # poses left in which a jump is the announced estimator reset
+        self._agreeing = 0  # poses that agree with the current anchor (the anchor included)
+
+    @property
+    def confirmed(self) -> bool:
+        """The current anchor is backed by ``reset_samples`` consistent poses (see the module docstring)."""
+        return self._agreeing >= self.limits.reset_samples
 
     def note_reset_counter(self, counter: int) -> None:
         """The estimator's reset counter (ODOMETRY.reset_counter): a change is reset evidence, and the next
@@ -108,6 +119,7 @@ class PoseGate:
             self.last = fix
             self._track.clear()
             self._reboot_evidence = False  # the stream went on: no reboot after all
+            self._agreeing += 1
             return verdict
         if verdict is Verdict.STALE:
             if last.boot_ms - boot_ms < REBOOT_JUMP_MS:
@@ -137,7 +149,7 @@ class PoseGate:
             track.clear()
         track.append(fix)
         if len(track) >= self.limits.reset_samples:
-            return self._anchor(fix, Verdict.RESET)
+            return self._anchor(fix, Verdict.RESET, agreeing=len(track))
         return verdict
 
     def _track_vel(self) -> FloatArray:
@@ -145,8 +157,9 @@ class PoseGate:
         dt = (b.boot_ms - a.boot_ms) / 1000.0
         return (b.pos - a.pos) / dt if dt > 0 else np.zeros(3)
 
-    def _anchor(self, fix: _Fix, verdict: Verdict) -> Verdict:
+    def _anchor(self, fix: _Fix, verdict: Verdict, *, agreeing: int = 1) -> Verdict:
         self.last = fix
+        self._agreeing = agreeing
         self.vel_m_s = np.zeros(3)
         self._track.clear()
         self._reboot_evidence = False
