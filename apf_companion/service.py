@@ -54,6 +54,7 @@ from apf_companion.navigator import CycleOutput, Navigator, State
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
 from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
+from apf_companion.sdnotify import SystemdNotifier, Watchdog
 from apf_companion.setpoint import SetpointKind
 from apf_companion.takeover import Action, ActionKind, TakeoverController, TakeoverInputs
 
@@ -154,6 +155,8 @@ class CompanionService:
         result_path: Where ``run`` writes the ``ServiceResult`` JSON when it ends.
         link: The open autopilot link (``open`` passes it), or None (nothing is sent or received).
         zenoh: The open zenoh link (``open`` passes it when enabled), or None.
+        notifier: systemd notifications (``open`` passes ``SystemdNotifier.from_env()``): READY=1 once running,
+            WATCHDOG=1 and STATUS= from completed planning cycles, STOPPING=1 at the end; None = none.
     """
 
     def __init__(
@@ -165,6 +168,7 @@ class CompanionService:
         result_path: Path | None = None,
         link: MavlinkLink | None = None,
         zenoh: Any = None,
+        notifier: SystemdNotifier | None = None,
     ) -> None:
         self.config = config
         self.clock = clock or ServiceClock(config.cycle.time_scale)
@@ -206,6 +210,8 @@ class CompanionService:
             reporter=self.reporter,
             profile=config.autopilot.profile,
         )
+        self.notifier = notifier
+        self.watchdog = Watchdog(notifier) if notifier is not None else None
         self._stop = asyncio.Event()
         self._new_pose = asyncio.Event()
         self._trigger_rx_wall: float | None = None  # wall time the triggering pose was read
@@ -242,7 +248,10 @@ class CompanionService:
         try:
             if config.zenoh.enabled:
                 zenoh = await _open_zenoh(config)
-            return cls(config, route=route, clock=clock, result_path=result_path, link=link, zenoh=zenoh)
+            notifier = SystemdNotifier.from_env()
+            return cls(
+                config, route=route, clock=clock, result_path=result_path, link=link, zenoh=zenoh, notifier=notifier
+            )
         except BaseException:
             if zenoh is not None:
                 await zenoh.aclose()
@@ -250,7 +259,9 @@ class CompanionService:
             raise
 
     async def aclose(self) -> None:
-        """Close the links (safe to call twice)."""
+        """Close the links and the systemd notification socket (safe to call twice)."""
+        if self.notifier is not None:
+            self.notifier.close()
         if self.link is not None:
             await self.link.aclose()
         if self.zenoh is not None:
@@ -276,6 +287,7 @@ class CompanionService:
                 if self.zenoh is not None:
                     zenoh_in = ZenohInputs(self.zenoh, self.config.zenoh, self)
                     tasks.append(tg.create_task(zenoh_in.run(), name="apf.zenoh"))
+                self._sd_notify(READY=1, STATUS=self._status_text())
                 await self._stop.wait()
                 for task in tasks:
                     task.cancel()
@@ -284,6 +296,7 @@ class CompanionService:
             log.error("service.error", extra={"error": error})
             self._outcome = Outcome.ERROR
         finally:
+            self._sd_notify(STOPPING=1, STATUS=f"stopping: {self._outcome or Outcome.STOPPED}")
             await self.aclose()
         result = self.result(error=error)
         if self.result_path is not None:
@@ -373,6 +386,16 @@ class CompanionService:
                 self.run_cycle(now, trigger)
             except Exception as err:
                 self.faults.caught("cycle", err)
+                continue  # a failing cycle does not pet the systemd watchdog
+            if self.watchdog is not None:
+                self.watchdog.pet(self._status_text())
+
+    def _status_text(self) -> str:
+        return f"{self.navigator.state.value}: {self.reporter.reason}"
+
+    def _sd_notify(self, **fields: str | int) -> None:
+        if self.notifier is not None:
+            self.notifier.notify(**fields)
 
     def run_cycle(self, now: float, trigger_wall: float | None = None) -> CycleOutput:
         """One navigator cycle at ``now``: send its setpoint, report its changes, end the run if it is done."""
