@@ -175,6 +175,7 @@ def handler_params(config: ServiceConfig) -> HandlerParams:
         dry_run=config.dry_run,
         mavlink_ranges=config.sensors.mavlink,
         telemetry_rate_hz=lc.telemetry_rate_hz,
+        fly_config_goal_after_restart=config.goal.fly_after_restart,
     )
 
 

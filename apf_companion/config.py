@@ -215,12 +215,17 @@ class GoalConfig:
         north_m, east_m, down_m: A single goal in local NED [m]; ``down_m`` omitted = keep the altitude.
         route: A route file instead (TOML ``[[waypoint]]`` tables or CSV lines ``north,east[,down]``),
             relative paths resolved against the config file.
+        fly_after_restart: Fly this goal even when the service starts with the vehicle already flying (armed) in
+            GUIDED / OFFBOARD, i.e. restarted mid-flight (systemd ``Restart=``, a watchdog kill). False (default):
+            the goal in the file is not fresh then: the service holds position, says why, and waits for a goal
+            sent now (DO_REPOSITION, zenoh). A ``--goal`` / ``--route`` on the command line is always flown.
     """
 
     north_m: float | None = None
     east_m: float | None = None
     down_m: float | None = None
     route: str = ""
+    fly_after_restart: bool = False
 
     def __post_init__(self) -> None:
         if (self.north_m is None) != (self.east_m is None):

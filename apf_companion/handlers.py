@@ -65,6 +65,7 @@ class HandlerParams:
     dry_run: bool = False
     mavlink_ranges: bool = True  # [sensors] mavlink
     telemetry_rate_hz: float = 20.0
+    fly_config_goal_after_restart: bool = False  # [goal] fly_after_restart
 
 
 class AutopilotHandlers:
@@ -139,7 +140,8 @@ class AutopilotHandlers:
     def _on_heartbeat(self, rec: Heartbeat, now_s: float) -> None:
         if rec.type in NOT_A_VEHICLE:
             return
-        first = not self.heard or not self.navigator.link_alive(now_s)
+        at_start = not self.heard  # this process's first HEARTBEAT
+        first = at_start or not self.navigator.link_alive(now_s)
         if (self.heard and first) or rec.system_status in REBOOTING:
             self.perception.gate.note_reboot()  # boot evidence: a pose may start a new time base
         self.heard = True
@@ -148,9 +150,22 @@ class AutopilotHandlers:
         self.navigator.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok)
         if first:
             self.outbox.request_streams(self.params.telemetry_rate_hz)
-            if self._route_at_start is not None:
-                route, self._route_at_start = self._route_at_start, None
+            route, self._route_at_start = self._route_at_start, None
+            restarted = self._restarted_mid_flight(route) if at_start else None
+            if restarted is not None:
+                self.navigator.recovery.restart_hold(now_s, restarted)
+            elif route is not None:
                 self._set_route(route, now_s)
+
+    def _restarted_mid_flight(self, route: Route | None) -> str | None:
+        """At the first HEARTBEAT: the vehicle is already flying (armed) in GUIDED / OFFBOARD, so this process was
+        (re)started mid-flight: why it holds instead of moving, or None to go on as usual (docs/hardening.md)."""
+        if self.params.dry_run or not (self.armed and self.mode_ok):
+            return None
+        if route is not None and (self.params.fly_config_goal_after_restart or not route.source.startswith("config")):
+            return None  # a goal given now (command line), or the config says its goal is fresh
+        why = "started with the vehicle flying in guided control: holding, send a fresh goal"
+        return why if route is None else f"{why} (goal.fly_after_restart = false)"
 
     def _on_local_position(self, rec: LocalPositionNed, now_s: float) -> None:
         pose = self.perception.on_local_position(rec.time_boot_ms, (rec.x, rec.y, rec.z), now_s)

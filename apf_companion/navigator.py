@@ -456,6 +456,21 @@ class Recovery:
         if nav.route is not None and nav.state in (State.NAVIGATING, State.HOLDING):
             nav._change(now_s, State.HOLDING, f"{reason}: holding")
 
+    def restart_hold(self, now_s: float, reason: str) -> None:
+        """The service started while the vehicle flies in GUIDED / OFFBOARD: hold where it is, without a goal, until
+        a fresh goal arrives (``set_route``) or the pilot takes the vehicle (IDLE)."""
+        nav = self.nav
+        nav.engaged = True  # the vehicle is in our mode: a mode change by the pilot ends the hold
+        nav._hold.reset()
+        nav._change(now_s, State.HOLDING, reason)
+
+    def goalless_hold(self, inp: _Inputs) -> CycleOutput:
+        nav = self.nav
+        if not self.pose_confirmed:
+            return self.brake(inp)
+        sp = nav._hold.setpoint(nav.pose, pose_fresh=inp.pose_ok)
+        return CycleOutput(t_s=inp.now_s, state=nav.state, setpoint=sp, nearest_obstacle_m=inp.nearest_m)
+
     def link_dead(self, now_s: float) -> None:
         """No heartbeat: silence. The goal is kept (``resume_after_link_lost``), the step and hold forgotten."""
         nav = self.nav
@@ -648,6 +663,8 @@ class Navigator:
 
     def _blocked(self, inp: _Inputs) -> CycleOutput | None:
         """Silence when there is no goal or pose (NAVIGATING -> HOLDING without a pose), or while suspended."""
+        if self.route is None and self.pose is not None and self.state is State.HOLDING:
+            return self.recovery.goalless_hold(inp)  # restarted mid-flight (``Recovery.restart_hold``)
         if self.route is None or self.pose is None:
             if self.route is not None and self.state is State.NAVIGATING:
                 self._enter_hold_state(inp.now_s, State.HOLDING, "no pose yet")
