@@ -26,10 +26,7 @@ from tests.service.fuzzing import FuzzReport, choose_kinds, run_fuzz
 
 
 def _progress(r: FuzzReport) -> None:
-    print(
-        f"{r.frames:>9} frames  {r.frames_per_s:7.0f} frames/s  setpoints {r.setpoints}  bad {len(r.bad_setpoints)}",
-        flush=True,
-    )
+    print(f"{r.frames:>9} frames  {r.frames_per_s:7.0f} frames/s", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -47,6 +44,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"service alive: {report.alive}; goals given by the harness: {report.goals_given}")
     print(f"escaped exceptions (handler_errors): {report.handler_errors} {report.fault_kinds}")
     print(f"send errors: {report.send_errors}")
+    nav = report.counters
+    print(
+        f"cycles {nav.get('nav_cycles', 0)}: planner steps {nav.get('nav_planner_steps', 0)}, unconfirmed pose "
+        f"{nav.get('nav_unconfirmed_pose_cycles', 0)}, stale pose {nav.get('nav_stale_pose_cycles', 0)}"
+    )
     print(f"setpoints: {report.setpoints} (brakes {report.brakes}); bad setpoints: {len(report.bad_setpoints)}")
     for line in report.bad_setpoints[:20]:
         print("  ", line)
