@@ -146,7 +146,11 @@ class PoseGate:
     def _candidate(self, fix: _Fix, verdict: Verdict) -> Verdict:
         """Add a rejected fix to the first candidate track it plausibly continues, else start a track (beyond
         ``MAX_TRACKS`` the shortest older one goes): junk interleaved with a genuine stream that the anchor rejects
-        (a forged anchor) does not keep the genuine stream from re-anchoring."""
+        (a forged anchor) does not keep the genuine stream from re-anchoring, while a second consistent stream
+        (a track of two or more fixes) blocks every re-anchor."""
+        # A track whose last fix is older than the time-jump tolerance is no stream any more (its reach would grow
+        # with the gap): dropped.
+        self._tracks = [t for t in self._tracks if fix.rx_s - t[-1].rx_s <= self.limits.time_jump_s]
         track = next((t for t in self._tracks if self._versus(t[-1], fix, _track_vel(t)) is Verdict.ACCEPT), None)
         if track is None:
             if len(self._tracks) >= MAX_TRACKS:
@@ -154,7 +158,9 @@ class PoseGate:
             track = []
             self._tracks.append(track)
         track.append(fix)
-        if len(track) >= self.limits.reset_samples:
+        rivals = [t for t in self._tracks if t is not track and len(t) >= 2]
+        if len(track) >= self.limits.reset_samples and not rivals:
+            # Two consistent streams (a spoof beside the real one) are conflicting evidence: neither re-anchors.
             return self._anchor(fix, Verdict.RESET, agreeing=len(track))
         return verdict
 

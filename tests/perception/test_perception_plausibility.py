@@ -92,3 +92,18 @@ def test_a_forged_anchor_is_unconfirmed_and_junk_between_genuine_poses_does_not_
         verdicts.append(gate.check(t_ms + 20, (0.0, 0.0, -5.0), (t_ms + 20) / 1000.0))  # genuine
     assert verdicts[-1] is Verdict.RESET and gate.confirmed
     assert gate.last is not None and gate.last.pos.tolist() == [0.0, 0.0, -5.0]
+
+
+def test_two_consistent_streams_after_a_forged_anchor_re_anchor_neither() -> None:
+    """A spoofed stationary point streamed beside the genuine one after a forged anchor: conflicting evidence, so
+    neither re-anchors (the service brakes / holds instead of choosing)."""
+    gate = PoseGate(PoseLimits(reset_samples=5))
+    stream(gate, 0, (0.0, 0.0, -5.0), 10)
+    gate.note_reset_counter(1)
+    gate.note_reset_counter(2)
+    assert gate.check(500, (1000.0, 0.0, -5.0), 0.5) is Verdict.RESET
+    for k in range(20):
+        t_ms = 525 + 50 * k
+        assert gate.check(t_ms, (30.0, 0.0, -5.0), t_ms / 1000.0) is not Verdict.RESET  # the spoof
+        assert gate.check(t_ms + 20, (0.0, 0.0, -5.0), (t_ms + 20) / 1000.0) is not Verdict.RESET  # genuine
+    assert gate.last is not None and gate.last.pos[0] == 1000.0 and not gate.confirmed
