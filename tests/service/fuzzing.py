@@ -359,8 +359,9 @@ class Verdicts:
 class FuzzAutopilot:
     """The genuine autopilot (see the module docstring) on one UDP socket; checks every setpoint it receives."""
 
-    def __init__(self, link: MavlinkLink, ctx: Context) -> None:
+    def __init__(self, link: MavlinkLink, ctx: Context, goal_down_m: Callable[[], float | None]) -> None:
         self.link = link
+        self.goal_down_m = goal_down_m  # the active goal's altitude: a ground station may command any in bounds
         self.ctx = ctx
         self.t0 = time.monotonic()
         self.target = list(ctx.pos)
@@ -398,12 +399,18 @@ class FuzzAutopilot:
             v.brakes += 1
             if any(vel):
                 v.bad_setpoints.append(f"brake with velocity {vel}")
-        elif math.hypot(pos[0] - x, pos[1] - y) > SETPOINT_REACH_M or abs(pos[2] - z) > SETPOINT_REACH_M:
+        elif math.hypot(pos[0] - x, pos[1] - y) > SETPOINT_REACH_M or self._off_altitude(pos[2], z):
             v.bad_setpoints.append(f"setpoint {pos} is {math.dist(pos, (x, y, z)):.1f} m from the vehicle")
         elif math.hypot(*vel) > SETPOINT_MAX_SPEED_M_S:
             v.bad_setpoints.append(f"setpoint velocity {vel}")
         else:
             self.target = list(pos)
+
+    def _off_altitude(self, down_m: float, vehicle_down_m: float) -> bool:
+        """Neither near the vehicle's altitude nor the commanded goal's (2D flight climbs by the position part)."""
+        goal = self.goal_down_m()
+        near_goal = goal is not None and abs(down_m - goal) < 1e-3
+        return abs(down_m - vehicle_down_m) > SETPOINT_REACH_M and not near_goal
 
     async def _tx(self) -> None:
         enc, n = self.ctx.enc, 0
@@ -477,7 +484,12 @@ async def run_fuzz(
     assert svc.link is not None and svc.link.local_address is not None
     link = await MavlinkLink.open(f"udpout:127.0.0.1:{svc.link.local_address[1]}", source_system=1, source_component=1)
     ctx = Context(enc=Encoder(), pos=[0.0, 0.0, ALT_DOWN_M], boot_ms=lambda: 0)
-    ap = FuzzAutopilot(link, ctx)
+
+    def goal_down_m() -> float | None:
+        target = svc.navigator.active_target_ned_m
+        return None if target is None else float(target[2])
+
+    ap = FuzzAutopilot(link, ctx, goal_down_m)
     ctx.boot_ms = ap.boot_ms
     report = FuzzReport()
     async with asyncio.TaskGroup() as tg:
