@@ -225,6 +225,7 @@ def handler_params(config: ServiceConfig) -> HandlerParams:
         sensor_sources=tuple(Source(system, component) for system, component in config.sensors.source_ids()),
         forwarding=config.sensors.forward_obstacle_distance,
         adopt=AdoptParams(enabled=config.goal.adopt_autopilot_target, tolerance_m=config.goal.adopt_tolerance_m),
+        fly_config_goal_after_restart=config.goal.fly_after_restart,
     )
 
 

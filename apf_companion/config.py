@@ -267,6 +267,10 @@ class GoalConfig:
             there around obstacles (docs/ecosystem.md).
         adopt_tolerance_m: A reported target within this of a setpoint the service sent (or of its goal, or of
             the vehicle) is not a new goal [m].
+        fly_after_restart: Fly this goal even when the service starts with the vehicle already flying (armed) in
+            GUIDED / OFFBOARD, i.e. restarted mid-flight (systemd ``Restart=``, a watchdog kill). False (default):
+            the goal in the file is not fresh then: the service holds position, says why, and waits for a goal
+            sent now (DO_REPOSITION, zenoh). A ``--goal`` / ``--route`` on the command line is always flown.
     """
 
     north_m: float | None = None
@@ -275,6 +279,7 @@ class GoalConfig:
     route: str = ""
     adopt_autopilot_target: bool = False
     adopt_tolerance_m: float = 1.0
+    fly_after_restart: bool = False
 
     def __post_init__(self) -> None:
         if (self.north_m is None) != (self.east_m is None):

@@ -108,6 +108,7 @@ class HandlerParams:
     sensor_sources: tuple[Source, ...] = ()  # [sensors] mavlink_sources
     forwarding: bool = False  # [sensors] forward_obstacle_distance
     adopt: AdoptParams = field(default_factory=AdoptParams)
+    fly_config_goal_after_restart: bool = False  # [goal] fly_after_restart
 
 
 class AutopilotHandlers:
@@ -216,7 +217,8 @@ class AutopilotHandlers:
     def _on_heartbeat(self, rec: Heartbeat, now_s: float) -> None:
         if rec.type in NOT_A_VEHICLE:
             return
-        first = not self.heard or not self.navigator.link_alive(now_s)
+        at_start = not self.heard  # this process's first HEARTBEAT
+        first = at_start or not self.navigator.link_alive(now_s)
         if (self.heard and first) or rec.system_status in REBOOTING:
             self.perception.gate.note_reboot()  # boot evidence: a pose may start a new time base
         if first or rec.system_status in REBOOTING:
@@ -229,9 +231,23 @@ class AutopilotHandlers:
         rates = self.streams.due(now_s)
         if rates:
             self.outbox.request_streams(rates)
-        if first and self._route_at_start is not None:
+        if first:
             route, self._route_at_start = self._route_at_start, None
-            self._set_route(route, now_s)
+            restarted = self._restarted_mid_flight(route) if at_start else None
+            if restarted is not None:
+                self.navigator.recovery.restart_hold(now_s, restarted)
+            elif route is not None:
+                self._set_route(route, now_s)
+
+    def _restarted_mid_flight(self, route: Route | None) -> str | None:
+        """At the first HEARTBEAT: the vehicle is already flying (armed) in GUIDED / OFFBOARD, so this process was
+        (re)started mid-flight: why it holds instead of moving, or None to go on as usual (docs/hardening.md)."""
+        if self.params.dry_run or not (self.armed and self.mode_ok):
+            return None
+        if route is not None and (self.params.fly_config_goal_after_restart or not route.source.startswith("config")):
+            return None  # a goal given now (command line), or the config says its goal is fresh
+        why = "started with the vehicle flying in guided control: holding, send a fresh goal"
+        return why if route is None else f"{why} (goal.fly_after_restart = false)"
 
     def _on_local_position(self, rec: LocalPositionNed, now_s: float) -> None:
         pose = self.perception.on_local_position(
@@ -240,6 +256,7 @@ class AutopilotHandlers:
         reset = self.perception.take_reset()
         if reset is not None:
             self.navigator.recovery.position_reset(now_s, reset)
+        self.navigator.recovery.pose_confirmed = self.perception.gate.confirmed
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose(rec.time_boot_ms)
 

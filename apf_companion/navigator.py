@@ -44,7 +44,7 @@ from apf_companion.envelope import BrakingEnvelope
 from apf_companion.goal import Route
 from apf_companion.linkquality import CLEAN_LINK, CautionParams, LinkQuality, caution_scale
 from apf_companion.perception import Pose
-from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity
+from apf_companion.setpoint import Setpoint, SetpointKind, brake, hold, navigate, silent_safe_velocity
 
 __all__ = [
     "CycleOutput",
@@ -233,6 +233,8 @@ class _Counters:
     unknown_direction_holds: int = 0  # a step towards a sector without recent ranges: held instead
     envelope_caps: int = 0  # feed-forward cut to the speed that can still stop short of the tracking clearance
     envelope_warnings: int = 0  # the reported velocity could carry the vehicle inside it before it can stop
+    shortened_setpoints: int = 0  # navigation setpoints shortened for a lossy link (``caution`` < 1)
+    unconfirmed_pose_cycles: int = 0  # braked or silent: the pose gate's anchor is not confirmed yet
 
     def decision(self, reason: str) -> None:
         """Count a planner decision by its ``Decision`` name."""
@@ -242,8 +244,6 @@ class _Counters:
             self.random_walk += 1
         else:
             self.local_minimum += 1
-
-    shortened_setpoints: int = 0  # navigation setpoints shortened for a lossy link (``caution`` < 1)
 
 
 @dataclass(slots=True)
@@ -523,6 +523,18 @@ class Recovery:
     def __init__(self, nav: Navigator) -> None:
         self.nav = nav
         self.hold_until_s = -math.inf  # a position reset holds until then
+        self.pose_confirmed = True  # the pose gate's anchor is confirmed (set by the handler on every pose)
+
+    def brake(self, inp: _Inputs) -> CycleOutput:
+        """The pose is not confirmed (docs/hardening.md): while flying for a goal (engaged), stop where the vehicle
+        is, with no position in the setpoint; silence before that (nothing was commanded yet) and once the pose is
+        stale. No hold point, step or arrival is taken from an unconfirmed pose."""
+        nav = self.nav
+        nav._steps.target = None
+        nav._hold.reset()
+        nav.counters.unconfirmed_pose_cycles += 1
+        sp = brake() if inp.pose_ok and nav.engaged else None
+        return CycleOutput(t_s=inp.now_s, state=nav.state, setpoint=sp, nearest_obstacle_m=inp.nearest_m)
 
     def holding(self, now_s: float) -> bool:
         return now_s < self.hold_until_s
@@ -535,6 +547,21 @@ class Recovery:
         self.hold_until_s = now_s + nav.params.reset_hold_s
         if nav.route is not None and nav.state in (State.NAVIGATING, State.HOLDING):
             nav._change(now_s, State.HOLDING, f"{reason}: holding")
+
+    def restart_hold(self, now_s: float, reason: str) -> None:
+        """The service started while the vehicle flies in GUIDED / OFFBOARD: hold where it is, without a goal, until
+        a fresh goal arrives (``set_route``) or the pilot takes the vehicle (IDLE)."""
+        nav = self.nav
+        nav.engaged = True  # the vehicle is in our mode: a mode change by the pilot ends the hold
+        nav._hold.reset()
+        nav._change(now_s, State.HOLDING, reason)
+
+    def goalless_hold(self, inp: _Inputs) -> CycleOutput:
+        nav = self.nav
+        if not self.pose_confirmed:
+            return self.brake(inp)
+        sp = nav._hold.setpoint(nav.pose, pose_fresh=inp.pose_ok)
+        return CycleOutput(t_s=inp.now_s, state=nav.state, setpoint=sp, nearest_obstacle_m=inp.nearest_m)
 
     def link_dead(self, now_s: float) -> None:
         """No heartbeat: silence. The goal is kept (``resume_after_link_lost``), the step and hold forgotten."""
@@ -731,13 +758,15 @@ class Navigator:
 
     def _blocked(self, inp: _Inputs) -> CycleOutput | None:
         """Silence when there is no goal or pose (NAVIGATING -> HOLDING without a pose), or while suspended."""
+        if self.route is None and self.pose is not None and self.state is State.HOLDING:
+            return self.recovery.goalless_hold(inp)  # restarted mid-flight (``Recovery.restart_hold``)
         if self.route is None or self.pose is None:
             if self.route is not None and self.state in (State.NAVIGATING, State.HOLDING):
                 self._enter_hold_state(inp.now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
             return self._silent(inp)
         if self.suspended:
             return self._silent(inp)
-        return None
+        return None if self.recovery.pose_confirmed else self.recovery.brake(inp)
 
     def _distance_to_goal(self) -> float:
         assert self.route is not None and self.pose is not None

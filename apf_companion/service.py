@@ -30,7 +30,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable, Coroutine, Sequence
+from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -66,6 +66,7 @@ from apf_companion.outbox import Outbox
 from apf_companion.params import ParamServer
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
 from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
+from apf_companion.sdnotify import SystemdNotifier, Watchdog
 from apf_companion.setpoint import Setpoint, SetpointKind
 from apf_companion.takeover import Action, ActionKind, TakeoverController, TakeoverInputs
 
@@ -185,6 +186,51 @@ class ServiceResult:
         )
 
 
+class CycleTrigger:
+    """When the planning cycle runs: on each new pose, at most one per ``MIN_GAP_FRACTION`` of a period, and on a
+    timer when no pose triggered one for ``TIMER_PERIODS`` periods (a frozen or lost pose is still noticed within
+    one period of its limit)."""
+
+    def __init__(self, clock: ServiceClock, rate_hz: float) -> None:
+        self.clock = clock
+        self.period_s = 1.0 / rate_hz
+        self._new_pose = asyncio.Event()
+        self._rx_wall: float | None = None  # wall time the triggering pose was read
+
+    @property
+    def pending(self) -> bool:
+        return self._new_pose.is_set()
+
+    def pose_arrived(self, rx_wall: float) -> None:
+        self._rx_wall = rx_wall
+        self._new_pose.set()
+
+    async def cycles(self) -> AsyncIterator[tuple[float, float | None]]:
+        """(service time, wall time the triggering pose was read or None for a timer cycle), forever."""
+        min_gap = MIN_GAP_FRACTION * self.period_s
+        last_cycle = self.clock.now()
+        last_triggered = -math.inf
+        while True:
+            timeout = self.clock.to_wall(last_cycle + TIMER_PERIODS * self.period_s - self.clock.now())
+            triggered = False
+            if timeout > 0:
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(timeout):
+                        await self._new_pose.wait()
+                        triggered = True
+            now = self.clock.now()
+            trigger, self._rx_wall = self._rx_wall, None
+            self._new_pose.clear()
+            if triggered:
+                if now - last_triggered < min_gap:
+                    continue  # a faster pose stream than the cycle rate: skip this one
+                last_triggered = now
+            else:
+                trigger = None
+            last_cycle = now
+            yield now, trigger
+
+
 class CompanionService:
     """The running service. Create with ``await CompanionService.open(config)``, then ``await run()``.
 
@@ -197,6 +243,8 @@ class CompanionService:
         zenoh: The open zenoh link (``open`` passes it when enabled), or None.
         observers: Read-only watchers of each cycle; None = those ``[visualisation]`` asks for (Foxglove).
         signing_keeper: Saves the link's signing timestamp (``open`` passes it when signing is configured).
+        notifier: systemd notifications (``open`` passes ``SystemdNotifier.from_env()``): READY=1 once running,
+            WATCHDOG=1 and STATUS= from completed planning cycles, STOPPING=1 at the end; None = none.
     """
 
     def __init__(
@@ -210,6 +258,7 @@ class CompanionService:
         zenoh: Any = None,
         observers: Sequence[CycleObserver] | None = None,
         signing_keeper: TimestampKeeper | None = None,
+        notifier: SystemdNotifier | None = None,
     ) -> None:
         self.config = config
         self.signing_keeper = signing_keeper
@@ -248,10 +297,10 @@ class CompanionService:
             signing=None if link is None or link.signing is None else link.signing.stats,
         )
         self.forwarder, self.takeover = self._drivers(config)
+        self.notifier, self.watchdog = notifier, (Watchdog(notifier) if notifier is not None else None)
         self.params = _param_server(self)
         self._stop = asyncio.Event()
-        self._new_pose = asyncio.Event()
-        self._trigger_rx_wall: float | None = None  # wall time the triggering pose was read
+        self.trigger = CycleTrigger(self.clock, config.cycle.rate_hz)
         self._first_nav_s: float | None = None
         self._goal_s: float | None = None  # when the current goal was set
         self._end_s: float | None = None
@@ -298,7 +347,14 @@ class CompanionService:
             if config.zenoh.enabled:
                 zenoh = await _open_zenoh(config)
             return cls(
-                config, route=route, clock=clock, result_path=result_path, link=link, zenoh=zenoh, signing_keeper=keeper
+                config,
+                route=route,
+                clock=clock,
+                result_path=result_path,
+                link=link,
+                zenoh=zenoh,
+                signing_keeper=keeper,
+                notifier=SystemdNotifier.from_env(),
             )
         except BaseException:
             if zenoh is not None:
@@ -307,8 +363,10 @@ class CompanionService:
             raise
 
     async def aclose(self) -> None:
-        """Close the links and the observers (safe to call twice)."""
+        """Close the links, the observers and the systemd notification socket (safe to call twice)."""
         self.observers.close()
+        if self.notifier is not None:
+            self.notifier.close()
         if self.link is not None:
             await self.link.aclose()
         if self.signing_keeper is not None:
@@ -335,6 +393,7 @@ class CompanionService:
                     tg.create_task(self.params.run(), name="apf.params"),
                 ]
                 tasks += [tg.create_task(coro, name=name) for name, coro in _optional_tasks(self)]
+                _sd_notify(self, READY=1, STATUS=_status_text(self))
                 await self._stop.wait()
                 for task in tasks:
                     task.cancel()
@@ -343,6 +402,7 @@ class CompanionService:
             log.error("service.error", extra={"error": error})
             self._outcome = Outcome.ERROR
         finally:
+            _sd_notify(self, STOPPING=1, STATUS=f"stopping: {self._outcome or Outcome.STOPPED}")
             await self.aclose()
         result = self.result(error=error)
         if self.result_path is not None:
@@ -384,44 +444,22 @@ class CompanionService:
                 # Bad input is counted where it is classified; anything that still escapes a handler is counted
                 # and logged here, and the loop goes on (no value on the wire may end the service).
                 self.faults.caught("rx", err)
-            if self._new_pose.is_set():
+            if self.trigger.pending:
                 await asyncio.sleep(0)  # let the cycle run before more input is processed
 
     def _pose_arrived(self, time_boot_ms: int) -> None:
         self.link_meter.pose(time_boot_ms)
-        self._trigger_rx_wall = time.perf_counter()
-        self._new_pose.set()
+        self.trigger.pose_arrived(time.perf_counter())
 
     async def _cycle_loop(self) -> None:
-        """Pose-triggered cycles, at most one per ``min_gap``; a timer cycle when no pose triggered one for
-        ``TIMER_PERIODS`` periods (a frozen or lost pose is still noticed within one period of its limit)."""
-        period = 1.0 / self.config.cycle.rate_hz
-        min_gap = MIN_GAP_FRACTION * period
-        last_cycle = self.clock.now()
-        last_triggered = -math.inf
-        while True:
-            timeout = self.clock.to_wall(last_cycle + TIMER_PERIODS * period - self.clock.now())
-            triggered = False
-            if timeout > 0:
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(timeout):
-                        await self._new_pose.wait()
-                        triggered = True
-            now = self.clock.now()
-            trigger = self._trigger_rx_wall
-            self._new_pose.clear()
-            self._trigger_rx_wall = None
-            if triggered:
-                if now - last_triggered < min_gap:
-                    continue  # a faster pose stream than the cycle rate: skip this one
-                last_triggered = now
-            else:
-                trigger = None
-            last_cycle = now
+        async for now, trigger in self.trigger.cycles():
             try:
                 self.run_cycle(now, trigger)
             except Exception as err:
                 self.faults.caught("cycle", err)
+                continue  # a failing cycle does not pet the systemd watchdog
+            if self.watchdog is not None:
+                self.watchdog.pet(_status_text(self))
 
     def run_cycle(self, now: float, trigger_wall: float | None = None) -> CycleOutput:
         """One navigator cycle at ``now``: send its setpoint, report its changes, end the run if it is done."""
@@ -650,6 +688,15 @@ def _warn_no_heartbeat(svc: CompanionService) -> None:
     )
     extra = {"connect": lc.connect, "waited_s": round(svc.clock.now(), 1), "hint": hint}
     log.warning("link.no_heartbeat", extra=extra)
+
+
+def _status_text(svc: CompanionService) -> str:
+    return f"{svc.navigator.state.value}: {svc.reporter.reason}"
+
+
+def _sd_notify(svc: CompanionService, **fields: str | int) -> None:
+    if svc.notifier is not None:
+        svc.notifier.notify(**fields)
 
 
 def _log_setpoint(out: CycleOutput, sp: Setpoint, *, dry_run: bool) -> None:

@@ -23,6 +23,7 @@ __all__ = [
     "MAV_FRAME_LOCAL_NED",
     "Setpoint",
     "SetpointKind",
+    "brake",
     "encode_setpoint",
     "hold",
     "navigate",
@@ -42,6 +43,9 @@ class SetpointKind(enum.Enum):
     """Stay at a point with zero velocity (HOLDING, ARRIVED, STUCK, local minimum)."""
     PRESTREAM = "prestream"
     """Hold at the current position while taking over (PX4 wants setpoints before OFFBOARD)."""
+    BRAKE = "brake"
+    """Zero velocity, position ignored (``MASK_VELOCITY``): stop wherever the vehicle is, while the pose is not
+    confirmed (docs/hardening.md): no position in it, so no spoofed position can pull the vehicle anywhere."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -78,6 +82,13 @@ def _vec3(v: npt.ArrayLike) -> tuple[float, float, float]:
 def hold(pos_ned_m: npt.ArrayLike, kind: SetpointKind = SetpointKind.HOLD) -> Setpoint:
     """Hold at ``pos_ned_m`` (3,) with zero velocity."""
     return Setpoint(pos_ned_m=_vec3(pos_ned_m), vel_ned_m_s=(0.0, 0.0, 0.0), type_mask=MASK_POS_VEL, kind=kind)
+
+
+def brake() -> Setpoint:
+    """Stop where the vehicle is: zero velocity; the position fields are ignored (``MASK_VELOCITY``) and zero, so
+    not even a consumer that misreads the mask is sent towards an unconfirmed position."""
+    zero = (0.0, 0.0, 0.0)
+    return Setpoint(pos_ned_m=zero, vel_ned_m_s=zero, type_mask=MASK_VELOCITY, kind=SetpointKind.BRAKE)
 
 
 def navigate(pos_ned_m: npt.ArrayLike, next_ned_m: npt.ArrayLike, *, cruise_speed_m_s: float, dim: int) -> Setpoint:

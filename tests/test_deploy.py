@@ -92,6 +92,14 @@ def test_unit_sandbox_settings(name: str) -> None:
     assert s["ReadWritePaths"] == [f"/var/lib/{state}"]
 
 
+def test_the_service_unit_uses_notify_and_the_watchdog() -> None:
+    """apf_companion/sdnotify.py: READY=1 from the main process, WATCHDOG=1 from the planning cycle."""
+    s = _settings("apf-companion.service")
+    assert s["Type"] == ["notify"] and s["NotifyAccess"] == ["main"]
+    assert float(s["WatchdogSec"][0]) >= 1.0  # many 10 Hz cycles per half period, even on a loaded computer
+    assert s["Restart"] == ["on-failure"]  # a watchdog kill is a failure: restarted
+
+
 def test_config_errors_are_not_restarted() -> None:
     assert _settings("apf-companion.service")["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
 

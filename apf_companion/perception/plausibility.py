@@ -13,11 +13,17 @@ A pose is rejected (and counted by the front end) when
   ``noise_m`` (``JUMP``).
 
 A rejected pose that is finite and in bounds is a candidate for a real EKF reset or an unannounced reboot: after
-``reset_samples`` candidates in a row that are consistent with each other (each a plausible move in plausible time
-from the previous one) and with no accepted pose in between, the gate re-anchors on them (``RESET``): the caller
+``reset_samples`` candidates that continue each other (each a plausible move in plausible time from the previous
+one in its track; up to ``MAX_TRACKS`` tracks are kept, so junk in between does not break one) and with no accepted
+pose in between, the gate re-anchors on them (``RESET``): the caller
 must hold and announce it before motion resumes. Interleaved genuine poses restart the count, so a spoofed stream
 beside the real one never takes over. Where the autopilot streams ODOMETRY, a change of its ``reset_counter`` is
 direct evidence: a jump within the next ``reset_samples`` poses re-anchors at once (``note_reset_counter``).
+
+An anchor taken on evidence alone (the first pose, a reboot, an announced reset: one pose) is not ``confirmed``
+until ``reset_samples`` poses in all, each a plausible successor of the last, agree with it: a single spoofed pose
+that rides on forged evidence (a HEARTBEAT in MAV_STATE_BOOT, an ODOMETRY reset counter change) must not become a
+hold point or a planning origin. A re-anchor on a consistent candidate track is confirmed at once.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import numpy.typing as npt
 __all__ = ["PoseGate", "PoseLimits", "Verdict"]
 
 FloatArray = npt.NDArray[np.float64]
+MAX_TRACKS = 4  # candidate tracks kept at once (see ``PoseGate._candidate``)
 REBOOT_JUMP_MS = 10_000  # time_boot_ms this far back is not a reordered datagram: a reboot (with evidence)
 
 
@@ -70,10 +77,16 @@ class PoseGate:
         self.limits = limits
         self.last: _Fix | None = None
         self.vel_m_s = np.zeros(3)
-        self._track: list[_Fix] = []
+        self._tracks: list[list[_Fix]] = []  # candidate tracks: rejected fixes that agree with each other
         self._reboot_evidence = False
         self._reset_counter: int | None = None
         self._reset_window = 0  # poses left in which a jump is the announced estimator reset
+        self._agreeing = 0  # poses that agree with the current anchor (the anchor included)
+
+    @property
+    def confirmed(self) -> bool:
+        """The current anchor is backed by ``reset_samples`` consistent poses (see the module docstring)."""
+        return self._agreeing >= self.limits.reset_samples
 
     def note_reset_counter(self, counter: int) -> None:
         """The estimator's reset counter (ODOMETRY.reset_counter): a change is reset evidence, and the next
@@ -106,8 +119,9 @@ class PoseGate:
             dt = (boot_ms - last.boot_ms) / 1000.0
             self.vel_m_s = (p - last.pos) / dt
             self.last = fix
-            self._track.clear()
+            self._tracks.clear()
             self._reboot_evidence = False  # the stream went on: no reboot after all
+            self._agreeing += 1
             return verdict
         if verdict is Verdict.STALE:
             if last.boot_ms - boot_ms < REBOOT_JUMP_MS:
@@ -130,25 +144,40 @@ class PoseGate:
         return Verdict.ACCEPT
 
     def _candidate(self, fix: _Fix, verdict: Verdict) -> Verdict:
-        track = self._track
-        if track and self._versus(track[-1], fix, np.zeros(3) if len(track) < 2 else self._track_vel()) is not (
-            Verdict.ACCEPT
-        ):
-            track.clear()
+        """Add a rejected fix to the first candidate track it plausibly continues, else start a track (beyond
+        ``MAX_TRACKS`` the shortest older one goes): junk interleaved with a genuine stream that the anchor rejects
+        (a forged anchor) does not keep the genuine stream from re-anchoring, while a second consistent stream
+        (a track of two or more fixes) blocks every re-anchor."""
+        # A track whose last fix is older than the time-jump tolerance is no stream any more (its reach would grow
+        # with the gap): dropped.
+        self._tracks = [t for t in self._tracks if fix.rx_s - t[-1].rx_s <= self.limits.time_jump_s]
+        track = next((t for t in self._tracks if self._versus(t[-1], fix, _track_vel(t)) is Verdict.ACCEPT), None)
+        if track is None:
+            if len(self._tracks) >= MAX_TRACKS:
+                del self._tracks[min(range(len(self._tracks)), key=lambda i: len(self._tracks[i]))]
+            track = []
+            self._tracks.append(track)
         track.append(fix)
-        if len(track) >= self.limits.reset_samples:
-            return self._anchor(fix, Verdict.RESET)
+        rivals = [t for t in self._tracks if t is not track and len(t) >= 2]
+        if len(track) >= self.limits.reset_samples and not rivals:
+            # Two consistent streams (a spoof beside the real one) are conflicting evidence: neither re-anchors.
+            return self._anchor(fix, Verdict.RESET, agreeing=len(track))
         return verdict
 
-    def _track_vel(self) -> FloatArray:
-        a, b = self._track[-2], self._track[-1]
-        dt = (b.boot_ms - a.boot_ms) / 1000.0
-        return (b.pos - a.pos) / dt if dt > 0 else np.zeros(3)
-
-    def _anchor(self, fix: _Fix, verdict: Verdict) -> Verdict:
+    def _anchor(self, fix: _Fix, verdict: Verdict, *, agreeing: int = 1) -> Verdict:
         self.last = fix
+        self._agreeing = agreeing
         self.vel_m_s = np.zeros(3)
-        self._track.clear()
+        self._tracks.clear()
         self._reboot_evidence = False
         self._reset_window = 0
         return verdict
+
+
+def _track_vel(track: list[_Fix]) -> FloatArray:
+    """The velocity between a track's last two fixes (zero with fewer)."""
+    if len(track) < 2:
+        return np.zeros(3)
+    a, b = track[-2], track[-1]
+    dt = (b.boot_ms - a.boot_ms) / 1000.0
+    return (b.pos - a.pos) / dt if dt > 0 else np.zeros(3)

@@ -71,3 +71,39 @@ def test_reset_evidence_lapses_after_reset_samples_poses() -> None:
     gate.note_reset_counter(1)
     stream(gate, 100, (0.0, 0.0, -5.0), 3)  # a reset too small to see: the window closes
     assert gate.check(250, (0.0, 20.0, -5.0), 0.25) is Verdict.JUMP
+
+
+def test_a_forged_anchor_is_unconfirmed_and_junk_between_genuine_poses_does_not_keep_it() -> None:
+    """Found by the fuzz: after a forged reset (ODOMETRY reset counter) one spoofed pose anchors; hostile junk poses
+    (1 km jumps, random points) arrive twice as often as the genuine ones. The genuine stream still re-anchors after
+    ``reset_samples`` poses (its own candidate track), and that anchor is confirmed at once."""
+    gate = PoseGate(PoseLimits(reset_samples=5))
+    assert stream(gate, 0, (0.0, 0.0, -5.0), 10) == [Verdict.ACCEPT] * 10
+    assert gate.confirmed
+    gate.note_reset_counter(1)
+    gate.note_reset_counter(2)  # a change: the next jump is taken as the estimator reset
+    assert gate.check(500, (1000.0, 0.0, -5.0), 0.5) is Verdict.RESET
+    assert not gate.confirmed  # one pose on evidence alone
+    verdicts = []
+    for k in range(5):
+        t_ms = 525 + 50 * k
+        gate.check(t_ms, (-700.0 + 300.0 * k, 40.0 * k, -5.0), t_ms / 1000.0)  # junk, never consistent
+        gate.check(t_ms + 10, (3.0 * k, -900.0, -5.0), (t_ms + 10) / 1000.0)
+        verdicts.append(gate.check(t_ms + 20, (0.0, 0.0, -5.0), (t_ms + 20) / 1000.0))  # genuine
+    assert verdicts[-1] is Verdict.RESET and gate.confirmed
+    assert gate.last is not None and gate.last.pos.tolist() == [0.0, 0.0, -5.0]
+
+
+def test_two_consistent_streams_after_a_forged_anchor_re_anchor_neither() -> None:
+    """A spoofed stationary point streamed beside the genuine one after a forged anchor: conflicting evidence, so
+    neither re-anchors (the service brakes / holds instead of choosing)."""
+    gate = PoseGate(PoseLimits(reset_samples=5))
+    stream(gate, 0, (0.0, 0.0, -5.0), 10)
+    gate.note_reset_counter(1)
+    gate.note_reset_counter(2)
+    assert gate.check(500, (1000.0, 0.0, -5.0), 0.5) is Verdict.RESET
+    for k in range(20):
+        t_ms = 525 + 50 * k
+        assert gate.check(t_ms, (30.0, 0.0, -5.0), t_ms / 1000.0) is not Verdict.RESET  # the spoof
+        assert gate.check(t_ms + 20, (0.0, 0.0, -5.0), (t_ms + 20) / 1000.0) is not Verdict.RESET  # genuine
+    assert gate.last is not None and gate.last.pos[0] == 1000.0 and not gate.confirmed

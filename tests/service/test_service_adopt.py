@@ -65,7 +65,7 @@ async def test_fly_here_sent_to_the_autopilot_is_adopted_and_flown_around_an_obs
             world=world,
             speedup=flights.SPEEDUP,
             seed=3,
-            spawn=SpawnConfig(pos_ne_m=START, airborne=True, alt_m=5.0, mode="GUIDED"),
+            spawn=SpawnConfig(pos_ne_m=START, airborne=True, alt_m=5.0, mode="LOITER"),
             sensor=RangeSensorConfig(messages=frozenset({"obstacle_distance"})),
         )
     )
@@ -73,6 +73,11 @@ async def test_fly_here_sent_to_the_autopilot_is_adopted_and_flown_around_an_obs
         async with running(svc, sim):
             await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
             await wait_state(svc, {State.IDLE}, 5.0)
+            # the ground station's "Fly here": GUIDED first (as Mission Planner does), then the target
+            gcs.send(
+                gcs.mav.command_long_encode(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, CopterMode.GUIDED, 0, 0, 0, 0, 0)
+            )
+            await within(svc.clock.now, lambda: svc.handlers.mode_ok, 5.0, "GUIDED heard")
             lat, lon = ne_to_latlon(sim.cfg.home, TARGET[0], TARGET[1])
             gcs.send(
                 gcs.mav.set_position_target_global_int_encode(

@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.autopilot import MASK_POS_VEL, CopterMode
+from apf_companion.autopilot import MASK_POS_VEL, MASK_VELOCITY, CopterMode
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.links import MavlinkLink
@@ -85,7 +85,7 @@ class ScriptedAutopilot:
             if kind == "COMMAND_LONG" and msg.command == 176:
                 self.custom_mode = int(msg.param2)
                 self.link.send(self.link.mav.command_ack_encode(176, 0, 0, 0, 1, 191))
-            elif kind == "SET_POSITION_TARGET_LOCAL_NED" and self.follow_setpoints:
+            elif kind == "SET_POSITION_TARGET_LOCAL_NED" and self.follow_setpoints and msg.type_mask != MASK_VELOCITY:
                 self.pos = [msg.x, msg.y, msg.z]
 
     async def _tx(self) -> None:
