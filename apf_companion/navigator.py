@@ -655,6 +655,11 @@ class Navigator:
             return False
         self.counters.goals += 1
         self.route = route
+        # A stateful planner (bapf-nav) that gave up stays given up until its target changes: a new goal, even the
+        # same point again (a retry, the next flight of a long-lived service), starts it afresh.
+        reset = getattr(self.planner, "reset", None)
+        if callable(reset):
+            reset()
         self._legs.leg = None
         self._steps.target = None
         self._hold.reset()

@@ -43,10 +43,20 @@ from apf_companion.perception.schema import decode_scan_json
 from apf_companion.perception.sectors import SectorFreshness
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
-__all__ = ["SCAN_DEFER_MAX", "SCAN_DEFER_S", "PerceptionCounters", "PerceptionFrontEnd", "PerceptionParams"]
+__all__ = [
+    "MAX_SENSOR_IDS",
+    "SCAN_DEFER_MAX",
+    "SCAN_DEFER_S",
+    "PerceptionCounters",
+    "PerceptionFrontEnd",
+    "PerceptionParams",
+]
 
 log = logging.getLogger(__name__)
 
+# Sensor ids are named by the scan's source, and a zenoh LaserScan's source carries its frame_id: a publisher that
+# changes frame_id on every scan would grow the table for ever. Sources beyond this many share one id.
+MAX_SENSOR_IDS = 64
 SCAN_DEFER_S = 0.25  # a scan newer than the newest pose waits this long at most for the next pose [s]
 SCAN_DEFER_MAX = 8  # and at most this many scans wait
 POSE_HISTORY_LEN = 200  # poses kept to place scans (10 s at 20 Hz)
@@ -247,7 +257,7 @@ class PerceptionFrontEnd:
         self.counters.scans += 1
         rel = np.asarray(points, dtype=np.float64).reshape(-1, 3) - pose.pos_ned_m
         self.sectors.note(np.arctan2(rel[:, 1], rel[:, 0]), t)
-        self._remember(points, t, self._sensor_ids.setdefault("mavlink:obstacle_distance_3d", len(self._sensor_ids)))
+        self._remember(points, t, self._sensor_id("mavlink:obstacle_distance_3d"))
 
     def on_scan_payload(self, encoding: str, payload: bytes, now_s: float) -> None:
         """A zenoh scan: ROS 2 LaserScan CDR, or ``apf.range_scan/1`` JSON (stamped with boot time, if given)."""
@@ -321,13 +331,24 @@ class PerceptionFrontEnd:
             limit = self.params.max_range_m
             points = points[np.einsum("ij,ij->i", rel, rel) <= limit * limit]
         p = self.params
-        sensor = self._sensor_ids.setdefault(scan.source, len(self._sensor_ids))
+        sensor = self._sensor_id(scan.source)
         refused = self.memory.clears_refused
         self.memory.clear_observed(scan, pose, sensor=sensor, clear_scans=p.clear_scans, clear_span_s=p.clear_span_s)
         self.counters.clears_refused += self.memory.clears_refused - refused
         bearings = scan_bearings_ned_rad(scan, pose)
         self.sectors.note(bearings[~np.isnan(scan.ranges_m)], scan.t_s)
         self._remember(points, scan.t_s, sensor)
+
+    def _sensor_id(self, source: str) -> int:
+        """The clearing id of a scan source; sources after the first ``MAX_SENSOR_IDS`` share the id
+        ``MAX_SENSOR_IDS`` (they can clear each other's points, never those of the first ones)."""
+        sensor = self._sensor_ids.get(source)
+        if sensor is None:
+            sensor = len(self._sensor_ids)
+            if sensor >= MAX_SENSOR_IDS:
+                return MAX_SENSOR_IDS
+            self._sensor_ids[source] = sensor
+        return sensor
 
     def _remember(self, points: FloatArray, t_s: float, sensor: int = -1) -> None:
         """The one write to the obstacle memory: a usable scan measured at ``t_s`` (possibly no points: all free

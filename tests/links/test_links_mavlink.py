@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import socket
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -94,6 +95,20 @@ async def test_udpin_replies_to_every_peer_heard_from() -> None:
                 assert (await client.recv_match(type="HEARTBEAT", timeout=HANG_S)).get_srcSystem() == 1
             assert server.stats.bytes_sent == len(frame(1))  # counted once per send, not per peer
     assert MAX_UDP_PEERS >= 2
+
+
+async def test_udpin_forgets_the_parser_of_an_evicted_peer() -> None:
+    """A vehicle restarting on a new source port each time (as the soak does) must not grow the parsers forever."""
+    async with await MavlinkLink.open("udpin:127.0.0.1:0", source_system=1, source_component=1) as server:
+        assert server.local_address is not None
+        n = MAX_UDP_PEERS + 8
+        for i in range(n):
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a new source port each time
+                s.bind(("127.0.0.1", 0))
+                s.sendto(frame(10 + i), server.local_address)
+                assert (await server.recv(timeout=HANG_S)).get_srcSystem() == 10 + i
+        assert server.stats.packets_received == n
+        assert len(server._receiver._parsers) == MAX_UDP_PEERS  # one per peer still replied to
 
 
 async def test_sequence_numbers_increase() -> None:

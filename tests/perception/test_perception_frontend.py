@@ -11,7 +11,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.links.messages import ObstacleDistance, ObstacleDistance3d, Source
-from apf_companion.perception import PerceptionFrontEnd, PerceptionParams
+from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, RangeScan, ScanFrame, encode_laserscan_cdr
+from apf_companion.perception.frontend import MAX_SENSOR_IDS
 
 ROOT = Path(__file__).resolve().parents[2]
 SRC = Source(1, 1)
@@ -159,3 +160,26 @@ def test_only_the_front_end_writes_the_obstacle_memory() -> None:
             ):
                 offenders.append(f"{path.relative_to(ROOT)}:{node.lineno} {ast.unparse(node)}")
     assert not offenders, offenders
+
+
+def test_a_new_frame_id_on_every_scan_does_not_grow_the_sensor_table() -> None:
+    """A zenoh publisher changing its LaserScan frame_id on every scan: sources beyond MAX_SENSOR_IDS share one id."""
+    p = front()
+    p.on_attitude(0.0)
+    scan = RangeScan(
+        t_s=0.0,
+        frame=ScanFrame.BODY_FRD,
+        bearings_rad=np.deg2rad([-5.0, 0.0, 5.0]),
+        ranges_m=np.array([4.0, 4.0, 4.0]),
+        range_min_m=0.2,
+        range_max_m=12.0,
+    )
+    n = 3 * MAX_SENSOR_IDS
+    for i in range(n):
+        t = 10.0 + 0.1 * i
+        p.on_local_position(1000 + 100 * i, (0.0, 0.0, -5.0), t)
+        p.on_scan_payload("application/cdr", encode_laserscan_cdr(scan, frame_id=f"laser{i}"), t)
+    p.on_local_position(1000 + 100 * n, (0.0, 0.0, -5.0), 10.0 + 0.1 * n)  # places the last one
+    assert p.counters.scans == n and p.counters.bad_scans == 0 and p.counters.scans_without_pose == 0
+    assert len(p._sensor_ids) == MAX_SENSOR_IDS
+    assert len(p) > 0  # the extra sources' obstacles are remembered all the same

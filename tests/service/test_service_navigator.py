@@ -309,3 +309,25 @@ def test_holding_reason_changes_are_rate_limited() -> None:
         "pose stale, ranges stale: holding position",
     }
     assert all(b.t_s - a.t_s >= 1.0 - 1e-9 for a, b in itertools.pairwise(changes))
+
+
+def test_the_same_goal_again_after_stuck_starts_the_planner_afresh() -> None:
+    """bapf-nav gives up on an enclosed goal; once the enclosure is gone, sending the same goal again must fly (the
+    planner's give-up state is per goal, not for the life of the service)."""
+    cfg = config_from_mapping({"planner": {"name": "bapf-nav", "params": {"nav_patience_steps": 60}}})
+    nav = make(cfg)
+    feed(nav, 0.1, (0, 0, -5))
+    ang = np.linspace(0.0, 2.0 * np.pi, 120, endpoint=False)
+    ring = np.stack([6.0 + 1.5 * np.cos(ang), 1.5 * np.sin(ang), np.full(120, -5.0)], axis=1)
+    scan(nav, ring, 0.1)
+    goal = Route.point(6.0, 0.0, -5.0, source="test")
+    assert nav.set_route(goal, 0.1)
+    t, pos = fly(nav, 0.1, np.array([0.0, 0.0, -5.0]), 600)
+    first = nav.state
+    assert first is State.STUCK
+    t += 40.0  # the ring expires from the memory (30 s); the vehicle still where it gave up
+    feed(nav, t, tuple(pos))
+    assert len(nav.obstacles.points(t)) == 0
+    assert nav.set_route(goal, t)
+    t, pos = fly(nav, t, pos, 200)
+    assert nav.state is State.ARRIVED

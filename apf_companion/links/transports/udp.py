@@ -86,7 +86,8 @@ class UdpIn(_UdpTransport):
         self._peers[addr] = None
         self._peers.move_to_end(addr)
         while len(self._peers) > MAX_UDP_PEERS:
-            self._peers.popitem(last=False)
+            old, _ = self._peers.popitem(last=False)
+            self.receiver.forget(old)  # its parser too, or a new source port per reconnect grows them forever
         self.receiver.connected.set()
         super().heard(data, addr)
 
