@@ -587,6 +587,14 @@ class Recovery:
             nav._change(now_s, State.NAVIGATING, "autopilot heartbeat back: taking over again for the goal")
 
 
+def _reset_planner(planner: object) -> None:
+    """A stateful planner (bapf-nav) that gave up stays given up until its target changes: a new goal, even the
+    same point again (a retry, the next flight of a long-lived service), starts it afresh."""
+    reset = getattr(planner, "reset", None)
+    if callable(reset):
+        reset()
+
+
 class Navigator:
     """The decision core. Feed it inputs, call ``cycle(now_s)`` at the cycle rate.
 
@@ -655,11 +663,7 @@ class Navigator:
             return False
         self.counters.goals += 1
         self.route = route
-        # A stateful planner (bapf-nav) that gave up stays given up until its target changes: a new goal, even the
-        # same point again (a retry, the next flight of a long-lived service), starts it afresh.
-        reset = getattr(self.planner, "reset", None)
-        if callable(reset):
-            reset()
+        _reset_planner(self.planner)
         self._legs.leg = None
         self._steps.target = None
         self._hold.reset()

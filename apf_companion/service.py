@@ -424,8 +424,8 @@ class CompanionService:
             self._outcome = None
             self._end_s = None
             self._goal_s = now
+            # Its state change is reported by the next cycle (<= one period), to the status and the observers alike.
             log.info("goal.set", extra={"source": route.source, "waypoints_ned_m": route.to_json_list()})
-            self.reporter.changes(self.navigator.drain_changes())
         else:
             self.counters.bad_goals += 1
         return accepted
@@ -573,8 +573,7 @@ class TakeoverDriver:
             log.warning("takeover.failed", extra={"error": action.reason})
             if action.drop_goal:
                 self.navigator.resume()
-                self.navigator.clear_route(now, f"takeover failed: {action.reason}")
-                self.reporter.changes(self.navigator.drain_changes())
+                self.navigator.clear_route(now, f"takeover failed: {action.reason}")  # reported by the next cycle
         else:
             log.info(f"takeover.{kind.value}", extra={"profile": profile.value, "down_m": action.value})
 
