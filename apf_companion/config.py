@@ -271,6 +271,9 @@ class GoalConfig:
             GUIDED / OFFBOARD, i.e. restarted mid-flight (systemd ``Restart=``, a watchdog kill). False (default):
             the goal in the file is not fresh then: the service holds position, says why, and waits for a goal
             sent now (DO_REPOSITION, zenoh). A ``--goal`` / ``--route`` on the command line is always flown.
+        max_altitude_m: A goal (from any source) more than this above home is refused and counted in
+            ``bad_goals`` [m]; 0 = no limit. 120 m: the usual limit for open-category flights.
+        max_distance_m: ... or one horizontally further than this from the vehicle [m]; 0 = no limit.
     """
 
     north_m: float | None = None
@@ -280,6 +283,8 @@ class GoalConfig:
     adopt_autopilot_target: bool = False
     adopt_tolerance_m: float = 1.0
     fly_after_restart: bool = False
+    max_altitude_m: float = 120.0
+    max_distance_m: float = 2000.0
 
     def __post_init__(self) -> None:
         if (self.north_m is None) != (self.east_m is None):
@@ -293,6 +298,8 @@ class GoalConfig:
             if value is not None:
                 _check_range(f"goal.{key}", value, -1e6, 1e6)
         _check_range("goal.adopt_tolerance_m", self.adopt_tolerance_m, 0.1, 50.0)
+        _check_range("goal.max_altitude_m", self.max_altitude_m, 0.0, 10_000.0)
+        _check_range("goal.max_distance_m", self.max_distance_m, 0.0, 1e6)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -39,6 +39,7 @@ __all__ = [
     "load_route",
     "local_goal_from_reposition",
     "parse_goal_text",
+    "route_outside_limits",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -251,3 +252,24 @@ def local_goal_from_reposition(
         return Route.point(north_m, east_m, down_m, source=source)
     except ConfigError as err:
         raise RepositionError(mavlink.MAV_RESULT_DENIED, str(err)) from err
+
+
+def route_outside_limits(
+    route: Route, pos_ned_m: npt.ArrayLike | None, *, max_altitude_m: float, max_distance_m: float
+) -> str | None:
+    """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home), or
+    horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet).
+    0 = no limit. A mistyped or hostile goal (the fuzz sent DO_REPOSITION z = -8576 m) is refused, not flown."""
+    wp = route.waypoints_ned_m
+    if max_altitude_m > 0.0:
+        up = -wp[:, 2]
+        high = np.flatnonzero(np.isfinite(up) & (up > max_altitude_m))
+        if high.size:
+            i = int(high[0])
+            return f"waypoint {i} is {up[i]:.0f} m above home (goal.max_altitude_m = {max_altitude_m:g})"
+    if max_distance_m > 0.0 and pos_ned_m is not None:
+        pos = np.asarray(pos_ned_m, dtype=np.float64)
+        far = np.flatnonzero(np.hypot(wp[:, 0] - pos[0], wp[:, 1] - pos[1]) > max_distance_m)
+        if far.size:
+            return f"waypoint {int(far[0])} is more than goal.max_distance_m = {max_distance_m:g} m away"
+    return None

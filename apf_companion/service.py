@@ -54,7 +54,7 @@ from apf_companion.builders import (
 from apf_companion.config import ServiceConfig, ZenohSection
 from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
 from apf_companion.forwarder import ObstacleForwarder
-from apf_companion.goal import Route
+from apf_companion.goal import Route, route_outside_limits
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.linkquality import LinkMeter
 from apf_companion.links import MavlinkLink, TimestampKeeper
@@ -418,6 +418,18 @@ class CompanionService:
     # ---- goals -------------------------------------------------------------------------------------------------
     def set_route(self, route: Route, now: float) -> bool:
         """Fly ``route`` (replacing the current goal); False while the link is lost."""
+        pose = self.navigator.pose
+        gc = self.config.goal
+        why = route_outside_limits(
+            route,
+            None if pose is None else pose.pos_ned_m,
+            max_altitude_m=gc.max_altitude_m,
+            max_distance_m=gc.max_distance_m,
+        )
+        if why is not None:
+            self.counters.bad_goals += 1
+            log.warning("goal.refused", extra={"source": route.source, "reason": why})
+            return False
         accepted = self.navigator.set_route(route, now)
         if accepted:
             self.counters.goals += 1

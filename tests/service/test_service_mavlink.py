@@ -24,7 +24,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import MASK_POS_VEL, MASK_VELOCITY, CopterMode
 from apf_companion.config import ServiceConfig, config_from_mapping
-from apf_companion.goal import Route
+from apf_companion.goal import Route, route_outside_limits
 from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
 from apf_companion.service import CompanionService
@@ -324,6 +324,36 @@ async def test_do_reposition_from_gcs_replaces_goal() -> None:
             assert svc.reporter.counters.foreign_messages >= 1
         finally:
             await gcs.aclose()
+
+
+async def test_a_goal_beyond_the_altitude_or_distance_limit_is_refused() -> None:
+    """The fuzz sent DO_REPOSITION z = -8576 m from a ground station: refused (counted), the goal unchanged."""
+    route = Route.point(30.0, 0.0, -5.0, source="test")
+    async with rig(route=route) as (svc, ap):
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 5, 10.0, "flying")
+        port = svc.link.local_address[1]  # type: ignore[union-attr,index]
+        gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+        try:
+            for x_e4, z in ((0, -8576.0), (30_000_000, -5.0)):  # 8.5 km up; 3 km north
+                bad = svc.counters.bad_goals
+                gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, x_e4, 50000, z))
+                ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+                assert ack.command == 192 and ack.result != mavlink.MAV_RESULT_ACCEPTED
+                assert svc.counters.bad_goals == bad + 1
+                assert svc.navigator.route is not None and svc.navigator.route.source == "test"
+            assert all(m.z > -10.0 for _, m in ap.setpoints())  # no setpoint went up towards it
+        finally:
+            await gcs.aclose()
+
+
+def test_route_limits() -> None:
+    up = Route.point(0.0, 0.0, -121.0, source="t")
+    assert route_outside_limits(up, None, max_altitude_m=120.0, max_distance_m=0.0) is not None
+    assert route_outside_limits(up, None, max_altitude_m=0.0, max_distance_m=0.0) is None  # 0 = off
+    keep = Route.point(10.0, 0.0, None, source="t")  # NaN down: keep the altitude
+    assert route_outside_limits(keep, (0.0, 0.0, -5.0), max_altitude_m=120.0, max_distance_m=100.0) is None
+    assert route_outside_limits(keep, (-95.0, 0.0, -5.0), max_altitude_m=120.0, max_distance_m=100.0) is not None
+    assert route_outside_limits(keep, None, max_altitude_m=120.0, max_distance_m=5.0) is None  # no pose yet
 
 
 async def test_commands_broadcast_to_system_0_are_answered() -> None:
