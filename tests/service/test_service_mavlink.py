@@ -326,14 +326,25 @@ async def test_do_reposition_from_gcs_replaces_goal() -> None:
             await gcs.aclose()
 
 
+@contextlib.asynccontextmanager
+async def gcs_for(svc: CompanionService) -> AsyncIterator[MavlinkLink]:
+    """A ground station (255/190) talking to the service's link."""
+    assert svc.link is not None and svc.link.local_address is not None
+    gcs = await MavlinkLink.open(
+        f"udpout:127.0.0.1:{svc.link.local_address[1]}", source_system=255, source_component=190
+    )
+    try:
+        yield gcs
+    finally:
+        await gcs.aclose()
+
+
 async def test_a_goal_beyond_the_altitude_or_distance_limit_is_refused() -> None:
     """The fuzz sent DO_REPOSITION z = -8576 m from a ground station: refused (counted), the goal unchanged."""
     route = Route.point(30.0, 0.0, -5.0, source="test")
     async with rig(route=route) as (svc, ap):
         await within(svc.clock.now, lambda: len(ap.setpoints()) > 5, 10.0, "flying")
-        port = svc.link.local_address[1]  # type: ignore[union-attr,index]
-        gcs = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
-        try:
+        async with gcs_for(svc) as gcs:
             for x_e4, z in ((0, -8576.0), (30_000_000, -5.0)):  # 8.5 km up; 3 km north
                 bad = svc.counters.bad_goals
                 gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, x_e4, 50000, z))
@@ -342,8 +353,6 @@ async def test_a_goal_beyond_the_altitude_or_distance_limit_is_refused() -> None
                 assert svc.counters.bad_goals == bad + 1
                 assert svc.navigator.route is not None and svc.navigator.route.source == "test"
             assert all(m.z > -10.0 for _, m in ap.setpoints())  # no setpoint went up towards it
-        finally:
-            await gcs.aclose()
 
 
 def test_route_limits() -> None:

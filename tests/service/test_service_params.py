@@ -4,11 +4,9 @@ UDP while the service flies the scripted autopilot; refused values are echoed ba
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import shutil
 import sys
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -24,21 +22,9 @@ from apf_companion.planning.params import PlannerParams
 from apf_companion.service import CompanionService
 from apf_companion.setpoint import SetpointKind
 from tests.conftest import HANG_S, until, within
-from tests.service.test_service_mavlink import fast_config, rig
+from tests.service.test_service_mavlink import fast_config, gcs_for, rig
 
 pytestmark = pytest.mark.timeout(60)
-
-
-@contextlib.asynccontextmanager
-async def gcs_for(svc: CompanionService) -> AsyncIterator[MavlinkLink]:
-    assert svc.link is not None and svc.link.local_address is not None
-    gcs = await MavlinkLink.open(
-        f"udpout:127.0.0.1:{svc.link.local_address[1]}", source_system=255, source_component=190
-    )
-    try:
-        yield gcs
-    finally:
-        await gcs.aclose()
 
 
 async def param_values(gcs: MavlinkLink, n: int, timeout_s: float = 5.0) -> list[Any]:
