@@ -40,9 +40,10 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import MoveSweep, near_obstacles
-from apf_companion.planning.decision import BatchDecision, DecisionReason
+from apf_companion.planning.clearance import MoveSweep, clearance_terms, lookahead_probes, near_obstacles
+from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navone import DirectStep
 from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
@@ -67,8 +68,6 @@ _GAVE_UP_CODE = np.int8(DecisionReason.GAVE_UP)
 _any = np.logical_or.reduce
 _all = np.logical_and.reduce
 _sum = np.add.reduce
-#: Smallest normal float64 (the divisor where a distance is zero, ``_probes``).
-_TINY = float(np.finfo(np.float64).tiny)
 #: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
 _GROUP = 16
 
@@ -93,6 +92,7 @@ class BapfNavPlanner(StatefulPlanner):
         # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
         soft_m = math.sqrt(7.0 / p.nav_clearance_decay_per_m2)  # exp(-7) < 1e-3: negligible beyond
         self._reach_m = p.step_m + max(self.clearance_m + p.nav_lookahead_m, soft_m)
+        self._direct_one = DirectStep(p, offsets, self._units, self.clearance_m, self._reach_m)
 
     def initial_state(self, n_agents: int) -> NavState:
         return NavState.empty(n_agents, self.params.dim)
@@ -112,11 +112,49 @@ class BapfNavPlanner(StatefulPlanner):
         if not _all(same, axis=None):
             changed = ~same
             state.restart(np.flatnonzero(changed), targets_m[changed])
-        offsets = self.bacteria_offsets_m
         goal_vec = targets_m - positions_m
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
         self._progress(state, g0)
+        return self._decide(positions_m, targets_m, obstacles_m, obstacle_mask, state, goal_vec, g0)
 
+    def step(
+        self,
+        position_m: npt.ArrayLike,
+        target_m: npt.ArrayLike,
+        obstacles_m: npt.ArrayLike,
+        rng: np.random.Generator | None = None,
+    ) -> Decision:
+        """``StatefulPlanner.step``; a DIRECT step takes the single-agent path (``navone``), same decision."""
+        pos, tgt, obs = self._check_one(position_m, target_m, obstacles_m)
+        if self._own is None:
+            self._own = self.initial_state(1)
+        state = self._own
+        assert isinstance(state, NavState)
+        if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN
+            state.restart(np.zeros(1, dtype=np.intp), tgt[None])
+        goal_vec = tgt[None] - pos[None]
+        g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
+        self._progress(state, g0)
+        direct = state.mode[0] == _DIRECT
+        decision = self._direct_one(pos, obs, goal_vec[0], float(g0[0]), state.prev_dir) if direct else None
+        if decision is None:  # not DIRECT, or it enters ESCAPE: the batch path
+            return self._decide(pos[None], tgt[None], obs[None], None, state, goal_vec, g0).row(0)
+        if decision.chosen_index is not None:
+            state.prev_dir[0] = self._units[decision.chosen_index]
+        return decision
+
+    def _decide(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+        goal_vec: FloatArray,
+        g0: FloatArray,
+    ) -> BatchDecision:
+        """The step after the target and progress rules (``_plan``): scores, escape, choice."""
+        offsets = self.bacteria_offsets_m
         to_goal = goal_vec[:, None, :] - offsets[None, :, :]
         g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
         direct = state.mode == _DIRECT
@@ -224,7 +262,7 @@ class BapfNavPlanner(StatefulPlanner):
             zeros = np.zeros(g_k.shape)
             return np.ones(g_k.shape, dtype=bool), seg2, zeros, np.zeros(g_k.shape[0]), zeros
         lookahead = p.nav_lookahead_m > 0.0 and p.nav_lookahead_penalty_m > 0.0 and _any(direct, axis=None)
-        probes = self._probes(to_goal, g_k) if lookahead else None
+        probes = lookahead_probes(to_goal, g_k, p.nav_lookahead_m) if lookahead else None
         r2 = np.einsum("amd,amd->am", rel, rel)
         seg2, end2, look2 = self._sweep_moves(rel, valid, r2, probes)
         feasible, clear_k, clear_0 = self._sweep(valid, r2, seg2, end2)
@@ -259,8 +297,8 @@ class BapfNavPlanner(StatefulPlanner):
         if p.nav_clearance_gain_m == 0.0:
             clear_k, clear_0 = np.zeros(seg2.shape), np.zeros(n_agents)
         else:
-            terms = self._clearance_potential(end2)
-            at_agent = self._clearance_potential(r2)
+            terms = clearance_terms(end2, p.nav_clearance_decay_per_m2, p.nav_clearance_gain_m)
+            at_agent = clearance_terms(r2, p.nav_clearance_decay_per_m2, p.nav_clearance_gain_m)
             if not all_valid:
                 np.copyto(terms, 0.0, where=~valid.T[:, :, None])
                 at_agent = np.where(valid, at_agent, 0.0)
@@ -274,21 +312,6 @@ class BapfNavPlanner(StatefulPlanner):
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
         return np.asarray(ok), clear_k, clear_0
-
-    def _clearance_potential(self, dist_sq_m2: FloatArray) -> FloatArray:
-        """Eq. (2) at product scale, ``potentials.obstacle_potential`` with one temporary (the same operations)."""
-        p = self.params
-        out = dist_sq_m2 * -p.nav_clearance_decay_per_m2
-        np.exp(out, out=out)
-        out *= p.nav_clearance_gain_m
-        return out
-
-    def _probes(self, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
-        """(A, K, D) look-ahead probes: from each point towards the goal, ``nav_lookahead_m`` long (or to it).
-        A point on the goal (g = 0) gets a zero probe: min(g, L) / max(g, tiny) = 0 there, no 0/0."""
-        scale = np.minimum(g_k, self.params.nav_lookahead_m)
-        scale /= np.maximum(g_k, _TINY)
-        return to_goal * scale[..., None]
 
     def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
         """Best passing point, with the turn hysteresis; -1 where none passes."""
