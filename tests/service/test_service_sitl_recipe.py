@@ -101,7 +101,12 @@ async def test_the_recipe_flies_through_mavproxy_with_the_sensor_on_its_own_port
         async with asyncio.TaskGroup() as tg:
             task = tg.create_task(svc.run())
             try:
-                await until(lambda: svc.navigator.state is State.ARRIVED, 12 * HANG_S, "arrived at 22, 22")
+                await until(
+                    lambda: svc.navigator.state is State.ARRIVED or autopilot.error is not None,
+                    12 * HANG_S,
+                    "arrived at 22, 22",
+                )
+                assert autopilot.error is None, f"the simulated autopilot failed: {autopilot.error!r}"
             finally:
                 svc.stop()
                 await task
