@@ -31,6 +31,7 @@ from sim.study.engine import SerialExecutor, run_study, simulate
 from sim.study.metrics import Outcome, summarize
 from sim.study.worlds import WorldBatch, draw_worlds
 from sim.world.files import example_world_path, load_world
+from sim.world.geometry import surface_samples_ne_m
 
 PRODUCT = ("bapf-nav", "bendyruler")
 
@@ -69,6 +70,7 @@ def test_names_are_defined_once_and_strings_still_work() -> None:
         ("nav_grid_m", 1.0),
         ("nav_patience_steps", 0),
         ("nav_replan_steps", 2.5),
+        ("nav_sight_m", -1.0),
         ("br_cont_ratio", 0.9),
         ("br_margin_max_m", 0.0),
     ],
@@ -259,6 +261,43 @@ def test_escape_reaches_the_goal_of_each_bundled_world(name: str) -> None:
     outcome, _, lowest = _fly_world(name)
     assert outcome == "arrived"
     assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
+    """Fly ``u-trap-goal`` noise-free, seeing the study's surface samples within 8 m (remembered).
+
+    Returns (north where the agent first descends the geodesic potential, path length on arrival)."""
+    world = load_world(example_world_path("u-trap-goal"))
+    samples = surface_samples_ne_m(world)
+    planner = BapfNavPlanner(params)
+    state = planner.initial_state(1)
+    pos = np.asarray(world.start_ne_m, dtype=np.float64)
+    goal = np.asarray(world.goal_ne_m, dtype=np.float64)
+    seen = np.zeros(samples.shape[0], dtype=bool)
+    first_escape, path = math.inf, 0.0
+    for _ in range(600):
+        if np.linalg.norm(pos - goal) <= 0.7:
+            return first_escape, path
+        seen |= np.linalg.norm(samples - pos, axis=1) <= 8.0
+        d = planner.step_batch(pos[None], goal[None], samples[None], seen[None], state=state)
+        if state.mode[0] == NavMode.ESCAPE and math.isinf(first_escape):
+            first_escape = float(pos[0])
+        assert d.moved[0]
+        path += float(np.linalg.norm(d.next_points_m[0] - pos))
+        pos = d.next_points_m[0]
+    pytest.fail("did not arrive")
+
+
+def test_a_closed_u_in_sight_is_avoided_before_the_agent_enters_it() -> None:
+    """The straight line to the goal crosses the U's closed end, which the 8 m sensor shows from north 4: the agent
+    switches to the geodesic potential there, before the U's mouth (north 6), and goes round. Without the
+    sight rule (``nav_sight_m`` = 0) it is trapped at the bottom of the U first (37.2 m when this was written)."""
+    switch_north, path = _fly_u_trap_goal(PlannerParams())
+    assert switch_north < 6.0
+    assert path < 30.0  # 28.0 m; the optimum at 0.35 m clearance is 22.7 m
+    late_north, late_path = _fly_u_trap_goal(PlannerParams(nav_sight_m=0.0))
+    assert late_north > 10.0  # at the bottom of the U (closed end at north 12)
+    assert late_path > path + 5.0
 
 
 def test_escape_in_3d_on_the_u_trap() -> None:
