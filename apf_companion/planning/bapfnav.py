@@ -58,6 +58,8 @@ IntArray = npt.NDArray[np.intp]
 #: A new closest approach must beat the old one by this share of a step (noise-level jitter is no progress, and
 #: an agent circling an enclosed goal cannot reset its patience for ever by creeping a millimetre closer).
 _PROGRESS_SHARE = 0.25
+#: Ages of fields stop counting here (any age >= ``nav_replan_steps`` means stale).
+_AGE_CAP = np.int32(2**30)
 #: Spacing of the trail of visited positions (``NavState.record``; used by ``EscapeMaps.refresh``) [m].
 _TRAIL_SPACING_M = 1.0
 # NavMode codes as int8 scalars: comparing an array with an IntEnum member costs enum machinery on every call.
@@ -155,7 +157,8 @@ class BapfNavPlanner(StatefulPlanner):
         if some_gave_up:
             reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
-        state.since_field += 1  # a field kept from an earlier escape ages in DIRECT too (``_progress``)
+        # A field kept from an earlier escape ages in DIRECT too (``_progress``); capped: no int32 overflow.
+        np.add(state.since_field, 1, out=state.since_field, where=state.since_field < _AGE_CAP)
         scores = np.where(passing, cost, np.inf)  # what the viz colours the candidates by
         return decision_from_choice(
             positions_m, offsets, chosen, reason, _sum(passing, axis=1), _sum(feasible, axis=1), candidate_cost=scores

@@ -25,6 +25,7 @@ from apf_companion.planning import (
     StatefulPlanner,
     get_planner,
 )
+from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navfield import NavGrid
 from sim.study.config import Density, StudyConfig
 from sim.study.engine import SerialExecutor, run_study, simulate
@@ -261,6 +262,32 @@ def test_escape_reaches_the_goal_of_each_bundled_world(name: str) -> None:
     outcome, _, lowest = _fly_world(name)
     assert outcome == "arrived"
     assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+def test_the_line_of_sight_is_blocked_by_surfaces_not_by_isolated_points() -> None:
+    """``EscapeMaps.sight_blocked``: a wall across the line blocks it, one point or a point beside the line does
+    not, unknown (masked, non-finite) rows are ignored, and ``nav_sight_m`` = 0 or a wall beyond it is no block."""
+    params = PlannerParams()
+    maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    wall = np.stack([np.full(21, 5.0), np.linspace(-2.0, 2.0, 21)], axis=1)  # north 5, 0.2 m apart
+    point = np.array([[5.0, 0.0]])
+    beside = wall + np.array([0.0, 3.0])  # east 1..5: more than C from the line along east 0
+    far = wall + np.array([10.0, 0.0])  # north 15, beyond 8 m
+    scenes = [wall, point, beside, far, np.full_like(wall, np.nan)]
+    width = max(len(x) for x in scenes)
+    obstacles = np.full((len(scenes), width, 2), np.nan)
+    mask = np.zeros((len(scenes), width), dtype=bool)
+    for a, pts in enumerate(scenes):
+        obstacles[a, : len(pts)] = pts
+        mask[a, : len(pts)] = np.isfinite(pts[:, 0])
+    positions = np.zeros((len(scenes), 2))
+    targets = np.tile([20.0, 0.0], (len(scenes), 1))
+    active = np.ones(len(scenes), dtype=bool)
+    blocked = maps.sight_blocked(active, positions, targets, obstacles, mask)
+    assert blocked.tolist() == [True, False, False, False, False]
+    assert not maps.sight_blocked(~active, positions, targets, obstacles, mask).any()
+    off = EscapeMaps(PlannerParams(nav_sight_m=0.0), BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    assert not off.sight_blocked(active, positions, targets, obstacles, mask).any()
 
 
 def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
