@@ -14,12 +14,14 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    is the ranking by g; using g itself keeps the terms in metres), the clearance term has the form of Eq. (2)
    (``potentials.obstacle_potential``) at product scale. A point passes when J_k < J_a, Eq. (6); the best
    passing point is taken, not the first (the paper's first-passing rule grazes obstacles).
-3. Escape with memory. In DIRECT mode g is the straight-line distance. When no point passes (a local minimum of
-   the paper's field) the agent switches to ESCAPE: g becomes the geodesic distance to the goal on a grid of the
-   obstacles it has seen, inflated by C (``navfield.NavGrid``), which has no local minimum in front of a
-   concave obstacle. It leaves ESCAPE once closer to the goal than where the escape began (Bug2's leave rule),
-   so it cannot fall back into the same trap. The potential is recomputed when the descent stalls (new
-   obstacles) and every ``nav_replan_steps`` escape steps; blocked cells are remembered across recomputations.
+3. Escape with memory. In DIRECT mode g is the straight-line distance. The agent switches to ESCAPE, where g is
+   the geodesic distance to the goal on a grid of the obstacles it has seen, inflated by C
+   (``navfield.NavGrid``, no local minimum in front of a concave obstacle), as soon as a remembered surface
+   blocks the straight line within ``nav_sight_m`` (``EscapeMaps.sight_blocked``), and in any case when no
+   point passes (a local minimum of the paper's field). It leaves ESCAPE once the line is clear and it is closer
+   to the goal than where the escape began (Bug2's leave rule), so it cannot fall back into the same trap. The
+   potential is recomputed when the descent stalls, when a newly seen obstacle lies near its shortest way,
+   and every ``nav_replan_steps`` steps (``navescape``); blocked cells are remembered across recomputations.
 4. Stability. A turn of more than ``nav_hold_angle_deg`` from the previous move is taken only when it gains
    ``nav_hold_ratio`` times what the best point within that angle gains (BendyRuler's OA_BR_CONT_ANGLE /
    OA_BR_CONT_RATIO rule, applied to the score). In DIRECT mode each point also looks ahead: a probe of
@@ -53,8 +55,13 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
-#: A new closest approach must beat the old one by this much [m] (noise-level jitter is no progress).
-_PROGRESS_EPS_M = 1e-6
+#: A new closest approach must beat the old one by this share of a step (noise-level jitter is no progress, and
+#: an agent circling an enclosed goal cannot reset its patience for ever by creeping a millimetre closer).
+_PROGRESS_SHARE = 0.25
+#: Ages of fields stop counting here (any age >= ``nav_replan_steps`` means stale).
+_AGE_CAP = np.int32(2**30)
+#: Spacing of the trail of visited positions (``NavState.record``; used by ``EscapeMaps.refresh``) [m].
+_TRAIL_SPACING_M = 1.0
 # NavMode codes as int8 scalars: comparing an array with an IntEnum member costs enum machinery on every call.
 _DIRECT = np.int8(NavMode.DIRECT)
 _ESCAPE = np.int8(NavMode.ESCAPE)
@@ -115,7 +122,11 @@ class BapfNavPlanner(StatefulPlanner):
         offsets = self.bacteria_offsets_m
         goal_vec = targets_m - positions_m
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
-        self._progress(state, g0)
+        # The line of sight decides entries (DIRECT agents) and exits (escaping agents past Bug2's leave point).
+        looking = (state.mode == _DIRECT) | ((state.mode == _ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m))
+        blocked = self._escape.sight_blocked(looking, positions_m, targets_m, obstacles_m, obstacle_mask)
+        state.record(positions_m, _TRAIL_SPACING_M)
+        self._progress(state, g0, blocked)
 
         to_goal = goal_vec[:, None, :] - offsets[None, :, :]
         g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
@@ -146,8 +157,8 @@ class BapfNavPlanner(StatefulPlanner):
         if some_gave_up:
             reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
-        if some_escape:  # only agents in `escaping` can be in ESCAPE now
-            state.since_field[state.mode == _ESCAPE] += 1
+        # A field kept from an earlier escape ages in DIRECT too (``_progress``); capped: no int32 overflow.
+        np.add(state.since_field, 1, out=state.since_field, where=state.since_field < _AGE_CAP)
         scores = np.where(passing, cost, np.inf)  # what the viz colours the candidates by
         return decision_from_choice(
             positions_m, offsets, chosen, reason, _sum(passing, axis=1), _sum(feasible, axis=1), candidate_cost=scores
@@ -234,17 +245,27 @@ class BapfNavPlanner(StatefulPlanner):
         look_k = np.where((look2 < self._c2) & direct[:, None], p.nav_lookahead_penalty_m, 0.0)
         return feasible, seg2, clear_k, clear_0, look_k
 
-    def _progress(self, state: NavState, g0: FloatArray) -> None:
-        """Closest approach, the escape's leave rule and the give-up by patience."""
-        improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
+    def _progress(self, state: NavState, g0: FloatArray, blocked: BoolArray) -> None:
+        """Closest approach, the modes' switches by sight and by the escape's leave rule, give-up by patience.
+
+        ``blocked``: the agents whose straight line to the goal crosses the remembered map (``nav_sight_m``).
+        A DIRECT agent whose line is blocked enters ESCAPE now, before a concave obstacle can trap it; it keeps
+        a field from an earlier escape (``EscapeMaps.potentials`` recomputes it when it is ``nav_replan_steps``
+        old). An escaping agent leaves once its line is clear and it is closer to the goal than where the
+        escape began, less one step (Bug2's leave rule), so it cannot fall back into the same trap.
+        """
+        improved = g0 < state.best_dist_m - _PROGRESS_SHARE * self.params.step_m
         np.copyto(state.best_dist_m, g0, where=improved)
         state.since_best += 1
         state.since_best[improved] = 0
         escaping = state.mode == _ESCAPE
         if _any(escaping, axis=None):
-            leave = escaping & (g0 < state.hit_dist_m - self.params.step_m)
+            leave = escaping & (g0 < state.hit_dist_m - self.params.step_m) & ~blocked
             state.mode[leave] = _DIRECT
-            state.field[leave] = None
+        sighted = (state.mode == _DIRECT) & blocked
+        if _any(sighted, axis=None):
+            state.mode[sighted] = _ESCAPE
+            state.hit_dist_m[sighted] = g0[sighted]
         state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
     def _sweep(
