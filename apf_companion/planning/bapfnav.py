@@ -14,12 +14,14 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    is the ranking by g; using g itself keeps the terms in metres), the clearance term has the form of Eq. (2)
    (``potentials.obstacle_potential``) at product scale. A point passes when J_k < J_a, Eq. (6); the best
    passing point is taken, not the first (the paper's first-passing rule grazes obstacles).
-3. Escape with memory. In DIRECT mode g is the straight-line distance. When no point passes (a local minimum of
-   the paper's field) the agent switches to ESCAPE: g becomes the geodesic distance to the goal on a grid of the
-   obstacles it has seen, inflated by C (``navfield.NavGrid``), which has no local minimum in front of a
-   concave obstacle. It leaves ESCAPE once closer to the goal than where the escape began (Bug2's leave rule),
-   so it cannot fall back into the same trap. The potential is recomputed when the descent stalls (new
-   obstacles) and every ``nav_replan_steps`` escape steps; blocked cells are remembered across recomputations.
+3. Escape with memory. In DIRECT mode g is the straight-line distance. The agent switches to ESCAPE, where g is
+   the geodesic distance to the goal on a grid of the obstacles it has seen, inflated by C
+   (``navfield.NavGrid``, no local minimum in front of a concave obstacle), as soon as a remembered surface
+   blocks the straight line within ``nav_sight_m`` (``EscapeMaps.sight_blocked``), and in any case when no
+   point passes (a local minimum of the paper's field). It leaves ESCAPE once the line is clear and it is closer
+   to the goal than where the escape began (Bug2's leave rule), so it cannot fall back into the same trap. The
+   potential is recomputed when the descent stalls, when a newly seen obstacle lies near its shortest way,
+   and every ``nav_replan_steps`` steps (``navescape``); blocked cells are remembered across recomputations.
 4. Stability. A turn of more than ``nav_hold_angle_deg`` from the previous move is taken only when it gains
    ``nav_hold_ratio`` times what the best point within that angle gains (BendyRuler's OA_BR_CONT_ANGLE /
    OA_BR_CONT_RATIO rule, applied to the score). In DIRECT mode each point also looks ahead: a probe of
@@ -54,8 +56,13 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
-#: A new closest approach must beat the old one by this much [m] (noise-level jitter is no progress).
-_PROGRESS_EPS_M = 1e-6
+#: A new closest approach must beat the old one by this share of a step (noise-level jitter is no progress, and
+#: an agent circling an enclosed goal cannot reset its patience for ever by creeping a millimetre closer).
+_PROGRESS_SHARE = 0.25
+#: Ages of fields stop counting here (any age >= ``nav_replan_steps`` means stale).
+_AGE_CAP = np.int32(2**30)
+#: Spacing of the trail of visited positions (``NavState.record``; used by ``EscapeMaps.refresh``) [m].
+_TRAIL_SPACING_M = 1.0
 # NavMode codes as int8 scalars: comparing an array with an IntEnum member costs enum machinery on every call.
 _DIRECT = np.int8(NavMode.DIRECT)
 _ESCAPE = np.int8(NavMode.ESCAPE)
@@ -70,6 +77,11 @@ _all = np.logical_and.reduce
 _sum = np.add.reduce
 #: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
 _GROUP = 16
+
+
+def _age_fields(state: NavState) -> None:
+    """A field kept from an earlier escape ages in DIRECT too (``_progress``); capped: no int32 overflow."""
+    np.add(state.since_field, 1, out=state.since_field, where=state.since_field < _AGE_CAP)
 
 
 class BapfNavPlanner(StatefulPlanner):
@@ -112,10 +124,26 @@ class BapfNavPlanner(StatefulPlanner):
         if not _all(same, axis=None):
             changed = ~same
             state.restart(np.flatnonzero(changed), targets_m[changed])
+        goal_vec, g0 = self._start(positions_m, targets_m, obstacles_m, obstacle_mask, state)
+        return self._decide(positions_m, targets_m, obstacles_m, obstacle_mask, state, goal_vec, g0)
+
+    def _start(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Target minus position (A, D) and its length g0 (A,), after the sight, trail and progress rules."""
         goal_vec = targets_m - positions_m
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
-        self._progress(state, g0)
-        return self._decide(positions_m, targets_m, obstacles_m, obstacle_mask, state, goal_vec, g0)
+        # The line of sight decides entries (DIRECT agents) and exits (escaping agents past Bug2's leave point).
+        looking = (state.mode == _DIRECT) | ((state.mode == _ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m))
+        blocked = self._escape.sight_blocked(looking, positions_m, targets_m, obstacles_m, obstacle_mask)
+        state.record(positions_m, _TRAIL_SPACING_M)
+        self._progress(state, g0, blocked)
+        return goal_vec, g0
 
     def step(
         self,
@@ -132,15 +160,14 @@ class BapfNavPlanner(StatefulPlanner):
         assert isinstance(state, NavState)
         if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN
             state.restart(np.zeros(1, dtype=np.intp), tgt[None])
-        goal_vec = tgt[None] - pos[None]
-        g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
-        self._progress(state, g0)
+        goal_vec, g0 = self._start(pos[None], tgt[None], obs[None], None, state)
         direct = state.mode[0] == _DIRECT
         decision = self._direct_one(pos, obs, goal_vec[0], float(g0[0]), state.prev_dir) if direct else None
         if decision is None:  # not DIRECT, or it enters ESCAPE: the batch path
             return self._decide(pos[None], tgt[None], obs[None], None, state, goal_vec, g0).row(0)
         if decision.chosen_index is not None:
             state.prev_dir[0] = self._units[decision.chosen_index]
+        _age_fields(state)
         return decision
 
     def _decide(
@@ -173,8 +200,8 @@ class BapfNavPlanner(StatefulPlanner):
             world = (positions_m, targets_m, obstacles_m, obstacle_mask, state)
             self._escape_scores(np.flatnonzero(escaping), *world, feasible, clear_k, clear_0, cost, cost0, passing)
 
-        chosen = self._choose(cost, cost0, passing, state.prev_dir)
-        self._squeeze_out(chosen, ~any_feasible & active, seg2)
+        chosen = _choose(cost, cost0, passing, state.prev_dir, self._units, self._cos_hold, self.params.nav_hold_ratio)
+        _squeeze_out(chosen, ~any_feasible & active, seg2, self._floor2)
         gave_up = state.mode == _GAVE_UP
         some_gave_up = bool(_any(gave_up, axis=None))
         if some_gave_up:
@@ -184,8 +211,7 @@ class BapfNavPlanner(StatefulPlanner):
         if some_gave_up:
             reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
-        if some_escape:  # only agents in `escaping` can be in ESCAPE now
-            state.since_field[state.mode == _ESCAPE] += 1
+        _age_fields(state)
         scores = np.where(passing, cost, np.inf)  # what the viz colours the candidates by
         return decision_from_choice(
             positions_m, offsets, chosen, reason, _sum(passing, axis=1), _sum(feasible, axis=1), candidate_cost=scores
@@ -207,16 +233,6 @@ class BapfNavPlanner(StatefulPlanner):
             state.field[rows] = None
             escaping = escaping | trapped
         return np.asarray(escaping)
-
-    def _squeeze_out(self, chosen: IntArray, boxed: BoolArray, seg2: FloatArray) -> None:
-        """Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
-        into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
-        margin; never closer. Without this the agent would sit there until its patience ran out."""
-        if _any(boxed, axis=None):
-            rows = np.flatnonzero(boxed)
-            room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
-            widest = np.argmax(room, axis=1)
-            chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
 
     def _geometry(
         self,
@@ -272,17 +288,27 @@ class BapfNavPlanner(StatefulPlanner):
         look_k = np.where((look2 < self._c2) & direct[:, None], p.nav_lookahead_penalty_m, 0.0)
         return feasible, seg2, clear_k, clear_0, look_k
 
-    def _progress(self, state: NavState, g0: FloatArray) -> None:
-        """Closest approach, the escape's leave rule and the give-up by patience."""
-        improved = g0 < state.best_dist_m - _PROGRESS_EPS_M
+    def _progress(self, state: NavState, g0: FloatArray, blocked: BoolArray) -> None:
+        """Closest approach, the modes' switches by sight and by the escape's leave rule, give-up by patience.
+
+        ``blocked``: the agents whose straight line to the goal crosses the remembered map (``nav_sight_m``).
+        A DIRECT agent whose line is blocked enters ESCAPE now, before a concave obstacle can trap it; it keeps
+        a field from an earlier escape (``EscapeMaps.potentials`` recomputes it when it is ``nav_replan_steps``
+        old). An escaping agent leaves once its line is clear and it is closer to the goal than where the
+        escape began, less one step (Bug2's leave rule), so it cannot fall back into the same trap.
+        """
+        improved = g0 < state.best_dist_m - _PROGRESS_SHARE * self.params.step_m
         np.copyto(state.best_dist_m, g0, where=improved)
         state.since_best += 1
         state.since_best[improved] = 0
         escaping = state.mode == _ESCAPE
         if _any(escaping, axis=None):
-            leave = escaping & (g0 < state.hit_dist_m - self.params.step_m)
+            leave = escaping & (g0 < state.hit_dist_m - self.params.step_m) & ~blocked
             state.mode[leave] = _DIRECT
-            state.field[leave] = None
+        sighted = (state.mode == _DIRECT) & blocked
+        if _any(sighted, axis=None):
+            state.mode[sighted] = _ESCAPE
+            state.hit_dist_m[sighted] = g0[sighted]
         state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
     def _sweep(
@@ -312,26 +338,6 @@ class BapfNavPlanner(StatefulPlanner):
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
         return np.asarray(ok), clear_k, clear_0
-
-    def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
-        """Best passing point, with the turn hysteresis; -1 where none passes."""
-        masked = np.where(passing, cost, np.inf)
-        best = masked.argmin(axis=1)
-        any_pass = _any(passing, axis=1)
-        cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)  # (A, K); 0 without a previous move
-        has_prev = _any(prev_dir != 0.0, axis=1)
-        rows = np.arange(cost.shape[0])
-        sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
-        if _any(sharp, axis=None):
-            held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
-            alt = held.argmin(axis=1)
-            alt_ok = np.isfinite(held[rows, alt])
-            with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
-                gain_best = cost0 - masked[rows, best]
-                gain_alt = cost0 - held[rows, alt]
-            keep = sharp & alt_ok & (gain_best < self.params.nav_hold_ratio * gain_alt)
-            best = np.where(keep, alt, best)
-        return np.where(any_pass, best, -1).astype(np.intp)
 
     # --- escape -----------------------------------------------------------------------------------------------
 
@@ -369,3 +375,44 @@ class BapfNavPlanner(StatefulPlanner):
         cost0[rows[inside]] = np.inf
         passing[rows] = ok
         state.mode[rows[lost & ~inside]] = _GAVE_UP
+
+
+def _squeeze_out(chosen: IntArray, boxed: BoolArray, seg2: FloatArray, floor2: float) -> None:
+    """Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent into
+    a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety margin
+    (``floor2``, squared); never closer. Without this the agent would sit there until its patience ran out."""
+    if _any(boxed, axis=None):
+        rows = np.flatnonzero(boxed)
+        room = np.where(seg2[rows] >= floor2, seg2[rows], -np.inf)
+        widest = np.argmax(room, axis=1)
+        chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
+
+
+def _choose(
+    cost: FloatArray,
+    cost0: FloatArray,
+    passing: BoolArray,
+    prev_dir: FloatArray,
+    units: FloatArray,
+    cos_hold: float,
+    hold_ratio: float,
+) -> IntArray:
+    """Best passing point, with the turn hysteresis (``nav_hold_angle_deg``, ``nav_hold_ratio``); -1 where none
+    passes. ``units``: the bacteria offsets as unit vectors."""
+    masked = np.where(passing, cost, np.inf)
+    best = masked.argmin(axis=1)
+    any_pass = _any(passing, axis=1)
+    cos_turn = np.einsum("ad,kd->ak", prev_dir, units)  # (A, K); 0 without a previous move
+    has_prev = _any(prev_dir != 0.0, axis=1)
+    rows = np.arange(cost.shape[0])
+    sharp = has_prev & any_pass & (cos_turn[rows, best] < cos_hold)
+    if _any(sharp, axis=None):
+        held = np.where(passing & (cos_turn >= cos_hold), cost, np.inf)
+        alt = held.argmin(axis=1)
+        alt_ok = np.isfinite(held[rows, alt])
+        with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
+            gain_best = cost0 - masked[rows, best]
+            gain_alt = cost0 - held[rows, alt]
+        keep = sharp & alt_ok & (gain_best < hold_ratio * gain_alt)
+        best = np.where(keep, alt, best)
+    return np.where(any_pass, best, -1).astype(np.intp)

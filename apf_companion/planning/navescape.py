@@ -1,9 +1,11 @@
 """bapf-nav's escape maps: per agent, the navigation potential of the remembered obstacles (``navfield``).
 
-Owns the grid geometry and the rules of when a potential is (re)computed: on entering ESCAPE, every
-``nav_replan_steps`` escape steps, when the descent stalls (new obstacles), and after marking refused downhill
-cells as virtual obstacles (the grid let the potential through a gap that the swept test refuses). Blocked cells
-are remembered across recomputations and carried over when the grid moves.
+Owns the grid geometry, the line-of-sight test that starts an escape early (``sight_blocked``), and the rules of
+when a potential is (re)computed: on entering ESCAPE without one, when it is ``nav_replan_steps`` steps old, when
+a newly seen obstacle lies near its shortest way (``outdated``), when the descent stalls, and after marking
+refused downhill cells as virtual obstacles (the grid let the potential through a gap that the swept test
+refuses). Blocked cells are remembered across recomputations and carried over when the grid moves; edge cells
+near the agent's trail are not taken as exits (``_distances``).
 """
 
 from __future__ import annotations
@@ -21,6 +23,20 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
+#: Agents x obstacle points per group in the line-of-sight test (``EscapeMaps.sight_blocked``).
+_SIGHT_CELLS = 32768
+#: Known points closer than this to each other belong to one surface (sampled every 0.2 m, ``sight_blocked``).
+_SURFACE_M = 0.45
+#: A field is tested against newly seen obstacles (``EscapeMaps.outdated``) once it is this many steps old: a
+#: bound on the fields an agent can cost while its map grows (one every few moves, not one per move).
+_OUTDATED_AGE = 8
+#: Smallest normal float64: the divisor for an agent on its goal (zero direction, never 0/0).
+_TINY = float(np.finfo(np.float64).tiny)
+_sum = np.add.reduce
+_any = np.logical_or.reduce
+#: Blocking points tested for being part of a surface, the first along the line (``sight_blocked``).
+_SIGHT_FIRST = 3
+
 
 class EscapeMaps:
     """The escape potentials of a planner's agents (their ``NavField`` lives in ``NavState.field``)."""
@@ -31,6 +47,71 @@ class EscapeMaps:
         self.clearance_m = clearance_m
         self._offsets = offsets_m
         self._pad_m = 2.0 * params.step_m + clearance_m + 1.0
+        self._c2 = clearance_m * clearance_m
+        n, h = self.grid.n, self.grid.cell_m
+        on_edge = np.zeros((n, n), dtype=bool)
+        on_edge[0, :] = on_edge[-1, :] = on_edge[:, 0] = on_edge[:, -1] = True
+        self._edge_cells = np.flatnonzero(on_edge)
+        ei, ej = np.divmod(self._edge_cells, n)
+        self._edge_centres = np.stack([(ei + 0.5) * h, (ej + 0.5) * h], axis=1)  # relative to the grid's corner
+
+    def sight_blocked(
+        self,
+        active: BoolArray,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+    ) -> BoolArray:
+        """(A,) agents of ``active`` whose straight line to the goal is blocked by a surface on the remembered map.
+
+        The line runs from one step ahead of the agent (an obstacle beside the agent that noise brought within C
+        does not block it) to ``nav_sight_m`` towards the goal, or to the goal; it is blocked when a known
+        obstacle point lies closer to it than the clearance C, i.e. the line crosses the inflated map that the
+        escape grid is built from, and one of the first ``_SIGHT_FIRST`` such points along the line is part of
+        a surface: two other known points lie within ``_SURFACE_M`` of it (its neighbours on a wall or trunk
+        sampled every 0.2 m). Isolated points, the paper's point obstacles, are passed by the direct step (and
+        a cluster of them that traps it starts an escape as before). All off when ``nav_sight_m`` is 0.
+        """
+        p = self.params
+        out = np.zeros(positions_m.shape[0], dtype=bool)
+        if p.nav_sight_m <= 0.0 or obstacles_m.shape[1] == 0:
+            return out
+        rows = np.flatnonzero(active)
+        first = min(_SIGHT_FIRST, obstacles_m.shape[1])
+        group = max(1, _SIGHT_CELLS // obstacles_m.shape[1])  # (group, M) temporaries stay small
+        for lo in range(0, rows.size, group):
+            r = rows[lo : lo + group]
+            to_goal = targets_m[r] - positions_m[r]
+            dist = np.sqrt(np.einsum("ad,ad->a", to_goal, to_goal))
+            unit = to_goal / np.maximum(dist, _TINY)[:, None]
+            end = np.minimum(dist, p.nav_sight_m)
+            start = np.minimum(p.step_m, end)
+            obs = obstacles_m[r]
+            rel = obs - positions_m[r][:, None, :]
+            with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
+                along = np.einsum("amd,ad->am", rel, unit)
+                t = np.clip(along, start[:, None], end[:, None])
+                off = rel - t[:, :, None] * unit[:, None, :]
+                hit = np.einsum("amd,amd->am", off, off) < self._c2
+            if obstacle_mask is not None:
+                hit &= obstacle_mask[r]
+            some = np.flatnonzero(_any(hit, axis=1))
+            if some.size == 0:
+                continue
+            order = np.where(hit[some], along[some], np.inf)
+            picks = np.argpartition(order, first - 1, axis=1)[:, :first]  # (S, F) the first hits along the line
+            real = np.take_along_axis(hit[some], picks, axis=1)
+            pts = obs[some[:, None], picks]  # (S, F, D)
+            with np.errstate(invalid="ignore", over="ignore"):
+                gap = obs[some][:, None, :, :] - pts[:, :, None, :]  # (S, F, M, D)
+                d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)
+            close = (d2 < _SURFACE_M * _SURFACE_M) & (d2 > 0.0)
+            if obstacle_mask is not None:
+                close &= obstacle_mask[r[some]][:, None, :]
+            surface = (_sum(close, axis=2) >= 2) & real
+            out[r[some]] = _any(surface, axis=1)
+        return out
 
     def potentials(
         self,
@@ -48,6 +129,8 @@ class EscapeMaps:
         (feasible and lower on potential + clearance term), recomputing stale potentials."""
         stale = np.array([state.field[r] is None for r in rows], dtype=bool)
         stale |= state.since_field[rows] >= self.params.nav_replan_steps
+        check = ~stale & (state.since_field[rows] >= _OUTDATED_AGE)
+        stale[check] = self.outdated(rows[check], positions_m, obstacles_m, obstacle_mask, state)
         if stale.any():
             self.refresh(rows[stale], positions_m, targets_m, obstacles_m, obstacle_mask, state)
         g_k, g0 = self.geodesic(rows, positions_m, targets_m, state)
@@ -70,6 +153,54 @@ class EscapeMaps:
             g_k[dead], g0[dead] = self.geodesic(again, positions_m, targets_m, state)
             ok[dead] = feasible[again] & (g_k[dead] + clear_k[again] < (g0[dead] + clear_0[again])[:, None])
         return g_k, g0, ok
+
+    def outdated(
+        self,
+        rows: IntArray,
+        positions_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+    ) -> BoolArray:
+        """(R,) fields of ``rows`` that a newly seen obstacle makes wrong where it matters: a known point within
+        ``nav_sight_m`` whose cell the field has free (it was not known then) and that lies near a shortest way
+        from the agent, |p - agent| + d(p) <= d(agent) + 2 C + h (the straight distance is a lower bound of
+        the way to p). Such a field would lead the agent on into what it now sees is closed (e.g. into a U
+        whose far corners were beyond the sensor when the field was made)."""
+        out = np.zeros(rows.size, dtype=bool)
+        grid = self.grid
+        n, h = grid.n, grid.cell_m
+        slack = 2.0 * self.clearance_m + h
+        reach2 = self.params.nav_sight_m**2
+        for i, r in enumerate(rows):
+            f = state.field[r]
+            if f is None:
+                continue
+            obs = obstacles_m[r]
+            rel = obs - positions_m[r]
+            d2 = np.einsum("md,md->m", rel, rel)  # non-finite rows compare False below
+            near = d2 <= reach2
+            if obstacle_mask is not None:
+                near &= obstacle_mask[r]
+            if self.params.dim == 3:
+                near &= np.abs(rel[:, 2]) <= self.clearance_m
+            if not near.any():
+                continue
+            pts = obs[near, :2]
+            ci, cj = grid.cell_of(f.origin_m[None], pts[None])
+            ci, cj = ci[0], cj[0]
+            inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
+            cells = ci[inside] * n + cj[inside]
+            new = ~f.blocked[cells]
+            if not new.any():
+                continue
+            here = grid.sample(f.origin_m, f.dist_m, positions_m[r, :2][None])[0]
+            if not np.isfinite(here):
+                out[i] = True
+                continue
+            way = np.sqrt(d2[near][inside][new]) + f.dist_m[cells[new]]
+            out[i] = bool((way <= here + slack).any())
+        return out
 
     def mark_dead_ends(
         self,
@@ -128,10 +259,49 @@ class EscapeMaps:
             valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
         blocked = grid.blocked(origins, np.where(valid[..., None], obs[:, :, :2], 0.0), valid, self.clearance_m)
         blocked |= old_blocked
-        dist = grid.distances(origins, blocked, goals)
+        dist = self._distances(rows, xy, origins, blocked, goals, state)
         for i, r in enumerate(rows):
             state.field[r] = NavField(origin_m=origins[i].copy(), blocked=blocked[i], dist_m=dist[i])
         state.since_field[rows] = 0
+
+    def _distances(
+        self,
+        rows: IntArray,
+        xy: FloatArray,
+        origins: FloatArray,
+        blocked: BoolArray,
+        goals: FloatArray,
+        state: NavState,
+    ) -> FloatArray:
+        """The fields of ``rows``, with the grid's edge closed where the agent has already looked beyond it.
+
+        An edge cell is an exit into unknown space (``navfield``): the way on from it costs only the straight
+        line. Edge cells within ``nav_seen_m`` of the agent's trail are not unknown: that space was seen, and
+        the agent turned back from it or came through it. Closing them keeps the potential from sending the
+        agent back to a side it has explored once the grid, which moves with the agent, no longer holds what
+        was there (a long wall: the agent would turn at every new grid). Fields are kept in the agent's
+        memory without these closures. When they leave the agent and its candidate points no way, it is computed
+        with the edge open.
+        """
+        seen_m = self.params.nav_seen_m
+        if seen_m <= 0.0:
+            return self.grid.distances(origins, blocked, goals)
+        closed = blocked.copy()
+        for i, r in enumerate(rows):
+            trail = state.trail_m[r]
+            trail = trail[np.isfinite(trail[:, 0])]
+            if trail.shape[0] == 0:
+                continue
+            edge = origins[i] + self._edge_centres
+            delta = edge[:, None, :] - trail[None, :, :]
+            near = (np.einsum("ekd,ekd->ek", delta, delta) < seen_m * seen_m).any(axis=1)
+            closed[i, self._edge_cells[near]] = True
+        dist = self.grid.distances(origins, closed, goals)
+        around = xy[:, None, :] + np.vstack([self._offsets[:, :2], np.zeros((1, 2))])[None]
+        lost = ~np.isfinite(self.grid.sample_many(origins, dist, around)).any(axis=1)
+        if lost.any():
+            dist[lost] = self.grid.distances(origins[lost], blocked[lost], goals[lost])
+        return dist
 
     def geodesic(
         self, rows: IntArray, positions_m: FloatArray, targets_m: FloatArray, state: NavState

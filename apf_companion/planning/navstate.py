@@ -9,9 +9,11 @@ from typing import Self
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["NavField", "NavMode", "NavState"]
+__all__ = ["TRAIL", "NavField", "NavMode", "NavState"]
 
 FloatArray = npt.NDArray[np.float64]
+#: Trail points kept per agent (``NavState.trail_m``): at 1 m apart, the last 64 m of the way.
+TRAIL = 64
 
 
 class NavMode(enum.IntEnum):
@@ -19,7 +21,8 @@ class NavMode(enum.IntEnum):
 
     #: Straight-line distance to the target (Eq. (1)) plus clearance: the paper's greedy bacteria step.
     DIRECT = 0
-    #: Geodesic distance on the remembered map: escaping a concave obstacle, until closer than where it began.
+    #: Geodesic distance on the remembered map: while a remembered surface blocks the straight line, or after a
+    #: trap; until the line is clear and the agent is closer than where the escape began.
     ESCAPE = 1
     #: Gave up (no path on the remembered map, or no progress): no moves until the target changes.
     GAVE_UP = 2
@@ -43,9 +46,11 @@ class NavState:
     hit_dist_m: FloatArray  # (A,) straight-line distance to the target where the escape began [m]
     best_dist_m: FloatArray  # (A,) closest approach to the target so far [m]
     since_best: npt.NDArray[np.int32]  # (A,) steps since the closest approach improved
-    since_field: npt.NDArray[np.int32]  # (A,) escape steps since the potential was computed
+    since_field: npt.NDArray[np.int32]  # (A,) steps since the potential was computed (kept after an escape)
     prev_dir: FloatArray  # (A, D) unit direction of the last move (zeros: none)
     field: npt.NDArray[np.object_]  # (A,) NavField | None
+    trail_m: FloatArray  # (A, TRAIL, 2) where the agent has been (north, east), about 1 m apart; NaN: unused
+    trail_next: npt.NDArray[np.int32]  # (A,) slot the next trail point goes to (a ring buffer)
 
     @classmethod
     def empty(cls, n_agents: int, dim: int) -> NavState:
@@ -58,6 +63,8 @@ class NavState:
             since_field=np.zeros(n_agents, dtype=np.int32),
             prev_dir=np.zeros((n_agents, dim)),
             field=np.full(n_agents, None, dtype=object),
+            trail_m=np.full((n_agents, TRAIL, 2), np.nan),
+            trail_next=np.zeros(n_agents, dtype=np.int32),
         )
 
     def __len__(self) -> int:
@@ -80,3 +87,15 @@ class NavState:
         self.since_field[rows] = 0
         self.prev_dir[rows] = 0.0
         self.field[rows] = None
+        self.trail_m[rows] = np.nan
+        self.trail_next[rows] = 0
+
+    def record(self, positions_m: FloatArray, spacing_m: float) -> None:
+        """Add each agent's position (north, east) to its trail when it is ``spacing_m`` from the last point."""
+        last = self.trail_m[np.arange(len(self)), (self.trail_next - 1) % TRAIL]
+        delta = positions_m[:, :2] - last
+        far = ~(np.einsum("ad,ad->a", delta, delta) < spacing_m * spacing_m)  # NaN (no point yet): record
+        rows = np.flatnonzero(far)
+        if rows.size:
+            self.trail_m[rows, self.trail_next[rows]] = positions_m[rows, :2]
+            self.trail_next[rows] = (self.trail_next[rows] + 1) % TRAIL

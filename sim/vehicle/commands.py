@@ -158,9 +158,17 @@ def _condition_yaw(v: VehicleEngine, c: Command) -> int:
 
 
 def _send_after_ack(msg_id: int) -> CommandHandler:
-    def handler(v: VehicleEngine, c: Command) -> None:
+    """ACCEPTED and the message, or FAILED when there is nothing to send yet (no home before the EKF origin:
+    GCS_Common.cpp ``handle_command_get_home_position`` returns MAV_RESULT_FAILED while ``!home_is_set()``)."""
+
+    def handler(v: VehicleEngine, c: Command) -> int | None:
+        out = as_list(build(v, msg_id))
+        if not out:
+            return int(mavlink.MAV_RESULT_FAILED)
         v.ack(c.link, c.msg, c.command, mavlink.MAV_RESULT_ACCEPTED)
-        v.emit(c.link, build(v, msg_id))
+        for msg in out:
+            v.emit(c.link, msg)
+        return None
 
     return handler
 

@@ -25,12 +25,14 @@ from apf_companion.planning import (
     StatefulPlanner,
     get_planner,
 )
+from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navfield import NavGrid
 from sim.study.config import Density, StudyConfig
 from sim.study.engine import SerialExecutor, run_study, simulate
 from sim.study.metrics import Outcome, summarize
 from sim.study.worlds import WorldBatch, draw_worlds
 from sim.world.files import example_world_path, load_world
+from sim.world.geometry import surface_samples_ne_m
 
 PRODUCT = ("bapf-nav", "bendyruler")
 
@@ -69,6 +71,7 @@ def test_names_are_defined_once_and_strings_still_work() -> None:
         ("nav_grid_m", 1.0),
         ("nav_patience_steps", 0),
         ("nav_replan_steps", 2.5),
+        ("nav_sight_m", -1.0),
         ("br_cont_ratio", 0.9),
         ("br_margin_max_m", 0.0),
     ],
@@ -259,6 +262,69 @@ def test_escape_reaches_the_goal_of_each_bundled_world(name: str) -> None:
     outcome, _, lowest = _fly_world(name)
     assert outcome == "arrived"
     assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+def test_the_line_of_sight_is_blocked_by_surfaces_not_by_isolated_points() -> None:
+    """``EscapeMaps.sight_blocked``: a wall across the line blocks it, one point or a point beside the line does
+    not, unknown (masked, non-finite) rows are ignored, and ``nav_sight_m`` = 0 or a wall beyond it is no block."""
+    params = PlannerParams()
+    maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    wall = np.stack([np.full(21, 5.0), np.linspace(-2.0, 2.0, 21)], axis=1)  # north 5, 0.2 m apart
+    point = np.array([[5.0, 0.0]])
+    beside = wall + np.array([0.0, 3.0])  # east 1..5: more than C from the line along east 0
+    far = wall + np.array([10.0, 0.0])  # north 15, beyond 8 m
+    scenes = [wall, point, beside, far, np.full_like(wall, np.nan)]
+    width = max(len(x) for x in scenes)
+    obstacles = np.full((len(scenes), width, 2), np.nan)
+    mask = np.zeros((len(scenes), width), dtype=bool)
+    for a, pts in enumerate(scenes):
+        obstacles[a, : len(pts)] = pts
+        mask[a, : len(pts)] = np.isfinite(pts[:, 0])
+    positions = np.zeros((len(scenes), 2))
+    targets = np.tile([20.0, 0.0], (len(scenes), 1))
+    active = np.ones(len(scenes), dtype=bool)
+    blocked = maps.sight_blocked(active, positions, targets, obstacles, mask)
+    assert blocked.tolist() == [True, False, False, False, False]
+    assert not maps.sight_blocked(~active, positions, targets, obstacles, mask).any()
+    off = EscapeMaps(PlannerParams(nav_sight_m=0.0), BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    assert not off.sight_blocked(active, positions, targets, obstacles, mask).any()
+
+
+def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
+    """Fly ``u-trap-goal`` noise-free, seeing the study's surface samples within 8 m (remembered).
+
+    Returns (north where the agent first descends the geodesic potential, path length on arrival)."""
+    world = load_world(example_world_path("u-trap-goal"))
+    samples = surface_samples_ne_m(world)
+    planner = BapfNavPlanner(params)
+    state = planner.initial_state(1)
+    pos = np.asarray(world.start_ne_m, dtype=np.float64)
+    goal = np.asarray(world.goal_ne_m, dtype=np.float64)
+    seen = np.zeros(samples.shape[0], dtype=bool)
+    first_escape, path = math.inf, 0.0
+    for _ in range(600):
+        if np.linalg.norm(pos - goal) <= 0.7:
+            return first_escape, path
+        seen |= np.linalg.norm(samples - pos, axis=1) <= 8.0
+        d = planner.step_batch(pos[None], goal[None], samples[None], seen[None], state=state)
+        if state.mode[0] == NavMode.ESCAPE and math.isinf(first_escape):
+            first_escape = float(pos[0])
+        assert d.moved[0]
+        path += float(np.linalg.norm(d.next_points_m[0] - pos))
+        pos = d.next_points_m[0]
+    pytest.fail("did not arrive")
+
+
+def test_a_closed_u_in_sight_is_avoided_before_the_agent_enters_it() -> None:
+    """The straight line to the goal crosses the U's closed end, which the 8 m sensor shows from north 4: the agent
+    switches to the geodesic potential there, before the U's mouth (north 6), and goes round. Without the
+    sight rule (``nav_sight_m`` = 0) it is trapped at the bottom of the U first (37.2 m when this was written)."""
+    switch_north, path = _fly_u_trap_goal(PlannerParams())
+    assert switch_north < 6.0
+    assert path < 30.0  # 28.0 m; the optimum at 0.35 m clearance is 22.7 m
+    late_north, late_path = _fly_u_trap_goal(PlannerParams(nav_sight_m=0.0))
+    assert late_north > 10.0  # at the bottom of the U (closed end at north 12)
+    assert late_path > path + 5.0
 
 
 def test_escape_in_3d_on_the_u_trap() -> None:

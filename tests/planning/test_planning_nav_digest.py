@@ -21,8 +21,11 @@ from sim.study.engine import simulate
 from sim.study.worlds import draw_worlds
 from sim.world.files import example_world_path, load_world
 
+# bapf-nav re-pinned on branch pathratio (was 2f2d1b990ae7b400): the early escape by sight (nav_sight_m), the
+# refresh of outdated fields, the seen exits (nav_seen_m) and the quarter-step progress rule change its decisions
+# on purpose (docs/planner.md, Design items 4 and 7). bendyruler unchanged.
 PINNED = {
-    "bapf-nav": "2f2d1b990ae7b400",
+    "bapf-nav": "93ef69b61fde5ce3",
     "bendyruler": "549eac0d9465ed7b",
 }
 

@@ -110,6 +110,8 @@ def test_world_cli_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         assert sum(r["counts"].values()) == 6
         assert r["optimum_m"] > 15.0
         assert r["surface_samples"] > 100
+        q = r["clearance_quantiles_m"]
+        assert r["min_clearance_m"] <= q["p01"] <= q["p05"] <= q["p50"]
 
 
 def test_world_cli_rejects_random_field_outputs(capsys: pytest.CaptureFixture[str]) -> None:

@@ -90,6 +90,9 @@ async def test_no_position_until_the_ekf_origin() -> None:
         assert ack.result == m.MAV_RESULT_FAILED and "PreArm: Need Position Estimate" in texts
         ack = await command_long(gcs, m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 5.0)
         assert ack.result == m.MAV_RESULT_FAILED
+        # no home yet: FAILED (GCS_Common.cpp handle_command_get_home_position); MAVProxy asks this at connect
+        ack = await command_long(gcs, m.MAV_CMD_GET_HOME_POSITION)
+        assert ack.result == m.MAV_RESULT_FAILED
         await command_long(gcs, m.MAV_CMD_DO_SET_MODE, m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 0)  # STABILIZE
         texts.clear()
         ack = await command_long(gcs, m.MAV_CMD_DO_SET_MODE, m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, texts=texts)
@@ -109,6 +112,8 @@ async def test_no_position_until_the_ekf_origin() -> None:
         assert any(msg.get_type() == "STATUSTEXT" and msg.text == ORIGIN_TEXT for msg in after)
         assert [msg.flags for msg in after if msg.get_type() == "EKF_STATUS_REPORT"][-1] == EKF_FLAGS_ORIGIN
         assert sim.engine.startup.origin_t_s == pytest.approx(ORIGIN_S, abs=0.02)
+        ack = await command_long(gcs, m.MAV_CMD_GET_HOME_POSITION)
+        assert ack.result == m.MAV_RESULT_ACCEPTED
         ack = await command_long(gcs, m.MAV_CMD_DO_SET_MODE, m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4)
         assert ack.result == m.MAV_RESULT_ACCEPTED
         ack = await command_long(gcs, m.MAV_CMD_COMPONENT_ARM_DISARM, 1)
