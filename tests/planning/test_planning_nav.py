@@ -290,6 +290,55 @@ def test_the_line_of_sight_is_blocked_by_surfaces_not_by_isolated_points() -> No
     assert not off.sight_blocked(active, positions, targets, obstacles, mask).any()
 
 
+def _line(a: tuple[float, float], b: tuple[float, float], spacing_m: float = 0.2) -> np.ndarray:
+    n = int(math.hypot(b[0] - a[0], b[1] - a[1]) / spacing_m) + 1
+    return np.linspace(a, b, n)
+
+
+def _room_with_door(shift_m: float) -> np.ndarray:
+    """A box 0..16 north x 0..11.9 east split at north 8 by a wall from east 0 to 10.3, the door's other side the
+    box's east wall: a 1.6 m door, 0.4 m wide at C = 0.6 m (free cell centres east 10.95 and 11.25). ``shift_m``
+    moves the door's two sides east (what range noise does to the points that remember them)."""
+    box = [_line((0, 0), (16, 0)), _line((16, 0), (16, 11.9)), _line((0, 0), (0, 11.9))]
+    box.append(_line((0, 11.9 + shift_m), (16, 11.9 + shift_m)))  # the east wall, one side of the door
+    return np.vstack([*box, _line((8, 0), (8, 10.3 + shift_m))])
+
+
+def test_a_narrow_door_stays_open_when_its_points_jitter_and_forgotten_walls_stay() -> None:
+    """Refreshed potentials keep remembered obstacle cells only where no point known now is near them: the union
+    of two fields whose inflated door edges sit a cell apart would close the door (seen in ``apf-sim fly --world
+    rooms``: the vehicle turned back in the door and wandered until the service's progress limit). Cells of a
+    wall the memory has forgotten, and dead ends the planner marked, are kept."""
+    params = PlannerParams()
+    maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    state = NavState.empty(1, 2)
+    agent, goal = np.array([[5.0, 10.5]]), np.array([[12.0, 6.0]])
+    rows = np.array([0])
+
+    def refresh(points: np.ndarray) -> float:
+        maps.refresh(rows, agent, goal, points[None], None, state)
+        f = state.field[0]
+        return float(maps.grid.sample(f.origin_m, f.dist_m, agent)[0])
+
+    through_door_m = 12.0  # the potential at the agent through the door (about 10 m; any other way is > 30 m)
+    assert refresh(_room_with_door(0.0)) < through_door_m
+    # the door's points moved by 0.45 m: its free cells are now east 11.55 only (the union of both fields: none)
+    assert refresh(_room_with_door(0.45)) < through_door_m
+    # A wall the memory forgot (its points gone) stays blocked; the door, still seen, stays open.
+    inner = _line((4.0, 2.0), (4.0, 9.0))
+    refresh(np.vstack([_room_with_door(0.0), inner]))
+    i, j = maps.grid.cell_of(state.field[0].origin_m[None], np.array([[[4.0, 5.0]]]))
+    cell = int(i[0, 0]) * maps.grid.n + int(j[0, 0])
+    assert state.field[0].blocked[cell]
+    assert refresh(_room_with_door(0.0)) < through_door_m and state.field[0].blocked[cell]
+    # A dead end the planner marked stays blocked under points known now.
+    door = maps.grid.cell_of(state.field[0].origin_m[None], np.array([[[8.0, 11.3]]]))
+    door_cell = int(door[0][0, 0]) * maps.grid.n + int(door[1][0, 0])
+    state.field[0].virtual[door_cell] = state.field[0].blocked[door_cell] = True
+    refresh(_room_with_door(0.0))
+    assert state.field[0].blocked[door_cell]
+
+
 def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
     """Fly ``u-trap-goal`` noise-free, seeing the study's surface samples within 8 m (remembered).
 
