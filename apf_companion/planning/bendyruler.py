@@ -37,7 +37,7 @@ from typing import Self
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq, segments_clearance_sq
+from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
@@ -56,7 +56,7 @@ _GROUP_ELEMENTS = 5_000
 #: 5.5 % never).
 _STAGES = (3, 10, 30)
 #: Agents x remaining probes below which all remaining probes are measured in one stage.
-_FEW_PROBES = 480
+_FEW_PROBES = 2400
 #: Extra reach of the obstacle prefilter of the step test [m] (it keeps every obstacle that can matter).
 _SLACK_M = 0.01
 
@@ -211,17 +211,9 @@ class BendyRulerPlanner(StatefulPlanner):
         dist2 = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
         with np.errstate(invalid="ignore", divide="ignore"):
             ruler2 = np.where(dist2[..., None] > 0.0, to_goal * (np.minimum(dist2, look) / dist2)[..., None], 0.0)
-        # The three segments of every probe in one sweep: ruler 1, and from its end the bend towards the goal and
-        # the straight continuation (element for element the same arithmetic as three separate sweeps).
-        n_probes = k.shape[1]
-        starts = np.zeros((k.shape[0], 3 * n_probes, ruler1.shape[2]))
-        starts[:, n_probes : 2 * n_probes] = ruler1
-        starts[:, 2 * n_probes :] = ruler1
-        vectors = np.concatenate([ruler1, ruler2, ruler1], axis=1)
-        m = segments_clearance_sq(rel, valid, starts, vectors)
-        m1 = m[:, :n_probes]
+        m1, bent, straight = _rulers_sq(rel, valid, ruler1, ruler2)
         # The bend or straight on: the more open of the two counts.
-        m2 = np.maximum(m[:, n_probes : 2 * n_probes], m[:, 2 * n_probes :])
+        m2 = np.maximum(bent, straight)
         return np.asarray(np.sqrt(np.minimum(m1, m2)), dtype=np.float64)
 
     def _continuity(
@@ -239,3 +231,51 @@ class BendyRulerPlanner(StatefulPlanner):
         better = margin[rows, chosen] >= self.params.br_cont_ratio * margin[rows, prev_k]
         keep = has_prev & turn & prev_ok & ~better
         return np.where(keep, prev_k, chosen)
+
+
+def _rulers_sq(
+    rel: FloatArray, valid: BoolArray, ruler1: FloatArray, ruler2: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(A, S) squared clearance of ruler 1 (0 -> ruler1), the bend (ruler1 -> ruler1 + ruler2) and the straight
+    continuation (ruler1 -> 2 ruler1) to the valid obstacles ``rel`` (A, M, D) (inf without any).
+
+    Element for element the arithmetic of ``clearance.segments_clearance_sq`` (the digests pin it), with what the
+    three segments share computed once: ruler 1 starts at the agent, so its obstacle offsets are the obstacles
+    themselves; both second rulers start at the end of ruler 1."""
+    dim = rel.shape[2]
+    axes = [np.ascontiguousarray(rel[:, :, d].T)[:, :, None] for d in range(dim)]  # (M, A, 1) each
+    r2_agent = axes[0] * axes[0]
+    for d in range(1, dim):
+        r2_agent += axes[d] * axes[d]
+    offsets = [axes[d] - ruler1[:, :, d] for d in range(dim)]  # (M, A, S): obstacle minus the end of ruler 1
+    r2_end = offsets[0] * offsets[0]
+    for d in range(1, dim):
+        r2_end += offsets[d] * offsets[d]
+    invalid = None if valid.all() else ~valid.T[:, :, None]
+    return (
+        _segment_min_sq(axes, r2_agent, ruler1, invalid),
+        _segment_min_sq(offsets, r2_end, ruler2, invalid),
+        _segment_min_sq(offsets, r2_end, ruler1, invalid),
+    )
+
+
+def _segment_min_sq(
+    rel: list[FloatArray], r2: FloatArray, vectors: FloatArray, invalid: BoolArray | None
+) -> FloatArray:
+    """min over obstacles of |rel - t v|^2, t = clip(rel.v / |v|^2, 0, 1) (0 for a zero-length v), (A, S)."""
+    dot = rel[0] * vectors[:, :, 0]
+    for d in range(1, len(rel)):
+        dot += rel[d] * vectors[:, :, d]
+    v2 = np.einsum("akd,akd->ak", vectors, vectors)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = dot / v2
+    np.fmax(t, 0.0, out=t)  # also NaN from a zero-length vector: the segment is its start point
+    np.minimum(t, 1.0, out=t)
+    dot *= 2.0
+    dot -= t * v2
+    dot *= t
+    d2 = r2 - dot
+    np.maximum(d2, 0.0, out=d2)
+    if invalid is not None:
+        np.copyto(d2, np.inf, where=invalid)
+    return np.asarray(np.minimum.reduce(d2, axis=0, initial=np.inf), dtype=np.float64)
