@@ -37,7 +37,7 @@ from typing import Self
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq
+from apf_companion.planning.clearance import segment_clearance_sq
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
@@ -137,7 +137,7 @@ class BendyRulerPlanner(StatefulPlanner):
         """(A, K) first steps that keep radius + safety margin. Only obstacles within a step plus that floor can
         break it, so only those are swept (the same arithmetic per obstacle as over all of them)."""
         reach = self.params.step_m + self._floor_m + _SLACK_M
-        rel, valid = near_obstacles(positions_m, obstacles_m, obstacle_mask, reach)
+        rel, valid = _near(positions_m, obstacles_m, obstacle_mask, reach)
         step2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
         return np.asarray(np.sqrt(step2) >= self._floor_m)
 
@@ -182,7 +182,7 @@ class BendyRulerPlanner(StatefulPlanner):
         p = self.params
         mask = None if obstacle_mask is None else obstacle_mask[rows]
         reach = 2.0 * p.br_lookahead_m + p.br_margin_max_m
-        rel, valid = near_obstacles(positions_m[rows], obstacles_m[rows], mask, reach)
+        rel, valid = _near(positions_m[rows], obstacles_m[rows], mask, reach)
         counts = valid.sum(axis=1)
         by_count = np.argsort(counts, kind="stable")
         out = np.empty(k.shape)
@@ -279,3 +279,32 @@ def _segment_min_sq(
     if invalid is not None:
         np.copyto(d2, np.inf, where=invalid)
     return np.asarray(np.minimum.reduce(d2, axis=0, initial=np.inf), dtype=np.float64)
+
+
+def _near(
+    positions_m: FloatArray, obstacles_m: FloatArray, mask: BoolArray | None, reach_m: float
+) -> tuple[FloatArray, BoolArray]:
+    """``clearance.near_obstacles`` (obstacles within ``reach_m``, relative to each agent, near ones first in index
+    order, zero rows where ``valid`` is False), computed without einsum over the short coordinate axis (which costs
+    about 8x the plain products at the study's (500, 95, 2)) and gathered by position instead of a sort.
+
+    The same offsets; the squared distance is summed in coordinate order, which can differ from einsum's order in
+    the last bit (3D) only for obstacles at the reach itself, where the callers' reaches have slack."""
+    n_agents, _, dim = obstacles_m.shape
+    rel = obstacles_m - positions_m[:, None, :]
+    d2 = rel[:, :, 0] * rel[:, :, 0]
+    for d in range(1, dim):
+        d2 += rel[:, :, d] * rel[:, :, d]
+    within = d2 <= reach_m * reach_m  # non-finite obstacles compare False
+    if mask is not None:
+        within &= mask
+    rows, cols = np.nonzero(within)  # row-major: each agent's near obstacles in index order
+    counts = np.bincount(rows, minlength=n_agents)
+    width = int(counts.max()) if n_agents else 0
+    starts = np.cumsum(counts) - counts
+    slot = np.arange(rows.size) - starts[rows]
+    gathered = np.zeros((n_agents, width, dim))
+    valid = np.zeros((n_agents, width), dtype=bool)
+    gathered[rows, slot] = rel[rows, cols]
+    valid[rows, slot] = True
+    return gathered, valid
