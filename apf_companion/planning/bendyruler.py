@@ -57,11 +57,13 @@ _GROUP_ELEMENTS = 5_000
 _STAGES = (3, 10, 30)
 #: Agents x remaining probes below which all remaining probes are measured in one stage.
 _FEW_PROBES = 2400
-#: Extra reach of the obstacle prefilter of the step test [m] (it keeps every obstacle that can matter).
+#: Stages of at most this many probes first drop the obstacles far from all of their probes (``_margins``).
+_FOCUS_PROBES = 10
+#: Extra reach of the obstacle prefilters of the step test [m] (it keeps every obstacle that can matter).
 _SLACK_M = 0.01
 
-_World = tuple[FloatArray, FloatArray, "BoolArray | None", FloatArray, FloatArray]
-"""(positions, obstacles, mask, goal vectors, goal distances) of a step."""
+_World = tuple[FloatArray, BoolArray, FloatArray, FloatArray]
+"""(near obstacles relative to the agents, their mask, goal vectors, goal distances) of a step."""
 
 
 @dataclass(slots=True)
@@ -112,13 +114,16 @@ class BendyRulerPlanner(StatefulPlanner):
         state.prev_dir[changed] = 0.0
         goal_vec = targets_m - positions_m
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
-        safe = self._safe(positions_m, obstacles_m, obstacle_mask)
+        # Obstacles that can matter to any probe (their geometry lies within 2 br_lookahead_m of the agent).
+        p = self.params
+        rel, valid = _near(positions_m, obstacles_m, obstacle_mask, 2.0 * p.br_lookahead_m + p.br_margin_max_m)
+        safe = self._safe(rel, valid)
         # Probe order: increasing angle from the goal bearing (ties: lower index).
         with np.errstate(invalid="ignore", divide="ignore"):
             goal_unit = np.where(g0[:, None] > 0.0, goal_vec / g0[:, None], 0.0)
         cos_goal = _cosines(goal_unit, self._units)
         order = np.argsort(-cos_goal, axis=1, kind="stable")
-        world = (positions_m, obstacles_m, obstacle_mask, goal_vec, g0)
+        world = (rel, valid, goal_vec, g0)
         margin, first_open, n_open = self._search(order, safe, world)
         rows = np.arange(n_agents)
         found = first_open >= 0
@@ -133,12 +138,12 @@ class BendyRulerPlanner(StatefulPlanner):
         offsets = self.bacteria_offsets_m
         return decision_from_choice(positions_m, offsets, chosen, reason, n_open, safe.sum(axis=1))
 
-    def _safe(self, positions_m: FloatArray, obstacles_m: FloatArray, obstacle_mask: BoolArray | None) -> BoolArray:
+    def _safe(self, rel: FloatArray, valid: BoolArray) -> BoolArray:
         """(A, K) first steps that keep radius + safety margin. Only obstacles within a step plus that floor can
         break it, so only those are swept (the same arithmetic per obstacle as over all of them)."""
         reach = self.params.step_m + self._floor_m + _SLACK_M
-        rel, valid = _near(positions_m, obstacles_m, obstacle_mask, reach)
-        step2 = segment_clearance_sq(rel, valid, self.bacteria_offsets_m)
+        near, near_valid = _compact(rel, valid & (_sq_norm(rel) <= reach * reach))
+        step2 = segment_clearance_sq(near, near_valid, self.bacteria_offsets_m)
         return np.asarray(np.sqrt(step2) >= self._floor_m)
 
     def _search(
@@ -176,13 +181,21 @@ class BendyRulerPlanner(StatefulPlanner):
     def _margins(self, rows: npt.NDArray[np.intp], k: npt.NDArray[np.intp], world: _World) -> FloatArray:
         """Margins (R, S) of probes ``k`` (R, S) of agents ``rows``.
 
-        The agents go in groups of similar obstacle counts (sorted by count), each group's work arrays as wide as
-        its own largest count and about ``_GROUP_ELEMENTS`` elements in all: no padding to the crowd's width."""
-        positions_m, obstacles_m, obstacle_mask, goal_vec, g0 = world
+        A probe's three segments lie within ``br_lookahead_m`` of the end of its first ruler, so an obstacle
+        farther than that plus ``br_margin_max_m`` from the ends of all the probes asked for cannot bring a margin
+        below ``br_margin_max_m``: it is left out (a margin from there up is only ever compared with that
+        threshold). The agents then go in groups of similar obstacle counts, each group's work arrays as wide as
+        its own largest count and about ``_GROUP_ELEMENTS`` elements in all."""
+        rel_all, valid_all, goal_vec, g0 = world
         p = self.params
-        mask = None if obstacle_mask is None else obstacle_mask[rows]
-        reach = 2.0 * p.br_lookahead_m + p.br_margin_max_m
-        rel, valid = _near(positions_m[rows], obstacles_m[rows], mask, reach)
+        rel, valid = rel_all[rows], valid_all[rows]
+        if k.shape[1] <= _FOCUS_PROBES and rel.shape[1] > 0:
+            ends = self._units[k] * np.clip(g0[rows], p.step_m, p.br_lookahead_m)[:, None, None]  # (R, S, D)
+            reach = p.br_lookahead_m + p.br_margin_max_m + _SLACK_M
+            close = np.zeros(valid.shape, dtype=bool)
+            for s in range(k.shape[1]):
+                close |= _sq_norm(rel - ends[:, s, None, :]) <= reach * reach
+            rel, valid = _compact(rel, valid & close)
         counts = valid.sum(axis=1)
         by_count = np.argsort(counts, kind="stable")
         out = np.empty(k.shape)
@@ -290,7 +303,7 @@ def _near(
 
     The same offsets; the squared distance is summed in coordinate order, which can differ from einsum's order in
     the last bit (3D) only for obstacles at the reach itself, where the callers' reaches have slack."""
-    n_agents, _, dim = obstacles_m.shape
+    dim = obstacles_m.shape[2]
     rel = obstacles_m - positions_m[:, None, :]
     d2 = rel[:, :, 0] * rel[:, :, 0]
     for d in range(1, dim):
@@ -298,7 +311,14 @@ def _near(
     within = d2 <= reach_m * reach_m  # non-finite obstacles compare False
     if mask is not None:
         within &= mask
-    rows, cols = np.nonzero(within)  # row-major: each agent's near obstacles in index order
+    return _compact(rel, within)
+
+
+def _compact(rel: FloatArray, keep: BoolArray) -> tuple[FloatArray, BoolArray]:
+    """The rows ``keep`` of (A, N, D) ``rel`` first, in index order, as (A, W, D) and their (A, W) mask; W = the
+    largest count (zero rows and False beyond each agent's count)."""
+    n_agents, _, dim = rel.shape
+    rows, cols = np.nonzero(keep)  # row-major: each agent's rows in index order
     counts = np.bincount(rows, minlength=n_agents)
     width = int(counts.max()) if n_agents else 0
     starts = np.cumsum(counts) - counts
