@@ -318,6 +318,9 @@ def _compact(rel: FloatArray, keep: BoolArray) -> tuple[FloatArray, BoolArray]:
     """The rows ``keep`` of (A, N, D) ``rel`` first, in index order, as (A, W, D) and their (A, W) mask; W = the
     largest count (zero rows and False beyond each agent's count)."""
     n_agents, _, dim = rel.shape
+    if n_agents == 1:  # one agent (the service's step): its rows by index
+        idx = np.flatnonzero(keep[0])
+        return rel[:, idx], np.ones((1, idx.size), dtype=bool)
     rows, cols = np.nonzero(keep)  # row-major: each agent's rows in index order
     counts = np.bincount(rows, minlength=n_agents)
     width = int(counts.max()) if n_agents else 0
