@@ -211,8 +211,8 @@ class NavGrid:
             shape = [1, 1, 1]
             shape[axis] = view.shape[axis]
             pos = (np.arange(view.shape[axis], dtype=np.float64) * cost).reshape(shape)
-            fwd = pos + np.cumsum(bview, axis=axis) * big
-            bwd = pos + np.cumsum(np.flip(bview, axis), axis=axis) * big
+            fwd = pos + np.cumsum(bview, axis=axis, dtype=np.float64) * big  # counts: exact in float64
+            bwd = pos + np.cumsum(np.flip(bview, axis), axis=axis, dtype=np.float64) * big
             # Work buffers allocated once: fresh megabyte temporaries on every sweep cost page faults.
             prepared.append((view, np.flip(view, axis), axis, fwd, bwd, np.empty(view.shape)))
         before = np.empty(d_grid.shape)
