@@ -25,6 +25,7 @@ from apf_companion.planning import (
     StatefulPlanner,
     get_planner,
 )
+from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navfield import NavGrid
 from sim.study.config import Density, StudyConfig
@@ -520,6 +521,53 @@ def test_bendyruler_flies_straight_in_the_open_and_around_a_post() -> None:
         if np.linalg.norm(pos - [6.0, 0.0]) < 0.7:
             break
     assert np.linalg.norm(pos - [6.0, 0.0]) < 0.7
+
+
+def _bendyruler_probing_every_bearing(
+    planner: BendyRulerPlanner, pos: np.ndarray, target: np.ndarray, obstacles: np.ndarray, prev_dir: np.ndarray
+) -> np.ndarray:
+    """The baseline's choice with every probe measured (the rule of the module docstring, written out)."""
+    p = planner.params
+    n_agents = pos.shape[0]
+    goal_vec = target - pos
+    g0 = np.linalg.norm(goal_vec, axis=1)
+    rel, valid = near_obstacles(pos, obstacles, None, 2.0 * p.br_lookahead_m + p.br_margin_max_m)
+    every = np.broadcast_to(np.arange(p.n_bacteria), (n_agents, p.n_bacteria))
+    margin = planner._probe(rel, valid, goal_vec, g0, every)
+    step2 = segment_clearance_sq(rel, valid, planner.bacteria_offsets_m)
+    safe = np.sqrt(step2) >= p.vehicle_radius_m + p.safety_margin_m
+    cos_goal = np.einsum("ad,kd->ak", goal_vec / g0[:, None], planner.bacteria_offsets_m / p.step_m)
+    open_ = safe & (margin >= p.br_margin_max_m)
+    first_open = np.argmax(np.where(open_, cos_goal, -np.inf), axis=1)
+    widest = np.argmax(np.where(safe, margin, -np.inf), axis=1)
+    chosen = np.where(open_.any(axis=1), first_open, planner._continuity(widest, margin, safe, prev_dir))
+    return np.where(safe[np.arange(n_agents), chosen], chosen, -1)
+
+
+def test_bendyruler_stops_probing_at_the_first_open_bearing_with_the_same_choice() -> None:
+    """Probing in stages (and only until a bearing is open) chooses what measuring every bearing chooses."""
+    rng = np.random.default_rng(11)
+    planner = get_planner("bendyruler")
+    assert isinstance(planner, BendyRulerPlanner)
+    n_agents, n_obs = 400, 40
+    pos = rng.uniform(0.0, 10.0, (n_agents, 2))
+    target = pos + rng.normal(0.0, 6.0, (n_agents, 2))
+    crowd = rng.uniform(0.5, 3.0, (n_agents, 1))  # from open space to boxed in
+    angles = rng.uniform(0.0, 2.0 * np.pi, (n_agents, n_obs))
+    radii = rng.uniform(0.45, 3.0, (n_agents, n_obs)) * crowd
+    obstacles = pos[:, None, :] + radii[..., None] * np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    state = planner.initial_state(n_agents)
+    state.target_m[:] = target
+    turned = rng.integers(0, planner.params.n_bacteria, n_agents)
+    state.prev_dir[:] = np.where(rng.random((n_agents, 1)) < 0.5, planner.bacteria_offsets_m[turned] / 0.4, 0.0)
+    expected = _bendyruler_probing_every_bearing(planner, pos, target, obstacles, state.prev_dir.copy())
+    bd = planner.step_batch(pos, target, obstacles, np.ones((n_agents, n_obs), dtype=bool), state=state)
+    np.testing.assert_array_equal(bd.chosen_index, expected)
+    reasons = np.asarray(bd.reason)
+    # The scenes cover every branch: an open bearing, only the widest, and no safe step.
+    assert (bd.n_passing > 0).any() and ((bd.n_passing == 0) & (reasons == DecisionReason.GREEDY)).any()
+    assert (reasons == DecisionReason.LOCAL_MINIMUM).any()
+    assert np.all(bd.n_passing <= bd.n_safe)
 
 
 def test_service_config_takes_the_product_parameters() -> None:
