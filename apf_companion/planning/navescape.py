@@ -251,20 +251,7 @@ class EscapeMaps:
         xy = positions_m[rows, :2]
         goals = targets_m[rows, :2]
         origins = grid.origins(xy, goals, self._pad_m)
-        old_blocked = np.zeros((rows.size, grid.size), dtype=bool)
-        old_virtual = np.zeros((rows.size, grid.size), dtype=bool)
-        side = grid.n * grid.cell_m
-        for i, r in enumerate(rows):
-            old = state.field[r]
-            if old is None:
-                continue
-            rel = xy[i] - old.origin_m
-            if np.all(rel >= self._pad_m) and np.all(rel <= side - self._pad_m):
-                origins[i] = old.origin_m  # the agent is well inside: keep the frame
-                old_blocked[i], old_virtual[i] = old.blocked, old.virtual
-            else:  # a new frame: carry the remembered cells over where the grids overlap
-                old_blocked[i] = grid.shift_blocked(old.blocked, old.origin_m, origins[i])
-                old_virtual[i] = grid.shift_blocked(old.virtual, old.origin_m, origins[i])
+        old_blocked, old_virtual = _carry_over(grid, [state.field[r] for r in rows], xy, origins, self._pad_m)
         obs = obstacles_m[rows]
         valid: BoolArray = np.asarray(np.isfinite(obs).all(axis=2))
         if obstacle_mask is not None:
@@ -337,3 +324,24 @@ class EscapeMaps:
             dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
             values = np.sqrt(values * values + dz * dz)
         return values[:, :-1], values[:, -1]
+
+
+def _carry_over(
+    grid: NavGrid, old_fields: list[NavField | None], xy_m: FloatArray, origins_m: FloatArray, pad_m: float
+) -> tuple[BoolArray, BoolArray]:
+    """The remembered blocked and virtual cells (B, n^2) of the old fields in the new grids. An agent well inside
+    its old grid (``pad_m`` from every side) keeps that frame: ``origins_m`` is updated in place."""
+    old_blocked = np.zeros((len(old_fields), grid.size), dtype=bool)
+    old_virtual = np.zeros((len(old_fields), grid.size), dtype=bool)
+    side = grid.n * grid.cell_m
+    for i, old in enumerate(old_fields):
+        if old is None:
+            continue
+        rel = xy_m[i] - old.origin_m
+        if np.all(rel >= pad_m) and np.all(rel <= side - pad_m):
+            origins_m[i] = old.origin_m  # the agent is well inside: keep the frame
+            old_blocked[i], old_virtual[i] = old.blocked, old.virtual
+        else:  # a new frame: carry the remembered cells over where the grids overlap
+            old_blocked[i] = grid.shift_blocked(old.blocked, old.origin_m, origins_m[i])
+            old_virtual[i] = grid.shift_blocked(old.virtual, old.origin_m, origins_m[i])
+    return old_blocked, old_virtual
