@@ -120,7 +120,12 @@ def full(config: StudyConfig, workers: int | None, trials: int) -> None:
     print("|---|---|---|---|")
     for c in cells:
         print(f"| {c.planner_name} | {c.density.label} | {summarize(c.records).R_s:.3f} | {c.wall_s:.2f} |")
+    per_planner: dict[str, float] = {}
+    for c in cells:
+        per_planner[c.planner_name] = per_planner.get(c.planner_name, 0.0) + c.wall_s
+    print("\nchunk seconds per planner (both workers): " + ", ".join(f"{k} {v:.1f}" for k, v in per_planner.items()))
     print(f"\nfull study: {n} trials in {wall:.1f} s wall clock ({n / wall:.0f} trials/s); target <= 30 s (2 workers)")
+    print(f"load average at the end: {' / '.join(f'{x:.2f}' for x in os.getloadavg())} (1 / 5 / 15 min)")
 
 
 def main() -> int:

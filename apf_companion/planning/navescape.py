@@ -47,6 +47,9 @@ class EscapeMaps:
         self.clearance_m = clearance_m
         self._offsets = offsets_m
         self._pad_m = 2.0 * params.step_m + clearance_m + 1.0
+        #: Around a point known now, remembered obstacle cells give way to the points' own inflation: C plus a
+        #: cell's diagonal (a point that moved by range noise re-inflates the cells it blocked before).
+        self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
         self._c2 = clearance_m * clearance_m
         n, h = self.grid.n, self.grid.cell_m
         on_edge = np.zeros((n, n), dtype=bool)
@@ -224,6 +227,7 @@ class EscapeMaps:
             own_i, own_j = grid.cell_of(f.origin_m[None], positions_m[r, :2][None, None])
             ok = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n) & ~((ci == own_i[0, 0]) & (cj == own_j[0, 0]))
             f.blocked[ci[ok] * n + cj[ok]] = True
+            f.virtual[ci[ok] * n + cj[ok]] = True
 
     def refresh(
         self,
@@ -234,34 +238,37 @@ class EscapeMaps:
         obstacle_mask: BoolArray | None,
         state: NavState,
     ) -> None:
-        """Recompute the potential of ``rows`` from the obstacles known now plus the cells remembered before."""
+        """Recompute the potential of ``rows`` from the obstacles known now plus the cells remembered before.
+
+        A remembered cell blocked by an obstacle is kept only where no obstacle point known now lies within
+        reach of it (``_reach_m``): there the points known now decide. A memory that forgets points (the
+        service's expiry) keeps its walls in the grid, but a narrow door is not closed by the union of fields
+        whose inflated edges jitter by a cell as the range noise moves its points (seen in a 1.5 m door at
+        C = 0.6 m: a free column one cell wide, alternating between two columns). Dead ends (``virtual``) are
+        always kept.
+        """
         grid = self.grid
         xy = positions_m[rows, :2]
         goals = targets_m[rows, :2]
         origins = grid.origins(xy, goals, self._pad_m)
-        old_blocked = np.zeros((rows.size, grid.size), dtype=bool)
-        side = grid.n * grid.cell_m
-        for i, r in enumerate(rows):
-            old = state.field[r]
-            if old is None:
-                continue
-            rel = xy[i] - old.origin_m
-            if np.all(rel >= self._pad_m) and np.all(rel <= side - self._pad_m):
-                origins[i] = old.origin_m  # the agent is well inside: keep the frame
-                old_blocked[i] = old.blocked
-            else:  # a new frame: carry the remembered cells over where the grids overlap
-                old_blocked[i] = grid.shift_blocked(old.blocked, old.origin_m, origins[i])
+        old_blocked, old_virtual = _carry_over(grid, [state.field[r] for r in rows], xy, origins, self._pad_m)
         obs = obstacles_m[rows]
         valid: BoolArray = np.asarray(np.isfinite(obs).all(axis=2))
         if obstacle_mask is not None:
             valid &= obstacle_mask[rows]
         if self.params.dim == 3:
             valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
-        blocked = grid.blocked(origins, np.where(valid[..., None], obs[:, :, :2], 0.0), valid, self.clearance_m)
-        blocked |= old_blocked
+        obs_xy = np.where(valid[..., None], obs[:, :, :2], 0.0)
+        blocked = grid.blocked(origins, obs_xy, valid, self.clearance_m)
+        if old_blocked.any():
+            known = grid.blocked(origins, obs_xy, valid, self._reach_m)
+            blocked |= old_blocked & ~known
+        blocked |= old_virtual
         dist = self._distances(rows, xy, origins, blocked, goals, state)
         for i, r in enumerate(rows):
-            state.field[r] = NavField(origin_m=origins[i].copy(), blocked=blocked[i], dist_m=dist[i])
+            state.field[r] = NavField(
+                origin_m=origins[i].copy(), blocked=blocked[i], dist_m=dist[i], virtual=old_virtual[i]
+            )
         state.since_field[rows] = 0
 
     def _distances(
@@ -317,3 +324,24 @@ class EscapeMaps:
             dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
             values = np.sqrt(values * values + dz * dz)
         return values[:, :-1], values[:, -1]
+
+
+def _carry_over(
+    grid: NavGrid, old_fields: list[NavField | None], xy_m: FloatArray, origins_m: FloatArray, pad_m: float
+) -> tuple[BoolArray, BoolArray]:
+    """The remembered blocked and virtual cells (B, n^2) of the old fields in the new grids. An agent well inside
+    its old grid (``pad_m`` from every side) keeps that frame: ``origins_m`` is updated in place."""
+    old_blocked = np.zeros((len(old_fields), grid.size), dtype=bool)
+    old_virtual = np.zeros((len(old_fields), grid.size), dtype=bool)
+    side = grid.n * grid.cell_m
+    for i, old in enumerate(old_fields):
+        if old is None:
+            continue
+        rel = xy_m[i] - old.origin_m
+        if np.all(rel >= pad_m) and np.all(rel <= side - pad_m):
+            origins_m[i] = old.origin_m  # the agent is well inside: keep the frame
+            old_blocked[i], old_virtual[i] = old.blocked, old.virtual
+        else:  # a new frame: carry the remembered cells over where the grids overlap
+            old_blocked[i] = grid.shift_blocked(old.blocked, old.origin_m, origins_m[i])
+            old_virtual[i] = grid.shift_blocked(old.virtual, old.origin_m, origins_m[i])
+    return old_blocked, old_virtual

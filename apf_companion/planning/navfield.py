@@ -66,6 +66,9 @@ class NavGrid:
         self.cell_m = float(cell_m)
         self.n = math.ceil(side_m / cell_m - 1e-9)
         self.size = self.n * self.n
+        edge = np.zeros((self.n, self.n), dtype=bool)
+        edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
+        self._edge = edge.reshape(1, -1)
 
     # --- frames ---------------------------------------------------------------------------------------------
 
@@ -161,19 +164,16 @@ class NavGrid:
         gi, gj = self.cell_of(origins_m, goals_xy_m[:, None, :])
         gi, gj = gi[:, 0], gj[:, 0]
         inside = (gi >= 0) & (gi < n) & (gj >= 0) & (gj < n)
-        near = np.zeros((n_batch, n, n), dtype=bool)
-        for oi in (-1, 0, 1):
-            for oj in (-1, 0, 1):
-                ii, jj = gi + oi, gj + oj
-                ok = inside & (ii >= 0) & (ii < n) & (jj >= 0) & (jj < n)
-                near[np.flatnonzero(ok), ii[ok], jj[ok]] = True
+        # The goal's cell and its 8 neighbours (those in the grid), for goals inside the grid.
+        cells = np.arange(n)
+        near_i = (np.abs(cells[None, :] - gi[:, None]) <= 1) & inside[:, None]
+        near_j = np.abs(cells[None, :] - gj[:, None]) <= 1
+        near = near_i[:, :, None] & near_j[:, None, :]
         rows = np.flatnonzero(inside)
         blocked[rows, gi[rows] * n + gj[rows]] = False  # the goal itself is always reachable in the grid
         seeds = np.where(near.reshape(n_batch, -1) & ~blocked, euclid, np.inf)
-        edge = np.zeros((n, n), dtype=bool)
-        edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
         detour = np.where(inside, self.n * h, 0.0)[:, None]
-        on_edge = edge.reshape(1, -1) & ~blocked
+        on_edge = self._edge & ~blocked
         return np.minimum(seeds, np.where(on_edge, euclid + detour, np.inf))
 
     def _views(self, buf: npt.NDArray[_Scalar]) -> list[tuple[npt.NDArray[_Scalar], int, float]]:
@@ -198,27 +198,28 @@ class NavGrid:
             return seeds
         d = np.full((n_batch, 3 * n * n), np.inf)
         blk = np.ones((n_batch, 3 * n * n), dtype=bool)
-        d_grid = self._views(d)[0][0]
+        d_views, b_views = self._views(d), self._views(blk)
+        d_grid = d_views[0][0]
         d_grid[...] = seeds.reshape(n_batch, n, n)
-        self._views(blk)[0][0][...] = blocked.reshape(n_batch, n, n)
+        b_views[0][0][...] = blocked.reshape(n_batch, n, n)
         # Larger than any distance a line can carry: offsets of different segments never mix, and a cell
         # reached only across a blocked cell gets a value >= big / 2, which stands for "not reached".
         big = 4.0 * (float(finite.max()) + math.sqrt(2.0) * self.cell_m * (self.size + 3 * n))
         half = big / 2.0
         prepared = []
-        for (view, axis, cost), (bview, _, _) in zip(self._views(d), self._views(blk), strict=True):
+        for (view, axis, cost), (bview, _, _) in zip(d_views, b_views, strict=True):
             shape = [1, 1, 1]
             shape[axis] = view.shape[axis]
             pos = (np.arange(view.shape[axis], dtype=np.float64) * cost).reshape(shape)
-            fwd = pos + np.cumsum(bview, axis=axis) * big
-            bwd = pos + np.cumsum(np.flip(bview, axis), axis=axis) * big
+            fwd = pos + np.cumsum(bview, axis=axis, dtype=np.float64) * big  # counts: exact in float64
+            bwd = pos + np.cumsum(np.flip(bview, axis), axis=axis, dtype=np.float64) * big
             # Work buffers allocated once: fresh megabyte temporaries on every sweep cost page faults.
-            prepared.append((view, np.flip(view, axis), axis, fwd, bwd, bview.copy(), np.empty(view.shape)))
+            prepared.append((view, np.flip(view, axis), axis, fwd, bwd, np.empty(view.shape)))
         before = np.empty(d_grid.shape)
-        work = np.empty(d_grid.shape)
+        work = np.empty(d_grid.shape, dtype=bool)
         for _ in range(_MAX_ROUNDS):
-            np.copyto(before, d_grid)
-            for view, rview, axis, fwd, bwd, bview, cand in prepared:
+            np.minimum(d_grid, half, out=before)
+            for view, rview, axis, fwd, bwd, cand in prepared:
                 np.subtract(view, fwd, out=cand)
                 np.minimum.accumulate(cand, axis=axis, out=cand)
                 cand += fwd
@@ -227,8 +228,8 @@ class NavGrid:
                 np.minimum.accumulate(cand, axis=axis, out=cand)
                 cand += bwd
                 np.minimum(rview, cand, out=rview)
-                np.copyto(view, np.inf, where=bview)
-            np.minimum(before, half, out=before)
+            # Blocked cells are not reset to inf: the value a sweep gives one is >= big (it lies across a segment
+            # boundary), so it never wins against a reached cell and reads as "not reached", like inf.
             before -= _CONVERGED_M
             if not np.less(d_grid, before, out=work).any():
                 break

@@ -33,8 +33,9 @@ class NavField:
     """One agent's navigation potential: grid corner, remembered blocked cells and the distances to the goal."""
 
     origin_m: FloatArray  # (2,) lower corner (north, east) [m]
-    blocked: npt.NDArray[np.bool_]  # (n^2,)
+    blocked: npt.NDArray[np.bool_]  # (n^2,) every blocked cell: inflated obstacles and ``virtual``
     dist_m: FloatArray  # (n^2,) geodesic distance to the goal [m]; inf where blocked or unreachable
+    virtual: npt.NDArray[np.bool_]  # (n^2,) dead ends marked by the planner (no obstacle point behind them)
 
 
 @dataclass(slots=True)

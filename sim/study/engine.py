@@ -316,8 +316,7 @@ def _sense(
     (``_RUNNING`` = plan on) and the obstacles in sensor range."""
     target = np.asarray(config.target_m, dtype=np.float64)
     pos = act.pos
-    diff = act.obs - pos[:, None, :]
-    dist = np.sqrt(np.einsum("and,and->an", diff, diff))
+    dist = _distances(act.obs, pos)
     if clearance is None:
         collided = (dist < config.collision_radius_m).any(axis=1)
     else:
@@ -339,6 +338,23 @@ def _sense(
         act.since_best = np.where(improved, 0, act.since_best + 1).astype(np.int32)
         finished[(finished == _RUNNING) & (act.since_best >= config.capf_patience)] = Outcome.STUCK
     return finished, in_range
+
+
+def _distances(obstacles_m: FloatArray, positions_m: FloatArray) -> FloatArray:
+    """(A, N) distance from each agent to each of its obstacles [m].
+
+    2D: the two coordinate planes, dx^2 + dy^2, which is einsum's sum of the two products bit for bit and about 5x
+    faster (einsum over a short last axis is slow; measured at (500, 95, 2): 842 vs 167 us). 3D keeps einsum,
+    whose order of the three terms is its own."""
+    if obstacles_m.shape[2] == 2:
+        dx = obstacles_m[:, :, 0] - positions_m[:, 0, None]
+        dy = obstacles_m[:, :, 1] - positions_m[:, 1, None]
+        dx *= dx
+        dy *= dy
+        dx += dy
+        return np.sqrt(dx, out=dx)
+    diff = obstacles_m - positions_m[:, None, :]
+    return np.asarray(np.sqrt(np.einsum("and,and->an", diff, diff)), dtype=np.float64)
 
 
 def _plan(

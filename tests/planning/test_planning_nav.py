@@ -25,6 +25,7 @@ from apf_companion.planning import (
     StatefulPlanner,
     get_planner,
 )
+from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navfield import NavGrid
 from sim.study.config import Density, StudyConfig
@@ -290,6 +291,55 @@ def test_the_line_of_sight_is_blocked_by_surfaces_not_by_isolated_points() -> No
     assert not off.sight_blocked(active, positions, targets, obstacles, mask).any()
 
 
+def _line(a: tuple[float, float], b: tuple[float, float], spacing_m: float = 0.2) -> np.ndarray:
+    n = int(math.hypot(b[0] - a[0], b[1] - a[1]) / spacing_m) + 1
+    return np.linspace(a, b, n)
+
+
+def _room_with_door(shift_m: float) -> np.ndarray:
+    """A box 0..16 north x 0..11.9 east split at north 8 by a wall from east 0 to 10.3, the door's other side the
+    box's east wall: a 1.6 m door, 0.4 m wide at C = 0.6 m (free cell centres east 10.95 and 11.25). ``shift_m``
+    moves the door's two sides east (what range noise does to the points that remember them)."""
+    box = [_line((0, 0), (16, 0)), _line((16, 0), (16, 11.9)), _line((0, 0), (0, 11.9))]
+    box.append(_line((0, 11.9 + shift_m), (16, 11.9 + shift_m)))  # the east wall, one side of the door
+    return np.vstack([*box, _line((8, 0), (8, 10.3 + shift_m))])
+
+
+def test_a_narrow_door_stays_open_when_its_points_jitter_and_forgotten_walls_stay() -> None:
+    """Refreshed potentials keep remembered obstacle cells only where no point known now is near them: the union
+    of two fields whose inflated door edges sit a cell apart would close the door (seen in ``apf-sim fly --world
+    rooms``: the vehicle turned back in the door and wandered until the service's progress limit). Cells of a
+    wall the memory has forgotten, and dead ends the planner marked, are kept."""
+    params = PlannerParams()
+    maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    state = NavState.empty(1, 2)
+    agent, goal = np.array([[5.0, 10.5]]), np.array([[12.0, 6.0]])
+    rows = np.array([0])
+
+    def refresh(points: np.ndarray) -> float:
+        maps.refresh(rows, agent, goal, points[None], None, state)
+        f = state.field[0]
+        return float(maps.grid.sample(f.origin_m, f.dist_m, agent)[0])
+
+    through_door_m = 12.0  # the potential at the agent through the door (about 10 m; any other way is > 30 m)
+    assert refresh(_room_with_door(0.0)) < through_door_m
+    # the door's points moved by 0.45 m: its free cells are now east 11.55 only (the union of both fields: none)
+    assert refresh(_room_with_door(0.45)) < through_door_m
+    # A wall the memory forgot (its points gone) stays blocked; the door, still seen, stays open.
+    inner = _line((4.0, 2.0), (4.0, 9.0))
+    refresh(np.vstack([_room_with_door(0.0), inner]))
+    i, j = maps.grid.cell_of(state.field[0].origin_m[None], np.array([[[4.0, 5.0]]]))
+    cell = int(i[0, 0]) * maps.grid.n + int(j[0, 0])
+    assert state.field[0].blocked[cell]
+    assert refresh(_room_with_door(0.0)) < through_door_m and state.field[0].blocked[cell]
+    # A dead end the planner marked stays blocked under points known now.
+    door = maps.grid.cell_of(state.field[0].origin_m[None], np.array([[[8.0, 11.3]]]))
+    door_cell = int(door[0][0, 0]) * maps.grid.n + int(door[1][0, 0])
+    state.field[0].virtual[door_cell] = state.field[0].blocked[door_cell] = True
+    refresh(_room_with_door(0.0))
+    assert state.field[0].blocked[door_cell]
+
+
 def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
     """Fly ``u-trap-goal`` noise-free, seeing the study's surface samples within 8 m (remembered).
 
@@ -471,6 +521,53 @@ def test_bendyruler_flies_straight_in_the_open_and_around_a_post() -> None:
         if np.linalg.norm(pos - [6.0, 0.0]) < 0.7:
             break
     assert np.linalg.norm(pos - [6.0, 0.0]) < 0.7
+
+
+def _bendyruler_probing_every_bearing(
+    planner: BendyRulerPlanner, pos: np.ndarray, target: np.ndarray, obstacles: np.ndarray, prev_dir: np.ndarray
+) -> np.ndarray:
+    """The baseline's choice with every probe measured (the rule of the module docstring, written out)."""
+    p = planner.params
+    n_agents = pos.shape[0]
+    goal_vec = target - pos
+    g0 = np.linalg.norm(goal_vec, axis=1)
+    rel, valid = near_obstacles(pos, obstacles, None, 2.0 * p.br_lookahead_m + p.br_margin_max_m)
+    every = np.broadcast_to(np.arange(p.n_bacteria), (n_agents, p.n_bacteria))
+    margin = planner._probe(rel, valid, goal_vec, g0, every)
+    step2 = segment_clearance_sq(rel, valid, planner.bacteria_offsets_m)
+    safe = np.sqrt(step2) >= p.vehicle_radius_m + p.safety_margin_m
+    cos_goal = np.einsum("ad,kd->ak", goal_vec / g0[:, None], planner.bacteria_offsets_m / p.step_m)
+    open_ = safe & (margin >= p.br_margin_max_m)
+    first_open = np.argmax(np.where(open_, cos_goal, -np.inf), axis=1)
+    widest = np.argmax(np.where(safe, margin, -np.inf), axis=1)
+    chosen = np.where(open_.any(axis=1), first_open, planner._continuity(widest, margin, safe, prev_dir))
+    return np.where(safe[np.arange(n_agents), chosen], chosen, -1)
+
+
+def test_bendyruler_stops_probing_at_the_first_open_bearing_with_the_same_choice() -> None:
+    """Probing in stages (and only until a bearing is open) chooses what measuring every bearing chooses."""
+    rng = np.random.default_rng(11)
+    planner = get_planner("bendyruler")
+    assert isinstance(planner, BendyRulerPlanner)
+    n_agents, n_obs = 400, 40
+    pos = rng.uniform(0.0, 10.0, (n_agents, 2))
+    target = pos + rng.normal(0.0, 6.0, (n_agents, 2))
+    crowd = rng.uniform(0.5, 3.0, (n_agents, 1))  # from open space to boxed in
+    angles = rng.uniform(0.0, 2.0 * np.pi, (n_agents, n_obs))
+    radii = rng.uniform(0.45, 3.0, (n_agents, n_obs)) * crowd
+    obstacles = pos[:, None, :] + radii[..., None] * np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    state = planner.initial_state(n_agents)
+    state.target_m[:] = target
+    turned = rng.integers(0, planner.params.n_bacteria, n_agents)
+    state.prev_dir[:] = np.where(rng.random((n_agents, 1)) < 0.5, planner.bacteria_offsets_m[turned] / 0.4, 0.0)
+    expected = _bendyruler_probing_every_bearing(planner, pos, target, obstacles, state.prev_dir.copy())
+    bd = planner.step_batch(pos, target, obstacles, np.ones((n_agents, n_obs), dtype=bool), state=state)
+    np.testing.assert_array_equal(bd.chosen_index, expected)
+    reasons = np.asarray(bd.reason)
+    # The scenes cover every branch: an open bearing, only the widest, and no safe step.
+    assert (bd.n_passing > 0).any() and ((bd.n_passing == 0) & (reasons == DecisionReason.GREEDY)).any()
+    assert (reasons == DecisionReason.LOCAL_MINIMUM).any()
+    assert np.all(bd.n_passing <= bd.n_safe)
 
 
 def test_service_config_takes_the_product_parameters() -> None:
