@@ -31,7 +31,8 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    steps: ``DecisionReason.GAVE_UP`` (the caller reports STUCK), and no moves until the target changes.
 
 Moves are reported as GREEDY (a passing point on the planner's potential); ``NavState.mode`` says which
-potential. 3D: the candidates and the sweep are 3D; the escape potential is the horizontal geodesic distance
+potential. ``step`` (one agent, the service) decides DIRECT steps with ``navone.DirectStep``: the same decisions
+in fewer numpy calls. 3D: the candidates and the sweep are 3D; the escape potential is the horizontal geodesic distance
 combined with the vertical offset, sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
 """
 
@@ -42,9 +43,10 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import MoveSweep, near_obstacles
-from apf_companion.planning.decision import BatchDecision, DecisionReason
+from apf_companion.planning.clearance import MoveSweep, clearance_terms, lookahead_probes, near_obstacles
+from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navone import DirectStep
 from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
@@ -74,10 +76,13 @@ _GAVE_UP_CODE = np.int8(DecisionReason.GAVE_UP)
 _any = np.logical_or.reduce
 _all = np.logical_and.reduce
 _sum = np.add.reduce
-#: Smallest normal float64 (the divisor where a distance is zero, ``_probes``).
-_TINY = float(np.finfo(np.float64).tiny)
 #: Agents per group in the clearance geometry (see ``BapfNavPlanner._geometry``).
 _GROUP = 16
+
+
+def _age_fields(state: NavState) -> None:
+    """A field kept from an earlier escape ages in DIRECT too (``_progress``); capped: no int32 overflow."""
+    np.add(state.since_field, 1, out=state.since_field, where=state.since_field < _AGE_CAP)
 
 
 class BapfNavPlanner(StatefulPlanner):
@@ -100,6 +105,7 @@ class BapfNavPlanner(StatefulPlanner):
         # Obstacles that can matter this step: the sweep, the look-ahead probe and the clearance term.
         soft_m = math.sqrt(7.0 / p.nav_clearance_decay_per_m2)  # exp(-7) < 1e-3: negligible beyond
         self._reach_m = p.step_m + max(self.clearance_m + p.nav_lookahead_m, soft_m)
+        self._direct_one = DirectStep(p, offsets, self._units, self.clearance_m, self._reach_m)
 
     def initial_state(self, n_agents: int) -> NavState:
         return NavState.empty(n_agents, self.params.dim)
@@ -119,7 +125,18 @@ class BapfNavPlanner(StatefulPlanner):
         if not _all(same, axis=None):
             changed = ~same
             state.restart(np.flatnonzero(changed), targets_m[changed])
-        offsets = self.bacteria_offsets_m
+        goal_vec, g0 = self._start(positions_m, targets_m, obstacles_m, obstacle_mask, state)
+        return self._decide(positions_m, targets_m, obstacles_m, obstacle_mask, state, goal_vec, g0)
+
+    def _start(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Target minus position (A, D) and its length g0 (A,), after the sight, trail and progress rules."""
         goal_vec = targets_m - positions_m
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
         # The line of sight decides entries (DIRECT agents) and exits (escaping agents past Bug2's leave point).
@@ -127,7 +144,45 @@ class BapfNavPlanner(StatefulPlanner):
         blocked = self._escape.sight_blocked(looking, positions_m, targets_m, obstacles_m, obstacle_mask)
         state.record(positions_m, _TRAIL_SPACING_M)
         self._progress(state, g0, blocked)
+        return goal_vec, g0
 
+    def step(
+        self,
+        position_m: npt.ArrayLike,
+        target_m: npt.ArrayLike,
+        obstacles_m: npt.ArrayLike,
+        rng: np.random.Generator | None = None,
+    ) -> Decision:
+        """``StatefulPlanner.step``; a DIRECT step takes the single-agent path (``navone``), same decision."""
+        pos, tgt, obs = self._check_one(position_m, target_m, obstacles_m)
+        if self._own is None:
+            self._own = self.initial_state(1)
+        state = self._own
+        assert isinstance(state, NavState)
+        if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN
+            state.restart(np.zeros(1, dtype=np.intp), tgt[None])
+        goal_vec, g0 = self._start(pos[None], tgt[None], obs[None], None, state)
+        direct = state.mode[0] == _DIRECT
+        decision = self._direct_one(pos, obs, goal_vec[0], float(g0[0]), state.prev_dir) if direct else None
+        if decision is None:  # not DIRECT, or it enters ESCAPE: the batch path
+            return self._decide(pos[None], tgt[None], obs[None], None, state, goal_vec, g0).row(0)
+        if decision.chosen_index is not None:
+            state.prev_dir[0] = self._units[decision.chosen_index]
+        _age_fields(state)
+        return decision
+
+    def _decide(
+        self,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+        goal_vec: FloatArray,
+        g0: FloatArray,
+    ) -> BatchDecision:
+        """The step after the target and progress rules (``_plan``): scores, escape, choice."""
+        offsets = self.bacteria_offsets_m
         to_goal = goal_vec[:, None, :] - offsets[None, :, :]
         g_k = np.sqrt(np.einsum("akd,akd->ak", to_goal, to_goal))
         direct = state.mode == _DIRECT
@@ -146,8 +201,8 @@ class BapfNavPlanner(StatefulPlanner):
             world = (positions_m, targets_m, obstacles_m, obstacle_mask, state)
             self._escape_scores(np.flatnonzero(escaping), *world, feasible, clear_k, clear_0, cost, cost0, passing)
 
-        chosen = self._choose(cost, cost0, passing, state.prev_dir)
-        self._squeeze_out(chosen, ~any_feasible & active, seg2)
+        chosen = _choose(cost, cost0, passing, state.prev_dir, self._units, self._cos_hold, self.params.nav_hold_ratio)
+        _squeeze_out(chosen, ~any_feasible & active, seg2, self._floor2)
         gave_up = state.mode == _GAVE_UP
         some_gave_up = bool(_any(gave_up, axis=None))
         if some_gave_up:
@@ -157,8 +212,7 @@ class BapfNavPlanner(StatefulPlanner):
         if some_gave_up:
             reason[gave_up] = _GAVE_UP_CODE
         state.prev_dir[moved] = self._units[chosen[moved]]
-        # A field kept from an earlier escape ages in DIRECT too (``_progress``); capped: no int32 overflow.
-        np.add(state.since_field, 1, out=state.since_field, where=state.since_field < _AGE_CAP)
+        _age_fields(state)
         scores = np.where(passing, cost, np.inf)  # what the viz colours the candidates by
         return decision_from_choice(
             positions_m, offsets, chosen, reason, _sum(passing, axis=1), _sum(feasible, axis=1), candidate_cost=scores
@@ -180,16 +234,6 @@ class BapfNavPlanner(StatefulPlanner):
             state.field[rows] = None
             escaping = escaping | trapped
         return np.asarray(escaping)
-
-    def _squeeze_out(self, chosen: IntArray, boxed: BoolArray, seg2: FloatArray) -> None:
-        """Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent
-        into a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety
-        margin; never closer. Without this the agent would sit there until its patience ran out."""
-        if _any(boxed, axis=None):
-            rows = np.flatnonzero(boxed)
-            room = np.where(seg2[rows] >= self._floor2, seg2[rows], -np.inf)
-            widest = np.argmax(room, axis=1)
-            chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
 
     def _geometry(
         self,
@@ -235,7 +279,7 @@ class BapfNavPlanner(StatefulPlanner):
             zeros = np.zeros(g_k.shape)
             return np.ones(g_k.shape, dtype=bool), seg2, zeros, np.zeros(g_k.shape[0]), zeros
         lookahead = p.nav_lookahead_m > 0.0 and p.nav_lookahead_penalty_m > 0.0 and _any(direct, axis=None)
-        probes = self._probes(to_goal, g_k) if lookahead else None
+        probes = lookahead_probes(to_goal, g_k, p.nav_lookahead_m) if lookahead else None
         r2 = np.einsum("amd,amd->am", rel, rel)
         seg2, end2, look2 = self._sweep_moves(rel, valid, r2, probes)
         feasible, clear_k, clear_0 = self._sweep(valid, r2, seg2, end2)
@@ -280,8 +324,8 @@ class BapfNavPlanner(StatefulPlanner):
         if p.nav_clearance_gain_m == 0.0:
             clear_k, clear_0 = np.zeros(seg2.shape), np.zeros(n_agents)
         else:
-            terms = self._clearance_potential(end2)
-            at_agent = self._clearance_potential(r2)
+            terms = clearance_terms(end2, p.nav_clearance_decay_per_m2, p.nav_clearance_gain_m)
+            at_agent = clearance_terms(r2, p.nav_clearance_decay_per_m2, p.nav_clearance_gain_m)
             if not all_valid:
                 np.copyto(terms, 0.0, where=~valid.T[:, :, None])
                 at_agent = np.where(valid, at_agent, 0.0)
@@ -295,41 +339,6 @@ class BapfNavPlanner(StatefulPlanner):
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
         return np.asarray(ok), clear_k, clear_0
-
-    def _clearance_potential(self, dist_sq_m2: FloatArray) -> FloatArray:
-        """Eq. (2) at product scale, ``potentials.obstacle_potential`` with one temporary (the same operations)."""
-        p = self.params
-        out = dist_sq_m2 * -p.nav_clearance_decay_per_m2
-        np.exp(out, out=out)
-        out *= p.nav_clearance_gain_m
-        return out
-
-    def _probes(self, to_goal: FloatArray, g_k: FloatArray) -> FloatArray:
-        """(A, K, D) look-ahead probes: from each point towards the goal, ``nav_lookahead_m`` long (or to it).
-        A point on the goal (g = 0) gets a zero probe: min(g, L) / max(g, tiny) = 0 there, no 0/0."""
-        scale = np.minimum(g_k, self.params.nav_lookahead_m)
-        scale /= np.maximum(g_k, _TINY)
-        return to_goal * scale[..., None]
-
-    def _choose(self, cost: FloatArray, cost0: FloatArray, passing: BoolArray, prev_dir: FloatArray) -> IntArray:
-        """Best passing point, with the turn hysteresis; -1 where none passes."""
-        masked = np.where(passing, cost, np.inf)
-        best = masked.argmin(axis=1)
-        any_pass = _any(passing, axis=1)
-        cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)  # (A, K); 0 without a previous move
-        has_prev = _any(prev_dir != 0.0, axis=1)
-        rows = np.arange(cost.shape[0])
-        sharp = has_prev & any_pass & (cos_turn[rows, best] < self._cos_hold)
-        if _any(sharp, axis=None):
-            held = np.where(passing & (cos_turn >= self._cos_hold), cost, np.inf)
-            alt = held.argmin(axis=1)
-            alt_ok = np.isfinite(held[rows, alt])
-            with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
-                gain_best = cost0 - masked[rows, best]
-                gain_alt = cost0 - held[rows, alt]
-            keep = sharp & alt_ok & (gain_best < self.params.nav_hold_ratio * gain_alt)
-            best = np.where(keep, alt, best)
-        return np.where(any_pass, best, -1).astype(np.intp)
 
     # --- escape -----------------------------------------------------------------------------------------------
 
@@ -367,3 +376,44 @@ class BapfNavPlanner(StatefulPlanner):
         cost0[rows[inside]] = np.inf
         passing[rows] = ok
         state.mode[rows[lost & ~inside]] = _GAVE_UP
+
+
+def _squeeze_out(chosen: IntArray, boxed: BoolArray, seg2: FloatArray, floor2: float) -> None:
+    """Boxed in: no move keeps the full clearance C (the noise margin is spent, e.g. noise pushed the agent into
+    a pocket). Squeeze out along the move that keeps the most, if that still keeps radius + safety margin
+    (``floor2``, squared); never closer. Without this the agent would sit there until its patience ran out."""
+    if _any(boxed, axis=None):
+        rows = np.flatnonzero(boxed)
+        room = np.where(seg2[rows] >= floor2, seg2[rows], -np.inf)
+        widest = np.argmax(room, axis=1)
+        chosen[rows] = np.where(np.isfinite(room[np.arange(rows.size), widest]), widest, -1)
+
+
+def _choose(
+    cost: FloatArray,
+    cost0: FloatArray,
+    passing: BoolArray,
+    prev_dir: FloatArray,
+    units: FloatArray,
+    cos_hold: float,
+    hold_ratio: float,
+) -> IntArray:
+    """Best passing point, with the turn hysteresis (``nav_hold_angle_deg``, ``nav_hold_ratio``); -1 where none
+    passes. ``units``: the bacteria offsets as unit vectors."""
+    masked = np.where(passing, cost, np.inf)
+    best = masked.argmin(axis=1)
+    any_pass = _any(passing, axis=1)
+    cos_turn = np.einsum("ad,kd->ak", prev_dir, units)  # (A, K); 0 without a previous move
+    has_prev = _any(prev_dir != 0.0, axis=1)
+    rows = np.arange(cost.shape[0])
+    sharp = has_prev & any_pass & (cos_turn[rows, best] < cos_hold)
+    if _any(sharp, axis=None):
+        held = np.where(passing & (cos_turn >= cos_hold), cost, np.inf)
+        alt = held.argmin(axis=1)
+        alt_ok = np.isfinite(held[rows, alt])
+        with np.errstate(invalid="ignore"):  # inf - inf where the fallback left cost0 = inf: no hold
+            gain_best = cost0 - masked[rows, best]
+            gain_alt = cost0 - held[rows, alt]
+        keep = sharp & alt_ok & (gain_best < hold_ratio * gain_alt)
+        best = np.where(keep, alt, best)
+    return np.where(any_pass, best, -1).astype(np.intp)

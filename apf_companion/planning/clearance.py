@@ -13,6 +13,8 @@ import numpy.typing as npt
 
 __all__ = [
     "MoveSweep",
+    "clearance_terms",
+    "lookahead_probes",
     "near_obstacles",
     "point_clearance_sq",
     "segment_clearance_sq",
@@ -66,6 +68,24 @@ def near_obstacles(
     gathered = np.take_along_axis(rel, idx[:, :, None], axis=1)
     gathered = np.where(valid[:, :, None], gathered, 0.0)
     return gathered, valid
+
+
+def clearance_terms(dist_sq_m2: FloatArray, decay_per_m2: float, gain_m: float) -> FloatArray:
+    """bapf-nav's clearance term gain * exp(-decay * d^2) of each squared distance: Eq. (2) at product scale,
+    ``potentials.obstacle_potential`` with one temporary (the same operations)."""
+    out = dist_sq_m2 * -decay_per_m2
+    np.exp(out, out=out)
+    out *= gain_m
+    return out
+
+
+def lookahead_probes(to_goal_m: FloatArray, g_k_m: FloatArray, lookahead_m: float) -> FloatArray:
+    """(..., K, D) bapf-nav's look-ahead probes: from each point towards the goal (``to_goal_m``, of length
+    ``g_k_m``), ``lookahead_m`` long or to the goal. A point on the goal (g = 0) gets a zero probe:
+    min(g, L) / max(g, tiny) = 0 there, no 0/0."""
+    scale = np.minimum(g_k_m, lookahead_m)
+    scale /= np.maximum(g_k_m, _TINY)
+    return to_goal_m * scale[..., None]
 
 
 def point_clearance_sq(rel_m: FloatArray, valid: BoolArray) -> FloatArray:
