@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from apf_companion.config import ServiceConfig
 from apf_companion.links import MavlinkLink
 
 UINT16_MAX = 65535
@@ -183,7 +184,8 @@ def main() -> None:
     rates = [float(r) for r in args.rates.split(",")]
     print(f"# machine: {platform.machine()} {platform.processor() or ''} cpus={os.cpu_count()}")
     print(f"# python {platform.python_version()}, numpy {np.__version__}, {platform.platform()}")
-    print(f"# window {args.seconds:.0f} s per rate after 3 s warm-up; planner cr-bapf* (default config)")
+    planner = ServiceConfig().planner.name
+    print(f"# window {args.seconds:.0f} s per rate after 3 s warm-up; planner {planner} (the default config's)")
     rows = asyncio.run(main_async(rates, args.seconds))
     print()
     print("| rate Hz | cycles | ext p50 ms | ext p99 ms | int p50 ms | int p99 ms | CPU % of one core |")
