@@ -19,6 +19,7 @@ __all__ = [
     "point_clearance_sq",
     "segment_clearance_sq",
     "segments_clearance_sq",
+    "sweep_sq_inplace",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -191,13 +192,7 @@ class MoveSweep:
         # A zero-length probe has dot = 0: dividing by the smallest normal float gives t = 0 (its start point),
         # as segments_clearance_sq's NaN rule does, without a floating-point error state to switch off.
         np.maximum(v2, _TINY, out=v2)
-        t = dot / v2
-        np.maximum(t, 0.0, out=t)
-        np.minimum(t, 1.0, out=t)
-        dot *= 2.0
-        dot -= t * v2
-        dot *= t
-        r2 -= dot
+        sweep_sq_inplace(dot, r2, v2)
         np.maximum(r2, 0.0, out=r2)
         _invalid_to_inf(r2, valid)
         both = np.minimum.reduce(r2, axis=0)
@@ -270,3 +265,16 @@ def segments_clearance_sq(
     np.maximum(r2, 0.0, out=r2)
     _invalid_to_inf(r2, valid)
     return np.asarray(np.minimum.reduce(r2, axis=0), dtype=np.float64)
+
+
+def sweep_sq_inplace(dot: FloatArray, r2: FloatArray, v2: FloatArray) -> None:
+    """``r2`` becomes the squared distance from each obstacle to each segment (``dot`` is consumed):
+    |rel - t v|^2 = |rel|^2 - t (2 rel.v - t |v|^2) with t = rel.v / |v|^2 clipped to [0, 1]. ``dot`` = rel.v,
+    ``r2`` = |rel|^2, ``v2`` = |v|^2 (> 0), broadcast together. May round to a tiny negative value: callers clip."""
+    t = dot / v2
+    np.maximum(t, 0.0, out=t)
+    np.minimum(t, 1.0, out=t)
+    dot *= 2.0
+    dot -= t * v2
+    dot *= t
+    r2 -= dot

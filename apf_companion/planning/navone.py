@@ -26,7 +26,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import clearance_terms, lookahead_probes
+from apf_companion.planning.clearance import clearance_terms, lookahead_probes, sweep_sq_inplace
 from apf_companion.planning.decision import Decision, DecisionReason
 from apf_companion.planning.params import PlannerParams
 
@@ -209,12 +209,6 @@ def _axis_sum(per_axis: FloatArray) -> FloatArray:
 def _closest(dot: FloatArray, d2: FloatArray, v2: FloatArray) -> FloatArray:
     """(J,) min over the obstacles of the squared distance to each segment (``dot`` and ``d2`` are consumed):
     |rel - t v|^2 = |rel|^2 - t (2 rel.v - t |v|^2) with t in [0, 1], as ``clearance.MoveSweep``."""
-    t = dot / v2
-    np.maximum(t, 0.0, out=t)
-    np.minimum(t, 1.0, out=t)
-    dot *= 2.0
-    dot -= t * v2
-    dot *= t
-    d2 -= dot
+    sweep_sq_inplace(dot, d2, v2)
     swept: FloatArray = np.minimum.reduce(d2, axis=0)
     return np.maximum(swept, 0.0, out=swept)  # = the min of the clipped values, on J numbers instead of M J
