@@ -154,10 +154,7 @@ class BapfNavPlanner(StatefulPlanner):
         rng: np.random.Generator | None = None,
     ) -> Decision:
         """``StatefulPlanner.step``; a DIRECT step takes the single-agent path (``navone``), same decision."""
-        pos, tgt, obs = self._check_one(position_m, target_m, obstacles_m)
-        if self._own is None:
-            self._own = self.initial_state(1)
-        state = self._own
+        pos, tgt, obs, state = self._one(position_m, target_m, obstacles_m)
         assert isinstance(state, NavState)
         if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN
             state.restart(np.zeros(1, dtype=np.intp), tgt[None])

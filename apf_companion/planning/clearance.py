@@ -221,14 +221,10 @@ def _segment_min(axes: list[FloatArray], dot: FloatArray, offsets_m: FloatArray,
     r2 = axes[0] * axes[0]
     for d in range(1, len(axes)):
         r2 += axes[d] * axes[d]
-    t = dot / o2
-    np.maximum(t, 0.0, out=t)
-    np.minimum(t, 1.0, out=t)
     # |rel - t o|^2 = r2 - t (2 dot - t o2), with the obstacles relative to the agent (no cancellation).
-    dot *= 2.0
-    dot -= t * o2
-    dot *= t
-    d2 = r2[:, :, None] - dot
+    d2 = np.empty_like(dot)
+    d2[...] = r2[:, :, None]
+    sweep_sq_inplace(dot, d2, o2)
     np.maximum(d2, 0.0, out=d2)
     _invalid_to_inf(d2, valid)
     return np.asarray(np.minimum.reduce(d2, axis=0), dtype=np.float64)

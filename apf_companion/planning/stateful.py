@@ -100,10 +100,17 @@ class StatefulPlanner(Planner):
         rng: np.random.Generator | None = None,
     ) -> Decision:
         """One agent's step, with the planner's own memory of this agent (``reset()`` forgets it)."""
+        pos, tgt, obs, own = self._one(position_m, target_m, obstacles_m)
+        return self._plan(pos[None], tgt[None], obs[None], None, own).row(0)
+
+    def _one(
+        self, position_m: npt.ArrayLike, target_m: npt.ArrayLike, obstacles_m: npt.ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray, AgentState]:
+        """One agent's validated arrays and the planner's own memory of it (created on first use)."""
         pos, tgt, obs = self._check_one(position_m, target_m, obstacles_m)
         if self._own is None:
             self._own = self.initial_state(1)
-        return self._plan(pos[None], tgt[None], obs[None], None, self._own).row(0)
+        return pos, tgt, obs, self._own
 
     def step_batch(
         self,
