@@ -77,6 +77,11 @@ class StatefulPlanner(Planner):
         """Forget the single-agent state of ``step`` (a new flight)."""
         self._own = None
 
+    @property
+    def own_state(self) -> AgentState | None:
+        """The single-agent state of ``step`` (None before the first step): read it, e.g. for the mode."""
+        return self._own
+
     @abstractmethod
     def initial_state(self, n_agents: int) -> AgentState:
         """The state of ``n_agents`` agents before their first step."""

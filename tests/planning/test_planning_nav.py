@@ -404,6 +404,19 @@ def test_an_enclosed_goal_ends_in_a_bounded_give_up() -> None:
     assert planner.step(pos, np.array([-5.0, 0.0]), ring).reason is DecisionReason.GREEDY
 
 
+def test_own_state_shows_the_single_agent_mode_and_reset_forgets_it() -> None:
+    """``own_state`` (read by benchmarks/bench_planner_replay.py): None before the first step and after reset."""
+    planner = get_planner("bapf-nav")
+    assert isinstance(planner, StatefulPlanner) and planner.own_state is None
+    wall = np.stack([np.full(41, 3.0), np.linspace(-4.0, 4.0, 41)], axis=1)  # across the way, 3 m ahead
+    planner.step(np.zeros(2), np.array([10.0, 0.0]), wall)
+    state = planner.own_state
+    assert isinstance(state, NavState) and len(state) == 1
+    assert NavMode(int(state.mode[0])) is NavMode.ESCAPE  # a surface blocks the line of sight
+    planner.reset()
+    assert planner.own_state is None
+
+
 def test_boxed_in_it_squeezes_out_keeping_radius_and_safety_margin() -> None:
     """A ring of 7 points 0.7 m away (pockets like it occur in the study): no 0.4 m move keeps C = 0.6 m; it still
     moves, through a gap, along the move that keeps the most."""
