@@ -77,17 +77,23 @@ class DirectStep:
         self._starts = np.concatenate([np.zeros((dim, n_points + 1)), offsets_m.T], axis=1)[:, None, :]
 
     def __call__(
-        self, position_m: FloatArray, obstacles_m: FloatArray, goal_vec_m: FloatArray, g0_m: float, prev_dir: FloatArray
+        self,
+        position_m: FloatArray,
+        rel_m: FloatArray,
+        d2_m2: FloatArray,
+        goal_vec_m: FloatArray,
+        g0_m: float,
+        prev_dir: FloatArray,
     ) -> Decision | None:
         """The step of an agent in DIRECT mode, or None where the batch path must decide (module docstring).
 
-        ``position_m`` (D,), ``obstacles_m`` (N, D) [m]; ``goal_vec_m`` (D,) target minus position and ``g0_m``
-        its length [m]; ``prev_dir`` (1, D) the unit direction of the last move (zeros: none). The caller records
-        the move (``NavState.prev_dir``)."""
+        ``position_m`` (D,) [m]; ``rel_m`` (N, D) the obstacles minus the position [m] and ``d2_m2`` (N,) their
+        squared lengths, einsum("nd,nd->n") (the batch path's |rel|^2: not a left-to-right sum in 3D);
+        ``goal_vec_m`` (D,) target minus position and ``g0_m`` its length [m]; ``prev_dir`` (1, D) the unit
+        direction of the last move (zeros: none). The caller records the move (``NavState.prev_dir``)."""
         to_goal = goal_vec_m - self._offsets  # (K, D)
         g_k = np.sqrt(np.einsum("kd,kd->k", to_goal, to_goal))
-        rel = obstacles_m - position_m
-        d2 = np.einsum("nd,nd->n", rel, rel)  # the batch path's |rel|^2 (einsum: not a left-to-right sum in 3D)
+        rel, d2 = rel_m, d2_m2
         near = (d2 <= self._reach2).nonzero()[0]
         seg2 = None
         if near.size == 0:
