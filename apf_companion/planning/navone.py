@@ -58,6 +58,11 @@ class DirectStep:
         n_points, dim = offsets_m.shape
         self._offsets = offsets_m
         self._units = units
+        # The turn cosines from each previous move (``NavState.prev_dir`` is a row of ``units``): the batch path's
+        # einsum on that row, once per row here instead of once per step.
+        self._cos_after = {
+            tuple(u): np.einsum("ad,kd->ak", units[j : j + 1], units)[0] for j, u in enumerate(units.tolist())
+        }
         self._n = n_points
         self._c2 = clearance_m**2
         self._floor2 = (p.vehicle_radius_m + p.safety_margin_m) ** 2
@@ -179,9 +184,12 @@ class DirectStep:
     ) -> int:
         """Best passing point with the turn hysteresis (``BapfNavPlanner._choose``); some point passes."""
         best = int(scores.argmin())
-        if not any(c != 0.0 for c in prev_dir[0].tolist()):
+        last = tuple(prev_dir[0].tolist())
+        if not any(c != 0.0 for c in last):
             return best
-        cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)[0]  # the batch path's call
+        cos_turn = self._cos_after.get(last)
+        if cos_turn is None:  # not a move of this planner's (a state from elsewhere): the batch path's call
+            cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)[0]
         if not cos_turn[best] < self._cos_hold:
             return best
         held = np.where(passing & (cos_turn >= self._cos_hold), cost, _INF)

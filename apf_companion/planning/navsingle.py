@@ -29,6 +29,8 @@ FloatArray = npt.NDArray[np.float64]
 _TINY = float(np.finfo(np.float64).tiny)
 #: Squared distances up to this are safe to square and add again (no overflow): beyond, the batch test decides.
 _SANE_M2 = 1e300
+#: Slack of the sight test's neighbour prefilter (``SightLine``): rounding is below 1e-12 m there [m].
+_AROUND_SLACK_M = 1e-3
 #: ``NavState.since_*`` are int32: a count stops there (any count that high has already given up or gone stale).
 _INT32_MAX = 2**31 - 1
 #: Ages of fields stop counting here (any age >= ``nav_replan_steps`` means stale; ``NavState.since_field``).
@@ -52,6 +54,7 @@ class SightLine:
         self._c2 = clearance_m * clearance_m
         self._surface2 = _SURFACE_M * _SURFACE_M
         self._first = _SIGHT_FIRST
+        self._around2 = (clearance_m + _SURFACE_M + _AROUND_SLACK_M) ** 2
 
     def __call__(self, rel_m: FloatArray, obstacles_m: FloatArray, goal_vec_m: FloatArray, g0_m: float) -> bool:
         """Whether a surface blocks the line. ``rel_m`` (M, D) obstacles minus the agent, ``obstacles_m`` (M, D),
@@ -67,7 +70,8 @@ class SightLine:
         t = np.maximum(along, start)  # np.clip(along, start, end) without its Python wrapper
         np.minimum(t, end, out=t)
         off = rel_m - t[:, None] * unit
-        hit = np.einsum("md,md->m", off, off) < self._c2
+        off2 = np.einsum("md,md->m", off, off)
+        hit = off2 < self._c2
         picks = hit.nonzero()[0]
         if picks.size == 0:
             return False
@@ -76,7 +80,10 @@ class SightLine:
             order = np.where(hit, along, math.inf)
             picks = np.argpartition(order, first - 1)[:first]
         # Fewer hits than ``first``: the batch path picks them all (its other picks are not hits).
-        gap = obstacles_m[None, :, :] - obstacles_m[picks][:, None, :]  # (P, M, D)
+        # A pick's neighbours lie within C + surface_m of the line (off2 is the squared distance to it; its
+        # rounding is relative to these few metres): only they are compared, with the batch path's arithmetic.
+        around = obstacles_m[(off2 < self._around2).nonzero()[0]]
+        gap = around[None, :, :] - obstacles_m[picks][:, None, :]  # (P, Q, D)
         d2 = np.einsum("fmd,fmd->fm", gap, gap)
         close = d2 < self._surface2
         close &= d2 > 0.0
