@@ -6,7 +6,8 @@ on 1-D arrays, with no group loop and no floating-point error state to switch (t
 finite first; non-finite or absurdly large ones take the batch test). Every value comes from the same
 floating-point operations as in the batch path: Python's float arithmetic and ``math.sqrt`` are IEEE double like
 numpy's on single values; sums of D products stay einsum calls on the same layouts (numpy's einsum does not sum
-three products left to right), except sums of two products (one addition: any order gives the same bits).
+three products left to right, and a build may fuse its multiply-adds), except where only a comparison far from
+its threshold is needed (the trail).
 tests/planning/test_planning_navsingle.py compares both with the batch path.
 """
 
@@ -31,6 +32,8 @@ _TINY = float(np.finfo(np.float64).tiny)
 _SANE_M2 = 1e300
 #: Slack of the sight test's neighbour prefilter (``SightLine``): rounding is below 1e-12 m there [m].
 _AROUND_SLACK_M = 1e-3
+#: Relative band around the trail spacing where the batch path's einsum decides (``SingleStart._record``).
+_ULPS = 1e-12
 #: ``NavState.since_*`` are int32: a count stops there (any count that high has already given up or gone stale).
 _INT32_MAX = 2**31 - 1
 #: Ages of fields stop counting here (any age >= ``nav_replan_steps`` means stale; ``NavState.since_field``).
@@ -66,11 +69,12 @@ class SightLine:
         unit = goal_vec_m / max(g0_m, _TINY)
         end = min(g0_m, self._sight_m)
         start = min(self._step_m, end)
-        along = np.einsum("md,d->m", rel_m, unit)  # the batch path's "amd,ad->am", one row
+        # The einsum calls are the batch path's, on one row (the same reduction kernels, whatever the build).
+        along = np.einsum("amd,ad->am", rel_m[None], unit[None])[0]
         t = np.maximum(along, start)  # np.clip(along, start, end) without its Python wrapper
         np.minimum(t, end, out=t)
         off = rel_m - t[:, None] * unit
-        off2 = np.einsum("md,md->m", off, off)
+        off2 = np.einsum("amd,amd->am", off[None], off[None])[0]
         hit = off2 < self._c2
         picks = hit.nonzero()[0]
         if picks.size == 0:
@@ -83,8 +87,8 @@ class SightLine:
         # A pick's neighbours lie within C + surface_m of the line (off2 is the squared distance to it; its
         # rounding is relative to these few metres): only they are compared, with the batch path's arithmetic.
         around = obstacles_m[(off2 < self._around2).nonzero()[0]]
-        gap = around[None, :, :] - obstacles_m[picks][:, None, :]  # (P, Q, D)
-        d2 = np.einsum("fmd,fmd->fm", gap, gap)
+        gap = around[None, None, :, :] - obstacles_m[picks][None, :, None, :]  # (1, P, Q, D)
+        d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)[0]
         close = d2 < self._surface2
         close &= d2 > 0.0
         return bool(np.logical_or.reduce(np.add.reduce(close, axis=1) >= 2))
@@ -111,7 +115,6 @@ class SingleStart:
     ) -> None:
         self._escape = escape
         self._sight = sight
-        self._dim = params.dim
         self._step_m = params.step_m
         self._patience = params.nav_patience_steps
         self._spacing2 = trail_spacing_m * trail_spacing_m
@@ -123,11 +126,7 @@ class SingleStart:
         """Target minus position (D,) and its length g0, and the obstacles minus the agent (M, D) with their
         squared distances (M,) (``navone.DirectStep`` takes them). ``state``: one row, updated in place."""
         goal_vec = target_m - position_m
-        if self._dim == 2:
-            gx, gy = goal_vec.tolist()
-            g0 = math.sqrt(gx * gx + gy * gy)
-        else:  # the batch path's einsum (three products: not left to right)
-            g0 = math.sqrt(float(np.einsum("d,d->", goal_vec, goal_vec)))
+        g0 = math.sqrt(float(np.einsum("ad,ad->a", goal_vec[None], goal_vec[None])[0]))  # the batch path's call
         rel = obstacles_m - position_m
         r2 = np.einsum("nd,nd->n", rel, rel)
         mode = int(state.mode[0])
@@ -156,12 +155,18 @@ class SingleStart:
         return bool(self._escape.sight_blocked(every, position_m[None], target_m[None], obstacles_m[None], None)[0])
 
     def _record(self, position_m: FloatArray, state: NavState) -> None:
-        """``NavState.record`` of one agent (two coordinates: any order of the one addition gives its bits)."""
+        """``NavState.record`` of one agent. Its squared distance in Python floats is within a few ulp of the
+        batch path's einsum (which may fuse a multiply-add, e.g. on ARM); near the spacing, the einsum decides."""
         slot = int(state.trail_next[0])
-        last_n, last_e = state.trail_m[0, (slot - 1) % TRAIL].tolist()
+        last = state.trail_m[0, (slot - 1) % TRAIL]
+        last_n, last_e = last.tolist()
         north, east = position_m[:2].tolist()
         dn, de = north - last_n, east - last_e
-        if not dn * dn + de * de < self._spacing2:  # NaN (no point yet): record
+        dist2 = dn * dn + de * de
+        if abs(dist2 - self._spacing2) <= _ULPS * self._spacing2:
+            delta = position_m[None, :2] - last[None]
+            dist2 = float(np.einsum("ad,ad->a", delta, delta)[0])
+        if not dist2 < self._spacing2:  # NaN (no point yet): record
             state.trail_m[0, slot] = position_m[:2]
             state.trail_next[0] = (slot + 1) % TRAIL
 

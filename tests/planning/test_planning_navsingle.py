@@ -110,3 +110,27 @@ def test_non_finite_or_huge_obstacles_take_the_batch_sight_test_without_warnings
         planner._start(np.zeros((1, 2)), target[None], wall[None], None, batch)
     assert single.mode[0] == batch.mode[0] == NavMode.ESCAPE  # the wall blocks
     assert single.hit_dist_m[0] == batch.hit_dist_m[0] == 20.0
+
+
+def test_the_trail_is_recorded_as_by_the_batch_rule_at_the_spacing() -> None:
+    """Positions about 1 m (the spacing) from the last trail point, on and either side of it."""
+    planner = BapfNavPlanner(PlannerParams())
+    rng = np.random.default_rng(3)
+    recorded = set()
+    for _ in range(400):
+        last = rng.uniform(-50.0, 50.0, 2)
+        angle = rng.uniform(0.0, 2.0 * np.pi)
+        radius = rng.choice([1.0, np.nextafter(1.0, 0.0), np.nextafter(1.0, 2.0), rng.uniform(0.9, 1.1)])
+        pos = last + radius * np.array([np.cos(angle), np.sin(angle)])
+        if rng.random() < 0.2:
+            pos = last + np.array([0.6, 0.8]) * rng.choice([-1.0, 1.0])
+        single, batch = NavState.empty(1, 2), NavState.empty(1, 2)
+        for state in (single, batch):
+            state.trail_m[0, 5] = last
+            state.trail_next[0] = 6
+        planner._start_one._record(pos, single)
+        batch.record(pos[None], 1.0)
+        assert single.trail_m.tobytes() == batch.trail_m.tobytes()
+        assert single.trail_next.tobytes() == batch.trail_next.tobytes()
+        recorded.add(int(batch.trail_next[0]))
+    assert recorded == {6, 7}
