@@ -31,9 +31,10 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    steps: ``DecisionReason.GAVE_UP`` (the caller reports STUCK), and no moves until the target changes.
 
 Moves are reported as GREEDY (a passing point on the planner's potential); ``NavState.mode`` says which
-potential. ``step`` (one agent, the service) decides DIRECT steps with ``navone.DirectStep``: the same decisions
-in fewer numpy calls. 3D: the candidates and the sweep are 3D; the escape potential is the horizontal geodesic distance
-combined with the vertical offset, sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
+potential. ``step`` (one agent, the service) runs the sight, trail and progress rules with ``navsingle.SingleStart``
+and decides DIRECT steps with ``navone.DirectStep``: the same decisions in fewer numpy calls. 3D: the candidates
+and the sweep are 3D; the escape potential is the horizontal geodesic distance combined with the vertical offset,
+sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
 """
 
 from __future__ import annotations
