@@ -31,9 +31,10 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    steps: ``DecisionReason.GAVE_UP`` (the caller reports STUCK), and no moves until the target changes.
 
 Moves are reported as GREEDY (a passing point on the planner's potential); ``NavState.mode`` says which
-potential. ``step`` (one agent, the service) decides DIRECT steps with ``navone.DirectStep``: the same decisions
-in fewer numpy calls. 3D: the candidates and the sweep are 3D; the escape potential is the horizontal geodesic distance
-combined with the vertical offset, sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
+potential. ``step`` (one agent, the service) runs the sight, trail and progress rules with ``navsingle.SingleStart``
+and decides DIRECT steps with ``navone.DirectStep``: the same decisions in fewer numpy calls. 3D: the candidates
+and the sweep are 3D; the escape potential is the horizontal geodesic distance combined with the vertical offset,
+sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from apf_companion.planning.clearance import MoveSweep, clearance_terms, lookahe
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navone import DirectStep
+from apf_companion.planning.navsingle import FIELD_AGE_CAP, SightLine, SingleStart, age_field
 from apf_companion.planning.navstate import NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
@@ -60,8 +62,8 @@ IntArray = npt.NDArray[np.intp]
 #: A new closest approach must beat the old one by this share of a step (noise-level jitter is no progress, and
 #: an agent circling an enclosed goal cannot reset its patience for ever by creeping a millimetre closer).
 _PROGRESS_SHARE = 0.25
-#: Ages of fields stop counting here (any age >= ``nav_replan_steps`` means stale).
-_AGE_CAP = np.int32(2**30)
+#: Ages of fields stop counting here (``navsingle.FIELD_AGE_CAP``).
+_AGE_CAP = np.int32(FIELD_AGE_CAP)
 #: Spacing of the trail of visited positions (``NavState.record``; used by ``EscapeMaps.refresh``) [m].
 _TRAIL_SPACING_M = 1.0
 # NavMode codes as int8 scalars: comparing an array with an IntEnum member costs enum machinery on every call.
@@ -106,6 +108,8 @@ class BapfNavPlanner(StatefulPlanner):
         soft_m = math.sqrt(7.0 / p.nav_clearance_decay_per_m2)  # exp(-7) < 1e-3: negligible beyond
         self._reach_m = p.step_m + max(self.clearance_m + p.nav_lookahead_m, soft_m)
         self._direct_one = DirectStep(p, offsets, self._units, self.clearance_m, self._reach_m)
+        sight = SightLine(p, self.clearance_m)
+        self._start_one = SingleStart(p, self._escape, sight, _TRAIL_SPACING_M, _PROGRESS_SHARE)
 
     def initial_state(self, n_agents: int) -> NavState:
         return NavState.empty(n_agents, self.params.dim)
@@ -153,19 +157,21 @@ class BapfNavPlanner(StatefulPlanner):
         obstacles_m: npt.ArrayLike,
         rng: np.random.Generator | None = None,
     ) -> Decision:
-        """``StatefulPlanner.step``; a DIRECT step takes the single-agent path (``navone``), same decision."""
+        """``StatefulPlanner.step``; the single-agent path (``navsingle``, and ``navone`` for a DIRECT step), the
+        same decision."""
         pos, tgt, obs, state = self._one(position_m, target_m, obstacles_m)
         assert isinstance(state, NavState)
         if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN
             state.restart(np.zeros(1, dtype=np.intp), tgt[None])
-        goal_vec, g0 = self._start(pos[None], tgt[None], obs[None], None, state)
-        direct = state.mode[0] == _DIRECT
-        decision = self._direct_one(pos, obs, goal_vec[0], float(g0[0]), state.prev_dir) if direct else None
+        goal_vec, g0, rel, r2 = self._start_one(pos, tgt, obs, state)
+        decision = None
+        if state.mode[0] == _DIRECT:
+            decision = self._direct_one(pos, rel, r2, goal_vec, g0, state.prev_dir)
         if decision is None:  # not DIRECT, or it enters ESCAPE: the batch path
-            return self._decide(pos[None], tgt[None], obs[None], None, state, goal_vec, g0).row(0)
+            return self._decide(pos[None], tgt[None], obs[None], None, state, goal_vec[None], np.array([g0])).row(0)
         if decision.chosen_index is not None:
             state.prev_dir[0] = self._units[decision.chosen_index]
-        _age_fields(state)
+        age_field(state)
         return decision
 
     def _decide(

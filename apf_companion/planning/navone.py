@@ -58,6 +58,11 @@ class DirectStep:
         n_points, dim = offsets_m.shape
         self._offsets = offsets_m
         self._units = units
+        # The turn cosines from each previous move (``NavState.prev_dir`` is a row of ``units``): the batch path's
+        # einsum on that row, once per row here instead of once per step.
+        self._cos_after = {
+            tuple(u): np.einsum("ad,kd->ak", units[j : j + 1], units)[0] for j, u in enumerate(units.tolist())
+        }
         self._n = n_points
         self._c2 = clearance_m**2
         self._floor2 = (p.vehicle_radius_m + p.safety_margin_m) ** 2
@@ -77,17 +82,23 @@ class DirectStep:
         self._starts = np.concatenate([np.zeros((dim, n_points + 1)), offsets_m.T], axis=1)[:, None, :]
 
     def __call__(
-        self, position_m: FloatArray, obstacles_m: FloatArray, goal_vec_m: FloatArray, g0_m: float, prev_dir: FloatArray
+        self,
+        position_m: FloatArray,
+        rel_m: FloatArray,
+        d2_m2: FloatArray,
+        goal_vec_m: FloatArray,
+        g0_m: float,
+        prev_dir: FloatArray,
     ) -> Decision | None:
         """The step of an agent in DIRECT mode, or None where the batch path must decide (module docstring).
 
-        ``position_m`` (D,), ``obstacles_m`` (N, D) [m]; ``goal_vec_m`` (D,) target minus position and ``g0_m``
-        its length [m]; ``prev_dir`` (1, D) the unit direction of the last move (zeros: none). The caller records
-        the move (``NavState.prev_dir``)."""
+        ``position_m`` (D,) [m]; ``rel_m`` (N, D) the obstacles minus the position [m] and ``d2_m2`` (N,) their
+        squared lengths, einsum("nd,nd->n") (the batch path's |rel|^2: not a left-to-right sum in 3D);
+        ``goal_vec_m`` (D,) target minus position and ``g0_m`` its length [m]; ``prev_dir`` (1, D) the unit
+        direction of the last move (zeros: none). The caller records the move (``NavState.prev_dir``)."""
         to_goal = goal_vec_m - self._offsets  # (K, D)
         g_k = np.sqrt(np.einsum("kd,kd->k", to_goal, to_goal))
-        rel = obstacles_m - position_m
-        d2 = np.einsum("nd,nd->n", rel, rel)  # the batch path's |rel|^2 (einsum: not a left-to-right sum in 3D)
+        rel, d2 = rel_m, d2_m2
         near = (d2 <= self._reach2).nonzero()[0]
         seg2 = None
         if near.size == 0:
@@ -173,9 +184,12 @@ class DirectStep:
     ) -> int:
         """Best passing point with the turn hysteresis (``BapfNavPlanner._choose``); some point passes."""
         best = int(scores.argmin())
-        if not any(c != 0.0 for c in prev_dir[0].tolist()):
+        last = tuple(prev_dir[0].tolist())
+        if not any(c != 0.0 for c in last):
             return best
-        cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)[0]  # the batch path's call
+        cos_turn = self._cos_after.get(last)
+        if cos_turn is None:  # not a move of this planner's (a state from elsewhere): the batch path's call
+            cos_turn = np.einsum("ad,kd->ak", prev_dir, self._units)[0]
         if not cos_turn[best] < self._cos_hold:
             return best
         held = np.where(passing & (cos_turn >= self._cos_hold), cost, _INF)

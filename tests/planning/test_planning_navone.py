@@ -31,6 +31,15 @@ def _assert_same(single: Decision, row: Decision) -> None:
     assert single.candidate_cost.tobytes() == row.candidate_cost.tobytes()
 
 
+def _direct(
+    one: DirectStep, position: np.ndarray, obstacles: np.ndarray, target: np.ndarray, prev_dir: np.ndarray
+) -> Decision | None:
+    """``one``'s step with the obstacles relative to the agent and the goal vector, as ``step`` passes them."""
+    rel = obstacles - position
+    goal_vec = target - position
+    return one(position, rel, np.einsum("nd,nd->n", rel, rel), goal_vec, float(np.linalg.norm(goal_vec)), prev_dir)
+
+
 def _pocket(dim: int) -> np.ndarray:
     """A ring of 7 points 0.7 m around the origin: no 0.4 m move keeps C = 0.6 m (boxed in)."""
     angles = 2.0 * np.pi * (np.arange(7) + 0.3) / 7.0
@@ -88,10 +97,10 @@ def test_the_single_agent_path_decides_boxed_in_and_inside_the_clearance(dim: in
     target = np.full(dim, 20.0)
     origin = np.zeros(dim)
     for obstacles in (_pocket(dim), np.eye(dim)[:1] * 0.3):
-        d = one(origin, obstacles, target, float(np.linalg.norm(target)), np.zeros((1, dim)))
+        d = _direct(one, origin, obstacles, target, np.zeros((1, dim)))
         assert d is not None and d.moved
     if dim == 2:  # the pocket boxes a 2D agent in: no move keeps C, it squeezes out
-        d = one(origin, _pocket(2), target, float(np.linalg.norm(target)), np.zeros((1, 2)))
+        d = _direct(one, origin, _pocket(2), target, np.zeros((1, 2)))
         assert d is not None and d.n_safe == 0 and d.n_passing == 0
 
 
@@ -102,7 +111,7 @@ def test_a_step_that_enters_escape_falls_back_to_the_batch_path() -> None:
     p = planner.params
     one = DirectStep(p, planner.bacteria_offsets_m, planner.bacteria_offsets_m / p.step_m, p.clearance_m, 2.2)
     target = np.array([3.0, 0.0])
-    assert one(np.zeros(2), wall, target, 3.0, np.zeros((1, 2))) is None
+    assert _direct(one, np.zeros(2), wall, target, np.zeros((1, 2))) is None
     planner.step(np.zeros(2), target, wall)
     state = planner._own
     assert isinstance(state, NavState) and state.mode[0] == NavMode.ESCAPE
