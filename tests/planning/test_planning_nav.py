@@ -204,8 +204,14 @@ def _dijkstra(grid: NavGrid, origin: np.ndarray, blocked: np.ndarray, goal: np.n
     return dist
 
 
-@pytest.mark.parametrize("goal", [(10.0, 9.0), (40.0, -3.0)], ids=["goal-inside", "goal-outside"])
-def test_sweeps_equal_dijkstra(goal: tuple[float, float]) -> None:
+@pytest.mark.parametrize(
+    "goal",
+    [(10.0, 9.0), (40.0, -3.0), (5.25, 7.75), (0.1, 6.1)],
+    ids=["goal-inside", "goal-outside", "goal-on-a-cell-centre", "goal-in-an-edge-cell"],
+)
+def test_fields_equal_a_plain_dijkstra(goal: tuple[float, float]) -> None:
+    """scipy's Dijkstra over the prepared graph equals a heap search cell by cell, including a seed of value 0
+    (the goal on a cell centre: an explicit zero weight is an edge) and an edge cell near the goal (two seeds)."""
     grid = NavGrid(0.5, 12.0)
     rng = np.random.default_rng(3)
     origins = np.zeros((3, 2))
