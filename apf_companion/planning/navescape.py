@@ -259,10 +259,11 @@ class EscapeMaps:
         if self.params.dim == 3:
             valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
         obs_xy = np.where(valid[..., None], obs[:, :, :2], 0.0)
-        blocked = grid.blocked(origins, obs_xy, valid, self.clearance_m)
         if old_blocked.any():
-            known = grid.blocked(origins, obs_xy, valid, self._reach_m)
+            blocked, known = grid.blocked_within(origins, obs_xy, valid, (self.clearance_m, self._reach_m))
             blocked |= old_blocked & ~known
+        else:
+            blocked = grid.blocked(origins, obs_xy, valid, self.clearance_m)
         blocked |= old_virtual
         dist = self._distances(rows, xy, origins, blocked, goals, state)
         for i, r in enumerate(rows):

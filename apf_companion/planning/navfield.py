@@ -119,26 +119,49 @@ class NavGrid:
 
         ``obstacles_xy_m`` (B, N, 2), ``valid`` (B, N). Each point marks a small stencil of cells (vectorised).
         """
-        n_batch = origins_m.shape[0]
-        out = np.zeros((n_batch, self.size), dtype=bool)
+        return self.blocked_within(origins_m, obstacles_xy_m, valid, (radius_m,))[0]
+
+    def blocked_within(
+        self, origins_m: FloatArray, obstacles_xy_m: FloatArray, valid: BoolArray, radii_m: tuple[float, ...]
+    ) -> list[BoolArray]:
+        """``blocked`` for several radii at once (one stencil, the largest radius's; the same cells each)."""
+        n, h = self.n, self.cell_m
+        outs = [np.zeros((origins_m.shape[0], self.size), dtype=bool) for _ in radii_m]
         if obstacles_xy_m.shape[1] == 0 or not valid.any():
-            return out
-        h = self.cell_m
-        reach = math.ceil(radius_m / h) + 1
-        grid_i, grid_j = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
-        di, dj = grid_i.ravel(), grid_j.ravel()
+            return outs
+        steps = np.arange(-math.ceil(max(radii_m) / h) - 1, math.ceil(max(radii_m) / h) + 2)
         b, m = np.nonzero(valid)
         rel = (obstacles_xy_m[b, m] - origins_m[b]) / h  # (P, 2) in cells
-        base_i = np.floor(rel[:, 0]).astype(np.intp)
-        base_j = np.floor(rel[:, 1]).astype(np.intp)
-        ci = base_i[:, None] + di[None, :]
-        cj = base_j[:, None] + dj[None, :]
+        ci = np.floor(rel[:, 0]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil rows
+        cj = np.floor(rel[:, 1]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil columns
         ddx = (ci + 0.5 - rel[:, 0:1]) * h
         ddy = (cj + 0.5 - rel[:, 1:2]) * h
-        hit = (ddx * ddx + ddy * ddy < radius_m * radius_m) & (ci >= 0) & (ci < self.n) & (cj >= 0) & (cj < self.n)
-        rows = np.broadcast_to(b[:, None], ci.shape)[hit]
-        out[rows, ci[hit] * self.n + cj[hit]] = True
-        return out
+        # The stencil is separable: (P, S, S) squared distances from one row and one column term per point; rows
+        # and columns outside the grid are at infinity.
+        dx2 = np.where((ci >= 0) & (ci < n), ddx * ddx, np.inf)
+        dy2 = np.where((cj >= 0) & (cj < n), ddy * ddy, np.inf)
+        d2 = dx2[:, :, None] + dy2[:, None, :]
+        top = max(radii_m)
+        p, si, sj = np.nonzero(d2 < top * top)  # the cells of the largest radius; the others are among them
+        rows, cells, near2 = b[p], ci[p, si] * n + cj[p, sj], d2[p, si, sj]
+        for out, radius in zip(outs, radii_m, strict=True):
+            hit = near2 < radius * radius
+            out[rows[hit], cells[hit]] = True
+        return outs
+        steps = np.arange(-math.ceil(max(radii_m) / h) - 1, math.ceil(max(radii_m) / h) + 2)
+        b, m = np.nonzero(valid)
+        rel = (obstacles_xy_m[b, m] - origins_m[b]) / h  # (P, 2) in cells
+        ci = np.floor(rel[:, 0]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil rows
+        cj = np.floor(rel[:, 1]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil columns
+        ddx = (ci + 0.5 - rel[:, 0:1]) * h
+        ddy = (cj + 0.5 - rel[:, 1:2]) * h
+        # The stencil is separable: (P, S, S) squared distances from one row and one column term per point.
+        d2 = (ddx * ddx)[:, :, None] + (ddy * ddy)[:, None, :]
+        inside = ((ci >= 0) & (ci < n))[:, :, None] & ((cj >= 0) & (cj < n))[:, None, :]
+        for out, radius in zip(outs, radii_m, strict=True):
+            p, si, sj = np.nonzero((d2 < radius * radius) & inside)
+            out[b[p], ci[p, si] * n + cj[p, sj]] = True
+        return outs
 
     # --- the potential --------------------------------------------------------------------------------------
 

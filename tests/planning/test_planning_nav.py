@@ -204,6 +204,24 @@ def _dijkstra(grid: NavGrid, origin: np.ndarray, blocked: np.ndarray, goal: np.n
     return dist
 
 
+def test_blocked_cells_are_those_within_the_radius_for_each_radius() -> None:
+    """One stencil for several radii marks, per radius, exactly the cells whose centre lies closer than it to a
+    valid point (brute force over all cells), points near and beyond the grid's sides included."""
+    grid = NavGrid(0.5, 12.0)
+    rng = np.random.default_rng(5)
+    origins = np.array([[0.0, 0.0], [-3.0, 2.0]])
+    obs = rng.uniform(-2.0, 14.0, size=(2, 60, 2))
+    valid = rng.random((2, 60)) < 0.8
+    radii = (0.8, 1.3)
+    centres = (np.stack(np.divmod(np.arange(grid.size), grid.n), axis=1) + 0.5) * grid.cell_m
+    for radius, got in zip(radii, grid.blocked_within(origins, obs, valid, radii), strict=True):
+        for b in range(2):
+            gap = origins[b] + centres[:, None, :] - obs[b][valid[b]][None, :, :]
+            ref = (np.einsum("cpd,cpd->cp", gap, gap) < radius * radius).any(axis=1)
+            assert np.array_equal(got[b], ref)
+        assert np.array_equal(got, grid.blocked(origins, obs, valid, radius))
+
+
 @pytest.mark.parametrize(
     "goal",
     [(10.0, 9.0), (40.0, -3.0), (5.25, 7.75), (0.1, 6.1)],
