@@ -36,6 +36,8 @@ _sum = np.add.reduce
 _any = np.logical_or.reduce
 #: Blocking points tested for being part of a surface, the first along the line (``sight_blocked``).
 _SIGHT_FIRST = 3
+#: Fields an agent's memo keeps (``NavField.memo``): the closed and the open field of the last two inputs.
+_MEMO = 4
 
 
 class EscapeMaps:
@@ -265,10 +267,15 @@ class EscapeMaps:
         else:
             blocked = grid.blocked(origins, obs_xy, valid, self.clearance_m)
         blocked |= old_virtual
-        dist = self._distances(rows, xy, origins, blocked, goals, state)
+        memos = [[] if state.field[r] is None else list(state.field[r].memo) for r in rows]
+        dist = self._distances(rows, xy, origins, blocked, goals, state, memos)
         for i, r in enumerate(rows):
             state.field[r] = NavField(
-                origin_m=origins[i].copy(), blocked=blocked[i], dist_m=dist[i], virtual=old_virtual[i]
+                origin_m=origins[i].copy(),
+                blocked=blocked[i],
+                dist_m=dist[i],
+                virtual=old_virtual[i],
+                memo=tuple(memos[i][-_MEMO:]),
             )
         state.since_field[rows] = 0
 
@@ -280,6 +287,7 @@ class EscapeMaps:
         blocked: BoolArray,
         goals: FloatArray,
         state: NavState,
+        memos: list[list[tuple[bytes, FloatArray]]],
     ) -> FloatArray:
         """The fields of ``rows``, with the grid's edge closed where the agent has already looked beyond it.
 
@@ -293,7 +301,7 @@ class EscapeMaps:
         """
         seen_m = self.params.nav_seen_m
         if seen_m <= 0.0:
-            return self.grid.distances(origins, blocked, goals)
+            return self._recall(memos, origins, blocked, goals)
         closed = blocked.copy()
         for i, r in enumerate(rows):
             trail = state.trail_m[r]
@@ -304,12 +312,34 @@ class EscapeMaps:
             delta = edge[:, None, :] - trail[None, :, :]
             near = (np.einsum("ekd,ekd->ek", delta, delta) < seen_m * seen_m).any(axis=1)
             closed[i, self._edge_cells[near]] = True
-        dist = self.grid.distances(origins, closed, goals)
+        dist = self._recall(memos, origins, closed, goals)
         around = xy[:, None, :] + np.vstack([self._offsets[:, :2], np.zeros((1, 2))])[None]
         lost = ~np.isfinite(self.grid.sample_many(origins, dist, around)).any(axis=1)
         if lost.any():
-            dist[lost] = self.grid.distances(origins[lost], blocked[lost], goals[lost])
+            dist[lost] = self._recall(
+                [memos[i] for i in np.flatnonzero(lost)], origins[lost], blocked[lost], goals[lost]
+            )
         return dist
+
+    def _recall(
+        self,
+        memos: list[list[tuple[bytes, FloatArray]]],
+        origins: FloatArray,
+        blocked: BoolArray,
+        goals: FloatArray,
+    ) -> FloatArray:
+        """``NavGrid.distances``, taken from an agent's memo (``NavField.memo``) when it holds the same input; new
+        fields are appended to the memo (the caller keeps the last ``_MEMO``)."""
+        out = np.empty(blocked.shape)
+        for i, memo in enumerate(memos):
+            key = origins[i].tobytes() + goals[i].tobytes() + np.packbits(blocked[i]).tobytes()
+            known = [d for k, d in memo if k == key]
+            if known:
+                out[i] = known[0]
+            else:
+                out[i] = self.grid.distances(origins[i : i + 1], blocked[i : i + 1], goals[i : i + 1])[0]
+                memo.append((key, out[i].copy()))
+        return out
 
     def geodesic(
         self, rows: IntArray, positions_m: FloatArray, targets_m: FloatArray, state: NavState

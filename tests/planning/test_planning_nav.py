@@ -364,6 +364,30 @@ def test_a_narrow_door_stays_open_when_its_points_jitter_and_forgotten_walls_sta
     assert state.field[0].blocked[door_cell]
 
 
+def test_a_refresh_from_an_unchanged_map_reuses_its_field_and_a_changed_map_computes_one() -> None:
+    """The memo of an agent's fields (``NavField.memo``): the same input (corner, goal, blocked cells) gives the
+    field computed before, equal to one computed afresh; a new point computes a new field; the memo stays short."""
+    params = PlannerParams()
+    offsets = BapfNavPlanner(params).bacteria_offsets_m
+    maps = EscapeMaps(params, offsets, params.clearance_m)
+    state = NavState.empty(1, 2)
+    agent, goal, rows = np.array([[5.0, 10.5]]), np.array([[12.0, 6.0]]), np.array([0])
+    room = _room_with_door(0.0)
+    maps.refresh(rows, agent, goal, room[None], None, state)
+    first = state.field[0]
+    maps.refresh(rows, agent, goal, room[None], None, state)
+    again = state.field[0]
+    assert [k for k, _ in again.memo] == [k for k, _ in first.memo] and len(first.memo) >= 1
+    fresh = NavState.empty(1, 2)
+    EscapeMaps(params, offsets, params.clearance_m).refresh(rows, agent, goal, room[None], None, fresh)
+    assert np.array_equal(again.dist_m, fresh.field[0].dist_m) and fresh.field[0].dist_m is not again.dist_m
+    for k in range(1, 8):  # each new point changes the blocked cells: a new field each time
+        maps.refresh(rows, agent, goal, np.vstack([room, [[6.0 + 0.5 * k, 3.0]]])[None], None, state)
+        keys = [key for key, _ in state.field[0].memo]
+        assert len(set(keys)) == len(keys) <= 4
+    assert keys[-1] not in [key for key, _ in first.memo]
+
+
 def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
     """Fly ``u-trap-goal`` noise-free, seeing the study's surface samples within 8 m (remembered).
 
