@@ -228,18 +228,19 @@ class NavGrid:
         j0 = np.floor(rel[..., 1]).astype(np.intp)
         fi = rel[..., 0] - i0
         fj = rel[..., 1] - j0
-        num = np.zeros(points_xy_m.shape[:2])
-        den = np.zeros(points_xy_m.shape[:2])
-        rows = np.arange(origins_m.shape[0])[:, None]
-        for oi, wi in ((0, 1.0 - fi), (1, fi)):
-            for oj, wj in ((0, 1.0 - fj), (1, fj)):
-                ii = np.clip(i0 + oi, 0, n - 1)
-                jj = np.clip(j0 + oj, 0, n - 1)
-                val = dists_m[rows, ii * n + jj]
-                w = wi * wj
-                ok = np.isfinite(val) & (w > 0.0)
-                num += np.where(ok, w * np.where(ok, val, 0.0), 0.0)
-                den += np.where(ok, w, 0.0)
+        rows = np.arange(origins_m.shape[0])[None, :, None]
+        # The four corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1) stacked on a first axis.
+        ii = (np.minimum(np.maximum(i0, 0), n - 1), np.minimum(np.maximum(i0 + 1, 0), n - 1))
+        jj = (np.minimum(np.maximum(j0, 0), n - 1), np.minimum(np.maximum(j0 + 1, 0), n - 1))
+        wi, wj = (1.0 - fi, fi), (1.0 - fj, fj)
+        val = dists_m[rows, np.stack([ii[a] * n + jj[b] for a in (0, 1) for b in (0, 1)])]
+        w = np.stack([wi[a] * wj[b] for a in (0, 1) for b in (0, 1)])
+        ok = np.isfinite(val) & (w > 0.0)
+        term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
+        weight = np.where(ok, w, 0.0)
+        # Summed corner by corner in this order (not a reduction, whose order numpy may change).
+        num = term[0] + term[1] + term[2] + term[3]
+        den = weight[0] + weight[1] + weight[2] + weight[3]
         inside = (rel[..., 0] >= -0.5) & (rel[..., 0] <= n - 0.5) & (rel[..., 1] >= -0.5) & (rel[..., 1] <= n - 0.5)
         with np.errstate(invalid="ignore", divide="ignore"):
             out = np.where(inside & (den > 0.0), num / den, np.inf)
