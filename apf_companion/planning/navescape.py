@@ -261,12 +261,8 @@ class EscapeMaps:
         if self.params.dim == 3:
             valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
         obs_xy = np.where(valid[..., None], obs[:, :, :2], 0.0)
-        if old_blocked.any():
-            blocked, known = grid.blocked_within(origins, obs_xy, valid, (self.clearance_m, self._reach_m))
-            blocked |= old_blocked & ~known
-        else:
-            blocked = grid.blocked(origins, obs_xy, valid, self.clearance_m)
-        blocked |= old_virtual
+        inflated, known, keys = self._occupancy(rows, origins, obs_xy, valid, state)
+        blocked = inflated | (old_blocked & ~known) | old_virtual
         memos = [[] if state.field[r] is None else list(state.field[r].memo) for r in rows]
         dist = self._distances(rows, xy, origins, blocked, goals, state, memos)
         for i, r in enumerate(rows):
@@ -276,8 +272,30 @@ class EscapeMaps:
                 dist_m=dist[i],
                 virtual=old_virtual[i],
                 memo=tuple(memos[i][-_MEMO:]),
+                occupancy=(keys[i], inflated[i], known[i]),
             )
         state.since_field[rows] = 0
+
+    def _occupancy(
+        self, rows: IntArray, origins: FloatArray, obs_xy: FloatArray, valid: BoolArray, state: NavState
+    ) -> tuple[BoolArray, BoolArray, list[bytes]]:
+        """Cells within the clearance and within ``_reach_m`` of the points known now (R, n^2) each, and their
+        exact input per agent; taken from the agent's field (``NavField.occupancy``) when that input is the same
+        (a second refresh in one step: the stall or dead-end rule)."""
+        inflated = np.empty((rows.size, self.grid.size), dtype=bool)
+        known = np.empty((rows.size, self.grid.size), dtype=bool)
+        keys = [origins[i].tobytes() + obs_xy[i].tobytes() + valid[i].tobytes() for i in range(rows.size)]
+        todo = []
+        for i, r in enumerate(rows):
+            f = state.field[r]
+            if f is not None and f.occupancy is not None and f.occupancy[0] == keys[i]:
+                inflated[i], known[i] = f.occupancy[1], f.occupancy[2]
+            else:
+                todo.append(i)
+        if todo:
+            radii = (self.clearance_m, self._reach_m)
+            inflated[todo], known[todo] = self.grid.blocked_within(origins[todo], obs_xy[todo], valid[todo], radii)
+        return inflated, known, keys
 
     def _distances(
         self,

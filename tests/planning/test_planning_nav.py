@@ -364,12 +364,32 @@ def test_a_narrow_door_stays_open_when_its_points_jitter_and_forgotten_walls_sta
     assert state.field[0].blocked[door_cell]
 
 
-def test_a_refresh_from_an_unchanged_map_reuses_its_field_and_a_changed_map_computes_one() -> None:
-    """The memo of an agent's fields (``NavField.memo``): the same input (corner, goal, blocked cells) gives the
-    field computed before, equal to one computed afresh; a new point computes a new field; the memo stays short."""
+class _CountingGrid(NavGrid):
+    """The real grid, counting its occupancy and field computations."""
+
+    def __init__(self, cell_m: float, side_m: float) -> None:
+        super().__init__(cell_m, side_m)
+        self.counts = {"blocked": 0, "fields": 0}
+
+    def blocked_within(
+        self, origins_m: np.ndarray, obstacles_xy_m: np.ndarray, valid: np.ndarray, radii_m: tuple[float, ...]
+    ) -> list[np.ndarray]:
+        self.counts["blocked"] += origins_m.shape[0]
+        return super().blocked_within(origins_m, obstacles_xy_m, valid, radii_m)
+
+    def distances(self, origins_m: np.ndarray, blocked: np.ndarray, goals_xy_m: np.ndarray) -> np.ndarray:
+        self.counts["fields"] += origins_m.shape[0]
+        return super().distances(origins_m, blocked, goals_xy_m)
+
+
+def test_a_refresh_from_an_unchanged_map_reuses_its_cells_and_field_and_a_changed_map_computes_them() -> None:
+    """The memo of an agent's fields (``NavField.memo``, ``NavField.occupancy``): the same input (corner, goal,
+    points) gives the cells and the field computed before, equal to ones computed afresh; a new point computes new
+    ones; the memo stays short."""
     params = PlannerParams()
     offsets = BapfNavPlanner(params).bacteria_offsets_m
     maps = EscapeMaps(params, offsets, params.clearance_m)
+    maps.grid = _CountingGrid(params.nav_cell_m, params.nav_grid_m)
     state = NavState.empty(1, 2)
     agent, goal, rows = np.array([[5.0, 10.5]]), np.array([[12.0, 6.0]]), np.array([0])
     room = _room_with_door(0.0)
@@ -378,13 +398,16 @@ def test_a_refresh_from_an_unchanged_map_reuses_its_field_and_a_changed_map_comp
     maps.refresh(rows, agent, goal, room[None], None, state)
     again = state.field[0]
     assert [k for k, _ in again.memo] == [k for k, _ in first.memo] and len(first.memo) >= 1
+    assert maps.grid.counts == {"blocked": 1, "fields": len(first.memo)}  # nothing computed the second time
     fresh = NavState.empty(1, 2)
     EscapeMaps(params, offsets, params.clearance_m).refresh(rows, agent, goal, room[None], None, fresh)
     assert np.array_equal(again.dist_m, fresh.field[0].dist_m) and fresh.field[0].dist_m is not again.dist_m
+    assert np.array_equal(again.blocked, fresh.field[0].blocked)
     for k in range(1, 8):  # each new point changes the blocked cells: a new field each time
         maps.refresh(rows, agent, goal, np.vstack([room, [[6.0 + 0.5 * k, 3.0]]])[None], None, state)
         keys = [key for key, _ in state.field[0].memo]
         assert len(set(keys)) == len(keys) <= 4
+        assert maps.grid.counts["blocked"] == 1 + k and maps.grid.counts["fields"] >= len(first.memo) + k
     assert keys[-1] not in [key for key, _ in first.memo]
 
 
