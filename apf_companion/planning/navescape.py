@@ -150,9 +150,12 @@ class EscapeMaps:
         # Still nothing: the grid lets the potential through a gap the sweep refuses (a diagonal between two
         # free cells can cut an inflated obstacle). Mark the cells of the refused points that lead downhill as
         # blocked (virtual obstacles, kept with the remembered cells) and recompute once.
-        dead = ~ok.any(axis=1)
-        if dead.any():
-            self.mark_dead_ends(rows[dead], positions_m, feasible[rows[dead]], g_k[dead], g0[dead], state)
+        # A dead row was refreshed above (it was stale or stalled): where no new cell was marked, a refresh would
+        # give that same field again (same points, position, trail, frame and cells), so it is skipped.
+        dead = np.flatnonzero(~ok.any(axis=1))
+        if dead.size:
+            dead = dead[self.mark_dead_ends(rows[dead], positions_m, feasible[rows[dead]], g_k[dead], g0[dead], state)]
+        if dead.size:
             again = rows[dead]
             self.refresh(again, positions_m, targets_m, obstacles_m, obstacle_mask, state)
             g_k[dead], g0[dead] = self.geodesic(again, positions_m, targets_m, state)
@@ -215,10 +218,13 @@ class EscapeMaps:
         g_k: FloatArray,
         g0: FloatArray,
         state: NavState,
-    ) -> None:
-        """Block the cells of refused points that the potential says lead downhill (not the agent's own cell)."""
+    ) -> BoolArray:
+        """Block the cells of refused points that the potential says lead downhill (not the agent's own cell).
+        Returns which rows gained a blocked cell (marking a blocked cell virtual changes later refreshes, not
+        the field a refresh from the same points gives now)."""
         grid = self.grid
         n = grid.n
+        marked = np.zeros(rows.size, dtype=bool)
         for i, r in enumerate(rows):
             f = state.field[r]
             refused = ~feasible[i] & (g_k[i] < g0[i])
@@ -228,8 +234,11 @@ class EscapeMaps:
             ci, cj = grid.cell_of(f.origin_m[None], pts[None])
             own_i, own_j = grid.cell_of(f.origin_m[None], positions_m[r, :2][None, None])
             ok = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n) & ~((ci == own_i[0, 0]) & (cj == own_j[0, 0]))
-            f.blocked[ci[ok] * n + cj[ok]] = True
-            f.virtual[ci[ok] * n + cj[ok]] = True
+            cells = ci[ok] * n + cj[ok]
+            marked[i] = not f.blocked[cells].all()  # a cell already blocked only turns virtual: same field
+            f.blocked[cells] = True
+            f.virtual[cells] = True
+        return marked
 
     def refresh(
         self,

@@ -411,6 +411,24 @@ def test_a_refresh_from_an_unchanged_map_reuses_its_cells_and_field_and_a_change
     assert keys[-1] not in [key for key, _ in first.memo]
 
 
+def test_marking_dead_ends_reports_only_rows_that_gained_a_blocked_cell() -> None:
+    """``mark_dead_ends`` says which rows' maps changed: the dead-end rule skips the refresh of the others (it would
+    give the same field again)."""
+    params = PlannerParams()
+    offsets = BapfNavPlanner(params).bacteria_offsets_m
+    maps = EscapeMaps(params, offsets, params.clearance_m)
+    state = NavState.empty(1, 2)
+    agent, goal, rows = np.array([[5.0, 10.5]]), np.array([[12.0, 6.0]]), np.array([0])
+    maps.refresh(rows, agent, goal, _room_with_door(0.0)[None], None, state)
+    refused = np.zeros((1, offsets.shape[0]), dtype=bool)  # every point refused and downhill
+    g_k, g0 = np.zeros((1, offsets.shape[0])), np.ones(1)
+    before = state.field[0].blocked.copy()
+    assert maps.mark_dead_ends(rows, agent, refused, g_k, g0, state).tolist() == [True]
+    assert state.field[0].blocked.sum() > before.sum()
+    assert maps.mark_dead_ends(rows, agent, refused, g_k, g0, state).tolist() == [False]
+    assert maps.mark_dead_ends(rows, agent, refused, np.full_like(g_k, 2.0), g0, state).tolist() == [False]
+
+
 def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
     """Fly ``u-trap-goal`` noise-free, seeing the study's surface samples within 8 m (remembered).
 
