@@ -47,7 +47,7 @@ class NavGrid:
     Notes
     -----
     The graph has a node per cell (index i n + j) and the source node n^2; rows of its CSR matrix list a cell's
-    in-grid neighbours (edge arrays ``_edge_src``/``_edge_dst``/``_edge_cost``, built once); the last row, the
+    in-grid neighbours (``_indices``, ``_indptr`` and the step costs ``_edge_cost``, built once); the last row, the
     source's edges to the seed cells, is appended per field.
     """
 
@@ -57,15 +57,13 @@ class NavGrid:
         self.size = self.n * self.n
         edge = np.zeros((self.n, self.n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
-        self._edge_src, self._edge_dst, self._edge_cost = _grid_edges(self.n, self.cell_m)
         self._edge_cells = np.flatnonzero(edge)
+        src, dst, self._edge_cost = _grid_edges(self.n, self.cell_m)
         # The CSR arrays in scipy's index type (int32: fewer than 2^31 edges at 4096 cells a side), so that the
-        # matrix of a field is made without converting them.
-        self._indices = self._edge_dst.astype(np.int32)
-        #: Row pointers of the cells' rows; the source's row (the seeds) is appended per field.
-        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(self._edge_src, minlength=self.size))]).astype(
-            np.int32
-        )
+        # matrix of a field is made without converting them. Row pointers of the cells' rows; the source's row
+        # (the seeds) is appended per field.
+        self._indices = dst.astype(np.int32)
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=self.size))]).astype(np.int32)
 
     # --- frames ---------------------------------------------------------------------------------------------
 
@@ -198,7 +196,7 @@ class NavGrid:
             if cells.size == 0:
                 continue
             # An edge into a blocked cell is infinite. Edges out of one need not be: it is never reached.
-            weights = np.where(blk[self._edge_dst], np.inf, self._edge_cost)
+            weights = np.where(blk[self._indices], np.inf, self._edge_cost)
             graph = csr_matrix(
                 (
                     np.concatenate([weights, values]),
