@@ -270,7 +270,7 @@ class EscapeMaps:
         if self.params.dim == 3:
             valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
         obs_xy = np.where(valid[..., None], obs[:, :, :2], 0.0)
-        inflated, known, keys = self._occupancy(rows, origins, obs_xy, valid, state)
+        inflated, known, keys = _occupancy(grid, (self.clearance_m, self._reach_m), rows, origins, obs_xy, valid, state)
         blocked = inflated | (old_blocked & ~known) | old_virtual
         memos = [[] if state.field[r] is None else list(state.field[r].memo) for r in rows]
         dist = self._distances(rows, xy, origins, blocked, goals, state, memos)
@@ -284,27 +284,6 @@ class EscapeMaps:
                 occupancy=(keys[i], inflated[i], known[i]),
             )
         state.since_field[rows] = 0
-
-    def _occupancy(
-        self, rows: IntArray, origins: FloatArray, obs_xy: FloatArray, valid: BoolArray, state: NavState
-    ) -> tuple[BoolArray, BoolArray, list[bytes]]:
-        """Cells within the clearance and within ``_reach_m`` of the points known now (R, n^2) each, and their
-        exact input per agent; taken from the agent's field (``NavField.occupancy``) when that input is the same
-        (a second refresh in one step: the stall or dead-end rule)."""
-        inflated = np.empty((rows.size, self.grid.size), dtype=bool)
-        known = np.empty((rows.size, self.grid.size), dtype=bool)
-        keys = [origins[i].tobytes() + obs_xy[i].tobytes() + valid[i].tobytes() for i in range(rows.size)]
-        todo = []
-        for i, r in enumerate(rows):
-            f = state.field[r]
-            if f is not None and f.occupancy is not None and f.occupancy[0] == keys[i]:
-                inflated[i], known[i] = f.occupancy[1], f.occupancy[2]
-            else:
-                todo.append(i)
-        if todo:
-            radii = (self.clearance_m, self._reach_m)
-            inflated[todo], known[todo] = self.grid.blocked_within(origins[todo], obs_xy[todo], valid[todo], radii)
-        return inflated, known, keys
 
     def _distances(
         self,
@@ -328,45 +307,16 @@ class EscapeMaps:
         """
         seen_m = self.params.nav_seen_m
         if seen_m <= 0.0:
-            return self._recall(memos, origins, blocked, goals)
-        closed = blocked.copy()
-        for i, r in enumerate(rows):
-            trail = state.trail_m[r]
-            trail = trail[np.isfinite(trail[:, 0])]
-            if trail.shape[0] == 0:
-                continue
-            edge = origins[i] + self._edge_centres
-            delta = edge[:, None, :] - trail[None, :, :]
-            near = (np.einsum("ekd,ekd->ek", delta, delta) < seen_m * seen_m).any(axis=1)
-            closed[i, self._edge_cells[near]] = True
-        dist = self._recall(memos, origins, closed, goals)
+            return _recall(self.grid, memos, origins, blocked, goals)
+        closed = _close_seen_edges(blocked, rows, origins, state, self._edge_cells, self._edge_centres, seen_m)
+        dist = _recall(self.grid, memos, origins, closed, goals)
         around = xy[:, None, :] + np.vstack([self._offsets[:, :2], np.zeros((1, 2))])[None]
         lost = ~np.isfinite(self.grid.sample_many(origins, dist, around)).any(axis=1)
         if lost.any():
-            dist[lost] = self._recall(
-                [memos[i] for i in np.flatnonzero(lost)], origins[lost], blocked[lost], goals[lost]
+            dist[lost] = _recall(
+                self.grid, [memos[i] for i in np.flatnonzero(lost)], origins[lost], blocked[lost], goals[lost]
             )
         return dist
-
-    def _recall(
-        self,
-        memos: list[list[tuple[bytes, FloatArray]]],
-        origins: FloatArray,
-        blocked: BoolArray,
-        goals: FloatArray,
-    ) -> FloatArray:
-        """``NavGrid.distances``, taken from an agent's memo (``NavField.memo``) when it holds the same input; new
-        fields are appended to the memo (the caller keeps the last ``_MEMO``)."""
-        out = np.empty(blocked.shape)
-        for i, memo in enumerate(memos):
-            key = origins[i].tobytes() + goals[i].tobytes() + np.packbits(blocked[i]).tobytes()
-            known = [d for k, d in memo if k == key]
-            if known:
-                out[i] = known[0]
-            else:
-                out[i] = self.grid.distances(origins[i : i + 1], blocked[i : i + 1], goals[i : i + 1])[0]
-                memo.append((key, out[i].copy()))
-        return out
 
     def geodesic(
         self, rows: IntArray, positions_m: FloatArray, targets_m: FloatArray, state: NavState
@@ -382,6 +332,77 @@ class EscapeMaps:
             dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
             values = np.sqrt(values * values + dz * dz)
         return values[:, :-1], values[:, -1]
+
+
+def _close_seen_edges(
+    blocked: BoolArray,
+    rows: IntArray,
+    origins: FloatArray,
+    state: NavState,
+    edge_cells: IntArray,
+    edge_centres: FloatArray,
+    seen_m: float,
+) -> BoolArray:
+    """``blocked`` plus the edge cells within ``seen_m`` of each agent's trail (``EscapeMaps._distances``)."""
+    closed = blocked.copy()
+    for i, r in enumerate(rows):
+        trail = state.trail_m[r]
+        trail = trail[np.isfinite(trail[:, 0])]
+        if trail.shape[0] == 0:
+            continue
+        edge = origins[i] + edge_centres
+        delta = edge[:, None, :] - trail[None, :, :]
+        near = (np.einsum("ekd,ekd->ek", delta, delta) < seen_m * seen_m).any(axis=1)
+        closed[i, edge_cells[near]] = True
+    return closed
+
+
+def _occupancy(
+    grid: NavGrid,
+    radii_m: tuple[float, float],
+    rows: IntArray,
+    origins: FloatArray,
+    obs_xy: FloatArray,
+    valid: BoolArray,
+    state: NavState,
+) -> tuple[BoolArray, BoolArray, list[bytes]]:
+    """Cells within the clearance and within the reach (``radii_m``) of the points known now (R, n^2) each, and
+    their exact input per agent; taken from the agent's field (``NavField.occupancy``) when that input is the same
+    (a second refresh in one step: the stall or dead-end rule)."""
+    inflated = np.empty((rows.size, grid.size), dtype=bool)
+    known = np.empty((rows.size, grid.size), dtype=bool)
+    keys = [origins[i].tobytes() + obs_xy[i].tobytes() + valid[i].tobytes() for i in range(rows.size)]
+    todo = []
+    for i, r in enumerate(rows):
+        f = state.field[r]
+        if f is not None and f.occupancy is not None and f.occupancy[0] == keys[i]:
+            inflated[i], known[i] = f.occupancy[1], f.occupancy[2]
+        else:
+            todo.append(i)
+    if todo:
+        inflated[todo], known[todo] = grid.blocked_within(origins[todo], obs_xy[todo], valid[todo], radii_m)
+    return inflated, known, keys
+
+
+def _recall(
+    grid: NavGrid,
+    memos: list[list[tuple[bytes, FloatArray]]],
+    origins: FloatArray,
+    blocked: BoolArray,
+    goals: FloatArray,
+) -> FloatArray:
+    """``NavGrid.distances``, taken from an agent's memo (``NavField.memo``) when it holds the same input; new
+    fields are appended to the memo (the caller keeps the last ``_MEMO``)."""
+    out = np.empty(blocked.shape)
+    for i, memo in enumerate(memos):
+        key = origins[i].tobytes() + goals[i].tobytes() + np.packbits(blocked[i]).tobytes()
+        known = [d for k, d in memo if k == key]
+        if known:
+            out[i] = known[0]
+        else:
+            out[i] = grid.distances(origins[i : i + 1], blocked[i : i + 1], goals[i : i + 1])[0]
+            memo.append((key, out[i].copy()))
+    return out
 
 
 def _carry_over(
