@@ -40,7 +40,7 @@ class NavField:
     #: a recomputation from the same input (the stall and dead-end rules often meet an unchanged map) reuses
     #: one instead of running Dijkstra again. Values are bit-identical either way.
     memo: tuple[tuple[bytes, FloatArray], ...] = ()
-    #: The cells within the clearance and within the reach of the points (``EscapeMaps._occupancy``) and their
+    #: The cells within the clearance and within the reach of the points (``navescape._occupancy``) and their
     #: exact input (corner, points, valid flags): a second refresh from the same points reuses them.
     occupancy: tuple[bytes, npt.NDArray[np.bool_], npt.NDArray[np.bool_]] | None = None
 
