@@ -406,7 +406,7 @@ def test_a_refresh_from_an_unchanged_map_reuses_its_cells_and_field_and_a_change
     for k in range(1, 8):  # each new point changes the blocked cells: a new field each time
         maps.refresh(rows, agent, goal, np.vstack([room, [[6.0 + 0.5 * k, 3.0]]])[None], None, state)
         keys = [key for key, _ in state.field[0].memo]
-        assert len(set(keys)) == len(keys) <= 4
+        assert len(set(keys)) == len(keys) <= 2
         assert maps.grid.counts["blocked"] == 1 + k and maps.grid.counts["fields"] >= len(first.memo) + k
     assert keys[-1] not in [key for key, _ in first.memo]
 
