@@ -7,12 +7,11 @@ unknown space. The potential is the 8-connected shortest-path distance (steps h 
 the goal. It has no local minimum other than the goal: a descent on it cannot be trapped by a concave obstacle
 that the agent has seen, which is what the paper's potentials (Eqs. (1), (2)) cannot promise.
 
-Computation: vectorised fast sweeping (exact 8-connected shortest paths; the tests check it against
-Dijkstra). Along one grid line with constant step cost c, the relaxation d[i] = min(d[i], min_{j<i} d[j] +
-c (i - j)) is a cumulative minimum of d[j] - c j; a blocked cell must stop the propagation, so the line is cut
-into segments at blocked cells by adding a large per-segment offset. One sweep runs both directions of rows,
-columns and both diagonals for all agents at once; sweeps repeat until nothing changes (a path with t turns
-needs about t + 1 sweeps). No Python loop runs over cells or obstacles.
+Computation: Dijkstra's algorithm (scipy's compiled ``csgraph.dijkstra``; the tests check it against a plain
+heap search) on the 8-connected grid plus one extra source node, whose edge to each seed cell (below) weighs that
+cell's initial value. The graph's structure is built once per grid; a field only writes its weights: h or h sqrt(2)
+into a free cell, inf into a blocked one (Dijkstra never relaxes an infinite edge, so a blocked cell is never
+reached). No Python loop runs over cells or obstacles.
 
 The space beyond the grid is unknown, so optimistically free: the boundary cells start at their straight-line
 distance to the goal, plus the grid's side when the goal lies inside the grid (a way out of the map and back is
@@ -22,28 +21,19 @@ taken only when the map has no way in), so "no path" means the agent's own regio
 from __future__ import annotations
 
 import math
-from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
-from numpy.lib.stride_tricks import as_strided
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 __all__ = ["NavGrid"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
-_Scalar = TypeVar("_Scalar", np.float64, np.bool_)
-
-#: Sweep rounds at most; a path with more turns than this is cut short (its cells keep an upper bound).
-_MAX_ROUNDS = 40
-#: Convergence: a round that lowers no cell by more than this ends the sweeps [m].
-_CONVERGED_M = 1e-9
-#: Agents whose fields are computed in one array program. One: at n = 54 a field costs the same alone as in a
-#: batch of 16 (the arrays are large enough), each agent stops at its own convergence instead of the slowest's,
-#: and an agent's field depends on nothing but its own map (the segment offset ``big`` and the number of rounds
-#: were batch-wide, which moved values by rounding, about 1e-10 m).
-_BATCH = 1
+#: Dijkstra's search limit [m]: finite, so a way over an infinite (blocked) edge is never queued.
+_LIMIT_M = 1e300
 
 
 class NavGrid:
@@ -56,10 +46,9 @@ class NavGrid:
 
     Notes
     -----
-    The sweeps work on one buffer per agent: n rows of 3n values, the grid's row i in the middle third and
-    blocked padding on both sides. Rows and columns are plain views of it; the two diagonal families are
-    strided views (row stride 3n - 1 or 3n + 1), in which every column is one diagonal of the grid and the
-    padding separates the diagonals. So every family is swept along an axis of a view, with no gather/scatter.
+    The graph has a node per cell (index i n + j) and the source node n^2; rows of its CSR matrix list a cell's
+    in-grid neighbours (``_indices``, ``_indptr`` and the step costs ``_edge_cost``, built once); the last row, the
+    source's edges to the seed cells, is appended per field.
     """
 
     def __init__(self, cell_m: float, side_m: float) -> None:
@@ -68,7 +57,13 @@ class NavGrid:
         self.size = self.n * self.n
         edge = np.zeros((self.n, self.n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
-        self._edge = edge.reshape(1, -1)
+        self._edge_cells = np.flatnonzero(edge)
+        src, dst, self._edge_cost = _grid_edges(self.n, self.cell_m)
+        # The CSR arrays in scipy's index type (int32: fewer than 2^31 edges at 4096 cells a side), so that the
+        # matrix of a field is made without converting them. Row pointers of the cells' rows; the source's row
+        # (the seeds) is appended per field.
+        self._indices = dst.astype(np.int32)
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=self.size))]).astype(np.int32)
 
     # --- frames ---------------------------------------------------------------------------------------------
 
@@ -122,119 +117,96 @@ class NavGrid:
 
         ``obstacles_xy_m`` (B, N, 2), ``valid`` (B, N). Each point marks a small stencil of cells (vectorised).
         """
-        n_batch = origins_m.shape[0]
-        out = np.zeros((n_batch, self.size), dtype=bool)
+        return self.blocked_within(origins_m, obstacles_xy_m, valid, (radius_m,))[0]
+
+    def blocked_within(
+        self, origins_m: FloatArray, obstacles_xy_m: FloatArray, valid: BoolArray, radii_m: tuple[float, ...]
+    ) -> list[BoolArray]:
+        """``blocked`` for several radii at once (one stencil, the largest radius's; the same cells each)."""
+        n, h = self.n, self.cell_m
+        outs = [np.zeros((origins_m.shape[0], self.size), dtype=bool) for _ in radii_m]
         if obstacles_xy_m.shape[1] == 0 or not valid.any():
-            return out
-        h = self.cell_m
-        reach = math.ceil(radius_m / h) + 1
-        grid_i, grid_j = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
-        di, dj = grid_i.ravel(), grid_j.ravel()
+            return outs
+        steps = np.arange(-math.ceil(max(radii_m) / h) - 1, math.ceil(max(radii_m) / h) + 2)
         b, m = np.nonzero(valid)
         rel = (obstacles_xy_m[b, m] - origins_m[b]) / h  # (P, 2) in cells
-        base_i = np.floor(rel[:, 0]).astype(np.intp)
-        base_j = np.floor(rel[:, 1]).astype(np.intp)
-        ci = base_i[:, None] + di[None, :]
-        cj = base_j[:, None] + dj[None, :]
+        ci = np.floor(rel[:, 0]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil rows
+        cj = np.floor(rel[:, 1]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil columns
         ddx = (ci + 0.5 - rel[:, 0:1]) * h
         ddy = (cj + 0.5 - rel[:, 1:2]) * h
-        hit = (ddx * ddx + ddy * ddy < radius_m * radius_m) & (ci >= 0) & (ci < self.n) & (cj >= 0) & (cj < self.n)
-        rows = np.broadcast_to(b[:, None], ci.shape)[hit]
-        out[rows, ci[hit] * self.n + cj[hit]] = True
-        return out
+        # The stencil is separable: (P, S, S) squared distances from one row and one column term per point; rows
+        # and columns outside the grid are at infinity.
+        dx2 = np.where((ci >= 0) & (ci < n), ddx * ddx, np.inf)
+        dy2 = np.where((cj >= 0) & (cj < n), ddy * ddy, np.inf)
+        d2 = dx2[:, :, None] + dy2[:, None, :]
+        top = max(radii_m)
+        p, si, sj = np.nonzero(d2 < top * top)  # the cells of the largest radius; the others are among them
+        rows, cells, near2 = b[p], ci[p, si] * n + cj[p, sj], d2[p, si, sj]
+        for out, radius in zip(outs, radii_m, strict=True):
+            hit = near2 < radius * radius
+            out[rows[hit], cells[hit]] = True
+        return outs
+        steps = np.arange(-math.ceil(max(radii_m) / h) - 1, math.ceil(max(radii_m) / h) + 2)
+        b, m = np.nonzero(valid)
+        rel = (obstacles_xy_m[b, m] - origins_m[b]) / h  # (P, 2) in cells
+        ci = np.floor(rel[:, 0]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil rows
+        cj = np.floor(rel[:, 1]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil columns
+        ddx = (ci + 0.5 - rel[:, 0:1]) * h
+        ddy = (cj + 0.5 - rel[:, 1:2]) * h
+        # The stencil is separable: (P, S, S) squared distances from one row and one column term per point.
+        d2 = (ddx * ddx)[:, :, None] + (ddy * ddy)[:, None, :]
+        inside = ((ci >= 0) & (ci < n))[:, :, None] & ((cj >= 0) & (cj < n))[:, None, :]
+        for out, radius in zip(outs, radii_m, strict=True):
+            p, si, sj = np.nonzero((d2 < radius * radius) & inside)
+            out[b[p], ci[p, si] * n + cj[p, sj]] = True
+        return outs
 
     # --- the potential --------------------------------------------------------------------------------------
 
     def distances(self, origins_m: FloatArray, blocked: BoolArray, goals_xy_m: FloatArray) -> FloatArray:
         """(B, n^2) geodesic distance from each cell centre to the goal [m]; inf for blocked/unreachable cells."""
-        out = np.empty((origins_m.shape[0], self.size))
-        for lo in range(0, origins_m.shape[0], _BATCH):
-            hi = min(lo + _BATCH, origins_m.shape[0])
-            out[lo:hi] = self._distances(origins_m[lo:hi], blocked[lo:hi], goals_xy_m[lo:hi])
-        return out
+        return self._distances(origins_m, blocked, goals_xy_m)
 
-    def _seeds(self, origins_m: FloatArray, blocked: BoolArray, goals_xy_m: FloatArray) -> FloatArray:
-        """Initial values: the goal's cell and its neighbours (freed), or the boundary when the goal is outside."""
+    def _seeds(self, origin_m: FloatArray, blocked: BoolArray, goal_xy_m: FloatArray) -> tuple[IntArray, FloatArray]:
+        """Seed cells of one field and their initial values: the goal's cell (freed in ``blocked``) and its 8
+        neighbours at the straight-line distance, when the goal is inside the grid, and the boundary (above);
+        blocked cells are no seeds. An edge cell near the goal is listed twice: the lower value wins."""
         n, h = self.n, self.cell_m
-        n_batch = origins_m.shape[0]
-        centres = (np.arange(n) + 0.5) * h
-        cx = origins_m[:, 0, None, None] + centres[None, :, None]
-        cy = origins_m[:, 1, None, None] + centres[None, None, :]
-        euclid = np.hypot(cx - goals_xy_m[:, 0, None, None], cy - goals_xy_m[:, 1, None, None]).reshape(n_batch, -1)
-        gi, gj = self.cell_of(origins_m, goals_xy_m[:, None, :])
-        gi, gj = gi[:, 0], gj[:, 0]
-        inside = (gi >= 0) & (gi < n) & (gj >= 0) & (gj < n)
-        # The goal's cell and its 8 neighbours (those in the grid), for goals inside the grid.
-        cells = np.arange(n)
-        near_i = (np.abs(cells[None, :] - gi[:, None]) <= 1) & inside[:, None]
-        near_j = np.abs(cells[None, :] - gj[:, None]) <= 1
-        near = near_i[:, :, None] & near_j[:, None, :]
-        rows = np.flatnonzero(inside)
-        blocked[rows, gi[rows] * n + gj[rows]] = False  # the goal itself is always reachable in the grid
-        seeds = np.where(near.reshape(n_batch, -1) & ~blocked, euclid, np.inf)
-        detour = np.where(inside, self.n * h, 0.0)[:, None]
-        on_edge = self._edge & ~blocked
-        return np.minimum(seeds, np.where(on_edge, euclid + detour, np.inf))
-
-    def _views(self, buf: npt.NDArray[_Scalar]) -> list[tuple[npt.NDArray[_Scalar], int, float]]:
-        """(view, line axis, step cost) of the four line families on a (B, 3 n^2) buffer (class Notes)."""
-        n = self.n
-        width = 3 * n
-        grid = buf.reshape(buf.shape[0], n, width)[:, :, n : 2 * n]
-        item = buf.itemsize
-        s0 = buf.strides[0]
-        anti = as_strided(buf[:, n:], shape=(buf.shape[0], n, 2 * n - 1), strides=(s0, (width - 1) * item, item))
-        diag = as_strided(buf, shape=(buf.shape[0], n, 2 * n - 1), strides=(s0, (width + 1) * item, item))
-        h = self.cell_m
-        return [(grid, 2, h), (grid, 1, h), (anti, 1, h * math.sqrt(2.0)), (diag, 1, h * math.sqrt(2.0))]
+        gi_a, gj_a = self.cell_of(origin_m[None], goal_xy_m[None, None])
+        gi, gj = int(gi_a[0, 0]), int(gj_a[0, 0])
+        cells, detour = self._edge_cells, np.zeros(self._edge_cells.size)
+        if 0 <= gi < n and 0 <= gj < n:
+            blocked[gi * n + gj] = False  # the goal itself is always reachable in the grid
+            near_i = np.arange(max(gi - 1, 0), min(gi + 2, n))
+            near_j = np.arange(max(gj - 1, 0), min(gj + 2, n))
+            near = (near_i[:, None] * n + near_j[None, :]).ravel()
+            cells = np.concatenate([near, cells])
+            detour = np.concatenate([np.zeros(near.size), np.full(self._edge_cells.size, n * h)])
+        keep = ~blocked[cells]
+        cells, detour = cells[keep], detour[keep]
+        i, j = np.divmod(cells, n)
+        euclid = np.hypot(origin_m[0] + (i + 0.5) * h - goal_xy_m[0], origin_m[1] + (j + 0.5) * h - goal_xy_m[1])
+        return cells, np.asarray(euclid + detour, dtype=np.float64)
 
     def _distances(self, origins_m: FloatArray, blocked: BoolArray, goals_xy_m: FloatArray) -> FloatArray:
-        n = self.n
-        n_batch = origins_m.shape[0]
-        blocked = blocked.copy()
-        seeds = self._seeds(origins_m, blocked, goals_xy_m)
-        finite = seeds[np.isfinite(seeds)]
-        if finite.size == 0:
-            return seeds
-        d = np.full((n_batch, 3 * n * n), np.inf)
-        blk = np.ones((n_batch, 3 * n * n), dtype=bool)
-        d_views, b_views = self._views(d), self._views(blk)
-        d_grid = d_views[0][0]
-        d_grid[...] = seeds.reshape(n_batch, n, n)
-        b_views[0][0][...] = blocked.reshape(n_batch, n, n)
-        # Larger than any distance a line can carry: offsets of different segments never mix, and a cell
-        # reached only across a blocked cell gets a value >= big / 2, which stands for "not reached".
-        big = 4.0 * (float(finite.max()) + math.sqrt(2.0) * self.cell_m * (self.size + 3 * n))
-        half = big / 2.0
-        prepared = []
-        for (view, axis, cost), (bview, _, _) in zip(d_views, b_views, strict=True):
-            shape = [1, 1, 1]
-            shape[axis] = view.shape[axis]
-            pos = (np.arange(view.shape[axis], dtype=np.float64) * cost).reshape(shape)
-            fwd = pos + np.cumsum(bview, axis=axis, dtype=np.float64) * big  # counts: exact in float64
-            bwd = pos + np.cumsum(np.flip(bview, axis), axis=axis, dtype=np.float64) * big
-            # Work buffers allocated once: fresh megabyte temporaries on every sweep cost page faults.
-            prepared.append((view, np.flip(view, axis), axis, fwd, bwd, np.empty(view.shape)))
-        before = np.empty(d_grid.shape)
-        work = np.empty(d_grid.shape, dtype=bool)
-        for _ in range(_MAX_ROUNDS):
-            np.minimum(d_grid, half, out=before)
-            for view, rview, axis, fwd, bwd, cand in prepared:
-                np.subtract(view, fwd, out=cand)
-                np.minimum.accumulate(cand, axis=axis, out=cand)
-                cand += fwd
-                np.minimum(view, cand, out=view)
-                np.subtract(rview, bwd, out=cand)
-                np.minimum.accumulate(cand, axis=axis, out=cand)
-                cand += bwd
-                np.minimum(rview, cand, out=rview)
-            # Blocked cells are not reset to inf: the value a sweep gives one is >= big (it lies across a segment
-            # boundary), so it never wins against a reached cell and reads as "not reached", like inf.
-            before -= _CONVERGED_M
-            if not np.less(d_grid, before, out=work).any():
-                break
-        out = d_grid.reshape(n_batch, -1).copy()
-        out[out >= half] = np.inf
+        out = np.full(blocked.shape, np.inf)
+        for b in range(origins_m.shape[0]):
+            blk = blocked[b].copy()
+            cells, values = self._seeds(origins_m[b], blk, goals_xy_m[b])
+            if cells.size == 0:
+                continue
+            # An edge into a blocked cell is infinite. Edges out of one need not be: it is never reached.
+            weights = np.where(blk[self._indices], np.inf, self._edge_cost)
+            graph = csr_matrix(
+                (
+                    np.concatenate([weights, values]),
+                    np.concatenate([self._indices, cells.astype(np.int32)]),
+                    np.append(self._indptr, np.int32(self._indptr[-1] + cells.size)),
+                ),
+                shape=(self.size + 1, self.size + 1),
+            )
+            # The finite limit keeps ways over infinite edges out of the heap: cells behind them stay inf.
+            out[b] = dijkstra(graph, directed=True, indices=self.size, limit=_LIMIT_M)[: self.size]
         return out
 
     # --- lookup ---------------------------------------------------------------------------------------------
@@ -254,19 +226,34 @@ class NavGrid:
         j0 = np.floor(rel[..., 1]).astype(np.intp)
         fi = rel[..., 0] - i0
         fj = rel[..., 1] - j0
-        num = np.zeros(points_xy_m.shape[:2])
-        den = np.zeros(points_xy_m.shape[:2])
-        rows = np.arange(origins_m.shape[0])[:, None]
-        for oi, wi in ((0, 1.0 - fi), (1, fi)):
-            for oj, wj in ((0, 1.0 - fj), (1, fj)):
-                ii = np.clip(i0 + oi, 0, n - 1)
-                jj = np.clip(j0 + oj, 0, n - 1)
-                val = dists_m[rows, ii * n + jj]
-                w = wi * wj
-                ok = np.isfinite(val) & (w > 0.0)
-                num += np.where(ok, w * np.where(ok, val, 0.0), 0.0)
-                den += np.where(ok, w, 0.0)
+        rows = np.arange(origins_m.shape[0])[None, :, None]
+        # The four corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1) stacked on a first axis.
+        ii = (np.minimum(np.maximum(i0, 0), n - 1), np.minimum(np.maximum(i0 + 1, 0), n - 1))
+        jj = (np.minimum(np.maximum(j0, 0), n - 1), np.minimum(np.maximum(j0 + 1, 0), n - 1))
+        wi, wj = (1.0 - fi, fi), (1.0 - fj, fj)
+        val = dists_m[rows, np.stack([ii[a] * n + jj[b] for a in (0, 1) for b in (0, 1)])]
+        w = np.stack([wi[a] * wj[b] for a in (0, 1) for b in (0, 1)])
+        ok = np.isfinite(val) & (w > 0.0)
+        term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
+        weight = np.where(ok, w, 0.0)
+        # Summed corner by corner in this order (not a reduction, whose order numpy may change).
+        num = term[0] + term[1] + term[2] + term[3]
+        den = weight[0] + weight[1] + weight[2] + weight[3]
         inside = (rel[..., 0] >= -0.5) & (rel[..., 0] <= n - 0.5) & (rel[..., 1] >= -0.5) & (rel[..., 1] <= n - 0.5)
         with np.errstate(invalid="ignore", divide="ignore"):
             out = np.where(inside & (den > 0.0), num / den, np.inf)
         return np.asarray(out, dtype=np.float64)
+
+
+def _grid_edges(n: int, cell_m: float) -> tuple[IntArray, IntArray, FloatArray]:
+    """(source, destination, cost) of the 8-connected n x n grid's directed edges, sorted by source cell."""
+    i, j = np.divmod(np.arange(n * n), n)
+    steps = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+    src = np.concatenate([np.arange(n * n)] * len(steps))
+    di = np.repeat([s[0] for s in steps], n * n)
+    dj = np.repeat([s[1] for s in steps], n * n)
+    ii, jj = np.tile(i, len(steps)) + di, np.tile(j, len(steps)) + dj
+    ok = (ii >= 0) & (ii < n) & (jj >= 0) & (jj < n)
+    cost = np.where((di != 0) & (dj != 0), cell_m * math.sqrt(2.0), cell_m)
+    order = np.argsort(src[ok], kind="stable")
+    return src[ok][order], (ii * n + jj)[ok][order], cost[ok][order]

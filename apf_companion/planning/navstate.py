@@ -36,6 +36,13 @@ class NavField:
     blocked: npt.NDArray[np.bool_]  # (n^2,) every blocked cell: inflated obstacles and ``virtual``
     dist_m: FloatArray  # (n^2,) geodesic distance to the goal [m]; inf where blocked or unreachable
     virtual: npt.NDArray[np.bool_]  # (n^2,) dead ends marked by the planner (no obstacle point behind them)
+    #: The last few fields computed for this agent, by their exact input (corner, goal, packed blocked cells):
+    #: a recomputation from the same input (the stall and dead-end rules often meet an unchanged map) reuses
+    #: one instead of running Dijkstra again. Values are bit-identical either way.
+    memo: tuple[tuple[bytes, FloatArray], ...] = ()
+    #: The cells within the clearance and within the reach of the points (``navescape._occupancy``) and their
+    #: exact input (corner, points, valid flags): a second refresh from the same points reuses them.
+    occupancy: tuple[bytes, npt.NDArray[np.bool_], npt.NDArray[np.bool_]] | None = None
 
 
 @dataclass(slots=True)

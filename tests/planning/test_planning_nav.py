@@ -204,8 +204,32 @@ def _dijkstra(grid: NavGrid, origin: np.ndarray, blocked: np.ndarray, goal: np.n
     return dist
 
 
-@pytest.mark.parametrize("goal", [(10.0, 9.0), (40.0, -3.0)], ids=["goal-inside", "goal-outside"])
-def test_sweeps_equal_dijkstra(goal: tuple[float, float]) -> None:
+def test_blocked_cells_are_those_within_the_radius_for_each_radius() -> None:
+    """One stencil for several radii marks, per radius, exactly the cells whose centre lies closer than it to a
+    valid point (brute force over all cells), points near and beyond the grid's sides included."""
+    grid = NavGrid(0.5, 12.0)
+    rng = np.random.default_rng(5)
+    origins = np.array([[0.0, 0.0], [-3.0, 2.0]])
+    obs = rng.uniform(-2.0, 14.0, size=(2, 60, 2))
+    valid = rng.random((2, 60)) < 0.8
+    radii = (0.8, 1.3)
+    centres = (np.stack(np.divmod(np.arange(grid.size), grid.n), axis=1) + 0.5) * grid.cell_m
+    for radius, got in zip(radii, grid.blocked_within(origins, obs, valid, radii), strict=True):
+        for b in range(2):
+            gap = origins[b] + centres[:, None, :] - obs[b][valid[b]][None, :, :]
+            ref = (np.einsum("cpd,cpd->cp", gap, gap) < radius * radius).any(axis=1)
+            assert np.array_equal(got[b], ref)
+        assert np.array_equal(got, grid.blocked(origins, obs, valid, radius))
+
+
+@pytest.mark.parametrize(
+    "goal",
+    [(10.0, 9.0), (40.0, -3.0), (5.25, 7.75), (0.1, 6.1)],
+    ids=["goal-inside", "goal-outside", "goal-on-a-cell-centre", "goal-in-an-edge-cell"],
+)
+def test_fields_equal_a_plain_dijkstra(goal: tuple[float, float]) -> None:
+    """scipy's Dijkstra over the prepared graph equals a heap search cell by cell, including a seed of value 0
+    (the goal on a cell centre: an explicit zero weight is an edge) and an edge cell near the goal (two seeds)."""
     grid = NavGrid(0.5, 12.0)
     rng = np.random.default_rng(3)
     origins = np.zeros((3, 2))
@@ -338,6 +362,71 @@ def test_a_narrow_door_stays_open_when_its_points_jitter_and_forgotten_walls_sta
     state.field[0].virtual[door_cell] = state.field[0].blocked[door_cell] = True
     refresh(_room_with_door(0.0))
     assert state.field[0].blocked[door_cell]
+
+
+class _CountingGrid(NavGrid):
+    """The real grid, counting its occupancy and field computations."""
+
+    def __init__(self, cell_m: float, side_m: float) -> None:
+        super().__init__(cell_m, side_m)
+        self.counts = {"blocked": 0, "fields": 0}
+
+    def blocked_within(
+        self, origins_m: np.ndarray, obstacles_xy_m: np.ndarray, valid: np.ndarray, radii_m: tuple[float, ...]
+    ) -> list[np.ndarray]:
+        self.counts["blocked"] += origins_m.shape[0]
+        return super().blocked_within(origins_m, obstacles_xy_m, valid, radii_m)
+
+    def distances(self, origins_m: np.ndarray, blocked: np.ndarray, goals_xy_m: np.ndarray) -> np.ndarray:
+        self.counts["fields"] += origins_m.shape[0]
+        return super().distances(origins_m, blocked, goals_xy_m)
+
+
+def test_a_refresh_from_an_unchanged_map_reuses_its_cells_and_field_and_a_changed_map_computes_them() -> None:
+    """The memo of an agent's fields (``NavField.memo``, ``NavField.occupancy``): the same input (corner, goal,
+    points) gives the cells and the field computed before, equal to ones computed afresh; a new point computes new
+    ones; the memo stays short."""
+    params = PlannerParams()
+    offsets = BapfNavPlanner(params).bacteria_offsets_m
+    maps = EscapeMaps(params, offsets, params.clearance_m)
+    maps.grid = _CountingGrid(params.nav_cell_m, params.nav_grid_m)
+    state = NavState.empty(1, 2)
+    agent, goal, rows = np.array([[5.0, 10.5]]), np.array([[12.0, 6.0]]), np.array([0])
+    room = _room_with_door(0.0)
+    maps.refresh(rows, agent, goal, room[None], None, state)
+    first = state.field[0]
+    maps.refresh(rows, agent, goal, room[None], None, state)
+    again = state.field[0]
+    assert [k for k, _ in again.memo] == [k for k, _ in first.memo] and len(first.memo) >= 1
+    assert maps.grid.counts == {"blocked": 1, "fields": len(first.memo)}  # nothing computed the second time
+    fresh = NavState.empty(1, 2)
+    EscapeMaps(params, offsets, params.clearance_m).refresh(rows, agent, goal, room[None], None, fresh)
+    assert np.array_equal(again.dist_m, fresh.field[0].dist_m) and fresh.field[0].dist_m is not again.dist_m
+    assert np.array_equal(again.blocked, fresh.field[0].blocked)
+    for k in range(1, 8):  # each new point changes the blocked cells: a new field each time
+        maps.refresh(rows, agent, goal, np.vstack([room, [[6.0 + 0.5 * k, 3.0]]])[None], None, state)
+        keys = [key for key, _ in state.field[0].memo]
+        assert len(set(keys)) == len(keys) <= 2
+        assert maps.grid.counts["blocked"] == 1 + k and maps.grid.counts["fields"] >= len(first.memo) + k
+    assert keys[-1] not in [key for key, _ in first.memo]
+
+
+def test_marking_dead_ends_reports_only_rows_that_gained_a_blocked_cell() -> None:
+    """``mark_dead_ends`` says which rows' maps changed: the dead-end rule skips the refresh of the others (it would
+    give the same field again)."""
+    params = PlannerParams()
+    offsets = BapfNavPlanner(params).bacteria_offsets_m
+    maps = EscapeMaps(params, offsets, params.clearance_m)
+    state = NavState.empty(1, 2)
+    agent, goal, rows = np.array([[5.0, 10.5]]), np.array([[12.0, 6.0]]), np.array([0])
+    maps.refresh(rows, agent, goal, _room_with_door(0.0)[None], None, state)
+    refused = np.zeros((1, offsets.shape[0]), dtype=bool)  # every point refused and downhill
+    g_k, g0 = np.zeros((1, offsets.shape[0])), np.ones(1)
+    before = state.field[0].blocked.copy()
+    assert maps.mark_dead_ends(rows, agent, refused, g_k, g0, state).tolist() == [True]
+    assert state.field[0].blocked.sum() > before.sum()
+    assert maps.mark_dead_ends(rows, agent, refused, g_k, g0, state).tolist() == [False]
+    assert maps.mark_dead_ends(rows, agent, refused, np.full_like(g_k, 2.0), g0, state).tolist() == [False]
 
 
 def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:
