@@ -146,20 +146,6 @@ class NavGrid:
             hit = near2 < radius * radius
             out[rows[hit], cells[hit]] = True
         return outs
-        steps = np.arange(-math.ceil(max(radii_m) / h) - 1, math.ceil(max(radii_m) / h) + 2)
-        b, m = np.nonzero(valid)
-        rel = (obstacles_xy_m[b, m] - origins_m[b]) / h  # (P, 2) in cells
-        ci = np.floor(rel[:, 0]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil rows
-        cj = np.floor(rel[:, 1]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil columns
-        ddx = (ci + 0.5 - rel[:, 0:1]) * h
-        ddy = (cj + 0.5 - rel[:, 1:2]) * h
-        # The stencil is separable: (P, S, S) squared distances from one row and one column term per point.
-        d2 = (ddx * ddx)[:, :, None] + (ddy * ddy)[:, None, :]
-        inside = ((ci >= 0) & (ci < n))[:, :, None] & ((cj >= 0) & (cj < n))[:, None, :]
-        for out, radius in zip(outs, radii_m, strict=True):
-            p, si, sj = np.nonzero((d2 < radius * radius) & inside)
-            out[b[p], ci[p, si] * n + cj[p, sj]] = True
-        return outs
 
     # --- the potential --------------------------------------------------------------------------------------
 
