@@ -57,13 +57,22 @@ class FieldOne:
         self._slack_m = 2.0 * maps.clearance_m + maps.grid.cell_m
         self._radii_m = (maps.clearance_m, maps._reach_m)
         self._pad_m = maps._pad_m
+        self._half_room_m = max(self._side_m / 2.0 - max(self._pad_m, self._side_m / 3.0), 0.0)
         offsets = maps._offsets
         # The candidate points and the agent (a zero offset), as ``EscapeMaps.geodesic`` stacks them.
         self._around = np.vstack([offsets, np.zeros((1, offsets.shape[1]))])
         self._around_xy = np.vstack([offsets[:, :2], np.zeros((1, 2))])
         self._offsets_xy = offsets[:, :2]
         self._edge_cells = maps._edge_cells
+        self._corner_steps = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=np.intp)[:, None, :]
+        n = maps.grid.n
+        self._corner_flat = np.array([[0], [1], [n], [n + 1]], dtype=np.intp)  # the same four, as flat offsets
         self._edge_centres = maps._edge_centres
+        #: Fields sampled at the points in this step (``_sampled``): field, corner as bytes, values.
+        self._samples: list[tuple[FloatArray, bytes, FloatArray]] = []
+        #: The last input (corner and trail, as bytes) of ``_close_seen_edges`` and its edge cells to close.
+        self._seen_key = b""
+        self._seen_cells = self._edge_cells[:0]
 
     def potentials(
         self,
@@ -79,6 +88,7 @@ class FieldOne:
         """Geodesic potential at the points (K,) and the agent, and which points pass (``EscapeMaps.potentials``).
         ``d2_m2`` (M,): the obstacles' squared distances to the agent, einsum("nd,nd->n") as ``outdated`` has
         them; position and target finite."""
+        self._samples = []
         field = state.field[0]
         age = int(state.since_field[0])
         stale = field is None or age >= self._replan
@@ -150,34 +160,54 @@ class FieldOne:
         """``EscapeMaps.geodesic`` of one agent; ``values``: the field already sampled at the points (or None)."""
         pts = position_m + self._around
         if values is None:
-            values = self._sample(field.origin_m, field.dist_m, pts[:, :2])
+            values = self._sampled(field.origin_m, field.dist_m, pts[:, :2])
         if self._dim == 3:
             dz = pts[:, 2] - target_m[2]
             values = np.sqrt(values * values + dz * dz)
         return values[:-1], float(values[-1])
 
+    def _sampled(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
+        """``_sample`` at this step's points and the agent (K + 1, 2): a field sampled before in this step (the
+        same field object, never written to, in the same frame) gives the same values again."""
+        origin = origin_m.tobytes()
+        for dist, frame, values in self._samples:
+            if dist is dist_m and frame == origin:
+                return values
+        values = self._sample(origin_m, dist_m, points_xy_m)
+        self._samples.append((dist_m, origin, values))
+        return values
+
     def _sample(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
-        """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner."""
+        """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner. Where
+        every corner lies in the grid, the clamping changes no index and every point is inside; where every corner
+        is also finite with a positive weight, the batch path's masks select nothing and its sums are these."""
         n = self._n
         rel = (points_xy_m - origin_m) / self._h - 0.5
         low = np.floor(rel).astype(np.intp)
         frac = rel - low
-        lo = np.minimum(np.maximum(low, 0), n - 1)
-        hi = np.minimum(np.maximum(low + 1, 0), n - 1)
-        rows = np.stack([lo[:, 0], hi[:, 0]]) * n  # (2, P): i0, i0 + 1
-        cols = np.stack([lo[:, 1], hi[:, 1]])
-        val = dist_m[(rows[:, None, :] + cols[None, :, :]).reshape(4, -1)]  # corners (0, 0), (0, 1), (1, 0), (1, 1)
-        wi = np.stack([1.0 - frac[:, 0], frac[:, 0]])
-        wj = np.stack([1.0 - frac[:, 1], frac[:, 1]])
-        w = (wi[:, None, :] * wj[None, :, :]).reshape(4, -1)
+        interior = low.min() >= 0 and low.max() <= n - 2
+        if interior:
+            val = dist_m[(low[:, 0] * n + low[:, 1]) + self._corner_flat]  # (4, P)
+        else:  # the corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1), each index clamped
+            ij = low + self._corner_steps  # (4, P, 2)
+            np.maximum(ij, 0, out=ij)
+            np.minimum(ij, n - 1, out=ij)
+            val = dist_m[ij[:, :, 0] * n + ij[:, :, 1]]
+        w = _weights(frac)
         ok = np.isfinite(val) & (w > 0.0)
+        if interior and ok.all():
+            term = w * val
+            fast: FloatArray = (term[0] + term[1] + term[2] + term[3]) / (w[0] + w[1] + w[2] + w[3])
+            return fast
         term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
         weight = np.where(ok, w, 0.0)
         num = term[0] + term[1] + term[2] + term[3]
         den = weight[0] + weight[1] + weight[2] + weight[3]
-        inside = np.logical_and.reduce((rel >= -0.5) & (rel <= n - 0.5), axis=1)
+        use = den > 0.0
+        if not interior:
+            use &= np.logical_and.reduce((rel >= -0.5) & (rel <= n - 0.5), axis=1)
         out: FloatArray = np.full(num.shape, np.inf)
-        np.divide(num, den, out=out, where=inside & (den > 0.0))
+        np.divide(num, den, out=out, where=use)
         return out
 
     # --- refresh ----------------------------------------------------------------------------------------------
@@ -188,13 +218,9 @@ class FieldOne:
         """``EscapeMaps.refresh`` of one agent. Returns the new field at the points and the agent (K + 1,) where
         the ``lost`` check sampled it (the field kept), else None."""
         xy, goal = position_m[:2], target_m[:2]
-        origin = self._grid.origins(xy[None], goal[None], self._pad_m)[0]
         old = state.field[0]
-        old_blocked, old_virtual = self._carry_over(old, xy, origin)
-        valid = np.logical_and.reduce(np.isfinite(obstacles_m), axis=1)
-        if self._dim == 3:
-            valid &= np.abs(obstacles_m[:, 2] - position_m[2]) <= self._clearance_m
-        obs_xy = np.where(valid[:, None], obstacles_m[:, :2], 0.0)
+        origin, old_blocked, old_virtual = self._carry_over(old, xy, self._origin(xy, goal))
+        obs_xy, valid = self._usable(position_m, obstacles_m)
         key = origin.tobytes() + obs_xy.tobytes() + valid.tobytes()
         if old is not None and old.occupancy is not None and old.occupancy[0] == key:
             inflated, known = old.occupancy[1], old.occupancy[2]
@@ -206,7 +232,7 @@ class FieldOne:
         memo = [] if old is None else list(old.memo)
         dist, values = self._distances(xy, origin, blocked, goal, state, memo)
         state.field[0] = NavField(
-            origin_m=origin.copy(),
+            origin_m=origin,
             blocked=blocked,
             dist_m=dist,
             virtual=np.zeros(self._grid.size, dtype=bool) if old_virtual is None else old_virtual,
@@ -216,18 +242,41 @@ class FieldOne:
         state.since_field[0] = 0
         return values
 
+    def _usable(self, position_m: FloatArray, obstacles_m: FloatArray) -> tuple[FloatArray, BoolArray]:
+        """The points (M, 2) that make the grid, zero where not valid, and which are valid (M,): finite and, in
+        3D, within C of the agent's altitude (``EscapeMaps.refresh``). 2D and all finite: the points as given."""
+        if self._dim == 2 and np.isfinite(obstacles_m).all():
+            return obstacles_m, np.ones(obstacles_m.shape[0], dtype=bool)
+        valid = np.logical_and.reduce(np.isfinite(obstacles_m), axis=1)
+        if self._dim == 3:
+            valid &= np.abs(obstacles_m[:, 2] - position_m[2]) <= self._clearance_m
+        return np.where(valid[:, None], obstacles_m[:, :2], 0.0), valid
+
+    def _origin(self, xy_m: FloatArray, goal_m: FloatArray) -> FloatArray:
+        """``NavGrid.origins`` of one agent in Python floats: the same operations on each coordinate (the
+        distance is the batch path's einsum on the same layout)."""
+        delta = goal_m - xy_m
+        dist = float(np.sqrt(np.einsum("bd,bd->b", delta[None], delta[None]))[0])
+        side, h = self._side_m, self._h
+        reach = min(dist / 2.0, self._half_room_m)
+        out = []
+        for x, d in zip(xy_m.tolist(), delta.tolist(), strict=True):
+            unit = d / dist if dist > 0.0 else 0.0
+            out.append(math.floor((x + unit * reach - side / 2.0) / h) * h)
+        return np.array(out)
+
     def _carry_over(
         self, old: NavField | None, xy_m: FloatArray, origin_m: FloatArray
-    ) -> tuple[BoolArray | None, BoolArray | None]:
-        """``navescape._carry_over`` of one agent (None, None: no old field); ``origin_m`` updated in place."""
+    ) -> tuple[FloatArray, BoolArray | None, BoolArray | None]:
+        """``navescape._carry_over`` of one agent: the grid's corner (the old one where the agent is well inside
+        it) and the remembered blocked and virtual cells in that grid (None: no old field)."""
         if old is None:
-            return None, None
-        rel = xy_m - old.origin_m
-        pad = self._pad_m
-        if np.all(rel >= pad) and np.all(rel <= self._side_m - pad):
-            origin_m[:] = old.origin_m  # the agent is well inside: keep the frame
-            return old.blocked.copy(), old.virtual.copy()
+            return origin_m, None, None
+        pad, far = self._pad_m, self._side_m - self._pad_m
+        if all(pad <= x - o <= far for x, o in zip(xy_m.tolist(), old.origin_m.tolist(), strict=True)):
+            return old.origin_m.copy(), old.blocked.copy(), old.virtual.copy()  # well inside: keep the frame
         return (
+            origin_m,
             self._grid.shift_blocked(old.blocked, old.origin_m, origin_m),
             self._grid.shift_blocked(old.virtual, old.origin_m, origin_m),
         )
@@ -247,22 +296,29 @@ class FieldOne:
             return self._recall(memo, origin_m, blocked, goal_m), None
         closed = self._close_seen_edges(blocked, origin_m, state)
         dist = self._recall(memo, origin_m, closed, goal_m)
-        values = self._sample(origin_m, dist, xy_m + self._around_xy)
+        values = self._sampled(origin_m, dist, xy_m + self._around_xy)
         if np.isfinite(values).any():
             return dist, values
         return self._recall(memo, origin_m, blocked, goal_m), None
 
     def _close_seen_edges(self, blocked: BoolArray, origin_m: FloatArray, state: NavState) -> BoolArray:
-        """``navescape._close_seen_edges`` of one agent."""
-        trail = state.trail_m[0]
-        trail = trail[np.isfinite(trail[:, 0])]
-        if trail.shape[0] == 0:
+        """``navescape._close_seen_edges`` of one agent. The edge cells to close depend only on the grid's corner
+        and the trail, which change every few steps: the last answer is kept with its exact input."""
+        key = origin_m.tobytes() + state.trail_m[0].tobytes()
+        if key != self._seen_key:
+            trail = state.trail_m[0]
+            trail = trail[np.isfinite(trail[:, 0])]
+            cells = self._edge_cells[:0]
+            if trail.shape[0]:
+                edge = origin_m + self._edge_centres
+                delta = edge[:, None, :] - trail[None, :, :]
+                near = np.logical_or.reduce(np.einsum("ekd,ekd->ek", delta, delta) < self._seen2, axis=1)
+                cells = self._edge_cells[near]
+            self._seen_key, self._seen_cells = key, cells
+        if self._seen_cells.size == 0:
             return blocked
-        edge = origin_m + self._edge_centres
-        delta = edge[:, None, :] - trail[None, :, :]
-        near = np.logical_or.reduce(np.einsum("ekd,ekd->ek", delta, delta) < self._seen2, axis=1)
         closed = blocked.copy()
-        closed[self._edge_cells[near]] = True
+        closed[self._seen_cells] = True
         return closed
 
     def _recall(
@@ -277,6 +333,15 @@ class FieldOne:
         dist: FloatArray = self._grid.distances(origin_m[None], blocked[None], goal_m[None])[0]
         memo.append((key, dist))
         return dist
+
+
+def _weights(frac: FloatArray) -> FloatArray:
+    """(4, P) bilinear weights wi * wj of the corners (0, 0), (0, 1), (1, 0), (1, 1) from the fractions (P, 2)."""
+    pair = np.empty((2, *frac.shape))
+    np.subtract(1.0, frac, out=pair[0])  # (1 - f, f) per axis
+    pair[1] = frac
+    w: FloatArray = (pair[:, None, :, 0] * pair[None, :, :, 1]).reshape(4, -1)
+    return w
 
 
 class EscapeStep:
