@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
+from apf_companion.planning.navstate import NavField
 
 _PARAMS = {
     "defaults": PlannerParams(),
@@ -106,10 +107,11 @@ class _Counting:
 
 
 def _fly(
-    params: PlannerParams, start: np.ndarray, target: np.ndarray, surface: np.ndarray, seed: int
+    params: PlannerParams, start: np.ndarray, target: np.ndarray, surface: np.ndarray, seed: int, junk: bool = False
 ) -> dict[str, int]:
     """Fly ``step`` and ``step_batch`` side by side (the batch one replays the single one's positions), with the
-    points seen so far within 8 m and position noise; returns counts of what happened."""
+    points seen so far within 8 m and position noise (``junk``: plus non-finite rows); returns counts of what
+    happened."""
     single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
     counting = _Counting(single._escape_one)
     single._escape_one = counting  # type: ignore[assignment]
@@ -125,6 +127,8 @@ def _fly(
     for _ in range(140):
         seen |= np.linalg.norm(surface[:, :2] - pos[:2], axis=1) <= 8.0
         obstacles = surface[seen]
+        if junk:  # rows a broken sensor might report: not finite, ignored by both paths
+            obstacles = np.vstack([obstacles, np.full((1, dim), np.nan), np.full((1, dim), np.inf)])
         d = single.step(pos, target, obstacles)
         row = batch.step_batch(
             pos[None], target[None], obstacles[None], np.ones((1, len(obstacles)), bool), state=state
@@ -154,3 +158,80 @@ def test_escape_steps_equal_the_batch_rows_and_states(dim: int, which: str) -> N
             totals[key] = totals.get(key, 0) + value
     assert totals["single escape steps"] >= 100  # the path under test decided many steps
     assert totals["escape steps"] >= 100
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_non_finite_points_are_ignored_as_on_the_batch_path(dim: int) -> None:
+    params = PlannerParams(dim=dim)
+    start, target, surface = _worlds()[0]
+    counts = _fly(params, start, target, surface, seed=0, junk=True)
+    assert counts["single escape steps"] >= 50
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_repeated_steps_in_thickets_equal_the_batch_path(dim: int) -> None:
+    """The benchmark's pattern: steps from one position in a thicket (the stall and dead-end refreshes, the
+    dead-end cells marked as virtual obstacles), the same decisions and states as the batch path."""
+    params = PlannerParams(dim=dim)
+    marked = 0
+    for seed in range(300, 330):
+        rng = np.random.default_rng(seed)
+        n = int(rng.choice([100, 300, 600]))
+        direction = rng.normal(size=(n, dim))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        obstacles = np.maximum(8.0 * rng.random((n, 1)) ** (1.0 / dim), 0.5) * direction
+        target = np.full(dim, 22.0)
+        single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
+        state = batch.initial_state(1)
+        for _ in range(3):
+            d = single.step(np.zeros(dim), target, obstacles)
+            mask = np.ones((1, n), bool)
+            _assert_same(
+                d, batch.step_batch(np.zeros((1, dim)), target[None], obstacles[None], mask, state=state).row(0)
+            )
+            own = single.own_state
+            assert isinstance(own, NavState)
+            _assert_same_state(own, state)
+        field = state.field[0]
+        marked += int(field is not None and bool(field.virtual.any()))
+    assert marked >= (1 if dim == 2 else 0)  # in 2D a dead end was marked on the single path (seed 312)
+
+
+def _enclosed_state(planner: BapfNavPlanner, position: np.ndarray, target: np.ndarray) -> NavState:
+    """An escaping agent whose remembered cells close every cell around its own (virtual dead ends), the goal in
+    its own cell: its potential is finite, every candidate point's infinite."""
+    planner.reset()
+    planner.step(position, target, np.zeros((0, position.size)))
+    state = planner.own_state
+    assert isinstance(state, NavState)
+    grid = planner._escape.grid
+    origin = grid.origins(position[None, :2], target[None, :2], planner._escape._pad_m)[0]
+    centres = origin + (np.stack(np.divmod(np.arange(grid.size), grid.n), axis=1) + 0.5) * grid.cell_m
+    near = np.linalg.norm(centres - position[:2], axis=1)
+    blocked = (near < 3.0) & (near > 0.5 * grid.cell_m)
+    dist = grid.distances(origin[None], blocked[None], target[None, :2])[0]
+    state.mode[0], state.hit_dist_m[0], state.since_field[0] = NavMode.ESCAPE, 0.0, 1
+    state.field[0] = NavField(origin_m=origin, blocked=blocked, dist_m=dist, virtual=blocked.copy())
+    return state
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_no_way_from_any_candidate_gives_up_as_the_batch_path(dim: int) -> None:
+    """Every feasible point off the free cells, the agent's own cell on the way: GAVE_UP (``lost``), the same
+    decision and state on both paths. Steps of 0.8 m: no candidate point in 2D samples the agent's own cell."""
+    params = PlannerParams(dim=dim, step_m=0.8)
+    single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
+    grid = single._escape.grid
+    position = np.full(dim, 10.0)
+    position[:2] = (np.floor(position[:2] / grid.cell_m) + 0.5) * grid.cell_m  # a cell centre
+    target = position + 0.01
+    _enclosed_state(single, position, target)
+    state = _enclosed_state(batch, position, target)
+    d = single.step(position, target, np.zeros((0, dim)))
+    row = batch.step_batch(position[None], target[None], np.zeros((1, 0, dim)), np.ones((1, 0), bool), state=state)
+    _assert_same(d, row.row(0))
+    own = single.own_state
+    assert isinstance(own, NavState)
+    _assert_same_state(own, state)
+    if dim == 2:  # (in 3D the points above and below the agent sample its own cell)
+        assert d.reason.name == "GAVE_UP" and own.mode[0] == NavMode.GAVE_UP
