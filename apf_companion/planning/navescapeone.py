@@ -130,7 +130,8 @@ class FieldOne:
         new = (~field.blocked[cells]).nonzero()[0]
         if new.size == 0:
             return False
-        here = float(self._sample(field.origin_m, field.dist_m, position_m[None, :2])[0])
+        # The field at the agent: the value ``_geodesic`` samples next (the same point, kept for this step).
+        here = float(self._sampled(field.origin_m, field.dist_m, (position_m + self._around)[:, :2])[-1])
         if not here < np.inf:  # inf (enclosed or off the grid): outdated
             return True
         way = np.sqrt(d2_m2[idx[inside[new]]]) + field.dist_m[cells[new]]
