@@ -31,8 +31,9 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    steps: ``DecisionReason.GAVE_UP`` (the caller reports STUCK), and no moves until the target changes.
 
 Moves are reported as GREEDY (a passing point on the planner's potential); ``NavState.mode`` says which
-potential. ``step`` (one agent, the service) runs the sight, trail and progress rules with ``navsingle.SingleStart``
-and decides DIRECT steps with ``navone.DirectStep``: the same decisions in fewer numpy calls. 3D: the candidates
+potential. ``step`` (one agent, the service) runs the sight, trail and progress rules with ``navsingle.SingleStart``,
+decides DIRECT steps with ``navone.DirectStep`` and ESCAPE steps (and a step that enters ESCAPE) with
+``navescapeone.EscapeStep``: the same decisions and state in fewer numpy calls. 3D: the candidates
 and the sweep are 3D; the escape potential is the horizontal geodesic distance combined with the vertical offset,
 sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
 """
@@ -159,8 +160,9 @@ class BapfNavPlanner(StatefulPlanner):
         obstacles_m: npt.ArrayLike,
         rng: np.random.Generator | None = None,
     ) -> Decision:
-        """``StatefulPlanner.step``; the single-agent path (``navsingle``, and ``navone`` for a DIRECT step), the
-        same decision."""
+        """``StatefulPlanner.step``; the single-agent path (``navsingle``, then ``navone`` for a DIRECT step and
+        ``navescapeone`` for an ESCAPE step), the same decision. A GAVE_UP agent or non-finite numbers: the batch
+        path."""
         pos, tgt, obs, state = self._one(position_m, target_m, obstacles_m)
         assert isinstance(state, NavState)
         if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN

@@ -1,14 +1,17 @@
-"""bapf-nav's single-agent escape field (the service's ``step`` in ESCAPE mode): ``EscapeMaps.potentials`` of one
-agent on 1-D arrays, the same fields and values, bit for bit.
+"""bapf-nav's single-agent ESCAPE step (the service's ``step``): ``BapfNavPlanner._decide`` and
+``EscapeMaps.potentials`` of one agent on 1-D arrays, the same decisions, fields and values, bit for bit.
 
 ``EscapeMaps`` works on rows of agents: per-row Python loops, object arrays of fields stacked for sampling, and
 (R, ...) temporaries. At one agent those cost more than the arithmetic, so ``FieldOne`` runs the same rules
 (stale, ``outdated``, stall and dead-end refreshes, carry-over, trail closure of edge cells, the ``lost`` check,
-the occupancy and field memos) on one agent's arrays, and reuses within a refresh what the batch path computes
-twice: the field's values at the candidate points, sampled for the ``lost`` check, are the values ``geodesic``
-samples next (the same points, the same field). Every value comes from the same floating-point operations as
-in the batch path (elementwise numpy arithmetic does not depend on the array's shape; sums of products stay the
-batch path's einsum calls on the same layouts). tests/planning/test_planning_navescapeone.py compares both.
+the occupancy and field memos) on one agent's arrays, and does not compute twice what the batch path does: a
+field sampled at the candidate points in a step (for the ``lost`` check, the ``outdated`` check's value at the
+agent, the potential) is sampled once in that step, and the edge cells the trail closes are kept with their exact
+input (the grid's corner and the trail). ``FieldSampler`` samples one field without the batch path's stacks and,
+where every corner is inside the grid and finite, without its masks. ``EscapeStep`` is the decision around it.
+Every value comes from the same floating-point operations as in the batch path (elementwise numpy arithmetic does
+not depend on the array's shape; sums of products stay the batch path's einsum calls on the same layouts).
+tests/planning/test_planning_navescapeone.py compares both paths, decisions and state, bit for bit.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from apf_companion.planning.navone import DirectStep
 from apf_companion.planning.navsingle import age_field
 from apf_companion.planning.navstate import NavField, NavMode, NavState
 
-__all__ = ["EscapeStep", "FieldOne"]
+__all__ = ["EscapeStep", "FieldOne", "FieldSampler"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -64,9 +67,7 @@ class FieldOne:
         self._around_xy = np.vstack([offsets[:, :2], np.zeros((1, 2))])
         self._offsets_xy = offsets[:, :2]
         self._edge_cells = maps._edge_cells
-        self._corner_steps = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=np.intp)[:, None, :]
-        n = maps.grid.n
-        self._corner_flat = np.array([[0], [1], [n], [n + 1]], dtype=np.intp)  # the same four, as flat offsets
+        self._sample = FieldSampler(maps.grid.n, maps.grid.cell_m)
         self._edge_centres = maps._edge_centres
         #: Fields sampled at the points in this step (``_sampled``): field, corner as bytes, values.
         self._samples: list[tuple[FloatArray, bytes, FloatArray]] = []
@@ -177,39 +178,6 @@ class FieldOne:
         values = self._sample(origin_m, dist_m, points_xy_m)
         self._samples.append((dist_m, origin, values))
         return values
-
-    def _sample(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
-        """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner. Where
-        every corner lies in the grid, the clamping changes no index and every point is inside; where every corner
-        is also finite with a positive weight, the batch path's masks select nothing and its sums are these."""
-        n = self._n
-        rel = (points_xy_m - origin_m) / self._h - 0.5
-        low = np.floor(rel).astype(np.intp)
-        frac = rel - low
-        interior = low.min() >= 0 and low.max() <= n - 2
-        if interior:
-            val = dist_m[(low[:, 0] * n + low[:, 1]) + self._corner_flat]  # (4, P)
-        else:  # the corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1), each index clamped
-            ij = low + self._corner_steps  # (4, P, 2)
-            np.maximum(ij, 0, out=ij)
-            np.minimum(ij, n - 1, out=ij)
-            val = dist_m[ij[:, :, 0] * n + ij[:, :, 1]]
-        w = _weights(frac)
-        ok = np.isfinite(val) & (w > 0.0)
-        if interior and ok.all():
-            term = w * val
-            fast: FloatArray = (term[0] + term[1] + term[2] + term[3]) / (w[0] + w[1] + w[2] + w[3])
-            return fast
-        term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
-        weight = np.where(ok, w, 0.0)
-        num = term[0] + term[1] + term[2] + term[3]
-        den = weight[0] + weight[1] + weight[2] + weight[3]
-        use = den > 0.0
-        if not interior:
-            use &= np.logical_and.reduce((rel >= -0.5) & (rel <= n - 0.5), axis=1)
-        out: FloatArray = np.full(num.shape, np.inf)
-        np.divide(num, den, out=out, where=use)
-        return out
 
     # --- refresh ----------------------------------------------------------------------------------------------
 
@@ -334,6 +302,49 @@ class FieldOne:
         dist: FloatArray = self._grid.distances(origin_m[None], blocked[None], goal_m[None])[0]
         memo.append((key, dist))
         return dist
+
+
+class FieldSampler:
+    """``NavGrid.sample_many`` of one field (grid of ``n`` x ``n`` cells of ``cell_m``), on 1-D arrays."""
+
+    def __init__(self, n: int, cell_m: float) -> None:
+        self._n = n
+        self._h = cell_m
+        self._corner_steps = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=np.intp)[:, None, :]
+        self._corner_flat = np.array([[0], [1], [n], [n + 1]], dtype=np.intp)  # the same four, as flat offsets
+
+    def __call__(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
+        """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner. Where
+        every corner lies in the grid, the clamping changes no index and every point is inside; where every corner
+        is also finite with a positive weight, the batch path's masks select nothing and its sums are these."""
+        n = self._n
+        rel = (points_xy_m - origin_m) / self._h - 0.5
+        low = np.floor(rel).astype(np.intp)
+        frac = rel - low
+        interior = low.min() >= 0 and low.max() <= n - 2
+        if interior:
+            val = dist_m[(low[:, 0] * n + low[:, 1]) + self._corner_flat]  # (4, P)
+        else:  # the corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1), each index clamped
+            ij = low + self._corner_steps  # (4, P, 2)
+            np.maximum(ij, 0, out=ij)
+            np.minimum(ij, n - 1, out=ij)
+            val = dist_m[ij[:, :, 0] * n + ij[:, :, 1]]
+        w = _weights(frac)
+        ok = np.isfinite(val) & (w > 0.0)
+        if interior and ok.all():
+            term = w * val
+            fast: FloatArray = (term[0] + term[1] + term[2] + term[3]) / (w[0] + w[1] + w[2] + w[3])
+            return fast
+        term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
+        weight = np.where(ok, w, 0.0)
+        num = term[0] + term[1] + term[2] + term[3]
+        den = weight[0] + weight[1] + weight[2] + weight[3]
+        use = den > 0.0
+        if not interior:
+            use &= np.logical_and.reduce((rel >= -0.5) & (rel <= n - 0.5), axis=1)
+        out: FloatArray = np.full(num.shape, np.inf)
+        np.divide(num, den, out=out, where=use)
+        return out
 
 
 def _weights(frac: FloatArray) -> FloatArray:
