@@ -194,7 +194,7 @@ class NavGrid:
             if cells.size == 0:
                 continue
             # An edge into a blocked cell is infinite. Edges out of one need not be: it is never reached.
-            weights = np.where(blk[self._indices], np.inf, self._edge_cost)
+            weights = np.where(np.take(blk, self._indices), np.inf, self._edge_cost)
             graph = csr_matrix(
                 (
                     np.concatenate([weights, values]),
