@@ -31,8 +31,9 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    steps: ``DecisionReason.GAVE_UP`` (the caller reports STUCK), and no moves until the target changes.
 
 Moves are reported as GREEDY (a passing point on the planner's potential); ``NavState.mode`` says which
-potential. ``step`` (one agent, the service) runs the sight, trail and progress rules with ``navsingle.SingleStart``
-and decides DIRECT steps with ``navone.DirectStep``: the same decisions in fewer numpy calls. 3D: the candidates
+potential. ``step`` (one agent, the service) runs the sight, trail and progress rules with ``navsingle.SingleStart``,
+decides DIRECT steps with ``navone.DirectStep`` and ESCAPE steps (and a step that enters ESCAPE) with
+``navescapeone.EscapeStep``: the same decisions and state in fewer numpy calls. 3D: the candidates
 and the sweep are 3D; the escape potential is the horizontal geodesic distance combined with the vertical offset,
 sqrt(g_h^2 + dz^2), from the obstacles within C of the agent's altitude.
 """
@@ -47,6 +48,7 @@ import numpy.typing as npt
 from apf_companion.planning.clearance import MoveSweep, clearance_terms, lookahead_probes, near_obstacles
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navescapeone import EscapeStep
 from apf_companion.planning.navone import DirectStep
 from apf_companion.planning.navsingle import FIELD_AGE_CAP, SightLine, SingleStart, age_field
 from apf_companion.planning.navstate import NavMode, NavState
@@ -108,6 +110,7 @@ class BapfNavPlanner(StatefulPlanner):
         soft_m = math.sqrt(7.0 / p.nav_clearance_decay_per_m2)  # exp(-7) < 1e-3: negligible beyond
         self._reach_m = p.step_m + max(self.clearance_m + p.nav_lookahead_m, soft_m)
         self._direct_one = DirectStep(p, offsets, self._units, self.clearance_m, self._reach_m)
+        self._escape_one = EscapeStep(self._escape, self._direct_one, offsets, self._units)
         sight = SightLine(p, self.clearance_m)
         self._start_one = SingleStart(p, self._escape, sight, _TRAIL_SPACING_M, _PROGRESS_SHARE)
 
@@ -157,18 +160,23 @@ class BapfNavPlanner(StatefulPlanner):
         obstacles_m: npt.ArrayLike,
         rng: np.random.Generator | None = None,
     ) -> Decision:
-        """``StatefulPlanner.step``; the single-agent path (``navsingle``, and ``navone`` for a DIRECT step), the
-        same decision."""
+        """``StatefulPlanner.step``; the single-agent path (``navsingle``, then ``navone`` for a DIRECT step and
+        ``navescapeone`` for an ESCAPE step), the same decision. A GAVE_UP agent or non-finite numbers: the batch
+        path."""
         pos, tgt, obs, state = self._one(position_m, target_m, obstacles_m)
         assert isinstance(state, NavState)
         if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN
             state.restart(np.zeros(1, dtype=np.intp), tgt[None])
         goal_vec, g0, rel, r2 = self._start_one(pos, tgt, obs, state)
-        decision = None
-        if state.mode[0] == _DIRECT:
-            decision = self._direct_one(pos, rel, r2, goal_vec, g0, state.prev_dir)
-        if decision is None:  # not DIRECT, or it enters ESCAPE: the batch path
+        mode = state.mode[0]
+        if mode == _GAVE_UP or not math.isfinite(g0):  # (finite g0: finite position and target) the batch path
             return self._decide(pos[None], tgt[None], obs[None], None, state, goal_vec[None], np.array([g0])).row(0)
+        if mode == _ESCAPE:
+            return self._escape_one(pos, tgt, obs, rel, r2, state)
+        decision = self._direct_one(pos, rel, r2, goal_vec, g0, state.prev_dir)
+        if decision is None:  # no point passes: the agent enters ESCAPE (``_escaping``)
+            state.mode[0], state.hit_dist_m[0], state.field[0] = _ESCAPE, g0, None
+            return self._escape_one(pos, tgt, obs, rel, r2, state, self._direct_one.trapped)
         if decision.chosen_index is not None:
             state.prev_dir[0] = self._units[decision.chosen_index]
         age_field(state)

@@ -127,7 +127,12 @@ class NavGrid:
         outs = [np.zeros((origins_m.shape[0], self.size), dtype=bool) for _ in radii_m]
         if obstacles_xy_m.shape[1] == 0 or not valid.any():
             return outs
-        steps = np.arange(-math.ceil(max(radii_m) / h) - 1, math.ceil(max(radii_m) / h) + 2)
+        top = max(radii_m)
+        # Stencil offsets s from each point's cell: a cell's centre is more than (|s| - 0.5) h away, so cells
+        # with |s| >= top / h + 0.5 are never within ``top``; one more cell each way keeps rounding far off.
+        half = math.ceil(top / h + 0.5)
+        steps = np.arange(-half, half + 1)
+        s = steps.size
         b, m = np.nonzero(valid)
         rel = (obstacles_xy_m[b, m] - origins_m[b]) / h  # (P, 2) in cells
         ci = np.floor(rel[:, 0]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil rows
@@ -138,13 +143,20 @@ class NavGrid:
         # and columns outside the grid are at infinity.
         dx2 = np.where((ci >= 0) & (ci < n), ddx * ddx, np.inf)
         dy2 = np.where((cj >= 0) & (cj < n), ddy * ddy, np.inf)
-        d2 = dx2[:, :, None] + dy2[:, None, :]
-        top = max(radii_m)
-        p, si, sj = np.nonzero(d2 < top * top)  # the cells of the largest radius; the others are among them
-        rows, cells, near2 = b[p], ci[p, si] * n + cj[p, sj], d2[p, si, sj]
+        d2 = (dx2[:, :, None] + dy2[:, None, :]).ravel()
+        # The cells of the largest radius (the others are among them), as flat indices into (P, S, S): one index
+        # array and 1-D gathers instead of three.
+        k = np.flatnonzero(d2 < top * top)
+        near2 = d2[k]
+        point_row, col = np.divmod(k, s)  # point * S + stencil row, stencil column
+        point = point_row // s
+        rows, cells = b[point], ci.ravel()[point_row] * n + cj.ravel()[point * s + col]
         for out, radius in zip(outs, radii_m, strict=True):
-            hit = near2 < radius * radius
-            out[rows[hit], cells[hit]] = True
+            if radius == top:  # every cell found
+                out[rows, cells] = True
+            else:
+                hit = near2 < radius * radius
+                out[rows[hit], cells[hit]] = True
         return outs
 
     # --- the potential --------------------------------------------------------------------------------------
@@ -182,7 +194,7 @@ class NavGrid:
             if cells.size == 0:
                 continue
             # An edge into a blocked cell is infinite. Edges out of one need not be: it is never reached.
-            weights = np.where(blk[self._indices], np.inf, self._edge_cost)
+            weights = np.where(np.take(blk, self._indices), np.inf, self._edge_cost)
             graph = csr_matrix(
                 (
                     np.concatenate([weights, values]),

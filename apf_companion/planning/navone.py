@@ -15,8 +15,8 @@ reductions are the same calls on arrays of the same layout: numpy's einsum does 
 right, so it is not replaced by another formula). ``tests/planning/test_planning_nav_digest.py`` pins the
 decisions; tests/planning/test_planning_nav.py checks ``step`` against ``step_batch`` rows.
 
-It returns None where the batch path is needed: the agent enters ESCAPE (no point passes) or no move is feasible
-(the squeeze-out). The caller then runs the batch path on the same, untouched state.
+It returns None where the agent enters ESCAPE (no point passes, some move is feasible): the caller's escape path
+(``navescapeone.EscapeStep``) then decides on the same, untouched state, with this step's geometry (``trapped``).
 """
 
 from __future__ import annotations
@@ -80,6 +80,9 @@ class DirectStep:
         self._move_vectors = np.concatenate([offsets_m.T, np.zeros((dim, 1))], axis=1)  # (D, K + 1)
         self._move_v2 = np.concatenate([o2, [_TINY]])  # zero length: t = 0 (the agent's column)
         self._starts = np.concatenate([np.zeros((dim, n_points + 1)), offsets_m.T], axis=1)[:, None, :]
+        #: The geometry of the last step that returned None to enter ESCAPE (``plain_geometry``'s values: the
+        #: look-ahead does not change them), None where it had no near obstacle.
+        self.trapped: tuple[BoolArray, FloatArray, FloatArray, float] | None = None
 
     def __call__(
         self,
@@ -115,11 +118,12 @@ class DirectStep:
         n_passing = int(np.count_nonzero(passing))
         scores = np.where(passing, cost, _INF)
         if n_passing > 0:
-            chosen = self._choose(scores, cost, cost0, passing, prev_dir)
-        elif seg2 is None or bool(feasible.any()):  # entering ESCAPE: the batch path's rules
+            chosen = self.choose(scores, cost, cost0, passing, prev_dir)
+        elif seg2 is None or bool(feasible.any()):  # entering ESCAPE: the caller's escape rules
+            self.trapped = None if seg2 is None else (feasible, seg2, clear_k, clear_0)
             return None
         else:
-            chosen = self._squeeze_out(seg2)
+            chosen = self.squeeze_out(seg2)
         if chosen < 0:
             return Decision(next_point_m=None, reason=DecisionReason.LOCAL_MINIMUM, n_safe=0, candidate_cost=scores)
         return Decision(
@@ -130,6 +134,16 @@ class DirectStep:
             n_safe=int(np.count_nonzero(feasible)),
             candidate_cost=scores,
         )
+
+    def plain_geometry(self, rel_m: FloatArray, d2_m2: FloatArray) -> tuple[BoolArray, FloatArray, FloatArray, float]:
+        """Feasible moves (K,), their swept squared clearance (K,) and the clearance terms at the points (K,) and
+        the agent of an agent that does not look ahead (ESCAPE mode: ``BapfNavPlanner._group`` with ``direct``
+        False); ``rel_m`` and ``d2_m2`` as in ``__call__``."""
+        near = (d2_m2 <= self._reach2).nonzero()[0]
+        if near.size == 0:  # the batch path's values without near obstacles
+            return np.ones(self._n, dtype=bool), np.full(self._n, _INF), np.zeros(self._n), 0.0
+        feasible, seg2, clear_k, clear_0, _ = self._geometry(rel_m[near], d2_m2[near], None)
+        return feasible, seg2, clear_k, clear_0
 
     def _geometry(
         self, rel: FloatArray, r2: FloatArray, probes: FloatArray | None
@@ -172,14 +186,14 @@ class DirectStep:
         clear_0 = float(np.add.reduce(terms[:, n]))  # pairwise, as the batch path's row sum
         return clear_k, clear_0, nearest
 
-    def _squeeze_out(self, seg2: FloatArray) -> int:
+    def squeeze_out(self, seg2: FloatArray) -> int:
         """Boxed in (``BapfNavPlanner._squeeze_out``): the move that keeps the most clearance, if that keeps
         radius + safety margin, else -1."""
         room = np.where(seg2 >= self._floor2, seg2, -_INF)
         widest = int(room.argmax())
         return widest if math.isfinite(room[widest]) else -1
 
-    def _choose(
+    def choose(
         self, scores: FloatArray, cost: FloatArray, cost0: float, passing: BoolArray, prev_dir: FloatArray
     ) -> int:
         """Best passing point with the turn hysteresis (``BapfNavPlanner._choose``); some point passes."""

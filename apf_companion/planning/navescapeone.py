@@ -1,0 +1,428 @@
+"""bapf-nav's single-agent ESCAPE step (the service's ``step``): ``BapfNavPlanner._decide`` and
+``EscapeMaps.potentials`` of one agent on 1-D arrays, the same decisions, fields and values, bit for bit.
+
+``EscapeMaps`` works on rows of agents: per-row Python loops, object arrays of fields stacked for sampling, and
+(R, ...) temporaries. At one agent those cost more than the arithmetic, so ``FieldOne`` runs the same rules
+(stale, ``outdated``, stall and dead-end refreshes, carry-over, trail closure of edge cells, the ``lost`` check,
+the occupancy and field memos) on one agent's arrays, and does not compute twice what the batch path does: a
+field sampled at the candidate points in a step (for the ``lost`` check, the ``outdated`` check's value at the
+agent, the potential) is sampled once in that step, and the edge cells the trail closes are kept with their exact
+input (the grid's corner and the trail). ``FieldSampler`` samples one field without the batch path's stacks and,
+where every corner is inside the grid and finite, without its masks. ``EscapeStep`` is the decision around it.
+Every value comes from the same floating-point operations as in the batch path (elementwise numpy arithmetic does
+not depend on the array's shape; sums of products stay the batch path's einsum calls on the same layouts).
+tests/planning/test_planning_navescapeone.py compares both paths, decisions and state, bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from apf_companion.planning.decision import Decision, DecisionReason
+from apf_companion.planning.navescape import _MEMO, _OUTDATED_AGE, EscapeMaps
+from apf_companion.planning.navone import DirectStep
+from apf_companion.planning.navsingle import age_field
+from apf_companion.planning.navstate import NavField, NavMode, NavState
+
+__all__ = ["EscapeStep", "FieldOne", "FieldSampler"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
+
+_INF = math.inf
+_GAVE_UP = int(NavMode.GAVE_UP)
+
+
+class FieldOne:
+    """The escape potential of one agent (``EscapeMaps.potentials`` on ``NavState`` row 0; module docstring).
+
+    Parameters
+    ----------
+    maps : the planner's escape maps (grid, parameters, edge cells).
+    """
+
+    def __init__(self, maps: EscapeMaps) -> None:
+        p = maps.params
+        self._maps = maps
+        self._grid = maps.grid
+        self._n = maps.grid.n
+        self._h = maps.grid.cell_m
+        self._side_m = maps.grid.n * maps.grid.cell_m
+        self._dim = p.dim
+        self._replan = p.nav_replan_steps
+        self._seen2 = p.nav_seen_m * p.nav_seen_m
+        self._sight2 = p.nav_sight_m**2
+        self._clearance_m = maps.clearance_m
+        self._slack_m = 2.0 * maps.clearance_m + maps.grid.cell_m
+        self._radii_m = (maps.clearance_m, maps._reach_m)
+        self._pad_m = maps._pad_m
+        self._half_room_m = max(self._side_m / 2.0 - max(self._pad_m, self._side_m / 3.0), 0.0)
+        offsets = maps._offsets
+        # The candidate points and the agent (a zero offset), as ``EscapeMaps.geodesic`` stacks them.
+        self._around = np.vstack([offsets, np.zeros((1, offsets.shape[1]))])
+        self._around_xy = np.vstack([offsets[:, :2], np.zeros((1, 2))])
+        self._offsets_xy = offsets[:, :2]
+        self._edge_cells = maps._edge_cells
+        self._sample = FieldSampler(maps.grid.n, maps.grid.cell_m)
+        self._edge_centres = maps._edge_centres
+        #: Fields sampled at the points in this step (``_sampled``): field, corner as bytes, values.
+        self._samples: list[tuple[FloatArray, bytes, FloatArray]] = []
+        #: The last input (corner and trail, as bytes) of ``_close_seen_edges`` and its edge cells to close.
+        self._seen_key = b""
+        self._seen_cells = self._edge_cells[:0]
+
+    def potentials(
+        self,
+        position_m: FloatArray,
+        target_m: FloatArray,
+        obstacles_m: FloatArray,
+        d2_m2: FloatArray,
+        state: NavState,
+        feasible: BoolArray,
+        clear_k: FloatArray,
+        clear_0: float,
+    ) -> tuple[FloatArray, float, BoolArray]:
+        """Geodesic potential at the points (K,) and the agent, and which points pass (``EscapeMaps.potentials``).
+        ``d2_m2`` (M,): the obstacles' squared distances to the agent, einsum("nd,nd->n") as ``outdated`` has
+        them; position and target finite."""
+        self._samples = []
+        field = state.field[0]
+        age = int(state.since_field[0])
+        stale = field is None or age >= self._replan
+        if not stale and age >= _OUTDATED_AGE:
+            stale = self._outdated(field, position_m, obstacles_m, d2_m2)
+        values = self._refresh(position_m, target_m, obstacles_m, state) if stale else None
+        g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
+        ok = feasible & (g_k + clear_k < g0 + clear_0)
+        if stale or ok.any():
+            dead = not ok.any()
+        else:  # stalled on a potential that may be stale: recompute once with what is known now
+            values = self._refresh(position_m, target_m, obstacles_m, state)
+            g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
+            ok = feasible & (g_k + clear_k < g0 + clear_0)
+            dead = not ok.any()
+        # Still nothing: mark the refused downhill cells and recompute once, where a cell was newly marked.
+        if dead and self._mark_dead_ends(position_m, state.field[0], feasible, g_k, g0):
+            values = self._refresh(position_m, target_m, obstacles_m, state)
+            g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
+            ok = feasible & (g_k + clear_k < g0 + clear_0)
+        return g_k, g0, ok
+
+    def _outdated(self, field: NavField, position_m: FloatArray, obstacles_m: FloatArray, d2_m2: FloatArray) -> bool:
+        """``EscapeMaps.outdated`` of one agent."""
+        near = d2_m2 <= self._sight2  # non-finite rows compare False
+        if self._dim == 3:
+            near &= np.abs(obstacles_m[:, 2] - position_m[2]) <= self._clearance_m
+        idx = near.nonzero()[0]
+        if idx.size == 0:
+            return False
+        n = self._n
+        # ``NavGrid.cell_of`` on finite points (``near`` holds only finite ones): no NaN to replace.
+        ij = np.floor((obstacles_m[idx, :2] - field.origin_m) / self._h)
+        np.clip(ij, -1, n, out=ij)
+        cij = ij.astype(np.intp)
+        ci, cj = cij[:, 0], cij[:, 1]
+        inside = ((ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)).nonzero()[0]
+        cells = ci[inside] * n + cj[inside]
+        new = (~field.blocked[cells]).nonzero()[0]
+        if new.size == 0:
+            return False
+        # The field at the agent: the value ``_geodesic`` samples next (the same point, kept for this step).
+        here = float(self._sampled(field.origin_m, field.dist_m, (position_m + self._around)[:, :2])[-1])
+        if not here < np.inf:  # inf (enclosed or off the grid): outdated
+            return True
+        way = np.sqrt(d2_m2[idx[inside[new]]]) + field.dist_m[cells[new]]
+        return bool((way <= here + self._slack_m).any())
+
+    def _mark_dead_ends(
+        self, position_m: FloatArray, field: NavField, feasible: BoolArray, g_k: FloatArray, g0: float
+    ) -> bool:
+        """``EscapeMaps.mark_dead_ends`` of one agent: whether a cell was newly blocked."""
+        refused = ~feasible & (g_k < g0)
+        if not refused.any():
+            return False
+        n = self._n
+        pts = position_m[:2] + self._offsets_xy[refused]
+        ci, cj = self._grid.cell_of(field.origin_m[None], pts[None])
+        own_i, own_j = self._grid.cell_of(field.origin_m[None], position_m[None, None, :2])
+        ok = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n) & ~((ci == own_i[0, 0]) & (cj == own_j[0, 0]))
+        cells = ci[ok] * n + cj[ok]
+        marked = not field.blocked[cells].all()  # a cell already blocked only turns virtual: same field
+        field.blocked[cells] = True
+        field.virtual[cells] = True
+        return marked
+
+    def _geodesic(
+        self, position_m: FloatArray, target_m: FloatArray, field: NavField, values: FloatArray | None
+    ) -> tuple[FloatArray, float]:
+        """``EscapeMaps.geodesic`` of one agent; ``values``: the field already sampled at the points (or None)."""
+        pts = position_m + self._around
+        if values is None:
+            values = self._sampled(field.origin_m, field.dist_m, pts[:, :2])
+        if self._dim == 3:
+            dz = pts[:, 2] - target_m[2]
+            values = np.sqrt(values * values + dz * dz)
+        return values[:-1], float(values[-1])
+
+    def _sampled(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
+        """``_sample`` at this step's points and the agent (K + 1, 2): a field sampled before in this step (the
+        same field object, never written to, in the same frame) gives the same values again."""
+        origin = origin_m.tobytes()
+        for dist, frame, values in self._samples:
+            if dist is dist_m and frame == origin:
+                return values
+        values = self._sample(origin_m, dist_m, points_xy_m)
+        self._samples.append((dist_m, origin, values))
+        return values
+
+    # --- refresh ----------------------------------------------------------------------------------------------
+
+    def _refresh(
+        self, position_m: FloatArray, target_m: FloatArray, obstacles_m: FloatArray, state: NavState
+    ) -> FloatArray | None:
+        """``EscapeMaps.refresh`` of one agent. Returns the new field at the points and the agent (K + 1,) where
+        the ``lost`` check sampled it (the field kept), else None."""
+        xy, goal = position_m[:2], target_m[:2]
+        old = state.field[0]
+        origin, old_blocked, old_virtual = self._carry_over(old, xy, self._origin(xy, goal))
+        obs_xy, valid = self._usable(position_m, obstacles_m)
+        key = origin.tobytes() + obs_xy.tobytes() + valid.tobytes()
+        if old is not None and old.occupancy is not None and old.occupancy[0] == key:
+            inflated, known = old.occupancy[1], old.occupancy[2]
+        else:
+            cells = self._grid.blocked_within(origin[None], obs_xy[None], valid[None], self._radii_m)
+            inflated, known = cells[0][0], cells[1][0]
+        # Nothing remembered: the points known now (a copy: dead ends are marked in the field's own cells).
+        blocked = inflated.copy() if old_blocked is None else inflated | (old_blocked & ~known) | old_virtual
+        memo = [] if old is None else list(old.memo)
+        dist, values = self._distances(xy, origin, blocked, goal, state, memo)
+        state.field[0] = NavField(
+            origin_m=origin,
+            blocked=blocked,
+            dist_m=dist,
+            virtual=np.zeros(self._grid.size, dtype=bool) if old_virtual is None else old_virtual,
+            memo=tuple(memo[-_MEMO:]),
+            occupancy=(key, inflated, known),
+        )
+        state.since_field[0] = 0
+        return values
+
+    def _usable(self, position_m: FloatArray, obstacles_m: FloatArray) -> tuple[FloatArray, BoolArray]:
+        """The points (M, 2) that make the grid, zero where not valid, and which are valid (M,): finite and, in
+        3D, within C of the agent's altitude (``EscapeMaps.refresh``). 2D and all finite: the points as given."""
+        if self._dim == 2 and np.isfinite(obstacles_m).all():
+            return obstacles_m, np.ones(obstacles_m.shape[0], dtype=bool)
+        valid = np.logical_and.reduce(np.isfinite(obstacles_m), axis=1)
+        if self._dim == 3:
+            valid &= np.abs(obstacles_m[:, 2] - position_m[2]) <= self._clearance_m
+        return np.where(valid[:, None], obstacles_m[:, :2], 0.0), valid
+
+    def _origin(self, xy_m: FloatArray, goal_m: FloatArray) -> FloatArray:
+        """``NavGrid.origins`` of one agent in Python floats: the same operations on each coordinate (the
+        distance is the batch path's einsum on the same layout)."""
+        delta = goal_m - xy_m
+        dist = float(np.sqrt(np.einsum("bd,bd->b", delta[None], delta[None]))[0])
+        side, h = self._side_m, self._h
+        reach = min(dist / 2.0, self._half_room_m)
+        out = []
+        for x, d in zip(xy_m.tolist(), delta.tolist(), strict=True):
+            unit = d / dist if dist > 0.0 else 0.0
+            out.append(math.floor((x + unit * reach - side / 2.0) / h) * h)
+        return np.array(out)
+
+    def _carry_over(
+        self, old: NavField | None, xy_m: FloatArray, origin_m: FloatArray
+    ) -> tuple[FloatArray, BoolArray | None, BoolArray | None]:
+        """``navescape._carry_over`` of one agent: the grid's corner (the old one where the agent is well inside
+        it) and the remembered blocked and virtual cells in that grid (None: no old field)."""
+        if old is None:
+            return origin_m, None, None
+        pad, far = self._pad_m, self._side_m - self._pad_m
+        if all(pad <= x - o <= far for x, o in zip(xy_m.tolist(), old.origin_m.tolist(), strict=True)):
+            return old.origin_m.copy(), old.blocked.copy(), old.virtual.copy()  # well inside: keep the frame
+        return (
+            origin_m,
+            self._grid.shift_blocked(old.blocked, old.origin_m, origin_m),
+            self._grid.shift_blocked(old.virtual, old.origin_m, origin_m),
+        )
+
+    def _distances(
+        self,
+        xy_m: FloatArray,
+        origin_m: FloatArray,
+        blocked: BoolArray,
+        goal_m: FloatArray,
+        state: NavState,
+        memo: list[tuple[bytes, FloatArray]],
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """``EscapeMaps._distances`` of one agent: the field, and its values at the points and the agent (None
+        where the field was recomputed with the edge open)."""
+        if self._seen2 <= 0.0:
+            return self._recall(memo, origin_m, blocked, goal_m), None
+        closed = self._close_seen_edges(blocked, origin_m, state)
+        dist = self._recall(memo, origin_m, closed, goal_m)
+        values = self._sampled(origin_m, dist, xy_m + self._around_xy)
+        if np.isfinite(values).any():
+            return dist, values
+        return self._recall(memo, origin_m, blocked, goal_m), None
+
+    def _close_seen_edges(self, blocked: BoolArray, origin_m: FloatArray, state: NavState) -> BoolArray:
+        """``navescape._close_seen_edges`` of one agent. The edge cells to close depend only on the grid's corner
+        and the trail, which change every few steps: the last answer is kept with its exact input."""
+        key = origin_m.tobytes() + state.trail_m[0].tobytes()
+        if key != self._seen_key:
+            trail = state.trail_m[0]
+            trail = trail[np.isfinite(trail[:, 0])]
+            cells = self._edge_cells[:0]
+            if trail.shape[0]:
+                edge = origin_m + self._edge_centres
+                delta = edge[:, None, :] - trail[None, :, :]
+                near = np.logical_or.reduce(np.einsum("ekd,ekd->ek", delta, delta) < self._seen2, axis=1)
+                cells = self._edge_cells[near]
+            self._seen_key, self._seen_cells = key, cells
+        if self._seen_cells.size == 0:
+            return blocked
+        closed = blocked.copy()
+        closed[self._seen_cells] = True
+        return closed
+
+    def _recall(
+        self, memo: list[tuple[bytes, FloatArray]], origin_m: FloatArray, blocked: BoolArray, goal_m: FloatArray
+    ) -> FloatArray:
+        """``navescape._recall`` of one agent: the field from the memo when it holds the same input, else new
+        (appended to the memo)."""
+        key = origin_m.tobytes() + goal_m.tobytes() + np.packbits(blocked).tobytes()
+        for k, d in memo:
+            if k == key:
+                return d
+        dist: FloatArray = self._grid.distances(origin_m[None], blocked[None], goal_m[None])[0]
+        memo.append((key, dist))
+        return dist
+
+
+class FieldSampler:
+    """``NavGrid.sample_many`` of one field (grid of ``n`` x ``n`` cells of ``cell_m``), on 1-D arrays."""
+
+    def __init__(self, n: int, cell_m: float) -> None:
+        self._n = n
+        self._h = cell_m
+        self._corner_steps = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=np.intp)[:, None, :]
+        self._corner_flat = np.array([[0], [1], [n], [n + 1]], dtype=np.intp)  # the same four, as flat offsets
+
+    def __call__(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
+        """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner. Where
+        every corner lies in the grid, the clamping changes no index and every point is inside; where every corner
+        is also finite with a positive weight, the batch path's masks select nothing and its sums are these."""
+        n = self._n
+        rel = (points_xy_m - origin_m) / self._h - 0.5
+        low = np.floor(rel).astype(np.intp)
+        frac = rel - low
+        interior = low.min() >= 0 and low.max() <= n - 2
+        if interior:
+            val = dist_m[(low[:, 0] * n + low[:, 1]) + self._corner_flat]  # (4, P)
+        else:  # the corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1), each index clamped
+            ij = low + self._corner_steps  # (4, P, 2)
+            np.maximum(ij, 0, out=ij)
+            np.minimum(ij, n - 1, out=ij)
+            val = dist_m[ij[:, :, 0] * n + ij[:, :, 1]]
+        w = _weights(frac)
+        ok = np.isfinite(val) & (w > 0.0)
+        if interior and ok.all():
+            term = w * val
+            fast: FloatArray = (term[0] + term[1] + term[2] + term[3]) / (w[0] + w[1] + w[2] + w[3])
+            return fast
+        term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
+        weight = np.where(ok, w, 0.0)
+        num = term[0] + term[1] + term[2] + term[3]
+        den = weight[0] + weight[1] + weight[2] + weight[3]
+        use = den > 0.0
+        if not interior:
+            use &= np.logical_and.reduce((rel >= -0.5) & (rel <= n - 0.5), axis=1)
+        out: FloatArray = np.full(num.shape, np.inf)
+        np.divide(num, den, out=out, where=use)
+        return out
+
+
+def _weights(frac: FloatArray) -> FloatArray:
+    """(4, P) bilinear weights wi * wj of the corners (0, 0), (0, 1), (1, 0), (1, 1) from the fractions (P, 2)."""
+    pair = np.empty((2, *frac.shape))
+    np.subtract(1.0, frac, out=pair[0])  # (1 - f, f) per axis
+    pair[1] = frac
+    w: FloatArray = (pair[:, None, :, 0] * pair[None, :, :, 1]).reshape(4, -1)
+    return w
+
+
+class EscapeStep:
+    """The ESCAPE step of one agent: ``BapfNavPlanner._decide`` with ``_escape_scores`` for an escaping agent
+    (and one that enters ESCAPE now), the same decision and state updates.
+
+    Parameters
+    ----------
+    maps : the planner's escape maps; direct : its single-agent DIRECT step (geometry, choice, squeeze-out);
+    offsets_m : (K, D) bacteria offsets [m]; units : (K, D) the same as unit vectors.
+    """
+
+    def __init__(self, maps: EscapeMaps, direct: DirectStep, offsets_m: FloatArray, units: FloatArray) -> None:
+        self._field = FieldOne(maps)
+        self._direct = direct
+        self._offsets = offsets_m
+        self._units = units
+
+    def __call__(
+        self,
+        position_m: FloatArray,
+        target_m: FloatArray,
+        obstacles_m: FloatArray,
+        rel_m: FloatArray,
+        d2_m2: FloatArray,
+        state: NavState,
+        trapped: tuple[BoolArray, FloatArray, FloatArray, float] | None = None,
+    ) -> Decision:
+        """The step; ``rel_m`` and ``d2_m2`` as ``navone.DirectStep`` takes them; ``trapped``: the geometry of a
+        DIRECT step that found no passing point (None: computed here). Position and target finite."""
+        geometry = self._direct.plain_geometry(rel_m, d2_m2) if trapped is None else trapped
+        feasible, seg2, clear_k, clear_0 = geometry
+        g_k, g0, ok = self._field.potentials(
+            position_m, target_m, obstacles_m, d2_m2, state, feasible, clear_k, clear_0
+        )
+        if not ok.any():  # any feasible point down the potential (the clearance term may hold the agent)
+            ok = feasible & (g_k < g0)
+        cost = g_k + clear_k
+        cost0 = g0 + clear_0 if ok.any() else _INF
+        any_feasible = bool(feasible.any())
+        # Every feasible point off the map's free cells: back out from inside the inflated obstacles, else give up.
+        gave_up = False
+        if any_feasible and not np.isfinite(g_k[feasible]).any():
+            if math.isfinite(g0):
+                gave_up = True
+                state.mode[0] = _GAVE_UP
+            else:
+                ok, cost, cost0 = feasible, clear_k, _INF
+        scores = np.where(ok, cost, _INF)
+        n_passing = int(np.count_nonzero(ok))
+        if gave_up:
+            chosen = -1
+        elif not any_feasible:
+            chosen = self._direct.squeeze_out(seg2)
+        elif n_passing > 0:
+            chosen = self._direct.choose(scores, cost, cost0, ok, state.prev_dir)
+        else:
+            chosen = -1
+        n_safe = int(np.count_nonzero(feasible))
+        age_field(state)
+        if chosen < 0:
+            reason = DecisionReason.GAVE_UP if gave_up else DecisionReason.LOCAL_MINIMUM
+            return Decision(next_point_m=None, reason=reason, n_passing=n_passing, n_safe=n_safe, candidate_cost=scores)
+        state.prev_dir[0] = self._units[chosen]
+        return Decision(
+            next_point_m=position_m + self._offsets[chosen],
+            reason=DecisionReason.GREEDY,
+            chosen_index=chosen,
+            n_passing=n_passing,
+            n_safe=n_safe,
+            candidate_cost=scores,
+        )

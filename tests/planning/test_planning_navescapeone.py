@@ -1,0 +1,237 @@
+"""bapf-nav's single-agent ESCAPE path (``navescapeone``: what ``step`` runs in ESCAPE mode and when it enters it)
+decides exactly as the batch path (``step_batch``): every field of every decision and every state field, the
+escape field's cells and distances included, bit for bit, along noisy flights through traps, gaps, thickets and
+a boxed goal (a growing memory: outdated fields, stall and dead-end refreshes, frame shifts), in
+2D and 3D and with the optional rules switched off."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+import pytest
+
+from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
+from apf_companion.planning.navstate import NavField
+
+_PARAMS = {
+    "defaults": PlannerParams(),
+    "no trail closure": PlannerParams(nav_seen_m=0.0),
+    "no sight, replan often": PlannerParams(nav_sight_m=0.0, nav_replan_steps=3),
+    "no clearance term": PlannerParams(nav_clearance_gain_m=0.0),
+}
+_STATE_FIELDS = (
+    "target_m",
+    "mode",
+    "hit_dist_m",
+    "best_dist_m",
+    "since_best",
+    "since_field",
+    "prev_dir",
+    "trail_m",
+    "trail_next",
+)
+
+
+def _assert_same(single: Decision, row: Decision) -> None:
+    assert single.reason is row.reason and single.chosen_index == row.chosen_index
+    assert (single.n_passing, single.n_safe, single.mu_o_k) == (row.n_passing, row.n_safe, row.mu_o_k)
+    if single.next_point_m is None:
+        assert row.next_point_m is None
+    else:
+        assert row.next_point_m is not None
+        assert single.next_point_m.tobytes() == row.next_point_m.tobytes()
+    assert single.candidate_cost is not None and row.candidate_cost is not None
+    assert single.candidate_cost.tobytes() == row.candidate_cost.tobytes()
+
+
+def _assert_same_state(single: NavState, batch: NavState) -> None:
+    for name in _STATE_FIELDS:
+        assert getattr(single, name).tobytes() == getattr(batch, name).tobytes(), name
+    a, b = single.field[0], batch.field[0]
+    assert (a is None) == (b is None)
+    if a is not None and b is not None:
+        for name in ("origin_m", "blocked", "dist_m", "virtual"):
+            assert getattr(a, name).tobytes() == getattr(b, name).tobytes(), name
+        assert [key for key, _ in a.memo] == [key for key, _ in b.memo]
+        assert a.occupancy is not None and b.occupancy is not None
+        assert a.occupancy[0] == b.occupancy[0]
+
+
+def _segment(a: tuple[float, float], b: tuple[float, float]) -> np.ndarray:
+    """Points every 0.2 m from a to b (a sampled surface)."""
+    n = max(2, int(np.hypot(b[0] - a[0], b[1] - a[1]) / 0.2) + 1)
+    return np.linspace(a, b, n)
+
+
+def _worlds() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(start, target, surface points) in 2D: a U open towards the agent, a wall with a gap, a box around the
+    goal (the way out of the map and back), and thickets of random points (the benchmark's scene: escapes out
+    of enclosures)."""
+    rng = np.random.default_rng(11)
+    u_trap = np.vstack([_segment((3.0, -2.5), (7.0, -2.5)), _segment((7.0, -2.5), (7.0, 2.5))])
+    u_trap = np.vstack([u_trap, _segment((7.0, 2.5), (3.0, 2.5))])
+    wall = np.vstack([_segment((5.0, -8.0), (5.0, -0.8)), _segment((5.0, 0.8), (5.0, 8.0))])
+    box = np.vstack(
+        [
+            _segment((8.0, -2.0), (12.0, -2.0)),
+            _segment((12.0, -2.0), (12.0, 2.0)),
+            _segment((12.0, 2.0), (8.0, 2.0)),
+            _segment((8.0, 2.0), (8.0, -2.0)),
+        ]
+    )
+    out = [
+        (np.zeros(2), np.array([12.0, 0.3]), u_trap),
+        (np.zeros(2), np.array([10.0, 3.0]), wall),
+        (np.zeros(2), np.array([10.0, 0.0]), box),
+    ]
+    for _ in range(3):
+        pos = rng.uniform(4.0, 20.0, 2)
+        direction = rng.normal(size=(300, 2))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        out.append((pos, np.full(2, 22.0), pos + np.maximum(8.0 * rng.random((300, 1)) ** 0.5, 0.5) * direction))
+    return out
+
+
+class _Counting:
+    """Counts the calls of the planner's single-agent escape step (the test must exercise it)."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner, self.calls = inner, 0
+
+    def __call__(self, *args: Any) -> Decision:
+        self.calls += 1
+        result: Decision = self.inner(*args)
+        return result
+
+
+def _fly(
+    params: PlannerParams, start: np.ndarray, target: np.ndarray, surface: np.ndarray, seed: int, junk: bool = False
+) -> dict[str, int]:
+    """Fly ``step`` and ``step_batch`` side by side (the batch one replays the single one's positions), with the
+    points seen so far within 8 m and position noise (``junk``: plus non-finite rows); returns counts of what
+    happened."""
+    single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
+    counting = _Counting(single._escape_one)
+    single._escape_one = counting  # type: ignore[assignment]
+    state = batch.initial_state(1)
+    rng = np.random.default_rng(seed)
+    dim = params.dim
+    if dim == 3:  # surfaces as walls from 0 to 4 m high: points at three heights
+        surface = np.vstack([np.hstack([surface, np.full((len(surface), 1), z)]) for z in (0.5, 1.5, 2.5)])
+        start, target = np.append(start, 1.5), np.append(target, 1.5)
+    seen = np.zeros(len(surface), dtype=bool)
+    pos = start
+    counts = {"escape steps": 0}
+    for _ in range(140):
+        seen |= np.linalg.norm(surface[:, :2] - pos[:2], axis=1) <= 8.0
+        obstacles = surface[seen]
+        if junk:  # rows a broken sensor might report: not finite, ignored by both paths
+            obstacles = np.vstack([obstacles, np.full((1, dim), np.nan), np.full((1, dim), np.inf)])
+        d = single.step(pos, target, obstacles)
+        row = batch.step_batch(
+            pos[None], target[None], obstacles[None], np.ones((1, len(obstacles)), bool), state=state
+        ).row(0)
+        _assert_same(d, row)
+        own = single.own_state
+        assert isinstance(own, NavState)
+        _assert_same_state(own, state)
+        counts["escape steps"] += int(state.mode[0] == NavMode.ESCAPE)
+        if d.next_point_m is None:
+            if state.mode[0] == NavMode.GAVE_UP:
+                break
+            pos = pos + rng.normal(0.0, 0.05, dim)
+        else:
+            pos = d.next_point_m + rng.normal(0.0, 0.05, dim)  # noise: sometimes inside the clearance
+    counts["single escape steps"] = counting.calls
+    return counts
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("which", sorted(_PARAMS))
+def test_escape_steps_equal_the_batch_rows_and_states(dim: int, which: str) -> None:
+    params = dataclasses.replace(_PARAMS[which], dim=dim)
+    totals: dict[str, int] = {}
+    for i, (start, target, surface) in enumerate(_worlds()):
+        for key, value in _fly(params, start, target, surface, seed=i).items():
+            totals[key] = totals.get(key, 0) + value
+    assert totals["single escape steps"] >= 100  # the path under test decided many steps
+    assert totals["escape steps"] >= 100
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_non_finite_points_are_ignored_as_on_the_batch_path(dim: int) -> None:
+    params = PlannerParams(dim=dim)
+    start, target, surface = _worlds()[0]
+    counts = _fly(params, start, target, surface, seed=0, junk=True)
+    assert counts["single escape steps"] >= 50
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_repeated_steps_in_thickets_equal_the_batch_path(dim: int) -> None:
+    """The benchmark's pattern: steps from one position in a thicket (the stall and dead-end refreshes, the
+    dead-end cells marked as virtual obstacles), the same decisions and states as the batch path."""
+    params = PlannerParams(dim=dim)
+    marked = 0
+    for seed in range(300, 330):
+        rng = np.random.default_rng(seed)
+        n = int(rng.choice([100, 300, 600]))
+        direction = rng.normal(size=(n, dim))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        obstacles = np.maximum(8.0 * rng.random((n, 1)) ** (1.0 / dim), 0.5) * direction
+        target = np.full(dim, 22.0)
+        single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
+        state = batch.initial_state(1)
+        for _ in range(3):
+            d = single.step(np.zeros(dim), target, obstacles)
+            mask = np.ones((1, n), bool)
+            _assert_same(
+                d, batch.step_batch(np.zeros((1, dim)), target[None], obstacles[None], mask, state=state).row(0)
+            )
+            own = single.own_state
+            assert isinstance(own, NavState)
+            _assert_same_state(own, state)
+        field = state.field[0]
+        marked += int(field is not None and bool(field.virtual.any()))
+    assert marked >= (1 if dim == 2 else 0)  # in 2D a dead end was marked on the single path (seed 312)
+
+
+def _enclosed_state(planner: BapfNavPlanner, position: np.ndarray, target: np.ndarray) -> NavState:
+    """An escaping agent whose remembered cells close every cell around its own (virtual dead ends), the goal in
+    its own cell: its potential is finite, every candidate point's infinite."""
+    planner.reset()
+    planner.step(position, target, np.zeros((0, position.size)))
+    state = planner.own_state
+    assert isinstance(state, NavState)
+    grid = planner._escape.grid
+    origin = grid.origins(position[None, :2], target[None, :2], planner._escape._pad_m)[0]
+    centres = origin + (np.stack(np.divmod(np.arange(grid.size), grid.n), axis=1) + 0.5) * grid.cell_m
+    near = np.linalg.norm(centres - position[:2], axis=1)
+    blocked = (near < 3.0) & (near > 0.5 * grid.cell_m)
+    dist = grid.distances(origin[None], blocked[None], target[None, :2])[0]
+    state.mode[0], state.hit_dist_m[0], state.since_field[0] = NavMode.ESCAPE, 0.0, 1
+    state.field[0] = NavField(origin_m=origin, blocked=blocked, dist_m=dist, virtual=blocked.copy())
+    return state
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_no_way_from_any_candidate_gives_up_as_the_batch_path(dim: int) -> None:
+    """Every feasible point off the free cells, the agent's own cell on the way: GAVE_UP (``lost``), the same
+    decision and state on both paths. Steps of 0.8 m: no candidate point in 2D samples the agent's own cell."""
+    params = PlannerParams(dim=dim, step_m=0.8)
+    single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
+    grid = single._escape.grid
+    position = np.full(dim, 10.0)
+    position[:2] = (np.floor(position[:2] / grid.cell_m) + 0.5) * grid.cell_m  # a cell centre
+    target = position + 0.01
+    _enclosed_state(single, position, target)
+    state = _enclosed_state(batch, position, target)
+    d = single.step(position, target, np.zeros((0, dim)))
+    row = batch.step_batch(position[None], target[None], np.zeros((1, 0, dim)), np.ones((1, 0), bool), state=state)
+    _assert_same(d, row.row(0))
+    own = single.own_state
+    assert isinstance(own, NavState)
+    _assert_same_state(own, state)
+    if dim == 2:  # (in 3D the points above and below the agent sample its own cell)
+        assert d.reason.name == "GAVE_UP" and own.mode[0] == NavMode.GAVE_UP
