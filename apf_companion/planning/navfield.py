@@ -34,6 +34,7 @@ BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 #: Dijkstra's search limit [m]: finite, so a way over an infinite (blocked) edge is never queued.
 _LIMIT_M = 1e300
+_all = np.logical_and.reduce
 
 
 class NavGrid:
@@ -135,8 +136,14 @@ class NavGrid:
         s = steps.size
         b, m = np.nonzero(valid)
         rel = (obstacles_xy_m[b, m] - origins_m[b]) / h  # (P, 2) in cells
-        ci = np.floor(rel[:, 0]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil rows
-        cj = np.floor(rel[:, 1]).astype(np.intp)[:, None] + steps[None, :]  # (P, S) stencil columns
+        base = np.floor(rel).astype(np.intp)
+        # Points whose whole stencil lies off the grid mark nothing: leave them out (the memory of a flight
+        # reaches far beyond the grid around the agent).
+        reach = _all((base >= -half) & (base < n + half), axis=1)
+        if not _all(reach, axis=None):
+            b, rel, base = b[reach], rel[reach], base[reach]
+        ci = base[:, 0:1] + steps[None, :]  # (P, S) stencil rows
+        cj = base[:, 1:2] + steps[None, :]  # (P, S) stencil columns
         ddx = (ci + 0.5 - rel[:, 0:1]) * h
         ddy = (cj + 0.5 - rel[:, 1:2]) * h
         # The stencil is separable: (P, S, S) squared distances from one row and one column term per point; rows

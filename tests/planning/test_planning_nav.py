@@ -210,8 +210,8 @@ def test_blocked_cells_are_those_within_the_radius_for_each_radius() -> None:
     grid = NavGrid(0.5, 12.0)
     rng = np.random.default_rng(5)
     origins = np.array([[0.0, 0.0], [-3.0, 2.0]])
-    obs = rng.uniform(-2.0, 14.0, size=(2, 60, 2))
-    valid = rng.random((2, 60)) < 0.8
+    obs = rng.uniform(-5.0, 17.0, size=(2, 90, 2))  # some far beyond the sides
+    valid = rng.random((2, 90)) < 0.8
     radii = (0.8, 1.3)
     centres = (np.stack(np.divmod(np.arange(grid.size), grid.n), axis=1) + 0.5) * grid.cell_m
     for radius, got in zip(radii, grid.blocked_within(origins, obs, valid, radii), strict=True):
