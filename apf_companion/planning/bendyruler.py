@@ -37,7 +37,7 @@ from typing import Self
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import segment_clearance_sq
+from apf_companion.planning.clearance import compact_rows, segment_clearance_sq
 from apf_companion.planning.decision import BatchDecision, DecisionReason
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
@@ -142,7 +142,7 @@ class BendyRulerPlanner(StatefulPlanner):
         """(A, K) first steps that keep radius + safety margin. Only obstacles within a step plus that floor can
         break it, so only those are swept (the same arithmetic per obstacle as over all of them)."""
         reach = self.params.step_m + self._floor_m + _SLACK_M
-        near, near_valid = _compact(rel, valid & (_sq_norm(rel) <= reach * reach))
+        near, near_valid = compact_rows(rel, valid & (_sq_norm(rel) <= reach * reach))
         step2 = segment_clearance_sq(near, near_valid, self.bacteria_offsets_m)
         return np.asarray(np.sqrt(step2) >= self._floor_m)
 
@@ -195,7 +195,7 @@ class BendyRulerPlanner(StatefulPlanner):
             close = np.zeros(valid.shape, dtype=bool)
             for s in range(k.shape[1]):
                 close |= _sq_norm(rel - ends[:, s, None, :]) <= reach * reach
-            rel, valid = _compact(rel, valid & close)
+            rel, valid = compact_rows(rel, valid & close)
         counts = valid.sum(axis=1)
         by_count = np.argsort(counts, kind="stable")
         out = np.empty(k.shape)
@@ -264,18 +264,23 @@ def _rulers_sq(
     r2_end = offsets[0] * offsets[0]
     for d in range(1, dim):
         r2_end += offsets[d] * offsets[d]
-    invalid = None if valid.all() else ~valid.T[:, :, None]
+    # Padding rows (rel = 0) start from |rel|^2 = inf, which every segment's inf - finite keeps: the squared norms
+    # are marked once instead of each segment's result.
+    if not valid.all():
+        invalid = ~valid.T[:, :, None]
+        np.copyto(r2_agent, np.inf, where=invalid)
+        np.copyto(r2_end, np.inf, where=invalid)
     return (
-        _segment_min_sq(axes, r2_agent, ruler1, invalid),
-        _segment_min_sq(offsets, r2_end, ruler2, invalid),
-        _segment_min_sq(offsets, r2_end, ruler1, invalid),
+        _segment_min_sq(axes, r2_agent, ruler1),
+        _segment_min_sq(offsets, r2_end, ruler2),
+        _segment_min_sq(offsets, r2_end, ruler1),
     )
 
 
-def _segment_min_sq(
-    rel: list[FloatArray], r2: FloatArray, vectors: FloatArray, invalid: BoolArray | None
-) -> FloatArray:
-    """min over obstacles of |rel - t v|^2, t = clip(rel.v / |v|^2, 0, 1) (0 for a zero-length v), (A, S)."""
+def _segment_min_sq(rel: list[FloatArray], r2: FloatArray, vectors: FloatArray) -> FloatArray:
+    """min over obstacles of |rel - t v|^2, t = clip(rel.v / |v|^2, 0, 1) (0 for a zero-length v), (A, S); the
+    clip at 0 after the minimum (monotone, so bit for bit the minimum of the clipped values; d2 is never NaN or
+    -0.0)."""
     dot = rel[0] * vectors[:, :, 0]
     for d in range(1, len(rel)):
         dot += rel[d] * vectors[:, :, d]
@@ -287,11 +292,9 @@ def _segment_min_sq(
     dot *= 2.0
     dot -= t * v2
     dot *= t
-    d2 = r2 - dot
-    np.maximum(d2, 0.0, out=d2)
-    if invalid is not None:
-        np.copyto(d2, np.inf, where=invalid)
-    return np.asarray(np.minimum.reduce(d2, axis=0, initial=np.inf), dtype=np.float64)
+    np.subtract(r2, dot, out=dot)
+    out = np.minimum.reduce(dot, axis=0, initial=np.inf)
+    return np.asarray(np.maximum(out, 0.0, out=out), dtype=np.float64)
 
 
 def _near(
@@ -311,26 +314,7 @@ def _near(
     within = d2 <= reach_m * reach_m  # non-finite obstacles compare False
     if mask is not None:
         within &= mask
-    return _compact(rel, within)
-
-
-def _compact(rel: FloatArray, keep: BoolArray) -> tuple[FloatArray, BoolArray]:
-    """The rows ``keep`` of (A, N, D) ``rel`` first, in index order, as (A, W, D) and their (A, W) mask; W = the
-    largest count (zero rows and False beyond each agent's count)."""
-    n_agents, _, dim = rel.shape
-    if n_agents == 1:  # one agent (the service's step): its rows by index
-        idx = np.flatnonzero(keep[0])
-        return rel[:, idx], np.ones((1, idx.size), dtype=bool)
-    rows, cols = np.nonzero(keep)  # row-major: each agent's rows in index order
-    counts = np.bincount(rows, minlength=n_agents)
-    width = int(counts.max()) if n_agents else 0
-    starts = np.cumsum(counts) - counts
-    slot = np.arange(rows.size) - starts[rows]
-    gathered = np.zeros((n_agents, width, dim))
-    valid = np.zeros((n_agents, width), dtype=bool)
-    gathered[rows, slot] = rel[rows, cols]
-    valid[rows, slot] = True
-    return gathered, valid
+    return compact_rows(rel, within)
 
 
 # 2D: the sums of two products written out are einsum's bit for bit (a sum of two terms has one rounding, in

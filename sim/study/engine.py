@@ -80,6 +80,9 @@ class BatchPlanner(Protocol):
     ) -> BatchDecision: ...
 
 
+NoiseFn = Callable[[npt.NDArray[np.intp], int], FloatArray]
+"""(trial ids of this iteration's movers, ascending; D) -> (movers, D) position noise [m]."""
+
 ClearanceFn = Callable[[FloatArray, FloatArray], FloatArray]
 """(A, D) segment starts, (A, D) ends -> (A,) smallest distance from each straight segment to the TRUE obstacle
 surfaces [m] (a point when start = end): world files, whose walls and cylinders the planners see only as surface
@@ -222,6 +225,7 @@ def simulate(
     record: bool = False,
     planner: BatchPlanner | None = None,
     clearance: ClearanceFn | None = None,
+    noise: NoiseFn | None = None,
 ) -> SimulationResult:
     """Run A trials of ``planner_name`` in lockstep on the given obstacle fields.
 
@@ -237,6 +241,8 @@ def simulate(
     clearance : the true geometry's clearance (world files): collisions are judged on it, swept along each move
         (a thin wall cannot be stepped through), instead of on the distance to the obstacle points at the start
         of each iteration, and it is the recorded clearance. Default: the points are the truth.
+    noise : the movers' position noise (``run_group``: each chunk's trials from that chunk's generator). Default:
+        N(0, noise_std_m^2) per axis from ``rng``, the movers in trial order.
 
     Returns
     -------
@@ -252,6 +258,8 @@ def simulate(
     act = _initial_active(config, planner, raw, exists)
     targets = np.broadcast_to(np.asarray(config.target_m, dtype=np.float64), (n_trials, dim))
     tracer = _Tracer(n_trials, dim, [], [], []) if record else None
+    if noise is None:
+        noise = _normal_noise(config, rng)
     for it in range(1, config.max_iterations + 1):
         if act.ids.size == 0:
             break
@@ -266,7 +274,7 @@ def simulate(
             if tracer is not None:
                 tracer.decisions(act.ids[sel], bd)
             _stop_rules(bd, sel, finished, stop_at_minimum=stop_at_minimum)
-            _move(config, act, out, bd, sel, finished, rng, clearance)
+            _move(act, out, bd, sel, finished, noise, clearance)
         act.retire(finished, out)
     act.retire(np.full(act.ids.size, Outcome.TIMEOUT, dtype=np.int8), out)
     trace = None if tracer is None else tracer.trace()
@@ -387,25 +395,32 @@ def _stop_rules(
     finished[sel[reason == DecisionReason.GAVE_UP]] = Outcome.STUCK
 
 
+def _normal_noise(config: StudyConfig, rng: np.random.Generator) -> NoiseFn:
+    """N(0, noise_std_m^2) per axis for every mover, in trial order, from one generator."""
+
+    def noise(ids: npt.NDArray[np.intp], dim: int) -> FloatArray:
+        return rng.normal(0.0, config.noise_std_m, size=(ids.size, dim))
+
+    return noise
+
+
 def _move(
-    config: StudyConfig,
     act: _Active,
     out: _Outputs,
     bd: BatchDecision,
     sel: npt.NDArray[np.intp],
     finished: npt.NDArray[np.int8],
-    rng: np.random.Generator,
+    noise: NoiseFn,
     clearance: ClearanceFn | None,
 ) -> None:
-    """Step 7: still-running trials with a next point move there plus N(0, noise_std_m^2) per axis."""
+    """Step 7: still-running trials with a next point move there plus the position noise."""
     next_pts = np.asarray(bd.next_points_m, dtype=np.float64)
     moves = ~np.isnan(next_pts[:, 0]) & (finished[sel] == _RUNNING)
     if not moves.any():
         return
     pos = act.pos
     movers = sel[moves]
-    noise = rng.normal(0.0, config.noise_std_m, size=(movers.size, pos.shape[1]))
-    new_pos = next_pts[moves] + noise
+    new_pos = next_pts[moves] + noise(act.ids[movers], pos.shape[1])
     if clearance is not None:
         out.swept[act.ids[movers]] = clearance(pos[movers], new_pos)
     out.path[act.ids[movers]] += np.sqrt(np.einsum("ad,ad->a", new_pos - pos[movers], new_pos - pos[movers]))
@@ -474,22 +489,107 @@ def run_chunk(task: ChunkTask) -> ChunkResult:
     worlds = draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim, cfg.obstacle_sampling)
     result = simulate(cfg, task.planner_name, worlds, motion_rng)
     wall_s = time.perf_counter() - t0
-    rec = result.records
-    # Lockstep trials share every array operation: split the chunk's wall time in proportion to the iterations
-    # each trial ran (the chunk mean is wall time / trials either way).
+    return ChunkResult(task=task, records=_timed(result.records, wall_s), wall_s=wall_s)
+
+
+def _timed(rec: TrialRecords, wall_s: float) -> TrialRecords:
+    """``rec`` with ``time_ms``: lockstep trials share every array operation, so the wall time of their run is
+    split in proportion to the iterations each trial ran (the mean is wall time / trials either way)."""
     weights = rec.iterations / max(int(rec.iterations.sum()), 1)
-    per_trial_ms = 1e3 * wall_s * weights
-    records = TrialRecords(
+    return TrialRecords(
         outcome=rec.outcome,
         iterations=rec.iterations,
         safety_m=rec.safety_m,
         n_obstacles=rec.n_obstacles,
         n_detected=rec.n_detected,
-        time_ms=per_trial_ms,
+        time_ms=1e3 * wall_s * weights,
         path_m=rec.path_m,
         clearance_m=rec.clearance_m,
     )
-    return ChunkResult(task=task, records=records, wall_s=wall_s)
+
+
+FUSED_PLANNERS = frozenset({PlannerName.BENDYRULER})
+"""Planners whose chunks of one cell run as one lockstep batch (``ChunkGroup``). bendyruler's study has a long tail:
+at 70-95 obstacles about 750 of a chunk's 900 iterations step the 10-50 trials that cycle until they time out,
+each iteration a fixed numpy cost, which eight chunks together pay once. Only stateful planners qualify (they get
+no generator, so each chunk's noise stream is the only draw) whose rows decide independently of each other."""
+
+FUSED_CHUNKS = 8
+"""Chunks per ``ChunkGroup`` at most (a whole default cell of 4000 trials)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ChunkGroup:
+    """Consecutive chunks of one (config, planner, density, seed) run together by ``run_group``; each chunk's
+    result equals ``run_chunk``'s (its own worlds and noise stream, rows that decide independently), only the
+    timing is shared."""
+
+    tasks: tuple[ChunkTask, ...]
+
+    @property
+    def n_trials(self) -> int:
+        return sum(t.n_trials for t in self.tasks)
+
+
+def group_tasks(tasks: Sequence[ChunkTask]) -> list[ChunkGroup]:
+    """``tasks`` in order, runs of up to ``FUSED_CHUNKS`` chunks of one cell of a ``FUSED_PLANNERS`` planner as one
+    group, every other chunk alone."""
+    groups: list[list[ChunkTask]] = []
+    for t in tasks:
+        last = groups[-1][-1] if groups else None
+        joins = (
+            last is not None
+            and t.planner_name in FUSED_PLANNERS
+            and len(groups[-1]) < FUSED_CHUNKS
+            and (t.config, t.planner_name, t.density, t.seed)
+            == (last.config, last.planner_name, last.density, last.seed)
+        )
+        if joins:
+            groups[-1].append(t)
+        else:
+            groups.append([t])
+    return [ChunkGroup(tuple(g)) for g in groups]
+
+
+def run_group(group: ChunkGroup) -> list[ChunkResult]:
+    """Run a ``ChunkGroup``'s chunks in one lockstep batch (top-level so process pools can pickle it)."""
+    tasks = group.tasks
+    if len(tasks) == 1:
+        return [run_chunk(tasks[0])]
+    t0 = time.perf_counter()
+    cfg, name = tasks[0].config, tasks[0].planner_name
+    worlds, rngs = [], []
+    for t in tasks:
+        world_rng, motion_rng = chunk_generators(t.seed, t.density, t.chunk_index)
+        worlds.append(draw_worlds(world_rng, t.n_trials, t.density, cfg.obstacle_box_m, cfg.dim, cfg.obstacle_sampling))
+        rngs.append(motion_rng)
+    batch = WorldBatch(
+        obstacles_m=np.concatenate([w.obstacles_m for w in worlds]), mask=np.concatenate([w.mask for w in worlds])
+    )
+    starts = np.cumsum([0] + [t.n_trials for t in tasks])
+    result = simulate(cfg, name, batch, rngs[0], noise=_chunk_noise(cfg, rngs, starts))
+    rec = _timed(result.records, time.perf_counter() - t0)
+    out = []
+    for i, t in enumerate(tasks):
+        part = rec.rows(int(starts[i]), int(starts[i + 1]))
+        out.append(ChunkResult(task=t, records=part, wall_s=1e-3 * float(part.time_ms.sum())))
+    return out
+
+
+def _chunk_noise(config: StudyConfig, rngs: Sequence[np.random.Generator], starts: npt.NDArray[np.intp]) -> NoiseFn:
+    """Chunk c's movers (trial ids [starts[c], starts[c + 1])) draw from chunk c's generator, in trial order: the
+    same draws as the chunk alone, whose movers they are."""
+
+    def noise(ids: npt.NDArray[np.intp], dim: int) -> FloatArray:
+        out = np.empty((ids.size, dim))
+        cuts = np.searchsorted(ids, starts)
+        for c, rng in enumerate(rngs):
+            lo, hi = int(cuts[c]), int(cuts[c + 1])
+            if hi > lo:  # alone, a chunk without movers draws nothing
+                out[lo:hi] = rng.normal(0.0, config.noise_std_m, size=(hi - lo, dim))
+        return out
+
+    return noise
 
 
 def make_tasks(
@@ -578,11 +678,26 @@ def run_tasks(
     workers: int | None = None,
     progress: ProgressFn | None = None,
 ) -> list[ChunkResult]:
-    """Run chunks on ``executor`` (default: ``default_executor(workers)``, shut down afterwards).
+    """Run chunks on ``executor`` (default: ``default_executor(workers)``, shut down afterwards), those of
+    ``FUSED_PLANNERS`` in groups (``group_tasks``).
 
     Results come back in task order, whatever order the workers finish in.
     """
-    return map_tasks(run_chunk, tasks, executor, workers=workers, progress=progress)
+    groups = group_tasks(tasks)
+    results = map_tasks(run_group, groups, executor, workers=workers, progress=progress, cost=group_cost)
+    return [r for rs in results for r in rs]
+
+
+_COST_PER_TRIAL: dict[str, float] = {PlannerName.BAPF_NAV: 10.0, PlannerName.BENDYRULER: 6.0}
+"""Relative CPU time per trial and obstacle (the paper's planners 1), from the default study on this project's
+2-core machine (per 1000 trials summed over the three densities: bapf-nav 9.8 s, bendyruler 6.7 s, the paper's
+0.5-1.1 s). Only the order of the chunks depends on it, never a result."""
+
+
+def group_cost(group: ChunkGroup) -> float:
+    """The expected CPU time of a group (relative): trials x most obstacles x the planner's cost per trial."""
+    t = group.tasks[0]
+    return group.n_trials * t.density.n_high * _COST_PER_TRIAL.get(t.planner_name, 1.0)
 
 
 _R = TypeVar("_R")
@@ -605,11 +720,14 @@ def map_tasks(
     *,
     workers: int | None = None,
     progress: ProgressFn | None = None,
+    cost: Callable[[_TaskT], float] | None = None,
 ) -> list[_R]:
     """``[fn(t) for t in tasks]`` on ``executor`` (any ``concurrent.futures.Executor``: the process pool, Dask's
     ``Client.get_executor()``); ``fn`` must be a module-level function so process pools can pickle it.
 
-    Results come back in task order, whatever order the workers finish in.
+    The tasks are submitted in decreasing ``cost`` (default: their trials), so the last ones to start are the
+    cheapest and the workers finish close together. Results come back in task order, whatever order the workers
+    finish in.
     """
     own = executor is None
     ex = default_executor(workers) if executor is None else executor
@@ -617,8 +735,9 @@ def map_tasks(
     done = 0
     results: dict[int, _R] = {}
     try:
-        # Largest chunks first keeps both workers busy until the end.
-        order = sorted(range(len(tasks)), key=lambda i: -tasks[i].n_trials)
+        # Largest first keeps both workers busy until the end.
+        key = cost if cost is not None else (lambda t: float(t.n_trials))
+        order = sorted(range(len(tasks)), key=lambda i: -key(tasks[i]))
         with _single_thread_blas_env():
             futures = {ex.submit(fn, tasks[i]): i for i in order}
         pending = set(futures)

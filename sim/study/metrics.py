@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -59,6 +60,14 @@ class TrialRecords:
 
     def __len__(self) -> int:
         return int(self.outcome.shape[0])
+
+    def rows(self, lo: int, hi: int) -> TrialRecords:
+        """Trials [lo, hi) (views)."""
+
+        def cut(a: npt.NDArray[Any] | None) -> Any:
+            return None if a is None else a[lo:hi]
+
+        return TrialRecords(**{f.name: cut(getattr(self, f.name)) for f in fields(self)})
 
     @staticmethod
     def concat(parts: list[TrialRecords]) -> TrialRecords:

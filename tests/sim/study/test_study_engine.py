@@ -13,7 +13,19 @@ import pytest
 
 from apf_companion.planning import PLANNER_NAMES, BatchDecision, get_planner
 from sim.study.config import Density, DetectionRule, StudyConfig
-from sim.study.engine import ChunkTask, SerialExecutor, chunk_worlds, run_study, simulate
+from sim.study.engine import (
+    FUSED_CHUNKS,
+    ChunkGroup,
+    ChunkTask,
+    SerialExecutor,
+    chunk_worlds,
+    group_tasks,
+    make_tasks,
+    run_chunk,
+    run_group,
+    run_study,
+    simulate,
+)
 from sim.study.engine import chunk_generators as engine_chunk_generators
 from sim.study.metrics import Outcome, summarize
 from sim.study.worlds import WorldBatch, draw_worlds
@@ -168,6 +180,57 @@ def test_same_seed_same_results_with_one_and_two_workers() -> None:
         assert np.array_equal(x.records.safety_m, y.records.safety_m, equal_nan=True)
     other = run_study(cfg, planners, densities, 45, seed=8, executor=SerialExecutor())
     assert not np.array_equal(one[1].records.iterations, other[1].records.iterations)
+
+
+def test_a_group_of_bendyruler_chunks_equals_the_chunks_alone() -> None:
+    # Each chunk keeps its own worlds and noise stream inside the lockstep group, so its records are the same to
+    # the last bit (only the timing is shared); 70-95 obstacles, where some trials time out.
+    cfg = dataclasses.replace(StudyConfig.reference(), chunk_trials=20, max_iterations=200)
+    tasks = make_tasks(cfg, ("bendyruler",), (Density(n_low=70, n_high=95),), 60, seed=3)
+    alone = [run_chunk(t) for t in tasks]
+    together = run_group(ChunkGroup(tuple(tasks)))
+    assert [r.task for r in together] == tasks
+    for x, y in zip(alone, together, strict=True):
+        for field in ("outcome", "iterations", "safety_m", "n_obstacles", "n_detected", "path_m", "clearance_m"):
+            a, b = getattr(x.records, field), getattr(y.records, field)
+            assert a.tobytes() == b.tobytes(), field
+    assert len({r.records.safety_m.tobytes() for r in alone}) == 3  # three different chunks
+    assert sum(r.wall_s for r in together) > 0.0
+
+
+def test_only_bendyruler_chunks_of_one_cell_are_grouped() -> None:
+    cfg = dataclasses.replace(StudyConfig.reference(), chunk_trials=10)
+    densities = (Density(n_low=20, n_high=45), Density(n_low=45, n_high=70))
+    tasks = make_tasks(cfg, ("bapf", "bendyruler"), densities, 10 * (FUSED_CHUNKS + 2), seed=0)
+    sizes = [(g.tasks[0].planner_name, g.tasks[0].density.n_low, len(g.tasks)) for g in group_tasks(tasks)]
+    n = FUSED_CHUNKS + 2
+    bapf = [("bapf", 20, 1)] * n + [("bapf", 45, 1)] * n
+    bendy = [("bendyruler", 20, FUSED_CHUNKS), ("bendyruler", 20, 2), ("bendyruler", 45, FUSED_CHUNKS)]
+    assert sizes == [*bapf, *bendy, ("bendyruler", 45, 2)]
+    assert [t for g in group_tasks(tasks) for t in g.tasks] == tasks
+
+
+class _RecordingExecutor(SerialExecutor):
+    def __init__(self) -> None:
+        self.submitted: list[ChunkGroup] = []
+
+    def submit(self, fn, /, *args, **kwargs):  # type: ignore[no-untyped-def]
+        self.submitted.append(args[0])
+        return super().submit(fn, *args, **kwargs)
+
+
+def test_the_costliest_chunks_start_first() -> None:
+    cfg = dataclasses.replace(StudyConfig.reference(), chunk_trials=5, max_iterations=3)
+    densities = (Density(n_low=20, n_high=45), Density(n_low=70, n_high=95))
+    ex = _RecordingExecutor()
+    cells = run_study(cfg, ("capf", "bapf-nav", "bendyruler"), densities, 10, seed=0, executor=ex)
+    first = [(g.tasks[0].planner_name, g.tasks[0].density.n_low, len(g.tasks)) for g in ex.submitted]
+    assert first[:3] == [("bendyruler", 70, 2), ("bapf-nav", 70, 1), ("bapf-nav", 70, 1)]
+    assert first[-2:] == [("capf", 20, 1), ("capf", 20, 1)]
+    # The results still come back in task order: planners outer, densities inner.
+    assert [(c.planner_name, c.density.n_low) for c in cells] == [
+        (p, d.n_low) for p in ("capf", "bapf-nav", "bendyruler") for d in densities
+    ]
 
 
 def test_safety_matches_recomputation_from_the_visited_positions() -> None:
