@@ -50,6 +50,12 @@ class EscapeMaps:
         self.clearance_m = clearance_m
         self._offsets = offsets_m
         self._pad_m = 2.0 * params.step_m + clearance_m + 1.0
+        #: A refresh keeps the old grid while the agent is this far inside every side. Farther than the edge cells
+        #: that its trail closes as seen (``nav_seen_m``): otherwise an agent that walks towards a side closes that
+        #: side's exits before the grid moves on, and what it saw beyond the side (a gap just outside the grid)
+        #: never enters a field. Seen in `apf-sim fly --world wall-gap`: the agent paced the wall between two
+        #: closed sides for 120 s, 1.5 m short of the gap.
+        self._keep_m = max(self._pad_m, params.nav_seen_m + 1.0)
         #: Around a point known now, remembered obstacle cells give way to the points' own inflation: C plus a
         #: cell's diagonal (a point that moved by range noise re-inflates the cells it blocked before).
         self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
@@ -263,7 +269,7 @@ class EscapeMaps:
         xy = positions_m[rows, :2]
         goals = targets_m[rows, :2]
         origins = grid.origins(xy, goals, self._pad_m)
-        old_blocked, old_virtual = _carry_over(grid, [state.field[r] for r in rows], xy, origins, self._pad_m)
+        old_blocked, old_virtual = _carry_over(grid, [state.field[r] for r in rows], xy, origins, self._keep_m)
         obs = obstacles_m[rows]
         valid: BoolArray = np.asarray(np.isfinite(obs).all(axis=2))
         if obstacle_mask is not None:

@@ -60,6 +60,7 @@ class FieldOne:
         self._slack_m = 2.0 * maps.clearance_m + maps.grid.cell_m
         self._radii_m = (maps.clearance_m, maps._reach_m)
         self._pad_m = maps._pad_m
+        self._keep_m = maps._keep_m
         self._half_room_m = max(self._side_m / 2.0 - max(self._pad_m, self._side_m / 3.0), 0.0)
         offsets = maps._offsets
         # The candidate points and the agent (a zero offset), as ``EscapeMaps.geodesic`` stacks them.
@@ -241,7 +242,7 @@ class FieldOne:
         it) and the remembered blocked and virtual cells in that grid (None: no old field)."""
         if old is None:
             return origin_m, None, None
-        pad, far = self._pad_m, self._side_m - self._pad_m
+        pad, far = self._keep_m, self._side_m - self._keep_m
         if all(pad <= x - o <= far for x, o in zip(xy_m.tolist(), old.origin_m.tolist(), strict=True)):
             return old.origin_m.copy(), old.blocked.copy(), old.virtual.copy()  # well inside: keep the frame
         return (

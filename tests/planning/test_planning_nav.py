@@ -411,6 +411,28 @@ def test_a_refresh_from_an_unchanged_map_reuses_its_cells_and_field_and_a_change
     assert keys[-1] not in [key for key, _ in first.memo]
 
 
+def test_the_grid_moves_before_the_trail_closes_the_side_the_agent_walks_to() -> None:
+    """A refresh keeps the old grid only while the agent is ``nav_seen_m`` + 1 m inside every side. Within
+    ``nav_seen_m`` of a side the trail closes that side's edge cells as seen, so a grid kept longer would show
+    no way on past that side, even when the sensor saw one just beyond it (`apf-sim fly --world wall-gap` paced
+    the wall 1.5 m short of its gap)."""
+    params = PlannerParams()
+    maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    side = maps.grid.n * maps.grid.cell_m
+    goal, rows, wall = np.array([[30.0, 0.0]]), np.array([0]), np.empty((1, 0, 2))
+    state = NavState.empty(1, 2)
+    maps.refresh(rows, np.array([[0.0, 0.0]]), goal, wall, None, state)
+    corner = state.field[0].origin_m.copy()
+    inside = params.nav_seen_m + 1.0
+    for east_gap_m, kept in ((side / 2.0, True), (inside + 0.1, True), (inside - 0.5, False)):
+        agent = corner + np.array([side / 2.0, side - east_gap_m])  # east_gap_m from the east side
+        maps.refresh(rows, agent[None], goal, wall, None, state)
+        assert np.array_equal(state.field[0].origin_m, corner) is kept, east_gap_m
+        if not kept:  # re-centred: the agent now has more than nav_seen_m + 1 m ahead of it to the east
+            assert state.field[0].origin_m[1] + side - agent[1] > inside
+        state.field[0] = dataclasses.replace(state.field[0], origin_m=corner.copy())
+
+
 def test_marking_dead_ends_reports_only_rows_that_gained_a_blocked_cell() -> None:
     """``mark_dead_ends`` says which rows' maps changed: the dead-end rule skips the refresh of the others (it would
     give the same field again)."""
