@@ -14,6 +14,7 @@ import pytest
 
 from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
 from apf_companion.planning.navstate import NavField
+from tests.planning.same_decision import assert_same_decision
 
 _PARAMS = {
     "defaults": PlannerParams(),
@@ -32,18 +33,6 @@ _STATE_FIELDS = (
     "trail_m",
     "trail_next",
 )
-
-
-def _assert_same(single: Decision, row: Decision) -> None:
-    assert single.reason is row.reason and single.chosen_index == row.chosen_index
-    assert (single.n_passing, single.n_safe, single.mu_o_k) == (row.n_passing, row.n_safe, row.mu_o_k)
-    if single.next_point_m is None:
-        assert row.next_point_m is None
-    else:
-        assert row.next_point_m is not None
-        assert single.next_point_m.tobytes() == row.next_point_m.tobytes()
-    assert single.candidate_cost is not None and row.candidate_cost is not None
-    assert single.candidate_cost.tobytes() == row.candidate_cost.tobytes()
 
 
 def _assert_same_state(single: NavState, batch: NavState) -> None:
@@ -133,7 +122,7 @@ def _fly(
         row = batch.step_batch(
             pos[None], target[None], obstacles[None], np.ones((1, len(obstacles)), bool), state=state
         ).row(0)
-        _assert_same(d, row)
+        assert_same_decision(d, row)
         own = single.own_state
         assert isinstance(own, NavState)
         _assert_same_state(own, state)
@@ -186,7 +175,7 @@ def test_repeated_steps_in_thickets_equal_the_batch_path(dim: int) -> None:
         for _ in range(3):
             d = single.step(np.zeros(dim), target, obstacles)
             mask = np.ones((1, n), bool)
-            _assert_same(
+            assert_same_decision(
                 d, batch.step_batch(np.zeros((1, dim)), target[None], obstacles[None], mask, state=state).row(0)
             )
             own = single.own_state
@@ -229,7 +218,7 @@ def test_no_way_from_any_candidate_gives_up_as_the_batch_path(dim: int) -> None:
     state = _enclosed_state(batch, position, target)
     d = single.step(position, target, np.zeros((0, dim)))
     row = batch.step_batch(position[None], target[None], np.zeros((1, 0, dim)), np.ones((1, 0), bool), state=state)
-    _assert_same(d, row.row(0))
+    assert_same_decision(d, row.row(0))
     own = single.own_state
     assert isinstance(own, NavState)
     _assert_same_state(own, state)

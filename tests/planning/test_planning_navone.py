@@ -11,24 +11,13 @@ import pytest
 
 from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
 from apf_companion.planning.navone import DirectStep
+from tests.planning.same_decision import assert_same_decision
 
 _PARAMS = {
     "defaults": PlannerParams(),
     "no look-ahead": PlannerParams(nav_lookahead_m=0.0),
     "no clearance term": PlannerParams(nav_clearance_gain_m=0.0),
 }
-
-
-def _assert_same(single: Decision, row: Decision) -> None:
-    assert single.reason is row.reason and single.chosen_index == row.chosen_index
-    assert (single.n_passing, single.n_safe, single.mu_o_k) == (row.n_passing, row.n_safe, row.mu_o_k)
-    if single.next_point_m is None:
-        assert row.next_point_m is None
-    else:
-        assert row.next_point_m is not None
-        assert single.next_point_m.tobytes() == row.next_point_m.tobytes()
-    assert single.candidate_cost is not None and row.candidate_cost is not None
-    assert single.candidate_cost.tobytes() == row.candidate_cost.tobytes()
 
 
 def _direct(
@@ -82,7 +71,7 @@ def test_step_equals_the_batch_row_in_every_field(dim: int, which: str) -> None:
             row = batch.step_batch(
                 pos[None], target[None], obstacles[None], np.ones((1, len(obstacles)), bool), state=state
             ).row(0)
-            _assert_same(d, row)
+            assert_same_decision(d, row)
             if d.next_point_m is None:
                 break
             pos = d.next_point_m
