@@ -260,25 +260,45 @@ def simulate(
     tracer = _Tracer(n_trials, dim, [], [], []) if record else None
     if noise is None:
         noise = _normal_noise(config, rng)
+    loop = _Loop(config, planner, planner_name == "capf", stop_at_minimum, targets, rng, noise, clearance, tracer)
     for it in range(1, config.max_iterations + 1):
         if act.ids.size == 0:
             break
-        out.iterations[act.ids] = it  # 1. count
-        if tracer is not None:
-            tracer.frame(act.ids, act.pos)
-        finished, in_range = _sense(config, act, out, clearance, is_capf=planner_name == "capf")  # 2.-5.
-        planning = finished == _RUNNING
-        if planning.any():  # 6.-7.
-            sel = np.flatnonzero(planning)
-            bd = _plan(config, planner, act, sel, targets, in_range, rng)
-            if tracer is not None:
-                tracer.decisions(act.ids[sel], bd)
-            _stop_rules(bd, sel, finished, stop_at_minimum=stop_at_minimum)
-            _move(act, out, bd, sel, finished, noise, clearance)
-        act.retire(finished, out)
+        loop.iteration(it, act, out)
     act.retire(np.full(act.ids.size, Outcome.TIMEOUT, dtype=np.int8), out)
     trace = None if tracer is None else tracer.trace()
     return SimulationResult(records=_records(out, exists, clearance), trace=trace, detected=out.detected)
+
+
+@dataclass(frozen=True, slots=True)
+class _Loop:
+    """What one lockstep iteration of ``simulate`` needs besides the active set and the outputs."""
+
+    config: StudyConfig
+    planner: BatchPlanner
+    is_capf: bool
+    stop_at_minimum: bool
+    targets: FloatArray
+    rng: np.random.Generator
+    noise: NoiseFn
+    clearance: ClearanceFn | None
+    tracer: _Tracer | None
+
+    def iteration(self, it: int, act: _Active, out: _Outputs) -> None:
+        """Steps 1-7 of the study's loop for the active trials (the module docstring's numbering)."""
+        out.iterations[act.ids] = it  # 1. count
+        if self.tracer is not None:
+            self.tracer.frame(act.ids, act.pos)
+        finished, in_range = _sense(self.config, act, out, self.clearance, is_capf=self.is_capf)  # 2.-5.
+        planning = finished == _RUNNING
+        if planning.any():  # 6.-7.
+            sel = np.flatnonzero(planning)
+            bd = _plan(self.config, self.planner, act, sel, self.targets, in_range, self.rng)
+            if self.tracer is not None:
+                self.tracer.decisions(act.ids[sel], bd)
+            _stop_rules(bd, sel, finished, stop_at_minimum=self.stop_at_minimum)
+            _move(act, out, bd, sel, finished, self.noise, self.clearance)
+        act.retire(finished, out)
 
 
 def _records(out: _Outputs, exists: BoolArray, clearance: ClearanceFn | None) -> TrialRecords:
