@@ -353,15 +353,31 @@ def _close_seen_edges(
     """``blocked`` plus the edge cells within ``seen_m`` of each agent's trail (``EscapeMaps._distances``)."""
     closed = blocked.copy()
     for i, r in enumerate(rows):
-        trail = state.trail_m[r]
-        trail = trail[np.isfinite(trail[:, 0])]
-        if trail.shape[0] == 0:
-            continue
-        edge = origins[i] + edge_centres
-        delta = edge[:, None, :] - trail[None, :, :]
-        near = (np.einsum("ekd,ekd->ek", delta, delta) < seen_m * seen_m).any(axis=1)
-        closed[i, edge_cells[near]] = True
+        closed[i, seen_edge_cells(origins[i], state.trail_m[r], edge_cells, edge_centres, seen_m * seen_m)] = True
     return closed
+
+
+def seen_edge_cells(
+    origin_m: FloatArray, trail_m: FloatArray, edge_cells: IntArray, edge_centres: FloatArray, seen2_m2: float
+) -> IntArray:
+    """The edge cells of one grid (corner ``origin_m``) within sqrt(``seen2_m2``) of the trail (T, 2; NaN rows
+    unused). Shared by the batch and the single-agent escape (``navescapeone``)."""
+    trail = trail_m[np.isfinite(trail_m[:, 0])]
+    if trail.shape[0] == 0:
+        return edge_cells[:0]
+    delta = (origin_m + edge_centres)[:, None, :] - trail[None, :, :]
+    near = np.logical_or.reduce(np.einsum("ekd,ekd->ek", delta, delta) < seen2_m2, axis=1)
+    return edge_cells[near]
+
+
+def occupancy_key(origin_m: FloatArray, obs_xy_m: FloatArray, valid: BoolArray) -> bytes:
+    """The exact input of one agent's occupancy cells (``NavField.occupancy``): corner, points, valid flags."""
+    return origin_m.tobytes() + obs_xy_m.tobytes() + valid.tobytes()
+
+
+def field_key(origin_m: FloatArray, goal_xy_m: FloatArray, blocked: BoolArray) -> bytes:
+    """The exact input of one field (``NavField.memo``): corner, goal, packed blocked cells."""
+    return origin_m.tobytes() + goal_xy_m.tobytes() + np.packbits(blocked).tobytes()
 
 
 def _occupancy(
@@ -378,7 +394,7 @@ def _occupancy(
     (a second refresh in one step: the stall or dead-end rule)."""
     inflated = np.empty((rows.size, grid.size), dtype=bool)
     known = np.empty((rows.size, grid.size), dtype=bool)
-    keys = [origins[i].tobytes() + obs_xy[i].tobytes() + valid[i].tobytes() for i in range(rows.size)]
+    keys = [occupancy_key(origins[i], obs_xy[i], valid[i]) for i in range(rows.size)]
     todo = []
     for i, r in enumerate(rows):
         f = state.field[r]
@@ -402,7 +418,7 @@ def _recall(
     fields are appended to the memo (the caller keeps the last ``_MEMO``)."""
     out = np.empty(blocked.shape)
     for i, memo in enumerate(memos):
-        key = origins[i].tobytes() + goals[i].tobytes() + np.packbits(blocked[i]).tobytes()
+        key = field_key(origins[i], goals[i], blocked[i])
         known = [d for k, d in memo if k == key]
         if known:
             out[i] = known[0]

@@ -22,7 +22,14 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.planning.decision import Decision, DecisionReason
-from apf_companion.planning.navescape import _MEMO, _OUTDATED_AGE, EscapeMaps
+from apf_companion.planning.navescape import (
+    _MEMO,
+    _OUTDATED_AGE,
+    EscapeMaps,
+    field_key,
+    occupancy_key,
+    seen_edge_cells,
+)
 from apf_companion.planning.navone import DirectStep
 from apf_companion.planning.navsingle import age_field
 from apf_companion.planning.navstate import NavField, NavMode, NavState
@@ -191,7 +198,7 @@ class FieldOne:
         old = state.field[0]
         origin, old_blocked, old_virtual = self._carry_over(old, xy, self._origin(xy, goal))
         obs_xy, valid = self._usable(position_m, obstacles_m)
-        key = origin.tobytes() + obs_xy.tobytes() + valid.tobytes()
+        key = occupancy_key(origin, obs_xy, valid)
         if old is not None and old.occupancy is not None and old.occupancy[0] == key:
             inflated, known = old.occupancy[1], old.occupancy[2]
         else:
@@ -276,14 +283,7 @@ class FieldOne:
         and the trail, which change every few steps: the last answer is kept with its exact input."""
         key = origin_m.tobytes() + state.trail_m[0].tobytes()
         if key != self._seen_key:
-            trail = state.trail_m[0]
-            trail = trail[np.isfinite(trail[:, 0])]
-            cells = self._edge_cells[:0]
-            if trail.shape[0]:
-                edge = origin_m + self._edge_centres
-                delta = edge[:, None, :] - trail[None, :, :]
-                near = np.logical_or.reduce(np.einsum("ekd,ekd->ek", delta, delta) < self._seen2, axis=1)
-                cells = self._edge_cells[near]
+            cells = seen_edge_cells(origin_m, state.trail_m[0], self._edge_cells, self._edge_centres, self._seen2)
             self._seen_key, self._seen_cells = key, cells
         if self._seen_cells.size == 0:
             return blocked
@@ -296,7 +296,7 @@ class FieldOne:
     ) -> FloatArray:
         """``navescape._recall`` of one agent: the field from the memo when it holds the same input, else new
         (appended to the memo)."""
-        key = origin_m.tobytes() + goal_m.tobytes() + np.packbits(blocked).tobytes()
+        key = field_key(origin_m, goal_m, blocked)
         for k, d in memo:
             if k == key:
                 return d
