@@ -191,6 +191,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     (only with exit_when_done).
     """
     from apf_companion.builders import signing_setup
+    from apf_companion.heap import freeze_startup_heap
     from apf_companion.service import CompanionService, build_planner
 
     try:
@@ -211,6 +212,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, svc.stop)
+        frozen = freeze_startup_heap()  # no full collection of the startup heap mid-flight (apf_companion/heap.py)
         log.info(
             "service.start",
             extra={
@@ -219,6 +221,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 "profile": cfg.autopilot.profile.value,
                 "rate_hz": cfg.cycle.rate_hz,
                 "dry_run": cfg.dry_run,
+                "gc_frozen": frozen,
             },
         )
         result = await svc.run()

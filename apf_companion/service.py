@@ -56,6 +56,7 @@ from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
 from apf_companion.forwarder import ObstacleForwarder
 from apf_companion.goal import Route, route_outside_limits
 from apf_companion.handlers import AutopilotHandlers
+from apf_companion.heap import GcPauses
 from apf_companion.linkquality import LinkMeter
 from apf_companion.links import MavlinkLink, TimestampKeeper
 from apf_companion.links.endpoint import connection_hint, parse_endpoint
@@ -142,6 +143,7 @@ class ServiceResult:
         steps: Planner steps taken.
         flight_time_s: Vehicle seconds from the first navigation setpoint to the end (0 if none).
         latency_ms_p50, latency_ms_p99: Sensor-to-setpoint latency over the run [ms].
+        gc: The garbage collector's pauses over the run (``heap.GcSummary``), None if it did not run.
         counters: Service and navigator counters.
         error: Message of the error that ended the run, if any.
     """
@@ -152,6 +154,7 @@ class ServiceResult:
     flight_time_s: float
     latency_ms_p50: float | None
     latency_ms_p99: float | None
+    gc: dict[str, Any] | None = None
     counters: dict[str, int] = field(default_factory=dict)
     error: str | None = None
 
@@ -181,6 +184,7 @@ class ServiceResult:
             flight_time_s=flight_s,
             latency_ms_p50=p50,
             latency_ms_p99=p99,
+            gc=reporter.gc_summary(),
             counters=counters,
             error=error,
         )
@@ -383,6 +387,7 @@ class CompanionService:
     async def run(self) -> ServiceResult:
         """Run until ``stop()``, or until the flight ends when ``exit_when_done``. Closes the links at the end."""
         error: str | None = None
+        pauses = self.reporter.gc = GcPauses()
         try:
             async with asyncio.TaskGroup() as tg:
                 tasks = [
@@ -403,6 +408,7 @@ class CompanionService:
             self._outcome = Outcome.ERROR
         finally:
             _sd_notify(self, STOPPING=1, STATUS=f"stopping: {self._outcome or Outcome.STOPPED}")
+            pauses.close()  # its summary stays for the result
             await self.aclose()
         result = self.result(error=error)
         if self.result_path is not None:

@@ -9,7 +9,9 @@ Measured:
 - external latency: from sending a LOCAL_POSITION_NED to receiving the SET_POSITION_TARGET_LOCAL_NED it
   triggers (both processes' socket paths included);
 - internal latency: the service's own pose-read-to-setpoint-sent time (its result JSON);
-- CPU share of the service process: (utime + stime) / wall time over the measurement window, from /proc.
+- CPU share of the service process: (utime + stime) / wall time over the measurement window, from /proc;
+- the garbage collector over the whole run (its result JSON, ``apf_companion/heap.py``): collections, how many
+  were full, and the longest pause.
 
 Usage: python benchmarks/bench_service_latency.py [--seconds 10] [--rates 10,20,50]
 Targets (issue 4): p99 <= 2 ms and <= 5 % of one core at 20 Hz.
@@ -168,6 +170,7 @@ down_m = -5.0
         "cpu_pct": 100.0 * (cpu1 - cpu0) / (wall1 - wall0),
         "state": internal["state"],
         "obstacles_seen": internal["counters"].get("scans", 0),
+        "gc": internal["gc"],  # the collector over the whole run (apf_companion/heap.py)
     }
 
 
@@ -188,12 +191,17 @@ def main() -> None:
     print(f"# window {args.seconds:.0f} s per rate after 3 s warm-up; planner {planner} (the default config's)")
     rows = asyncio.run(main_async(rates, args.seconds))
     print()
-    print("| rate Hz | cycles | ext p50 ms | ext p99 ms | int p50 ms | int p99 ms | CPU % of one core |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print(
+        "| rate Hz | cycles | ext p50 ms | ext p99 ms | int p50 ms | int p99 ms | CPU % of one core | "
+        "collections (full) | longest collection ms |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
+        gc = r["gc"]
         print(
             f"| {r['rate_hz']:.0f} | {r['cycles']} | {r['ext_p50_ms']:.2f} | {r['ext_p99_ms']:.2f} | "
-            f"{r['int_p50_ms']:.2f} | {r['int_p99_ms']:.2f} | {r['cpu_pct']:.1f} |"
+            f"{r['int_p50_ms']:.2f} | {r['int_p99_ms']:.2f} | {r['cpu_pct']:.1f} | "
+            f"{gc['collections']} ({gc['full']}) | {gc['max_pause_ms']:.2f} |"
         )
 
 
