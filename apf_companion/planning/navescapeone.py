@@ -82,6 +82,7 @@ class FieldOne:
         #: The last input (corner and trail, as bytes) of ``_close_seen_edges`` and its edge cells to close.
         self._seen_key = b""
         self._seen_cells = self._edge_cells[:0]
+        self._all_valid = np.ones(0, dtype=bool)
 
     def potentials(
         self,
@@ -196,7 +197,7 @@ class FieldOne:
         the ``lost`` check sampled it (the field kept), else None."""
         xy, goal = position_m[:2], target_m[:2]
         old = state.field[0]
-        origin, old_blocked, old_virtual = self._carry_over(old, xy, self._origin(xy, goal))
+        origin, old_blocked, old_virtual = self._carry_over(old, xy, goal)
         obs_xy, valid = self._usable(position_m, obstacles_m)
         key = occupancy_key(origin, obs_xy, valid)
         if old is not None and old.occupancy is not None and old.occupancy[0] == key:
@@ -223,7 +224,9 @@ class FieldOne:
         """The points (M, 2) that make the grid, zero where not valid, and which are valid (M,): finite and, in
         3D, within C of the agent's altitude (``EscapeMaps.refresh``). 2D and all finite: the points as given."""
         if self._dim == 2 and np.isfinite(obstacles_m).all():
-            return obstacles_m, np.ones(obstacles_m.shape[0], dtype=bool)
+            if self._all_valid.shape[0] != obstacles_m.shape[0]:
+                self._all_valid = np.ones(obstacles_m.shape[0], dtype=bool)  # only read (keys, occupancy)
+            return obstacles_m, self._all_valid
         valid = np.logical_and.reduce(np.isfinite(obstacles_m), axis=1)
         if self._dim == 3:
             valid &= np.abs(obstacles_m[:, 2] - position_m[2]) <= self._clearance_m
@@ -243,15 +246,17 @@ class FieldOne:
         return np.array(out)
 
     def _carry_over(
-        self, old: NavField | None, xy_m: FloatArray, origin_m: FloatArray
+        self, old: NavField | None, xy_m: FloatArray, goal_m: FloatArray
     ) -> tuple[FloatArray, BoolArray | None, BoolArray | None]:
         """``navescape._carry_over`` of one agent: the grid's corner (the old one where the agent is well inside
-        it) and the remembered blocked and virtual cells in that grid (None: no old field)."""
+        it, else ``NavGrid.origins``'s) and the remembered blocked and virtual cells in that grid (None: no old
+        field). The blocked cells are only read; the virtual ones become the new field's (a copy)."""
         if old is None:
-            return origin_m, None, None
+            return self._origin(xy_m, goal_m), None, None
         pad, far = self._keep_m, self._side_m - self._keep_m
         if all(pad <= x - o <= far for x, o in zip(xy_m.tolist(), old.origin_m.tolist(), strict=True)):
-            return old.origin_m.copy(), old.blocked.copy(), old.virtual.copy()  # well inside: keep the frame
+            return old.origin_m.copy(), old.blocked, old.virtual.copy()  # well inside: keep the frame
+        origin_m = self._origin(xy_m, goal_m)
         return (
             origin_m,
             self._grid.shift_blocked(old.blocked, old.origin_m, origin_m),
@@ -313,6 +318,9 @@ class FieldSampler:
         self._h = cell_m
         self._corner_steps = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=np.intp)[:, None, :]
         self._corner_flat = np.array([[0], [1], [n], [n + 1]], dtype=np.intp)  # the same four, as flat offsets
+        # (1 - f, f) per axis as (0 + 1) - f and 0 - (-f): exact, so the weights are the batch path's.
+        self._pair_base = np.array([1.0, 0.0])[:, None, None]
+        self._pair_sign = np.array([1.0, -1.0])[:, None, None]
 
     def __call__(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
         """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner. Where
@@ -321,40 +329,40 @@ class FieldSampler:
         n = self._n
         rel = (points_xy_m - origin_m) / self._h - 0.5
         low = np.floor(rel).astype(np.intp)
-        frac = rel - low
-        interior = low.min() >= 0 and low.max() <= n - 2
+        frac = rel - low  # never -0.0 (rel - floor(rel)), so every weight is +0.0 or more
+        # Every corner index in [0, n - 1]: as unsigned, a negative index is huge.
+        interior = int(np.maximum.reduce(low.view(np.uintp), axis=None)) <= n - 2
         if interior:
             val = dist_m[(low[:, 0] * n + low[:, 1]) + self._corner_flat]  # (4, P)
         else:  # the corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1), each index clamped
             ij = low + self._corner_steps  # (4, P, 2)
-            np.maximum(ij, 0, out=ij)
-            np.minimum(ij, n - 1, out=ij)
+            np.clip(ij, 0, n - 1, out=ij)
             val = dist_m[ij[:, :, 0] * n + ij[:, :, 1]]
-        w = _weights(frac)
-        ok = np.isfinite(val) & (w > 0.0)
+        pair = self._pair_sign * frac  # (2, P, 2): (f, -f)
+        np.subtract(self._pair_base, pair, out=pair)  # (1 - f, f)
+        w: FloatArray = (pair[:, None, :, 0] * pair[None, :, :, 1]).reshape(4, -1)  # wi * wj, corner by corner
+        ok = np.isfinite(val)
+        ok &= w > 0.0
+        # Summed corner by corner in the batch path's order: a reduction over the leading axis adds the rows in
+        # turn. Where the batch path masks a corner to 0.0, w * ok is +0.0 (w >= 0 and finite) and so is
+        # (w * ok) * 0.0: the same terms.
         if interior and ok.all():
-            term = w * val
-            fast: FloatArray = (term[0] + term[1] + term[2] + term[3]) / (w[0] + w[1] + w[2] + w[3])
+            fast: FloatArray = np.add.reduce(w * val, axis=0)
+            fast /= np.add.reduce(w, axis=0)
             return fast
-        term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
-        weight = np.where(ok, w, 0.0)
-        num = term[0] + term[1] + term[2] + term[3]
-        den = weight[0] + weight[1] + weight[2] + weight[3]
+        weight = w * ok
+        term = np.where(ok, val, 0.0)
+        term *= weight
+        num = np.add.reduce(term, axis=0)
+        den = np.add.reduce(weight, axis=0)
         use = den > 0.0
         if not interior:
-            use &= np.logical_and.reduce((rel >= -0.5) & (rel <= n - 0.5), axis=1)
+            inside = rel >= -0.5
+            inside &= rel <= n - 0.5
+            use &= np.logical_and.reduce(inside, axis=1)
         out: FloatArray = np.full(num.shape, np.inf)
         np.divide(num, den, out=out, where=use)
         return out
-
-
-def _weights(frac: FloatArray) -> FloatArray:
-    """(4, P) bilinear weights wi * wj of the corners (0, 0), (0, 1), (1, 0), (1, 1) from the fractions (P, 2)."""
-    pair = np.empty((2, *frac.shape))
-    np.subtract(1.0, frac, out=pair[0])  # (1 - f, f) per axis
-    pair[1] = frac
-    w: FloatArray = (pair[:, None, :, 0] * pair[None, :, :, 1]).reshape(4, -1)
-    return w
 
 
 class EscapeStep:

@@ -152,16 +152,18 @@ class DirectStep:
         agent, look-ahead penalties (K,) or None. ``rel`` (M, D), M > 0: the near obstacles minus the agent;
         ``r2`` (M,) their |rel|^2."""
         n = self._n
-        if probes is None:
-            starts, vectors, v2 = self._starts[:, :, : n + 1], self._move_vectors, self._move_v2
+        if probes is None:  # every segment starts at the agent: |obstacle - start|^2 is one number per obstacle
+            rel_t = rel.T.copy()  # (D, M) contiguous: the broadcast products run along contiguous rows
+            dot = _axis_sum(rel_t[:, :, None] * self._move_vectors[:, None, :])
+            clear_k, clear_0, nearest = self._clearance(dot, r2)  # before _closest_from consumes dot
+            swept = _closest_from(dot, _axis_sum(rel_t * rel_t), self._move_v2)
         else:
             vectors = np.concatenate((self._move_vectors, probes.T), axis=1)
             v2 = np.concatenate((self._move_v2, np.einsum("kd,kd->k", probes, probes)))
             np.maximum(v2, _TINY, out=v2)
-            starts = self._starts
-        dot, d2 = _segments(rel, starts, vectors)
-        clear_k, clear_0, nearest = self._clearance(dot[:, : n + 1], r2)  # before _closest consumes dot
-        swept = _closest(dot, d2, v2)
+            dot, d2 = _segments(rel, self._starts, vectors)
+            clear_k, clear_0, nearest = self._clearance(dot[:, : n + 1], r2)  # before _closest consumes dot
+            swept = _closest(dot, d2, v2)
         seg2 = swept[:n]
         d0 = float(nearest[n])
         # Inside the clearance (d0 < C^2): get no closer along the move and end farther out.
@@ -232,6 +234,21 @@ def _axis_sum(per_axis: FloatArray) -> FloatArray:
     for d in range(2, per_axis.shape[0]):
         out += per_axis[d]
     return out
+
+
+def _closest_from(dot: FloatArray, r2: FloatArray, v2: FloatArray) -> FloatArray:
+    """``_closest`` of segments that all start at the agent, from (M,) ``r2`` = |rel|^2 (left to right over the
+    axes, as ``_segments`` has it): ``sweep_sq_inplace``'s operations, its last one broadcast (``dot`` is
+    consumed)."""
+    t = dot / v2
+    np.maximum(t, 0.0, out=t)
+    np.minimum(t, 1.0, out=t)
+    dot *= 2.0
+    dot -= t * v2
+    dot *= t
+    np.subtract(r2[:, None], dot, out=dot)
+    swept: FloatArray = np.minimum.reduce(dot, axis=0)
+    return np.maximum(swept, 0.0, out=swept)
 
 
 def _closest(dot: FloatArray, d2: FloatArray, v2: FloatArray) -> FloatArray:
