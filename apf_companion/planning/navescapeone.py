@@ -107,13 +107,13 @@ class FieldOne:
         values = self._refresh(position_m, target_m, obstacles_m, state) if stale else None
         g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
         ok = feasible & (g_k + clear_k < g0 + clear_0)
-        if stale or ok.any():
-            dead = not ok.any()
-        else:  # stalled on a potential that may be stale: recompute once with what is known now
+        dead = not ok.any()
+        if dead and not stale:  # stalled on a potential that may be stale: recompute once with what is known now
             values = self._refresh(position_m, target_m, obstacles_m, state)
-            g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
-            ok = feasible & (g_k + clear_k < g0 + clear_0)
-            dead = not ok.any()
+            if not _same_field(field, state.field[0]):  # the same field (memo): the same values, still dead
+                g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
+                ok = feasible & (g_k + clear_k < g0 + clear_0)
+                dead = not ok.any()
         # Still nothing: mark the refused downhill cells and recompute once, where a cell was newly marked.
         if dead and self._mark_dead_ends(position_m, state.field[0], feasible, g_k, g0):
             values = self._refresh(position_m, target_m, obstacles_m, state)
@@ -169,10 +169,10 @@ class FieldOne:
         self, position_m: FloatArray, target_m: FloatArray, field: NavField, values: FloatArray | None
     ) -> tuple[FloatArray, float]:
         """``EscapeMaps.geodesic`` of one agent; ``values``: the field already sampled at the points (or None)."""
-        pts = position_m + self._around
         if values is None:
-            values = self._sampled(field.origin_m, field.dist_m, pts[:, :2])
+            values = self._sampled(field.origin_m, field.dist_m, position_m[:2] + self._around_xy)
         if self._dim == 3:
+            pts = position_m + self._around
             dz = pts[:, 2] - target_m[2]
             values = np.sqrt(values * values + dz * dz)
         return values[:-1], float(values[-1])
@@ -363,6 +363,13 @@ class FieldSampler:
         out: FloatArray = np.full(num.shape, np.inf)
         np.divide(num, den, out=out, where=use)
         return out
+
+
+def _same_field(old: NavField | None, new: NavField | None) -> bool:
+    """Whether ``new`` holds the potential of ``old``: the same distances (a memo hit) in the same frame."""
+    if old is None or new is None:
+        return False
+    return new.dist_m is old.dist_m and new.origin_m.tolist() == old.origin_m.tolist()
 
 
 class EscapeStep:

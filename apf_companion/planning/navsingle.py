@@ -86,7 +86,7 @@ class SightLine:
         # Fewer hits than ``first``: the batch path picks them all (its other picks are not hits).
         # A pick's neighbours lie within C + surface_m of the line (off2 is the squared distance to it; its
         # rounding is relative to these few metres): only they are compared, with the batch path's arithmetic.
-        around = obstacles_m[(off2 < self._around2).nonzero()[0]]
+        around = obstacles_m[off2 < self._around2]
         gap = around[None, None, :, :] - obstacles_m[picks][None, :, None, :]  # (1, P, Q, D)
         d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)[0]
         close = d2 < self._surface2
