@@ -30,7 +30,7 @@ from apf_companion.planning.navescape import (
     occupancy_key,
     seen_edge_cells,
 )
-from apf_companion.planning.navone import DirectStep
+from apf_companion.planning.navone import DirectStep, einsum
 from apf_companion.planning.navsingle import age_field
 from apf_companion.planning.navstate import NavField, NavMode, NavState
 
@@ -236,7 +236,7 @@ class FieldOne:
         """``NavGrid.origins`` of one agent in Python floats: the same operations on each coordinate (the
         distance is the batch path's einsum on the same layout)."""
         delta = goal_m - xy_m
-        dist = float(np.sqrt(np.einsum("bd,bd->b", delta[None], delta[None]))[0])
+        dist = float(np.sqrt(einsum("bd,bd->b", delta[None], delta[None]))[0])
         side, h = self._side_m, self._h
         reach = min(dist / 2.0, self._half_room_m)
         out = []
