@@ -72,7 +72,7 @@ class FieldOne:
         offsets = maps._offsets
         # The candidate points and the agent (a zero offset), as ``EscapeMaps.geodesic`` stacks them.
         self._around = np.vstack([offsets, np.zeros((1, offsets.shape[1]))])
-        self._around_xy = np.vstack([offsets[:, :2], np.zeros((1, 2))])
+        self._around_t = np.vstack([offsets[:, :2], np.zeros((1, 2))]).T.copy()  # (2, K + 1): rows north, east
         self._offsets_xy = offsets[:, :2]
         self._edge_cells = maps._edge_cells
         self._sample = FieldSampler(maps.grid.n, maps.grid.cell_m)
@@ -141,7 +141,7 @@ class FieldOne:
         if new.size == 0:
             return False
         # The field at the agent: the value ``_geodesic`` samples next (the same point, kept for this step).
-        here = float(self._sampled(field.origin_m, field.dist_m, (position_m + self._around)[:, :2])[-1])
+        here = float(self._sampled(field.origin_m, field.dist_m, position_m[:2])[-1])
         if not here < np.inf:  # inf (enclosed or off the grid): outdated
             return True
         way = np.sqrt(d2_m2[idx[inside[new]]]) + field.dist_m[cells[new]]
@@ -170,21 +170,21 @@ class FieldOne:
     ) -> tuple[FloatArray, float]:
         """``EscapeMaps.geodesic`` of one agent; ``values``: the field already sampled at the points (or None)."""
         if values is None:
-            values = self._sampled(field.origin_m, field.dist_m, position_m[:2] + self._around_xy)
+            values = self._sampled(field.origin_m, field.dist_m, position_m[:2])
         if self._dim == 3:
             pts = position_m + self._around
             dz = pts[:, 2] - target_m[2]
             values = np.sqrt(values * values + dz * dz)
         return values[:-1], float(values[-1])
 
-    def _sampled(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
-        """``_sample`` at this step's points and the agent (K + 1, 2): a field sampled before in this step (the
-        same field object, never written to, in the same frame) gives the same values again."""
+    def _sampled(self, origin_m: FloatArray, dist_m: FloatArray, xy_m: FloatArray) -> FloatArray:
+        """``_sample`` at this step's points and the agent (``xy_m``: its north, east): a field sampled before in
+        this step (the same field object, never written to, in the same frame) gives the same values again."""
         origin = origin_m.tobytes()
         for dist, frame, values in self._samples:
             if dist is dist_m and frame == origin:
                 return values
-        values = self._sample(origin_m, dist_m, points_xy_m)
+        values = self._sample.at(origin_m, dist_m, xy_m[:, None] + self._around_t)  # (2, K + 1) points
         self._samples.append((dist_m, origin, values))
         return values
 
@@ -278,7 +278,7 @@ class FieldOne:
             return self._recall(memo, origin_m, blocked, goal_m), None
         closed = self._close_seen_edges(blocked, origin_m, state)
         dist = self._recall(memo, origin_m, closed, goal_m)
-        values = self._sampled(origin_m, dist, xy_m + self._around_xy)
+        values = self._sampled(origin_m, dist, xy_m)
         if np.isfinite(values).any():
             return dist, values
         return self._recall(memo, origin_m, blocked, goal_m), None
@@ -316,31 +316,38 @@ class FieldSampler:
     def __init__(self, n: int, cell_m: float) -> None:
         self._n = n
         self._h = cell_m
-        self._corner_steps = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=np.intp)[:, None, :]
+        self._corner_di = np.array([[0], [0], [1], [1]], dtype=np.intp)  # the four corners' steps along i, j
+        self._corner_dj = np.array([[0], [1], [0], [1]], dtype=np.intp)
         self._corner_flat = np.array([[0], [1], [n], [n + 1]], dtype=np.intp)  # the same four, as flat offsets
         # (1 - f, f) per axis as (0 + 1) - f and 0 - (-f): exact, so the weights are the batch path's.
         self._pair_base = np.array([1.0, 0.0])[:, None, None]
-        self._pair_sign = np.array([1.0, -1.0])[:, None, None]
+        self._pair_sign = np.array([1.0, -1.0])[:, None, None]  # times (2, P) fractions: (2, 2, P)
 
     def __call__(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
-        """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner. Where
-        every corner lies in the grid, the clamping changes no index and every point is inside; where every corner
-        is also finite with a positive weight, the batch path's masks select nothing and its sums are these."""
+        """``NavGrid.sample_many`` of one field at points (P, 2) (``at`` on their transpose)."""
+        return self.at(origin_m, dist_m, np.ascontiguousarray(points_xy_m.T))
+
+    def at(self, origin_m: FloatArray, dist_m: FloatArray, points_t_m: FloatArray) -> FloatArray:
+        """``NavGrid.sample_many`` of one field at points (2, P) (rows: north, east): the same arithmetic, corner
+        by corner, on contiguous rows. Where every corner lies in the grid, the clamping changes no index and
+        every point is inside; where every corner is also finite with a positive weight, the batch path's masks
+        select nothing and its sums are these."""
         n = self._n
-        rel = (points_xy_m - origin_m) / self._h - 0.5
+        rel = (points_t_m - origin_m[:, None]) / self._h - 0.5
         low = np.floor(rel).astype(np.intp)
         frac = rel - low  # never -0.0 (rel - floor(rel)), so every weight is +0.0 or more
         # Every corner index in [0, n - 1]: as unsigned, a negative index is huge.
         interior = int(np.maximum.reduce(low.view(np.uintp), axis=None)) <= n - 2
         if interior:
-            val = dist_m[(low[:, 0] * n + low[:, 1]) + self._corner_flat]  # (4, P)
+            val = dist_m[(low[0] * n + low[1]) + self._corner_flat]  # (4, P)
         else:  # the corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1), each index clamped
-            ij = low + self._corner_steps  # (4, P, 2)
-            np.clip(ij, 0, n - 1, out=ij)
-            val = dist_m[ij[:, :, 0] * n + ij[:, :, 1]]
-        pair = self._pair_sign * frac  # (2, P, 2): (f, -f)
-        np.subtract(self._pair_base, pair, out=pair)  # (1 - f, f)
-        w: FloatArray = (pair[:, None, :, 0] * pair[None, :, :, 1]).reshape(4, -1)  # wi * wj, corner by corner
+            ii = np.clip(low[0] + self._corner_di, 0, n - 1)
+            ii *= n
+            ii += np.clip(low[1] + self._corner_dj, 0, n - 1)
+            val = dist_m[ii]
+        pair = self._pair_sign * frac  # (2, 2, P): (f, -f) per axis
+        np.subtract(self._pair_base, pair, out=pair)  # (1 - f, f) per axis
+        w: FloatArray = (pair[:, None, 0] * pair[None, :, 1]).reshape(4, -1)  # wi * wj, corner by corner
         ok = np.isfinite(val)
         ok &= w > 0.0
         # Summed corner by corner in the batch path's order: a reduction over the leading axis adds the rows in
@@ -359,7 +366,7 @@ class FieldSampler:
         if not interior:
             inside = rel >= -0.5
             inside &= rel <= n - 0.5
-            use &= np.logical_and.reduce(inside, axis=1)
+            use &= np.logical_and.reduce(inside, axis=0)
         out: FloatArray = np.full(num.shape, np.inf)
         np.divide(num, den, out=out, where=use)
         return out
