@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navone import einsum
 from apf_companion.planning.navstate import TRAIL, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 
@@ -63,11 +64,11 @@ class SightLine:
         end = min(g0_m, self._sight_m)
         start = min(self._step_m, end)
         # The einsum calls are the batch path's, on one row (the same reduction kernels, whatever the build).
-        along = np.einsum("amd,ad->am", rel_m[None], unit[None])[0]
+        along = einsum("amd,ad->am", rel_m[None], unit[None])[0]
         t = np.maximum(along, start)  # np.clip(along, start, end) without its Python wrapper
         np.minimum(t, end, out=t)
         off = rel_m - t[:, None] * unit
-        off2 = np.einsum("amd,amd->am", off[None], off[None])[0]
+        off2 = einsum("amd,amd->am", off[None], off[None])[0]
         return bool(np.logical_or.reduce(off2 < self._c2))
 
 
@@ -103,9 +104,9 @@ class SingleStart:
         """Target minus position (D,) and its length g0, and the obstacles minus the agent (M, D) with their
         squared distances (M,) (``navone.DirectStep`` takes them). ``state``: one row, updated in place."""
         goal_vec = target_m - position_m
-        g0 = math.sqrt(float(np.einsum("ad,ad->a", goal_vec[None], goal_vec[None])[0]))  # the batch path's call
+        g0 = math.sqrt(float(einsum("ad,ad->a", goal_vec[None], goal_vec[None])[0]))  # the batch path's call
         rel = obstacles_m - position_m
-        r2 = np.einsum("nd,nd->n", rel, rel)
+        r2 = einsum("nd,nd->n", rel, rel)
         mode = int(state.mode[0])
         hit_m = float(state.hit_dist_m[0])
         looking = mode == _DIRECT or (mode == _ESCAPE and g0 < hit_m - self._step_m)
@@ -142,7 +143,7 @@ class SingleStart:
         dist2 = dn * dn + de * de
         if abs(dist2 - self._spacing2) <= _ULPS * self._spacing2:
             delta = position_m[None, :2] - last[None]
-            dist2 = float(np.einsum("ad,ad->a", delta, delta)[0])
+            dist2 = float(einsum("ad,ad->a", delta, delta)[0])
         if not dist2 < self._spacing2:  # NaN (no point yet): record
             state.trail_m[0, slot] = position_m[:2]
             state.trail_next[0] = (slot + 1) % TRAIL
