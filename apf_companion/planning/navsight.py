@@ -74,12 +74,8 @@ def _group(
     unit = to_goal / np.maximum(dist, _TINY)[:, None]
     end = np.minimum(dist, sight_m)
     start = np.minimum(step_m, end)
-    rel = obs - positions_m[:, None, :]
     with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
-        along = np.einsum("amd,ad->am", rel, unit)
-        t = np.clip(along, start[:, None], end[:, None])
-        off = rel - t[:, :, None] * unit[:, None, :]
-        off2 = np.einsum("amd,amd->am", off, off)
+        along, off2 = _line_offsets(obs, positions_m, unit, start, end)
     hit = off2 < clearance_m * clearance_m
     if mask is not None:
         hit &= mask
@@ -102,3 +98,30 @@ def _group(
     close = (d2 < SURFACE_M * SURFACE_M) & (d2 > 0.0) & valid[:, None, :]
     out[some] = _any((_sum(close, axis=2) >= 2) & real, axis=1)
     return out
+
+
+def _line_offsets(
+    obs: FloatArray, positions_m: FloatArray, unit: FloatArray, start: FloatArray, end: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """(G, M) each: how far along each agent's line its points lie, and their squared distance to the segment
+    [start, end] of it. 2D on the two coordinate planes, the sums of two products written out (einsum's sums bit
+    for bit: one rounding, in either order; einsum over the short coordinate axis costs several times more);
+    3D keeps einsum and its order."""
+    if obs.shape[2] != 2:
+        rel = obs - positions_m[:, None, :]
+        along = np.einsum("amd,ad->am", rel, unit)
+        t = np.clip(along, start[:, None], end[:, None])
+        off = rel - t[:, :, None] * unit[:, None, :]
+        return along, np.einsum("amd,amd->am", off, off)
+    rel_n = obs[:, :, 0] - positions_m[:, 0, None]
+    rel_e = obs[:, :, 1] - positions_m[:, 1, None]
+    u_n, u_e = unit[:, 0, None], unit[:, 1, None]
+    along = rel_n * u_n
+    along += rel_e * u_e
+    t = np.clip(along, start[:, None], end[:, None])
+    rel_n -= t * u_n
+    rel_e -= t * u_e
+    rel_n *= rel_n
+    rel_e *= rel_e
+    rel_n += rel_e
+    return along, rel_n
