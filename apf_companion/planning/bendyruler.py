@@ -192,10 +192,7 @@ class BendyRulerPlanner(StatefulPlanner):
         if k.shape[1] <= _FOCUS_PROBES and rel.shape[1] > 0:
             ends = self._units[k] * np.clip(g0[rows], p.step_m, p.br_lookahead_m)[:, None, None]  # (R, S, D)
             reach = p.br_lookahead_m + p.br_margin_max_m + _SLACK_M
-            close = np.zeros(valid.shape, dtype=bool)
-            for s in range(k.shape[1]):
-                close |= _sq_norm(rel - ends[:, s, None, :]) <= reach * reach
-            rel, valid = compact_rows(rel, valid & close)
+            rel, valid = compact_rows(rel, valid & _near_any(rel, ends, reach))
         counts = valid.sum(axis=1)
         by_count = np.argsort(counts, kind="stable")
         out = np.empty(k.shape)
@@ -306,6 +303,17 @@ def _segment_min_sq(rel: list[FloatArray], r2: FloatArray, vectors: list[FloatAr
     np.subtract(r2, dot, out=dot)
     out = np.minimum.reduce(dot, axis=0, initial=np.inf)
     return np.asarray(np.maximum(out, 0.0, out=out), dtype=np.float64)
+
+
+def _near_any(rel: FloatArray, ends: FloatArray, reach_m: float) -> BoolArray:
+    """(R, M) obstacles ``rel`` (R, M, D) within ``reach_m`` of any of the points ``ends`` (R, S, D), all S at once
+    on (R, S, M) coordinate planes (a prefilter: its reach has slack, so its own rounding never matters)."""
+    d2 = np.zeros((ends.shape[0], ends.shape[1], rel.shape[1]))
+    for d in range(rel.shape[2]):
+        delta = rel[:, None, :, d] - ends[:, :, d, None]
+        delta *= delta
+        d2 += delta
+    return np.asarray(np.logical_or.reduce(d2 <= reach_m * reach_m, axis=1), dtype=np.bool_)
 
 
 def _near(
