@@ -191,6 +191,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     (only with exit_when_done).
     """
     from apf_companion.builders import signing_setup
+    from apf_companion.heap import freeze_startup_heap
+    from apf_companion.realtime import request_realtime
     from apf_companion.service import CompanionService, build_planner
 
     try:
@@ -211,6 +213,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, svc.stop)
+        scheduling = request_realtime(cfg.cycle.realtime_priority)  # best effort (apf_companion/realtime.py)
+        frozen = freeze_startup_heap()  # no full collection of the startup heap mid-flight (apf_companion/heap.py)
         log.info(
             "service.start",
             extra={
@@ -219,6 +223,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 "profile": cfg.autopilot.profile.value,
                 "rate_hz": cfg.cycle.rate_hz,
                 "dry_run": cfg.dry_run,
+                "scheduling": scheduling.describe(),
+                "gc_frozen": frozen,
             },
         )
         result = await svc.run()

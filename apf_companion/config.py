@@ -234,6 +234,9 @@ class CycleConfig:
         replan_radius_m: The vehicle flies to each planned bacteria point and the next step is planned from
             that point once the vehicle is this close to it (the paper's path of bacteria points) [m].
         time_scale: Vehicle seconds per wall second (simulated vehicles with a speed-up; 1 on real hardware).
+        realtime_priority: ``apf-companion run`` asks for SCHED_FIFO at this priority, 1-99, so a cycle does not
+            wait behind other processes (apf_companion/realtime.py; refused without RLIMIT_RTPRIO: then the normal
+            scheduler); 0 = never ask.
     """
 
     rate_hz: float = 10.0
@@ -243,6 +246,7 @@ class CycleConfig:
     arrival_radius_m: float = 0.7
     replan_radius_m: float = 0.1
     time_scale: float = 1.0
+    realtime_priority: int = 5
 
     def __post_init__(self) -> None:
         _check_range("cycle.rate_hz", self.rate_hz, 1.0, 50.0)
@@ -252,6 +256,7 @@ class CycleConfig:
         _check_range("cycle.arrival_radius_m", self.arrival_radius_m, 0.0, 100.0, lo_open=True)
         _check_range("cycle.replan_radius_m", self.replan_radius_m, 0.0, 10.0, lo_open=True)
         _check_range("cycle.time_scale", self.time_scale, 0.1, 100.0)
+        _check_id("cycle.realtime_priority", self.realtime_priority, 0, 99)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

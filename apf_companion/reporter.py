@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from apf_companion.errors import LinkError
+from apf_companion.heap import GcPauses
 from apf_companion.links import SigningStats
 from apf_companion.navigator import CycleOutput, Navigator, State, StateChange
 from apf_companion.outbox import Outbox
@@ -191,6 +192,7 @@ class StatusReporter:
         self.autopilot = autopilot
         self.counters = counters
         self.latency = LatencyWindow()
+        self.gc: GcPauses | None = None  # the collector's pauses while the service runs (``CompanionService.run``)
         self.reason = "starting"
         nvf_hz = params.named_value_rate_hz
         self._nvf_period_s = 1.0 / nvf_hz if nvf_hz > 0 else math.inf
@@ -288,11 +290,16 @@ class StatusReporter:
             "nearest_obstacle_m": None if out is None else out.nearest_obstacle_m,
             "n_obstacles": len(self.perception),
             "loop_latency_ms": self.latency.summary(),
+            "gc": self.gc_summary(),
             "decision": None if out is None else out.decision,
             "autopilot": {"mode_ok": nav.mode_ok, "armed": self.autopilot.armed, "link_alive": nav.link_alive(now_s)},
             "counters": self.counts() | {f"nav_{k}": v for k, v in nav.counts().items()},
             "rejected": self.rejected(),
         }
+
+    def gc_summary(self) -> dict[str, Any] | None:
+        """The collector's pauses since the run started (``heap.GcSummary``), None before."""
+        return None if self.gc is None else self.gc.summary().to_dict()
 
     def _pose_dict(self, now_s: float) -> dict[str, float] | None:
         pose = self.navigator.pose

@@ -25,7 +25,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import enum
 import json
 import logging
 import math
@@ -53,9 +52,11 @@ from apf_companion.builders import (
 )
 from apf_companion.config import ServiceConfig, ZenohSection
 from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
+from apf_companion.flightend import FlightEnd, Outcome
 from apf_companion.forwarder import ObstacleForwarder
 from apf_companion.goal import Route, route_outside_limits
 from apf_companion.handlers import AutopilotHandlers
+from apf_companion.heap import GcPauses
 from apf_companion.linkquality import LinkMeter
 from apf_companion.links import MavlinkLink, TimestampKeeper
 from apf_companion.links.endpoint import connection_hint, parse_endpoint
@@ -88,32 +89,6 @@ NO_HEARTBEAT_WARN_S = 5.0  # no autopilot HEARTBEAT this long after start: a WAR
 NO_HEARTBEAT_REPEAT_S = 60.0  # ... repeated this often while still nothing is heard [s]
 
 
-class Outcome(enum.StrEnum):
-    """How a run ended (``ServiceResult.outcome``)."""
-
-    ARRIVED = "arrived"
-    STUCK = "stuck"
-    TIMEOUT = "timeout"
-    LINK_LOST = "link_lost"
-    STOPPED = "stopped"
-    ERROR = "error"
-
-
-_OUTCOME_OF_STATE = {State.ARRIVED: Outcome.ARRIVED, State.STUCK: Outcome.STUCK, State.LINK_LOST: Outcome.LINK_LOST}
-
-
-def outcome_now(navigator: Navigator, *, goals: int, flown_s: float | None, max_s: float) -> Outcome | None:
-    """How the flight ended, if it has: a final state, a dropped goal, or ``max_s`` of flight (0 = no limit)."""
-    outcome = _OUTCOME_OF_STATE.get(navigator.state)
-    if outcome is Outcome.LINK_LOST and navigator.route is not None:
-        outcome = None  # the goal is kept: the flight goes on when the heartbeat returns
-    if outcome is None and navigator.state is State.IDLE and goals > 0 and navigator.route is None:
-        outcome = Outcome.ERROR  # the goal was dropped: takeover failed or the pilot took over
-    if outcome is None and max_s > 0 and flown_s is not None and flown_s > max_s:
-        outcome = Outcome.TIMEOUT
-    return outcome
-
-
 class ServiceClock:
     """Monotonic service time in vehicle seconds: wall seconds since creation times ``time_scale``."""
 
@@ -142,6 +117,7 @@ class ServiceResult:
         steps: Planner steps taken.
         flight_time_s: Vehicle seconds from the first navigation setpoint to the end (0 if none).
         latency_ms_p50, latency_ms_p99: Sensor-to-setpoint latency over the run [ms].
+        gc: The garbage collector's pauses over the run (``heap.GcSummary``), None if it did not run.
         counters: Service and navigator counters.
         error: Message of the error that ended the run, if any.
     """
@@ -152,6 +128,7 @@ class ServiceResult:
     flight_time_s: float
     latency_ms_p50: float | None
     latency_ms_p99: float | None
+    gc: dict[str, Any] | None = None
     counters: dict[str, int] = field(default_factory=dict)
     error: str | None = None
 
@@ -181,6 +158,7 @@ class ServiceResult:
             flight_time_s=flight_s,
             latency_ms_p50=p50,
             latency_ms_p99=p99,
+            gc=reporter.gc_summary(),
             counters=counters,
             error=error,
         )
@@ -301,10 +279,7 @@ class CompanionService:
         self.params = _param_server(self)
         self._stop = asyncio.Event()
         self.trigger = CycleTrigger(self.clock, config.cycle.rate_hz)
-        self._first_nav_s: float | None = None
-        self._goal_s: float | None = None  # when the current goal was set
-        self._end_s: float | None = None
-        self._outcome: Outcome | None = None
+        self.flight = FlightEnd()
         self.observers.add(_open_observers(config, self.clock) if observers is None else observers)  # last: opens
 
     def _drivers(self, config: ServiceConfig) -> tuple[ObstacleForwarder, TakeoverDriver]:
@@ -383,6 +358,7 @@ class CompanionService:
     async def run(self) -> ServiceResult:
         """Run until ``stop()``, or until the flight ends when ``exit_when_done``. Closes the links at the end."""
         error: str | None = None
+        pauses = self.reporter.gc = GcPauses()
         try:
             async with asyncio.TaskGroup() as tg:
                 tasks = [
@@ -400,9 +376,10 @@ class CompanionService:
         except* ApfCompanionError as eg:
             error = "; ".join(str(e) for e in eg.exceptions)
             log.error("service.error", extra={"error": error})
-            self._outcome = Outcome.ERROR
+            self.flight.outcome = Outcome.ERROR
         finally:
-            _sd_notify(self, STOPPING=1, STATUS=f"stopping: {self._outcome or Outcome.STOPPED}")
+            _sd_notify(self, STOPPING=1, STATUS=f"stopping: {self.flight.outcome or Outcome.STOPPED}")
+            pauses.close()  # its summary stays for the result
             await self.aclose()
         result = self.result(error=error)
         if self.result_path is not None:
@@ -410,9 +387,7 @@ class CompanionService:
         return result
 
     def result(self, *, error: str | None = None) -> ServiceResult:
-        end = self._end_s if self._end_s is not None else self.clock.now()
-        flight = max(0.0, self._flown_s(end) or 0.0)
-        outcome = self._outcome or Outcome.STOPPED
+        outcome, flight = self.flight.final(self.clock.now())
         return ServiceResult.of(outcome, self.navigator, self.reporter, self.link, flight_s=flight, error=error)
 
     # ---- goals -------------------------------------------------------------------------------------------------
@@ -433,9 +408,7 @@ class CompanionService:
         accepted = self.navigator.set_route(route, now)
         if accepted:
             self.counters.goals += 1
-            self._outcome = None
-            self._end_s = None
-            self._goal_s = now
+            self.flight.goal_set(now)
             # Its state change is reported by the next cycle (<= one period), to the status and the observers alike.
             log.info("goal.set", extra={"source": route.source, "waypoints_ned_m": route.to_json_list()})
         else:
@@ -481,8 +454,8 @@ class CompanionService:
         if sp is not None:
             if sp.kind is SetpointKind.PRESTREAM:
                 self.takeover.controller.note_prestream(now)
-            elif sp.kind is SetpointKind.NAVIGATE and self._first_nav_s is None:
-                self._first_nav_s = now
+            elif sp.kind is SetpointKind.NAVIGATE:
+                self.flight.navigating(now)
             sent = self.outbox.setpoint(sp)
             if not self.outbox.silent:  # dry run: nothing is sent, nothing failed
                 self.link_meter.sent(sent, now)
@@ -494,19 +467,11 @@ class CompanionService:
         return out
 
     def _check_done(self, now: float) -> None:
-        if not self.config.exit_when_done or self._outcome is not None:
+        if not self.config.exit_when_done:
             return
-        flown = self._flown_s(now)
-        if flown is None and self._goal_s is not None:
-            flown = now - self._goal_s  # never navigated (no position, no ranges, no takeover): time since the goal
-        outcome = outcome_now(self.navigator, goals=self.counters.goals, flown_s=flown, max_s=self.config.max_flight_s)
-        if outcome is not None:
-            self._outcome = outcome
-            self._end_s = now
+        goals, max_s = self.counters.goals, self.config.max_flight_s
+        if self.flight.check(now, self.navigator, goals=goals, max_s=max_s):
             self._stop.set()
-
-    def _flown_s(self, now: float) -> float | None:
-        return None if self._first_nav_s is None else now - self._first_nav_s
 
     async def _periodic(self, task: str, due: Callable[[float], float], retry_s: float) -> None:
         """``due(now)`` sends what is due and returns when to call it again (``retry_s`` later if it raised)."""

@@ -7,13 +7,16 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
      "pose": {"north_m": 1.0, "east_m": 2.0, "down_m": -5.0, "yaw_deg": 45.0, "age_s": 0.04} | null,
      "goal": {"north_m": 22.0, "east_m": 22.0, "down_m": -5.0, "leg": 0, "legs": 1, "source": "cli"} | null,
      "distance_to_goal_m": 9.1 | null, "nearest_obstacle_m": 1.7 | null, "n_obstacles": 31,
-     "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null, "decision": "GREEDY" | null,
+     "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null,
+     "gc": {"collections": 12, "full": 0, "max_pause_ms": 0.3, "frozen": 55906} | null, "decision": "GREEDY" | null,
      "autopilot": {"mode_ok": true, "armed": true, "link_alive": true}, "counters": {...},
      "rejected": {"APF_RJPOSE": 0, "APF_RJSCAN": 0, "APF_RJLINK": 0, "APF_RJSIGN": 0,
                   "APF_ERRORS": 0}}
 
-``counters`` holds every edge, perception, outbox and (``nav_`` prefixed) navigator counter; ``rejected`` the
-totals also sent as NAMED_VALUE_INT (docs/hardening.md).
+``gc`` is the garbage collector since the run started (apf_companion/heap.py): collections, how many were full,
+the longest pause, and how many startup objects are frozen out of every collection. ``counters`` holds every
+edge, perception, outbox and (``nav_`` prefixed) navigator counter; ``rejected`` the totals also sent as
+NAMED_VALUE_INT (docs/hardening.md).
 """
 
 from __future__ import annotations

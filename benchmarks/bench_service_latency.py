@@ -9,7 +9,11 @@ Measured:
 - external latency: from sending a LOCAL_POSITION_NED to receiving the SET_POSITION_TARGET_LOCAL_NED it
   triggers (both processes' socket paths included);
 - internal latency: the service's own pose-read-to-setpoint-sent time (its result JSON);
-- CPU share of the service process: (utime + stime) / wall time over the measurement window, from /proc.
+- CPU share of the service process: (utime + stime) / wall time over the measurement window, from /proc;
+- the garbage collector over the whole run (its result JSON, ``apf_companion/heap.py``): collections, how many
+  were full, and the longest pause;
+- the scheduling policy the service process got (it asks for SCHED_FIFO itself, ``apf_companion/realtime.py``;
+  ``--realtime-priority 0`` keeps it under the normal scheduler, ``--nice`` sets its niceness).
 
 Usage: python benchmarks/bench_service_latency.py [--seconds 10] [--rates 10,20,50]
 Targets (issue 4): p99 <= 2 ms and <= 5 % of one core at 20 Hz.
@@ -28,12 +32,13 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from apf_companion.config import ServiceConfig
+from apf_companion.config import CycleConfig, ServiceConfig
 from apf_companion.links import MavlinkLink
 
 UINT16_MAX = 65535
@@ -63,7 +68,25 @@ def ranges_cm(pos: list[float], obstacles: np.ndarray) -> list[int]:
     return [int(v) for v in out]
 
 
-async def measure(rate_hz: float, seconds: float, workdir: Path) -> dict[str, Any]:
+def _niceness(nice: int) -> Callable[[], None] | None:
+    """The service process's niceness increment (deploy/apf-companion.service: Nice=-5), or None for none."""
+    if not nice:
+        return None
+
+    def apply() -> None:
+        os.nice(nice)
+
+    return apply
+
+
+def policy_of(pid: int) -> str:
+    """The scheduling policy a running process got (the service asks for SCHED_FIFO itself: ``realtime.py``)."""
+    if os.sched_getscheduler(pid) == os.SCHED_FIFO:
+        return f"SCHED_FIFO {os.sched_getparam(pid).sched_priority}"
+    return "normal"
+
+
+async def measure(rate_hz: float, seconds: float, workdir: Path, nice: int, rt_priority: int) -> dict[str, Any]:
     port = free_udp_port()
     cfg = workdir / f"bench_{int(rate_hz)}.toml"
     cfg.write_text(
@@ -73,6 +96,7 @@ connect = "udpin:127.0.0.1:{port}"
 telemetry_rate_hz = {rate_hz}
 [cycle]
 rate_hz = {rate_hz}
+realtime_priority = {rt_priority}
 [status]
 named_value_rate_hz = 2.0
 [goal]
@@ -94,6 +118,7 @@ down_m = -5.0
         "--result-json",
         str(result_path),
         env=os.environ | {"OPENBLAS_NUM_THREADS": "1"},
+        preexec_fn=_niceness(nice),
     )
     await asyncio.sleep(1.5)  # interpreter + numpy import
     link = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
@@ -153,6 +178,7 @@ down_m = -5.0
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
         rx_task.cancel()
     await link.aclose()
+    policy = policy_of(proc.pid)
     proc.send_signal(signal.SIGINT)
     await asyncio.wait_for(proc.wait(), 10.0)
     internal = json.loads(result_path.read_text())
@@ -168,32 +194,56 @@ down_m = -5.0
         "cpu_pct": 100.0 * (cpu1 - cpu0) / (wall1 - wall0),
         "state": internal["state"],
         "obstacles_seen": internal["counters"].get("scans", 0),
+        "gc": internal["gc"],  # the collector over the whole run (apf_companion/heap.py)
+        "policy": policy,
     }
 
 
-async def main_async(rates: list[float], seconds: float) -> list[dict[str, Any]]:
+async def main_async(rates: list[float], seconds: float, nice: int, rt_priority: int) -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory() as tmp:
-        return [await measure(r, seconds, Path(tmp)) for r in rates]
+        return [await measure(r, seconds, Path(tmp), nice, rt_priority) for r in rates]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--seconds", type=float, default=10.0, help="measurement window per rate [s]")
     parser.add_argument("--rates", default="10,20,50", help="cycle rates [Hz], comma separated")
+    parser.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="niceness increment of the service process (deploy/apf-companion.service: -5; below 0 needs root)",
+    )
+    parser.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=CycleConfig().realtime_priority,
+        help="the service's cycle.realtime_priority: SCHED_FIFO priority it asks for, 0 = the normal scheduler "
+        "(default: the config's default; refused without RLIMIT_RTPRIO or root, see the policy column)",
+    )
     args = parser.parse_args()
     rates = [float(r) for r in args.rates.split(",")]
     print(f"# machine: {platform.machine()} {platform.processor() or ''} cpus={os.cpu_count()}")
     print(f"# python {platform.python_version()}, numpy {np.__version__}, {platform.platform()}")
     planner = ServiceConfig().planner.name
     print(f"# window {args.seconds:.0f} s per rate after 3 s warm-up; planner {planner} (the default config's)")
-    rows = asyncio.run(main_async(rates, args.seconds))
+    print(
+        f"# service: niceness {args.nice:+d} (relative to this process), cycle.realtime_priority "
+        f"{args.realtime_priority}; load average {os.getloadavg()[0]:.2f}"
+    )
+    rows = asyncio.run(main_async(rates, args.seconds, args.nice, args.realtime_priority))
     print()
-    print("| rate Hz | cycles | ext p50 ms | ext p99 ms | int p50 ms | int p99 ms | CPU % of one core |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print(
+        "| rate Hz | cycles | ext p50 ms | ext p99 ms | int p50 ms | int p99 ms | CPU % of one core | "
+        "collections (full) | longest collection ms | scheduling |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     for r in rows:
+        gc = r["gc"]
         print(
             f"| {r['rate_hz']:.0f} | {r['cycles']} | {r['ext_p50_ms']:.2f} | {r['ext_p99_ms']:.2f} | "
-            f"{r['int_p50_ms']:.2f} | {r['int_p99_ms']:.2f} | {r['cpu_pct']:.1f} |"
+            f"{r['int_p50_ms']:.2f} | {r['int_p99_ms']:.2f} | {r['cpu_pct']:.1f} | "
+            f"{gc['collections']} ({gc['full']}) | {gc['max_pause_ms']:.2f} | {r['policy']} |"
         )
 
 

@@ -30,7 +30,7 @@ from apf_companion.planning.navescape import (
     occupancy_key,
     seen_edge_cells,
 )
-from apf_companion.planning.navone import DirectStep
+from apf_companion.planning.navone import DirectStep, einsum
 from apf_companion.planning.navsingle import age_field
 from apf_companion.planning.navstate import NavField, NavMode, NavState
 
@@ -72,7 +72,7 @@ class FieldOne:
         offsets = maps._offsets
         # The candidate points and the agent (a zero offset), as ``EscapeMaps.geodesic`` stacks them.
         self._around = np.vstack([offsets, np.zeros((1, offsets.shape[1]))])
-        self._around_xy = np.vstack([offsets[:, :2], np.zeros((1, 2))])
+        self._around_t = np.vstack([offsets[:, :2], np.zeros((1, 2))]).T.copy()  # (2, K + 1): rows north, east
         self._offsets_xy = offsets[:, :2]
         self._edge_cells = maps._edge_cells
         self._sample = FieldSampler(maps.grid.n, maps.grid.cell_m)
@@ -82,6 +82,7 @@ class FieldOne:
         #: The last input (corner and trail, as bytes) of ``_close_seen_edges`` and its edge cells to close.
         self._seen_key = b""
         self._seen_cells = self._edge_cells[:0]
+        self._all_valid = np.ones(0, dtype=bool)
 
     def potentials(
         self,
@@ -106,13 +107,13 @@ class FieldOne:
         values = self._refresh(position_m, target_m, obstacles_m, state) if stale else None
         g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
         ok = feasible & (g_k + clear_k < g0 + clear_0)
-        if stale or ok.any():
-            dead = not ok.any()
-        else:  # stalled on a potential that may be stale: recompute once with what is known now
+        dead = not ok.any()
+        if dead and not stale:  # stalled on a potential that may be stale: recompute once with what is known now
             values = self._refresh(position_m, target_m, obstacles_m, state)
-            g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
-            ok = feasible & (g_k + clear_k < g0 + clear_0)
-            dead = not ok.any()
+            if not _same_field(field, state.field[0]):  # the same field (memo): the same values, still dead
+                g_k, g0 = self._geodesic(position_m, target_m, state.field[0], values)
+                ok = feasible & (g_k + clear_k < g0 + clear_0)
+                dead = not ok.any()
         # Still nothing: mark the refused downhill cells and recompute once, where a cell was newly marked.
         if dead and self._mark_dead_ends(position_m, state.field[0], feasible, g_k, g0):
             values = self._refresh(position_m, target_m, obstacles_m, state)
@@ -140,7 +141,7 @@ class FieldOne:
         if new.size == 0:
             return False
         # The field at the agent: the value ``_geodesic`` samples next (the same point, kept for this step).
-        here = float(self._sampled(field.origin_m, field.dist_m, (position_m + self._around)[:, :2])[-1])
+        here = float(self._sampled(field.origin_m, field.dist_m, position_m[:2])[-1])
         if not here < np.inf:  # inf (enclosed or off the grid): outdated
             return True
         way = np.sqrt(d2_m2[idx[inside[new]]]) + field.dist_m[cells[new]]
@@ -168,22 +169,22 @@ class FieldOne:
         self, position_m: FloatArray, target_m: FloatArray, field: NavField, values: FloatArray | None
     ) -> tuple[FloatArray, float]:
         """``EscapeMaps.geodesic`` of one agent; ``values``: the field already sampled at the points (or None)."""
-        pts = position_m + self._around
         if values is None:
-            values = self._sampled(field.origin_m, field.dist_m, pts[:, :2])
+            values = self._sampled(field.origin_m, field.dist_m, position_m[:2])
         if self._dim == 3:
+            pts = position_m + self._around
             dz = pts[:, 2] - target_m[2]
             values = np.sqrt(values * values + dz * dz)
         return values[:-1], float(values[-1])
 
-    def _sampled(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
-        """``_sample`` at this step's points and the agent (K + 1, 2): a field sampled before in this step (the
-        same field object, never written to, in the same frame) gives the same values again."""
+    def _sampled(self, origin_m: FloatArray, dist_m: FloatArray, xy_m: FloatArray) -> FloatArray:
+        """``_sample`` at this step's points and the agent (``xy_m``: its north, east): a field sampled before in
+        this step (the same field object, never written to, in the same frame) gives the same values again."""
         origin = origin_m.tobytes()
         for dist, frame, values in self._samples:
             if dist is dist_m and frame == origin:
                 return values
-        values = self._sample(origin_m, dist_m, points_xy_m)
+        values = self._sample.at(origin_m, dist_m, xy_m[:, None] + self._around_t)  # (2, K + 1) points
         self._samples.append((dist_m, origin, values))
         return values
 
@@ -196,7 +197,7 @@ class FieldOne:
         the ``lost`` check sampled it (the field kept), else None."""
         xy, goal = position_m[:2], target_m[:2]
         old = state.field[0]
-        origin, old_blocked, old_virtual = self._carry_over(old, xy, self._origin(xy, goal))
+        origin, old_blocked, old_virtual = self._carry_over(old, xy, goal)
         obs_xy, valid = self._usable(position_m, obstacles_m)
         key = occupancy_key(origin, obs_xy, valid)
         if old is not None and old.occupancy is not None and old.occupancy[0] == key:
@@ -223,7 +224,9 @@ class FieldOne:
         """The points (M, 2) that make the grid, zero where not valid, and which are valid (M,): finite and, in
         3D, within C of the agent's altitude (``EscapeMaps.refresh``). 2D and all finite: the points as given."""
         if self._dim == 2 and np.isfinite(obstacles_m).all():
-            return obstacles_m, np.ones(obstacles_m.shape[0], dtype=bool)
+            if self._all_valid.shape[0] != obstacles_m.shape[0]:
+                self._all_valid = np.ones(obstacles_m.shape[0], dtype=bool)  # only read (keys, occupancy)
+            return obstacles_m, self._all_valid
         valid = np.logical_and.reduce(np.isfinite(obstacles_m), axis=1)
         if self._dim == 3:
             valid &= np.abs(obstacles_m[:, 2] - position_m[2]) <= self._clearance_m
@@ -233,7 +236,7 @@ class FieldOne:
         """``NavGrid.origins`` of one agent in Python floats: the same operations on each coordinate (the
         distance is the batch path's einsum on the same layout)."""
         delta = goal_m - xy_m
-        dist = float(np.sqrt(np.einsum("bd,bd->b", delta[None], delta[None]))[0])
+        dist = float(np.sqrt(einsum("bd,bd->b", delta[None], delta[None]))[0])
         side, h = self._side_m, self._h
         reach = min(dist / 2.0, self._half_room_m)
         out = []
@@ -243,15 +246,17 @@ class FieldOne:
         return np.array(out)
 
     def _carry_over(
-        self, old: NavField | None, xy_m: FloatArray, origin_m: FloatArray
+        self, old: NavField | None, xy_m: FloatArray, goal_m: FloatArray
     ) -> tuple[FloatArray, BoolArray | None, BoolArray | None]:
         """``navescape._carry_over`` of one agent: the grid's corner (the old one where the agent is well inside
-        it) and the remembered blocked and virtual cells in that grid (None: no old field)."""
+        it, else ``NavGrid.origins``'s) and the remembered blocked and virtual cells in that grid (None: no old
+        field). The blocked cells are only read; the virtual ones become the new field's (a copy)."""
         if old is None:
-            return origin_m, None, None
+            return self._origin(xy_m, goal_m), None, None
         pad, far = self._keep_m, self._side_m - self._keep_m
         if all(pad <= x - o <= far for x, o in zip(xy_m.tolist(), old.origin_m.tolist(), strict=True)):
-            return old.origin_m.copy(), old.blocked.copy(), old.virtual.copy()  # well inside: keep the frame
+            return old.origin_m.copy(), old.blocked, old.virtual.copy()  # well inside: keep the frame
+        origin_m = self._origin(xy_m, goal_m)
         return (
             origin_m,
             self._grid.shift_blocked(old.blocked, old.origin_m, origin_m),
@@ -273,7 +278,7 @@ class FieldOne:
             return self._recall(memo, origin_m, blocked, goal_m), None
         closed = self._close_seen_edges(blocked, origin_m, state)
         dist = self._recall(memo, origin_m, closed, goal_m)
-        values = self._sampled(origin_m, dist, xy_m + self._around_xy)
+        values = self._sampled(origin_m, dist, xy_m)
         if np.isfinite(values).any():
             return dist, values
         return self._recall(memo, origin_m, blocked, goal_m), None
@@ -311,50 +316,67 @@ class FieldSampler:
     def __init__(self, n: int, cell_m: float) -> None:
         self._n = n
         self._h = cell_m
-        self._corner_steps = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=np.intp)[:, None, :]
+        self._corner_di = np.array([[0], [0], [1], [1]], dtype=np.intp)  # the four corners' steps along i, j
+        self._corner_dj = np.array([[0], [1], [0], [1]], dtype=np.intp)
         self._corner_flat = np.array([[0], [1], [n], [n + 1]], dtype=np.intp)  # the same four, as flat offsets
+        # (1 - f, f) per axis as (0 + 1) - f and 0 - (-f): exact, so the weights are the batch path's.
+        self._pair_base = np.array([1.0, 0.0])[:, None, None]
+        self._pair_sign = np.array([1.0, -1.0])[:, None, None]  # times (2, P) fractions: (2, 2, P)
 
     def __call__(self, origin_m: FloatArray, dist_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
-        """``NavGrid.sample_many`` of one field at points (P, 2): the same arithmetic, corner by corner. Where
-        every corner lies in the grid, the clamping changes no index and every point is inside; where every corner
-        is also finite with a positive weight, the batch path's masks select nothing and its sums are these."""
+        """``NavGrid.sample_many`` of one field at points (P, 2) (``at`` on their transpose)."""
+        return self.at(origin_m, dist_m, np.ascontiguousarray(points_xy_m.T))
+
+    def at(self, origin_m: FloatArray, dist_m: FloatArray, points_t_m: FloatArray) -> FloatArray:
+        """``NavGrid.sample_many`` of one field at points (2, P) (rows: north, east): the same arithmetic, corner
+        by corner, on contiguous rows. Where every corner lies in the grid, the clamping changes no index and
+        every point is inside; where every corner is also finite with a positive weight, the batch path's masks
+        select nothing and its sums are these."""
         n = self._n
-        rel = (points_xy_m - origin_m) / self._h - 0.5
+        rel = (points_t_m - origin_m[:, None]) / self._h - 0.5
         low = np.floor(rel).astype(np.intp)
-        frac = rel - low
-        interior = low.min() >= 0 and low.max() <= n - 2
+        frac = rel - low  # never -0.0 (rel - floor(rel)), so every weight is +0.0 or more
+        # Every corner index in [0, n - 1]: as unsigned, a negative index is huge.
+        interior = int(np.maximum.reduce(low.view(np.uintp), axis=None)) <= n - 2
         if interior:
-            val = dist_m[(low[:, 0] * n + low[:, 1]) + self._corner_flat]  # (4, P)
+            val = dist_m[(low[0] * n + low[1]) + self._corner_flat]  # (4, P)
         else:  # the corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1), each index clamped
-            ij = low + self._corner_steps  # (4, P, 2)
-            np.maximum(ij, 0, out=ij)
-            np.minimum(ij, n - 1, out=ij)
-            val = dist_m[ij[:, :, 0] * n + ij[:, :, 1]]
-        w = _weights(frac)
-        ok = np.isfinite(val) & (w > 0.0)
+            ii = np.clip(low[0] + self._corner_di, 0, n - 1)
+            ii *= n
+            ii += np.clip(low[1] + self._corner_dj, 0, n - 1)
+            val = dist_m[ii]
+        pair = self._pair_sign * frac  # (2, 2, P): (f, -f) per axis
+        np.subtract(self._pair_base, pair, out=pair)  # (1 - f, f) per axis
+        w: FloatArray = (pair[:, None, 0] * pair[None, :, 1]).reshape(4, -1)  # wi * wj, corner by corner
+        ok = np.isfinite(val)
+        ok &= w > 0.0
+        # Summed corner by corner in the batch path's order: a reduction over the leading axis adds the rows in
+        # turn. Where the batch path masks a corner to 0.0, w * ok is +0.0 (w >= 0 and finite) and so is
+        # (w * ok) * 0.0: the same terms.
         if interior and ok.all():
-            term = w * val
-            fast: FloatArray = (term[0] + term[1] + term[2] + term[3]) / (w[0] + w[1] + w[2] + w[3])
+            fast: FloatArray = np.add.reduce(w * val, axis=0)
+            fast /= np.add.reduce(w, axis=0)
             return fast
-        term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
-        weight = np.where(ok, w, 0.0)
-        num = term[0] + term[1] + term[2] + term[3]
-        den = weight[0] + weight[1] + weight[2] + weight[3]
+        weight = w * ok
+        term = np.where(ok, val, 0.0)
+        term *= weight
+        num = np.add.reduce(term, axis=0)
+        den = np.add.reduce(weight, axis=0)
         use = den > 0.0
         if not interior:
-            use &= np.logical_and.reduce((rel >= -0.5) & (rel <= n - 0.5), axis=1)
+            inside = rel >= -0.5
+            inside &= rel <= n - 0.5
+            use &= np.logical_and.reduce(inside, axis=0)
         out: FloatArray = np.full(num.shape, np.inf)
         np.divide(num, den, out=out, where=use)
         return out
 
 
-def _weights(frac: FloatArray) -> FloatArray:
-    """(4, P) bilinear weights wi * wj of the corners (0, 0), (0, 1), (1, 0), (1, 1) from the fractions (P, 2)."""
-    pair = np.empty((2, *frac.shape))
-    np.subtract(1.0, frac, out=pair[0])  # (1 - f, f) per axis
-    pair[1] = frac
-    w: FloatArray = (pair[:, None, :, 0] * pair[None, :, :, 1]).reshape(4, -1)
-    return w
+def _same_field(old: NavField | None, new: NavField | None) -> bool:
+    """Whether ``new`` holds the potential of ``old``: the same distances (a memo hit) in the same frame."""
+    if old is None or new is None:
+        return False
+    return new.dist_m is old.dist_m and new.origin_m.tolist() == old.origin_m.tolist()
 
 
 class EscapeStep:

@@ -21,7 +21,9 @@ It returns None where the agent enters ESCAPE (no point passes, some move is fea
 
 from __future__ import annotations
 
+import importlib
 import math
+from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -30,11 +32,26 @@ from apf_companion.planning.clearance import clearance_terms, lookahead_probes, 
 from apf_companion.planning.decision import Decision, DecisionReason
 from apf_companion.planning.params import PlannerParams
 
-__all__ = ["DirectStep"]
+__all__ = ["DirectStep", "einsum"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
+
+
+def _c_einsum() -> Callable[..., FloatArray]:
+    """``np.einsum`` without ``optimize`` calls this C function behind a Python wrapper (about 0.7 us a call):
+    the same call, kernels and results without the wrapper; ``np.einsum`` itself where numpy has no such name."""
+    try:
+        module = importlib.import_module("numpy._core.multiarray")  # numpy >= 2
+    except ImportError:
+        return np.einsum
+    found: Callable[..., FloatArray] = getattr(module, "c_einsum", np.einsum)
+    return found
+
+
+#: The einsum calls of the single-agent path (``_c_einsum``).
+einsum = _c_einsum()
 
 #: Smallest normal float64 (the divisor of zero-length segments, as in ``clearance.MoveSweep``).
 _TINY = float(np.finfo(np.float64).tiny)
@@ -100,7 +117,7 @@ class DirectStep:
         ``goal_vec_m`` (D,) target minus position and ``g0_m`` its length [m]; ``prev_dir`` (1, D) the unit
         direction of the last move (zeros: none). The caller records the move (``NavState.prev_dir``)."""
         to_goal = goal_vec_m - self._offsets  # (K, D)
-        g_k = np.sqrt(np.einsum("kd,kd->k", to_goal, to_goal))
+        g_k = np.sqrt(einsum("kd,kd->k", to_goal, to_goal))
         rel, d2 = rel_m, d2_m2
         near = (d2 <= self._reach2).nonzero()[0]
         seg2 = None
@@ -109,7 +126,7 @@ class DirectStep:
             cost, cost0 = g_k + 0.0 + 0.0, g0_m + 0.0  # the batch path adds its zero terms too
         else:
             probes = lookahead_probes(to_goal, g_k, self._lookahead_m) if self._probing else None
-            feasible, seg2, clear_k, clear_0, look_k = self._geometry(rel[near], d2[near], probes)
+            feasible, seg2, clear_k, clear_0, look_k = self._geometry(rel.take(near, axis=0), d2[near], probes)
             cost = g_k + clear_k
             if look_k is not None:
                 cost += look_k
@@ -142,7 +159,7 @@ class DirectStep:
         near = (d2_m2 <= self._reach2).nonzero()[0]
         if near.size == 0:  # the batch path's values without near obstacles
             return np.ones(self._n, dtype=bool), np.full(self._n, _INF), np.zeros(self._n), 0.0
-        feasible, seg2, clear_k, clear_0, _ = self._geometry(rel_m[near], d2_m2[near], None)
+        feasible, seg2, clear_k, clear_0, _ = self._geometry(rel_m.take(near, axis=0), d2_m2[near], None)
         return feasible, seg2, clear_k, clear_0
 
     def _geometry(
@@ -152,16 +169,18 @@ class DirectStep:
         agent, look-ahead penalties (K,) or None. ``rel`` (M, D), M > 0: the near obstacles minus the agent;
         ``r2`` (M,) their |rel|^2."""
         n = self._n
-        if probes is None:
-            starts, vectors, v2 = self._starts[:, :, : n + 1], self._move_vectors, self._move_v2
+        if probes is None:  # every segment starts at the agent: |obstacle - start|^2 is one number per obstacle
+            rel_t = rel.T.copy()  # (D, M) contiguous: the broadcast products run along contiguous rows
+            dot = _axis_sum(rel_t[:, :, None] * self._move_vectors[:, None, :])
+            clear_k, clear_0, nearest = self._clearance(dot, r2)  # before _closest_from consumes dot
+            swept = _closest_from(dot, _axis_sum(rel_t * rel_t), self._move_v2)
         else:
             vectors = np.concatenate((self._move_vectors, probes.T), axis=1)
-            v2 = np.concatenate((self._move_v2, np.einsum("kd,kd->k", probes, probes)))
+            v2 = np.concatenate((self._move_v2, einsum("kd,kd->k", probes, probes)))
             np.maximum(v2, _TINY, out=v2)
-            starts = self._starts
-        dot, d2 = _segments(rel, starts, vectors)
-        clear_k, clear_0, nearest = self._clearance(dot[:, : n + 1], r2)  # before _closest consumes dot
-        swept = _closest(dot, d2, v2)
+            dot, d2 = _segments(rel, self._starts, vectors)
+            clear_k, clear_0, nearest = self._clearance(dot[:, : n + 1], r2)  # before _closest consumes dot
+            swept = _closest(dot, d2, v2)
         seg2 = swept[:n]
         d0 = float(nearest[n])
         # Inside the clearance (d0 < C^2): get no closer along the move and end farther out.
@@ -232,6 +251,21 @@ def _axis_sum(per_axis: FloatArray) -> FloatArray:
     for d in range(2, per_axis.shape[0]):
         out += per_axis[d]
     return out
+
+
+def _closest_from(dot: FloatArray, r2: FloatArray, v2: FloatArray) -> FloatArray:
+    """``_closest`` of segments that all start at the agent, from (M,) ``r2`` = |rel|^2 (left to right over the
+    axes, as ``_segments`` has it): ``sweep_sq_inplace``'s operations, its last one broadcast (``dot`` is
+    consumed)."""
+    t = dot / v2
+    np.maximum(t, 0.0, out=t)
+    np.minimum(t, 1.0, out=t)
+    dot *= 2.0
+    dot -= t * v2
+    dot *= t
+    np.subtract(r2[:, None], dot, out=dot)
+    swept: FloatArray = np.minimum.reduce(dot, axis=0)
+    return np.maximum(swept, 0.0, out=swept)
 
 
 def _closest(dot: FloatArray, d2: FloatArray, v2: FloatArray) -> FloatArray:

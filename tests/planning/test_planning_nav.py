@@ -289,14 +289,15 @@ def test_escape_reaches_the_goal_of_each_bundled_world(name: str) -> None:
     assert lowest >= PlannerParams().clearance_m - 1e-9
 
 
-def test_the_line_of_sight_is_blocked_by_surfaces_not_by_isolated_points() -> None:
-    """``EscapeMaps.sight_blocked``: a wall across the line blocks it, one point or a point beside the line does
-    not, unknown (masked, non-finite) rows are ignored, and ``nav_sight_m`` = 0 or a wall beyond it is no block."""
+def test_the_line_of_sight_is_blocked_by_any_known_point_within_c_of_it() -> None:
+    """``EscapeMaps.sight_blocked``: a wall across the line blocks it and so does one point on it; a wall beside
+    the line (farther than C) does not, unknown (masked, non-finite) rows are ignored, and ``nav_sight_m`` = 0 or a
+    wall beyond it is no block."""
     params = PlannerParams()
     maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
     wall = np.stack([np.full(21, 5.0), np.linspace(-2.0, 2.0, 21)], axis=1)  # north 5, 0.2 m apart
-    point = np.array([[5.0, 0.0]])
-    beside = wall + np.array([0.0, 3.0])  # east 1..5: more than C from the line along east 0
+    point = np.array([[5.0, 0.5]])  # 0.5 m east of the line: within C = 0.6 m
+    beside = wall + np.array([0.0, 2.61])  # east 0.61..4.61: just farther than C from the line along east 0
     far = wall + np.array([10.0, 0.0])  # north 15, beyond 8 m
     scenes = [wall, point, beside, far, np.full_like(wall, np.nan)]
     width = max(len(x) for x in scenes)
@@ -309,7 +310,7 @@ def test_the_line_of_sight_is_blocked_by_surfaces_not_by_isolated_points() -> No
     targets = np.tile([20.0, 0.0], (len(scenes), 1))
     active = np.ones(len(scenes), dtype=bool)
     blocked = maps.sight_blocked(active, positions, targets, obstacles, mask)
-    assert blocked.tolist() == [True, False, False, False, False]
+    assert blocked.tolist() == [True, True, False, False, False]
     assert not maps.sight_blocked(~active, positions, targets, obstacles, mask).any()
     off = EscapeMaps(PlannerParams(nav_sight_m=0.0), BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
     assert not off.sight_blocked(active, positions, targets, obstacles, mask).any()

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
+from apf_companion.planning.navescapeone import FieldSampler
 from apf_companion.planning.navstate import NavField
 from tests.planning.same_decision import assert_same_decision
 
@@ -224,3 +225,27 @@ def test_no_way_from_any_candidate_gives_up_as_the_batch_path(dim: int) -> None:
     _assert_same_state(own, state)
     if dim == 2:  # (in 3D the points above and below the agent sample its own cell)
         assert d.reason.name == "GAVE_UP" and own.mode[0] == NavMode.GAVE_UP
+
+
+def test_the_single_field_sampler_equals_sample_many_bit_for_bit() -> None:
+    """``FieldSampler`` (fast, masked interior and clamped paths) against ``NavGrid.sample_many``: fields with
+    blocked (inf) cells and a goal cell at 0, points inside, on and beyond the grid's sides and corners."""
+    grid = BapfNavPlanner(PlannerParams())._escape.grid
+    sampler = FieldSampler(grid.n, grid.cell_m)
+    rng = np.random.default_rng(11)
+    side = grid.n * grid.cell_m
+    paths = set()
+    for trial in range(300):
+        origin = np.floor(rng.uniform(-20.0, 20.0, 2) / grid.cell_m) * grid.cell_m
+        dist = rng.uniform(0.0, 30.0, grid.size)
+        dist[rng.random(grid.size) < rng.choice([0.0, 0.05, 0.5, 1.0])] = np.inf
+        dist[rng.integers(grid.size)] = 0.0
+        centre = origin + rng.choice([side / 2.0, 0.0, side, rng.uniform(0.0, side)])
+        points = centre + rng.uniform(-0.6, 0.6, (61, 2))
+        if trial % 7 == 0:  # on cell centres and the grid's lines: fractions of exactly 0
+            points = origin + (rng.integers(-1, grid.n + 1, (61, 2)) + rng.choice([0.0, 0.5], (61, 2))) * grid.cell_m
+        single = sampler(origin, dist, points)
+        batch = grid.sample_many(origin[None], dist[None], points[None])[0]
+        assert single.tobytes() == batch.tobytes()
+        paths.add((bool(np.isfinite(single).all()), bool(np.isinf(single).any())))
+    assert len(paths) >= 2  # finite and masked results both occur

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
-from apf_companion.planning.navone import DirectStep
+from apf_companion.planning.navone import DirectStep, einsum
 from tests.planning.same_decision import assert_same_decision
 
 _PARAMS = {
@@ -104,3 +104,19 @@ def test_a_step_that_enters_escape_falls_back_to_the_batch_path() -> None:
     planner.step(np.zeros(2), target, wall)
     state = planner._own
     assert isinstance(state, NavState) and state.mode[0] == NavMode.ESCAPE
+
+
+def test_the_single_agent_einsum_is_numpys_bit_for_bit() -> None:
+    """``navone.einsum`` (numpy's C einsum without its wrapper) gives np.einsum's bytes on the path's layouts."""
+    rng = np.random.default_rng(5)
+    for dim in (2, 3):
+        rel = rng.normal(size=(300, dim)) * 7.0
+        unit = rng.normal(size=dim)
+        for subscripts, operands in (
+            ("nd,nd->n", (rel, rel)),
+            ("amd,ad->am", (rel[None], unit[None])),
+            ("amd,amd->am", (rel[None], rel[None])),
+            ("ad,ad->a", (unit[None], unit[None])),
+            ("kd,kd->k", (rel[:60], rel[:60])),
+        ):
+            assert einsum(subscripts, *operands).tobytes() == np.einsum(subscripts, *operands).tobytes()

@@ -49,7 +49,7 @@ def test_the_single_agent_sight_equals_the_batch_test(dim: int, sight_m: float) 
         pos, target, obstacles = _lattice_scene(rng, dim)
         goal_vec = target - pos
         g0 = float(np.sqrt(np.einsum("ad,ad->a", goal_vec[None], goal_vec[None]))[0])
-        single = sight(obstacles - pos, obstacles, goal_vec, g0)
+        single = sight(obstacles - pos, goal_vec, g0)
         every = np.ones(1, dtype=bool)
         batch = maps.sight_blocked(every, pos[None], target[None], obstacles[None], None)
         assert single == bool(batch[0])

@@ -77,6 +77,9 @@ def test_run_dry_run_process_stops_cleanly_on_sigint(tmp_path: Path) -> None:
     rec = json.loads(result.read_text())
     assert rec["outcome"] == "stopped" and rec["state"] == "IDLE"
     assert rec["counters"]["setpoints_sent"] == 0
+    # The startup heap (tens of thousands of objects: numpy, pymavlink's dialect, the service) was frozen before
+    # the flight, so no full collection walks it mid-flight (apf_companion/heap.py).
+    assert rec["gc"]["frozen"] > 10_000
 
 
 def test_check_config_refuses_a_connection_string_run_would_refuse(

@@ -281,6 +281,7 @@ async def test_goal_changed_mid_flight_by_zenoh() -> None:
         assert status["schema"] == "apf.status/1"
         assert status["state"] in {s.value for s in State}
         assert {"pose", "goal", "nearest_obstacle_m", "loop_latency_ms"} <= set(status)
+        assert set(status["gc"]) == {"collections", "full", "max_pause_ms", "frozen"}  # the running service's
     assert math.dist(sim.result()["final_pos_ned_m"][:2], (3.0, 12.0)) <= 1.0
 
 
