@@ -137,40 +137,8 @@ class EscapeMaps:
         from the agent, |p - agent| + d(p) <= d(agent) + 2 C + h (the straight distance is a lower bound of
         the way to p). Such a field would lead the agent on into what it now sees is closed (e.g. into a U
         whose far corners were beyond the sensor when the field was made)."""
-        out = np.zeros(rows.size, dtype=bool)
-        grid = self.grid
-        n, h = grid.n, grid.cell_m
-        slack = 2.0 * self.clearance_m + h
-        reach2 = self.params.nav_sight_m**2
-        for i, r in enumerate(rows):
-            f = state.field[r]
-            if f is None:
-                continue
-            obs = obstacles_m[r]
-            rel = obs - positions_m[r]
-            d2 = np.einsum("md,md->m", rel, rel)  # non-finite rows compare False below
-            near = d2 <= reach2
-            if obstacle_mask is not None:
-                near &= obstacle_mask[r]
-            if self.params.dim == 3:
-                near &= np.abs(rel[:, 2]) <= self.clearance_m
-            if not near.any():
-                continue
-            pts = obs[near, :2]
-            ci, cj = grid.cell_of(f.origin_m[None], pts[None])
-            ci, cj = ci[0], cj[0]
-            inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
-            cells = ci[inside] * n + cj[inside]
-            new = ~f.blocked[cells]
-            if not new.any():
-                continue
-            here = grid.sample(f.origin_m, f.dist_m, positions_m[r, :2][None])[0]
-            if not np.isfinite(here):
-                out[i] = True
-                continue
-            way = np.sqrt(d2[near][inside][new]) + f.dist_m[cells[new]]
-            out[i] = bool((way <= here + slack).any())
-        return out
+        reach = (self.params.nav_sight_m, self.clearance_m)
+        return _outdated(self.grid, rows, positions_m, obstacles_m, obstacle_mask, state, reach)
 
     def mark_dead_ends(
         self,
@@ -294,6 +262,64 @@ class EscapeMaps:
             dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
             values = np.sqrt(values * values + dz * dz)
         return values[:, :-1], values[:, -1]
+
+
+def _outdated(
+    grid: NavGrid,
+    rows: IntArray,
+    positions_m: FloatArray,
+    obstacles_m: FloatArray,
+    obstacle_mask: BoolArray | None,
+    state: NavState,
+    reach_m: tuple[float, float],
+) -> BoolArray:
+    """``EscapeMaps.outdated`` (its docstring has the rule); ``reach_m`` = (``nav_sight_m``, C). The distances, the
+    near points and their cells for all rows at once (2D: the two products written out, einsum's sum bit for bit;
+    3D: einsum per row, as before), the potential at the agents in one ``sample_many`` (element for element
+    ``sample``'s); only the lookups in each agent's own field stay per row."""
+    sight_m, clearance_m = reach_m
+    out = np.zeros(rows.size, dtype=bool)
+    fields = [state.field[r] for r in rows]
+    idx = np.array([i for i, f in enumerate(fields) if f is not None], dtype=np.intp)
+    if idx.size == 0:
+        return out
+    obs = obstacles_m[rows[idx]]
+    rel = obs - positions_m[rows[idx]][:, None, :]
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite rows compare False below
+        if rel.shape[2] == 2:
+            d2 = rel[:, :, 0] * rel[:, :, 0]
+            d2 += rel[:, :, 1] * rel[:, :, 1]
+        else:
+            d2 = np.stack([np.einsum("md,md->m", x, x) for x in rel])
+    near = d2 <= sight_m**2
+    if obstacle_mask is not None:
+        near &= obstacle_mask[rows[idx]]
+    if rel.shape[2] == 3:
+        near &= np.abs(rel[:, :, 2]) <= clearance_m
+    n = grid.n
+    ci, cj = grid.cell_of(np.stack([fields[i].origin_m for i in idx]), obs[:, :, :2])
+    inside = near & (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
+    cells = ci * n + cj
+    todo: list[tuple[int, int, IntArray, BoolArray]] = []
+    for k, i in enumerate(idx.tolist()):
+        if inside[k].any():
+            c = cells[k][inside[k]]
+            new = ~fields[i].blocked[c]
+            if new.any():
+                todo.append((k, i, c, new))
+    if not todo:
+        return out
+    sel = [fields[i] for _, i, _, _ in todo]
+    where = positions_m[rows[[i for _, i, _, _ in todo]], :2][:, None, :]
+    here = grid.sample_many(np.stack([f.origin_m for f in sel]), np.stack([f.dist_m for f in sel]), where)[:, 0]
+    slack = 2.0 * clearance_m + grid.cell_m
+    for (k, i, c, new), f, h0 in zip(todo, sel, here, strict=True):
+        if not np.isfinite(h0):
+            out[i] = True
+            continue
+        way = np.sqrt(d2[k][inside[k]][new]) + f.dist_m[c[new]]
+        out[i] = bool((way <= h0 + slack).any())
+    return out
 
 
 def _close_seen_edges(
