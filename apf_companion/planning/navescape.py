@@ -14,7 +14,6 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.planning.navfield import NavGrid
-from apf_companion.planning.navsight import sight_blocked
 from apf_companion.planning.navstate import NavField, NavState
 from apf_companion.planning.params import PlannerParams
 
@@ -24,9 +23,18 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
+#: Agents x obstacle points per group in the line-of-sight test (``EscapeMaps.sight_blocked``).
+_SIGHT_CELLS = 32768
+#: Known points closer than this to each other belong to one surface (sampled every 0.2 m, ``sight_blocked``).
+_SURFACE_M = 0.45
 #: A field is tested against newly seen obstacles (``EscapeMaps.outdated``) once it is this many steps old: a
 #: bound on the fields an agent can cost while its map grows (one every few moves, not one per move).
 _OUTDATED_AGE = 8
+#: Smallest normal float64: the divisor for an agent on its goal (zero direction, never 0/0).
+_TINY = float(np.finfo(np.float64).tiny)
+_any = np.logical_or.reduce
+#: Blocking points tested for being part of a surface, the first along the line (``sight_blocked``).
+_SIGHT_FIRST = 3
 #: Fields an agent's memo keeps (``NavField.memo``): the closed and the open field of one input. Over 300 study
 #: trials at 70-95 one or four reuse as many fields as two; the memory is the agent's, 23 kB a field at 54 x 54.
 _MEMO = 2
@@ -50,7 +58,7 @@ class EscapeMaps:
         #: Around a point known now, remembered obstacle cells give way to the points' own inflation: C plus a
         #: cell's diagonal (a point that moved by range noise re-inflates the cells it blocked before).
         self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
-        self._sight_reach = (params.nav_sight_m, params.step_m, clearance_m)
+        self._c2 = clearance_m * clearance_m
         n, h = self.grid.n, self.grid.cell_m
         on_edge = np.zeros((n, n), dtype=bool)
         on_edge[0, :] = on_edge[-1, :] = on_edge[:, 0] = on_edge[:, -1] = True
@@ -69,16 +77,71 @@ class EscapeMaps:
         """(A,) agents of ``active`` whose straight line to the goal is blocked on the remembered map.
 
         The line runs from one step ahead of the agent (an obstacle beside the agent that noise brought within C
-        does not block it) to ``nav_sight_m`` towards the goal, or to the goal; it is blocked when a known
-        obstacle point lies closer to it than the clearance C, i.e. the line crosses the inflated map that the
-        escape grid is built from. Then the agent plans on the grid's potential instead of the straight-line
-        one: around a cluster of the paper's point obstacles as around a wall. (Until session 16 only surfaces
-        blocked the line, points with two known neighbours within 0.45 m; the direct step then went around
-        clusters of isolated points greedily, on the side it met first: 1.161x the optimum at 70-95 with noise,
-        against 1.115x now, with the same bundled worlds; docs/planner.md.) All off when ``nav_sight_m`` is 0.
-        Computed by ``navsight.sight_blocked``.
+        does not block it) to ``nav_sight_m`` towards the goal, or to the goal. A known obstacle point closer to
+        it than the clearance C lies on the inflated map that the escape grid is built from. The line is blocked
+        when such a point lies on its first ``nav_sight_points_m`` (any point: a cluster of the paper's point
+        obstacles just ahead is passed on the grid's potential, not greedily on the side met first), or when
+        one of the first ``_SIGHT_FIRST`` such points along the whole line is part of a surface: two other known
+        points lie within ``_SURFACE_M`` of it (its neighbours on a wall or trunk sampled every 0.2 m), which
+        starts the escape before a concave wall traps the agent. All off when ``nav_sight_m`` is 0.
         """
-        return sight_blocked(active, positions_m, targets_m, obstacles_m, obstacle_mask, self._sight_reach)
+        p = self.params
+        out = np.zeros(positions_m.shape[0], dtype=bool)
+        if p.nav_sight_m <= 0.0 or obstacles_m.shape[1] == 0:
+            return out
+        rows = np.flatnonzero(active)
+        first = min(_SIGHT_FIRST, obstacles_m.shape[1])
+        near_m = min(p.nav_sight_points_m, p.nav_sight_m)
+        group = max(1, _SIGHT_CELLS // obstacles_m.shape[1])  # (group, M) temporaries stay small
+        for lo in range(0, rows.size, group):
+            r = rows[lo : lo + group]
+            to_goal = targets_m[r] - positions_m[r]
+            dist = np.sqrt(np.einsum("ad,ad->a", to_goal, to_goal))
+            unit = to_goal / np.maximum(dist, _TINY)[:, None]
+            obs = obstacles_m[r]
+            rel = obs - positions_m[r][:, None, :]
+            with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
+                along = np.einsum("amd,ad->am", rel, unit)
+            hit = self._line_hits(rel, along, unit, np.minimum(dist, p.nav_sight_m), obstacle_mask, r)
+            if near_m > 0.0:
+                out[r] = _any(self._line_hits(rel, along, unit, np.minimum(dist, near_m), obstacle_mask, r), axis=1)
+            some = np.flatnonzero(_any(hit, axis=1) & ~out[r])
+            if some.size == 0:
+                continue
+            order = np.where(hit[some], along[some], np.inf)
+            picks = np.argpartition(order, first - 1, axis=1)[:, :first]  # (S, F) the first hits along the line
+            real = np.take_along_axis(hit[some], picks, axis=1)
+            pts = obs[some[:, None], picks]  # (S, F, D)
+            with np.errstate(invalid="ignore", over="ignore"):
+                gap = obs[some][:, None, :, :] - pts[:, :, None, :]  # (S, F, M, D)
+                d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)
+            close = (d2 < _SURFACE_M * _SURFACE_M) & (d2 > 0.0)
+            if obstacle_mask is not None:
+                close &= obstacle_mask[r[some]][:, None, :]
+            surface = (np.add.reduce(close, axis=2) >= 2) & real
+            out[r[some]] = _any(surface, axis=1)
+        return out
+
+    def _line_hits(
+        self,
+        rel: FloatArray,
+        along: FloatArray,
+        unit: FloatArray,
+        end: FloatArray,
+        obstacle_mask: BoolArray | None,
+        rows: IntArray,
+    ) -> BoolArray:
+        """(R, M) whether each point lies within C of the line's piece from one step ahead to ``end`` (R,) [m];
+        ``rel`` (R, M, D) the points minus the agents, ``along`` (R, M) their coordinates along the line,
+        ``unit`` (R, D) its direction."""
+        start = np.minimum(self.params.step_m, end)
+        with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
+            t = np.clip(along, start[:, None], end[:, None])
+            off = rel - t[:, :, None] * unit[:, None, :]
+            hit: BoolArray = np.einsum("amd,amd->am", off, off) < self._c2
+        if obstacle_mask is not None:
+            hit &= obstacle_mask[rows]
+        return hit
 
     def potentials(
         self,

@@ -18,7 +18,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navescape import _SIGHT_FIRST, _SURFACE_M, EscapeMaps
 from apf_companion.planning.navone import einsum
 from apf_companion.planning.navstate import TRAIL, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
@@ -31,6 +31,8 @@ FloatArray = npt.NDArray[np.float64]
 _TINY = float(np.finfo(np.float64).tiny)
 #: Squared distances up to this are safe to square and add again (no overflow): beyond, the batch test decides.
 _SANE_M2 = 1e300
+#: Slack of the sight test's neighbour prefilter (``SightLine``): rounding is below 1e-12 m there [m].
+_AROUND_SLACK_M = 1e-3
 #: Relative band around the trail spacing where the batch path's einsum decides (``SingleStart._record``).
 _ULPS = 1e-12
 #: ``NavState.since_*`` are int32: a count stops there (any count that high has already given up or gone stale).
@@ -52,24 +54,54 @@ class SightLine:
 
     def __init__(self, params: PlannerParams, clearance_m: float) -> None:
         self._sight_m = params.nav_sight_m
+        self._near_m = min(params.nav_sight_points_m, params.nav_sight_m)
         self._step_m = params.step_m
         self._c2 = clearance_m * clearance_m
+        self._surface2 = _SURFACE_M * _SURFACE_M
+        self._first = _SIGHT_FIRST
+        self._around2 = (clearance_m + _SURFACE_M + _AROUND_SLACK_M) ** 2
 
-    def __call__(self, rel_m: FloatArray, goal_vec_m: FloatArray, g0_m: float) -> bool:
-        """Whether a known point lies within C of the line. ``rel_m`` (M, D) obstacles minus the agent, all
+    def __call__(self, rel_m: FloatArray, obstacles_m: FloatArray, goal_vec_m: FloatArray, g0_m: float) -> bool:
+        """Whether the line is blocked. ``rel_m`` (M, D) obstacles minus the agent, ``obstacles_m`` (M, D), all
         finite, |rel|^2 <= ``_SANE_M2``; ``goal_vec_m`` (D,) target minus agent, ``g0_m`` its length (finite)."""
-        if self._sight_m <= 0.0 or rel_m.shape[0] == 0:
+        n_obs = rel_m.shape[0]
+        if self._sight_m <= 0.0 or n_obs == 0:
             return False
         unit = goal_vec_m / max(g0_m, _TINY)
-        end = min(g0_m, self._sight_m)
-        start = min(self._step_m, end)
         # The einsum calls are the batch path's, on one row (the same reduction kernels, whatever the build).
         along = einsum("amd,ad->am", rel_m[None], unit[None])[0]
+        if self._near_m > 0.0 and bool(
+            np.logical_or.reduce(self._off2(rel_m, along, unit, g0_m, self._near_m) < self._c2)
+        ):
+            return True  # any point near the agent
+        off2 = self._off2(rel_m, along, unit, g0_m, self._sight_m)
+        hit = off2 < self._c2
+        picks = hit.nonzero()[0]
+        if picks.size == 0:
+            return False
+        first = min(self._first, n_obs)
+        if picks.size > first:  # the first hits along the line: the batch path's call on the same numbers
+            order = np.where(hit, along, math.inf)
+            picks = np.argpartition(order, first - 1)[:first]
+        # Fewer hits than ``first``: the batch path picks them all (its other picks are not hits).
+        # A pick's neighbours lie within C + surface_m of the line (off2 is the squared distance to it; its
+        # rounding is relative to these few metres): only they are compared, with the batch path's arithmetic.
+        around = obstacles_m.take((off2 < self._around2).nonzero()[0], axis=0)
+        gap = around[None, None, :, :] - obstacles_m.take(picks, axis=0)[None, :, None, :]  # (1, P, Q, D)
+        d2 = einsum("sfmd,sfmd->sfm", gap, gap)[0]
+        close = d2 < self._surface2
+        close &= d2 > 0.0
+        return bool(np.logical_or.reduce(np.add.reduce(close, axis=1) >= 2))
+
+    def _off2(self, rel_m: FloatArray, along: FloatArray, unit: FloatArray, g0_m: float, length_m: float) -> FloatArray:
+        """(M,) squared distances of the points to the line's piece from one step ahead to ``length_m``."""
+        end = min(g0_m, length_m)
+        start = min(self._step_m, end)
         t = np.maximum(along, start)  # np.clip(along, start, end) without its Python wrapper
         np.minimum(t, end, out=t)
         off = rel_m - t[:, None] * unit
-        off2 = einsum("amd,amd->am", off[None], off[None])[0]
-        return bool(np.logical_or.reduce(off2 < self._c2))
+        off2: FloatArray = einsum("amd,amd->am", off[None], off[None])[0]
+        return off2
 
 
 class SingleStart:
@@ -128,7 +160,7 @@ class SingleStart:
         """The line of sight; non-finite or huge numbers go to the batch test (its floating-point state)."""
         total = float(np.add.reduce(r2)) if r2.shape[0] else 0.0
         if math.isfinite(g0) and total <= _SANE_M2:  # also False for NaN
-            return self._sight(rel, goal_vec, g0)
+            return self._sight(rel, obstacles_m, goal_vec, g0)
         every = np.ones(1, dtype=bool)
         return bool(self._escape.sight_blocked(every, position_m[None], target_m[None], obstacles_m[None], None)[0])
 

@@ -115,8 +115,12 @@ class PlannerParams:
     nav_replan_steps : bapf-nav: recompute the navigation potential every this many escape steps (new
         obstacles), >= 1.
     nav_sight_m : bapf-nav: the line of sight tested towards the goal [m], >= 0 (0 = off). While a remembered
-        obstacle (inflated by the clearance) blocks the straight line within this distance, the agent descends
-        the geodesic potential (ESCAPE) instead of the straight-line one, before a concave obstacle traps it.
+        surface (a wall or trunk: a point with two known neighbours within 0.45 m), inflated by the clearance,
+        blocks the straight line within this distance, the agent descends the geodesic potential (ESCAPE) instead
+        of the straight-line one, before a concave obstacle traps it.
+    nav_sight_points_m : bapf-nav: any remembered point, a lone one too, blocks the line of sight within this
+        distance [m], >= 0 (0 = only surfaces block it; at most ``nav_sight_m`` counts): clusters of point obstacles
+        are passed on the geodesic potential once near.
     nav_seen_m : bapf-nav: edge cells of the navigation grid within this distance of where the agent has been
         are not exits into unknown space (it has looked there) [m], >= 0 (0 = every edge cell is an exit).
     nav_patience_steps : bapf-nav: give up (STUCK) after this many steps without a new closest approach to the
@@ -159,6 +163,7 @@ class PlannerParams:
     nav_grid_m: float = 16.0
     nav_replan_steps: int = 25
     nav_sight_m: float = 8.0
+    nav_sight_points_m: float = 2.0
     nav_seen_m: float = 4.0
     nav_patience_steps: int = 300
     br_lookahead_m: float = 1.2
@@ -222,7 +227,7 @@ class PlannerParams:
             if _finite(name, getattr(self, name)) <= 0.0:
                 raise _fail(name, getattr(self, name), "a finite number > 0")
         non_negative = ("safety_margin_m", "noise_std_m", "noise_k", "nav_clearance_gain_m", "nav_lookahead_m")
-        for name in (*non_negative, "nav_lookahead_penalty_m", "nav_sight_m", "nav_seen_m"):
+        for name in (*non_negative, "nav_lookahead_penalty_m", "nav_sight_m", "nav_sight_points_m", "nav_seen_m"):
             if _finite(name, getattr(self, name)) < 0.0:
                 raise _fail(name, getattr(self, name), "a finite number >= 0")
         for name in ("nav_hold_angle_deg", "br_cont_angle_deg"):

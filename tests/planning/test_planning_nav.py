@@ -289,17 +289,18 @@ def test_escape_reaches_the_goal_of_each_bundled_world(name: str) -> None:
     assert lowest >= PlannerParams().clearance_m - 1e-9
 
 
-def test_the_line_of_sight_is_blocked_by_any_known_point_within_c_of_it() -> None:
-    """``EscapeMaps.sight_blocked``: a wall across the line blocks it and so does one point on it; a wall beside
-    the line (farther than C) does not, unknown (masked, non-finite) rows are ignored, and ``nav_sight_m`` = 0 or a
-    wall beyond it is no block."""
+def test_the_line_of_sight_is_blocked_by_surfaces_and_by_near_points() -> None:
+    """``EscapeMaps.sight_blocked``: a wall across the line blocks it; a lone point on it only within
+    ``nav_sight_points_m`` (2 m); a wall beside the line (farther than C) does not, unknown (masked, non-finite)
+    rows are ignored, and ``nav_sight_m`` = 0 or a wall beyond it is no block."""
     params = PlannerParams()
     maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
     wall = np.stack([np.full(21, 5.0), np.linspace(-2.0, 2.0, 21)], axis=1)  # north 5, 0.2 m apart
-    point = np.array([[5.0, 0.5]])  # 0.5 m east of the line: within C = 0.6 m
+    point = np.array([[5.0, 0.5]])  # 0.5 m east of the line (within C = 0.6 m), 5 m ahead: beyond 2 m
+    near = np.array([[1.9, 0.5]])  # the same, 1.9 m ahead
     beside = wall + np.array([0.0, 2.61])  # east 0.61..4.61: just farther than C from the line along east 0
     far = wall + np.array([10.0, 0.0])  # north 15, beyond 8 m
-    scenes = [wall, point, beside, far, np.full_like(wall, np.nan)]
+    scenes = [wall, point, near, beside, far, np.full_like(wall, np.nan)]
     width = max(len(x) for x in scenes)
     obstacles = np.full((len(scenes), width, 2), np.nan)
     mask = np.zeros((len(scenes), width), dtype=bool)
@@ -310,7 +311,10 @@ def test_the_line_of_sight_is_blocked_by_any_known_point_within_c_of_it() -> Non
     targets = np.tile([20.0, 0.0], (len(scenes), 1))
     active = np.ones(len(scenes), dtype=bool)
     blocked = maps.sight_blocked(active, positions, targets, obstacles, mask)
-    assert blocked.tolist() == [True, True, False, False, False]
+    assert blocked.tolist() == [True, False, True, False, False, False]
+    points_off = PlannerParams(nav_sight_points_m=0.0)
+    surfaces = EscapeMaps(points_off, BapfNavPlanner(points_off).bacteria_offsets_m, points_off.clearance_m)
+    assert surfaces.sight_blocked(active, positions, targets, obstacles, mask).tolist()[:3] == [True, False, False]
     assert not maps.sight_blocked(~active, positions, targets, obstacles, mask).any()
     off = EscapeMaps(PlannerParams(nav_sight_m=0.0), BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
     assert not off.sight_blocked(active, positions, targets, obstacles, mask).any()

@@ -24,10 +24,10 @@ from sim.world.files import example_world_path, load_world
 # bapf-nav re-pinned on branch pathratio (was 2f2d1b990ae7b400): the early escape by sight (nav_sight_m), the
 # refresh of outdated fields, the seen exits (nav_seen_m) and the quarter-step progress rule change its decisions
 # on purpose (docs/planner.md, Design items 4 and 7). Re-pinned in session 16 (was 93ef69b61fde5ce3): any known
-# point within C of the line of sight blocks it, not only surfaces (``EscapeMaps.sight_blocked``). bendyruler
-# unchanged.
+# point within C of the line of sight's first ``nav_sight_points_m`` blocks it too, not only surfaces
+# (``EscapeMaps.sight_blocked``). bendyruler unchanged.
 PINNED = {
-    "bapf-nav": "196892b7862a522b",
+    "bapf-nav": "0883da6fed753d07",
     "bendyruler": "549eac0d9465ed7b",
 }
 

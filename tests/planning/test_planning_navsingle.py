@@ -39,8 +39,9 @@ def _lattice_scene(rng: np.random.Generator, dim: int) -> tuple[np.ndarray, np.n
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("sight_m", [8.0, 3.0, 0.0])
-def test_the_single_agent_sight_equals_the_batch_test(dim: int, sight_m: float) -> None:
-    params = PlannerParams(dim=dim, nav_sight_m=sight_m)
+@pytest.mark.parametrize("points_m", [2.0, 0.0, 8.0])
+def test_the_single_agent_sight_equals_the_batch_test(dim: int, sight_m: float, points_m: float) -> None:
+    params = PlannerParams(dim=dim, nav_sight_m=sight_m, nav_sight_points_m=points_m)
     planner = BapfNavPlanner(params)
     maps, sight = planner._escape, SightLine(params, params.clearance_m)
     rng = np.random.default_rng(7 + dim)
@@ -49,7 +50,7 @@ def test_the_single_agent_sight_equals_the_batch_test(dim: int, sight_m: float) 
         pos, target, obstacles = _lattice_scene(rng, dim)
         goal_vec = target - pos
         g0 = float(np.sqrt(np.einsum("ad,ad->a", goal_vec[None], goal_vec[None]))[0])
-        single = sight(obstacles - pos, goal_vec, g0)
+        single = sight(obstacles - pos, obstacles, goal_vec, g0)
         every = np.ones(1, dtype=bool)
         batch = maps.sight_blocked(every, pos[None], target[None], obstacles[None], None)
         assert single == bool(batch[0])
