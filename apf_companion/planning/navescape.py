@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.planning.clearance import compact_rows
 from apf_companion.planning.navfield import NavGrid
 from apf_companion.planning.navstate import NavField, NavState
 from apf_companion.planning.params import PlannerParams
@@ -59,6 +60,7 @@ class EscapeMaps:
         #: cell's diagonal (a point that moved by range noise re-inflates the cells it blocked before).
         self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
         self._c2 = clearance_m * clearance_m
+        self._around2 = (clearance_m + _SURFACE_M + 1e-3) ** 2
         n, h = self.grid.n, self.grid.cell_m
         on_edge = np.zeros((n, n), dtype=bool)
         on_edge[0, :] = on_edge[-1, :] = on_edge[:, 0] = on_edge[:, -1] = True
@@ -102,9 +104,9 @@ class EscapeMaps:
             rel = obs - positions_m[r][:, None, :]
             with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
                 along = np.einsum("amd,ad->am", rel, unit)
-            hit = self._line_hits(rel, along, unit, np.minimum(dist, p.nav_sight_m), obstacle_mask, r)
+            hit, off2 = self._line_hits(rel, along, unit, np.minimum(dist, p.nav_sight_m), obstacle_mask, r)
             if near_m > 0.0:
-                out[r] = _any(self._line_hits(rel, along, unit, np.minimum(dist, near_m), obstacle_mask, r), axis=1)
+                out[r] = _any(self._line_hits(rel, along, unit, np.minimum(dist, near_m), obstacle_mask, r)[0], axis=1)
             some = np.flatnonzero(_any(hit, axis=1) & ~out[r])
             if some.size == 0:
                 continue
@@ -112,12 +114,16 @@ class EscapeMaps:
             picks = np.argpartition(order, first - 1, axis=1)[:, :first]  # (S, F) the first hits along the line
             real = np.take_along_axis(hit[some], picks, axis=1)
             pts = obs[some[:, None], picks]  # (S, F, D)
-            with np.errstate(invalid="ignore", over="ignore"):
-                gap = obs[some][:, None, :, :] - pts[:, :, None, :]  # (S, F, M, D)
-                d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)
-            close = (d2 < _SURFACE_M * _SURFACE_M) & (d2 > 0.0)
+            # A pick's neighbours (within 0.45 m of a point within C of the segment) lie within C + 0.45 m of it:
+            # only those are compared (``_around2`` has 1 mm of slack over the rounding of these few metres).
+            around = off2[some] < self._around2  # NaN compares False
             if obstacle_mask is not None:
-                close &= obstacle_mask[r[some]][:, None, :]
+                around &= obstacle_mask[r[some]]
+            cand, valid = compact_rows(obs[some], around)
+            with np.errstate(invalid="ignore", over="ignore"):
+                gap = cand[:, None, :, :] - pts[:, :, None, :]  # (S, F, W, D)
+                d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)
+            close = (d2 < _SURFACE_M * _SURFACE_M) & (d2 > 0.0) & valid[:, None, :]
             surface = (np.add.reduce(close, axis=2) >= 2) & real
             out[r[some]] = _any(surface, axis=1)
         return out
@@ -130,18 +136,19 @@ class EscapeMaps:
         end: FloatArray,
         obstacle_mask: BoolArray | None,
         rows: IntArray,
-    ) -> BoolArray:
-        """(R, M) whether each point lies within C of the line's piece from one step ahead to ``end`` (R,) [m];
-        ``rel`` (R, M, D) the points minus the agents, ``along`` (R, M) their coordinates along the line,
-        ``unit`` (R, D) its direction."""
+    ) -> tuple[BoolArray, FloatArray]:
+        """(R, M) whether each point lies within C of the line's piece from one step ahead to ``end`` (R,) [m], and
+        its squared distance to that piece; ``rel`` (R, M, D) the points minus the agents, ``along`` (R, M) their
+        coordinates along the line, ``unit`` (R, D) its direction."""
         start = np.minimum(self.params.step_m, end)
         with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
             t = np.clip(along, start[:, None], end[:, None])
             off = rel - t[:, :, None] * unit[:, None, :]
-            hit: BoolArray = np.einsum("amd,amd->am", off, off) < self._c2
+            off2: FloatArray = np.einsum("amd,amd->am", off, off)
+        hit: BoolArray = off2 < self._c2
         if obstacle_mask is not None:
             hit &= obstacle_mask[rows]
-        return hit
+        return hit, off2
 
     def potentials(
         self,

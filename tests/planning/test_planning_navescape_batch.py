@@ -73,3 +73,62 @@ def test_outdated_fields_equal_the_per_agent_test(dim: int) -> None:
         assert got == _outdated_per_row(planner._escape, rows, pos, obstacles, known, state)
         checked += sum(got)
     assert checked > 0  # some fields were outdated
+
+
+def _sight_all_points(
+    maps: EscapeMaps, pos: FloatArray, target: FloatArray, obs: FloatArray, mask: BoolArray
+) -> BoolArray:
+    """``EscapeMaps.sight_blocked`` before the neighbour prefilter: each pick against every known point (one group,
+    every agent looking)."""
+    p, c2 = maps.params, maps.clearance_m**2
+    to_goal = target - pos
+    dist = np.sqrt(np.einsum("ad,ad->a", to_goal, to_goal))
+    unit = to_goal / np.maximum(dist, np.finfo(np.float64).tiny)[:, None]
+    rel = obs - pos[:, None, :]
+
+    def hits(end: FloatArray) -> BoolArray:
+        start = np.minimum(p.step_m, end)
+        with np.errstate(invalid="ignore", over="ignore"):
+            t = np.clip(np.einsum("amd,ad->am", rel, unit), start[:, None], end[:, None])
+            off = rel - t[:, :, None] * unit[:, None, :]
+            out: BoolArray = (np.einsum("amd,amd->am", off, off) < c2) & mask
+        return out
+
+    near_m = min(p.nav_sight_points_m, p.nav_sight_m)
+    out: BoolArray = np.zeros(pos.shape[0], dtype=bool)
+    if near_m > 0.0:
+        out |= hits(np.minimum(dist, near_m)).any(axis=1)
+    hit = hits(np.minimum(dist, p.nav_sight_m))
+    with np.errstate(invalid="ignore", over="ignore"):
+        along = np.einsum("amd,ad->am", rel, unit)
+    for a in np.flatnonzero(hit.any(axis=1) & ~out):
+        order = np.where(hit[a], along[a], np.inf)
+        picks = np.argpartition(order, min(3, obs.shape[1]) - 1)[: min(3, obs.shape[1])]
+        with np.errstate(invalid="ignore", over="ignore"):
+            gap = obs[a][None, :, :] - obs[a][picks][:, None, :]
+            d2 = np.einsum("fmd,fmd->fm", gap, gap)
+        close = (d2 < 0.45**2) & (d2 > 0.0) & mask[a][None, :]
+        out[a] = bool(((close.sum(axis=1) >= 2) & hit[a][picks]).any())
+    return out
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_sight_test_equals_the_all_points_test(dim: int) -> None:
+    """Each pick compared only with the points near the line answers what comparing it with every known point
+    answered: agents on a 0.1 m lattice (ties along the line), walls of neighbours and isolated points, masks."""
+    maps = BapfNavPlanner(PlannerParams(dim=dim))._escape
+    rng = np.random.default_rng(31 + dim)
+    answers: list[bool] = []
+    for _ in range(20):
+        n_agents, width = 150, 60
+        pos = np.round(rng.uniform(-3.0, 3.0, (n_agents, dim)), 1)
+        along_axis = rng.random(n_agents) < 0.5
+        ahead = np.where(along_axis[:, None], np.eye(dim)[0] * 20.0, np.round(rng.uniform(-12, 12, (n_agents, dim)), 1))
+        spread = np.r_[1.0, np.full(dim - 1, 0.15)]
+        obs = pos[:, None, :] + np.round(rng.uniform(-1.0, 9.0, (n_agents, width, dim)) * spread, 1)
+        known = rng.random((n_agents, width)) < 0.8
+        obs[~known] = np.nan
+        got = maps.sight_blocked(np.ones(n_agents, dtype=bool), pos, pos + ahead, obs, known)
+        assert got.tolist() == _sight_all_points(maps, pos, pos + ahead, obs, known).tolist()
+        answers.extend(got.tolist())
+    assert any(answers) and not all(answers)
