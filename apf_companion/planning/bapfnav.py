@@ -291,9 +291,9 @@ class BapfNavPlanner(StatefulPlanner):
             return np.ones(g_k.shape, dtype=bool), seg2, zeros, np.zeros(g_k.shape[0]), zeros
         lookahead = p.nav_lookahead_m > 0.0 and p.nav_lookahead_penalty_m > 0.0 and _any(direct, axis=None)
         probes = lookahead_probes(to_goal, g_k, p.nav_lookahead_m) if lookahead else None
-        r2 = np.einsum("amd,amd->am", rel, rel)
+        r2 = _padded_sq_norm(rel, valid)
         seg2, end2, look2 = self._sweep_moves(rel, valid, r2, probes)
-        feasible, clear_k, clear_0 = self._sweep(valid, r2, seg2, end2)
+        feasible, clear_k, clear_0 = self._sweep(r2, seg2, end2)
         if look2 is None:
             return feasible, seg2, clear_k, clear_0, np.zeros(g_k.shape)
         # The probe comes closer than the clearance: DIRECT agents pay the penalty.
@@ -323,30 +323,24 @@ class BapfNavPlanner(StatefulPlanner):
             state.hit_dist_m[sighted] = g0[sighted]
         state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
 
-    def _sweep(
-        self, valid: BoolArray, r2: FloatArray, seg2: FloatArray, end2: FloatArray
-    ) -> tuple[BoolArray, FloatArray, FloatArray]:
+    def _sweep(self, r2: FloatArray, seg2: FloatArray, end2: FloatArray) -> tuple[BoolArray, FloatArray, FloatArray]:
         """Feasible moves (A, K): the whole segment keeps the clearance (or, from inside it, gets no closer and
         ends out); the Eq. (2)-form clearance term at the points (A, K) and at the agent (A,), in metres of path.
-        ``r2`` (A, M) and ``end2`` (M, A, K): squared distances of the obstacles to the agent and the points."""
+        ``r2`` (A, M) and ``end2`` (M, A, K): squared distances of the obstacles to the agent and the points, +inf
+        in the rows of padding obstacles (``_padded_sq_norm``; MoveSweep's end2 is r2 + ..., so inf there too):
+        their clearance terms are gain exp(-inf) = 0 and they are never the nearest."""
         p = self.params
         n_agents = r2.shape[0]
-        all_valid = n_agents == 1 or bool(_all(valid, axis=None))  # one agent: near_obstacles returns only real rows
         if p.nav_clearance_gain_m == 0.0:
             clear_k, clear_0 = np.zeros(seg2.shape), np.zeros(n_agents)
         else:
             terms = clearance_terms(end2, p.nav_clearance_decay_per_m2, p.nav_clearance_gain_m)
             at_agent = clearance_terms(r2, p.nav_clearance_decay_per_m2, p.nav_clearance_gain_m)
-            if not all_valid:
-                np.copyto(terms, 0.0, where=~valid.T[:, :, None])
-                at_agent = np.where(valid, at_agent, 0.0)
             clear_k, clear_0 = np.add.reduce(terms, axis=0), _sum(at_agent, axis=1)
-        d0 = (r2 if all_valid else np.where(valid, r2, np.inf)).min(axis=1, initial=np.inf)
+        d0 = r2.min(axis=1, initial=np.inf)
         ok = seg2 >= self._c2
         inside = d0 < self._c2
         if _any(inside, axis=None):
-            if not all_valid:
-                np.copyto(end2, np.inf, where=~valid.T[:, :, None])
             out = (seg2 >= d0[:, None]) & (np.minimum.reduce(end2, axis=0) > d0[:, None])
             ok = np.where(inside[:, None], out, ok)
         return np.asarray(ok), clear_k, clear_0
@@ -387,6 +381,19 @@ class BapfNavPlanner(StatefulPlanner):
         cost0[rows[inside]] = np.inf
         passing[rows] = ok
         state.mode[rows[lost & ~inside]] = _GAVE_UP
+
+
+def _padded_sq_norm(rel: FloatArray, valid: BoolArray) -> FloatArray:
+    """(A, M) |rel|^2 of the near obstacles, +inf in padding rows. 2D: the two products written out (einsum's sum
+    bit for bit, one rounding either order, and several times faster on the short coordinate axis); 3D: einsum."""
+    if rel.shape[2] == 2:
+        r2 = rel[:, :, 0] * rel[:, :, 0]
+        r2 += rel[:, :, 1] * rel[:, :, 1]
+    else:
+        r2 = np.einsum("amd,amd->am", rel, rel)
+    if rel.shape[0] > 1 and not _all(valid, axis=None):  # one agent: near_obstacles returns only real rows
+        np.copyto(r2, np.inf, where=~valid)
+    return np.asarray(r2, dtype=np.float64)
 
 
 def _squeeze_out(chosen: IntArray, boxed: BoolArray, seg2: FloatArray, floor2: float) -> None:

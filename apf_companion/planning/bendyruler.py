@@ -192,10 +192,7 @@ class BendyRulerPlanner(StatefulPlanner):
         if k.shape[1] <= _FOCUS_PROBES and rel.shape[1] > 0:
             ends = self._units[k] * np.clip(g0[rows], p.step_m, p.br_lookahead_m)[:, None, None]  # (R, S, D)
             reach = p.br_lookahead_m + p.br_margin_max_m + _SLACK_M
-            close = np.zeros(valid.shape, dtype=bool)
-            for s in range(k.shape[1]):
-                close |= _sq_norm(rel - ends[:, s, None, :]) <= reach * reach
-            rel, valid = compact_rows(rel, valid & close)
+            rel, valid = compact_rows(rel, valid & _near_any(rel, ends, reach))
         counts = valid.sum(axis=1)
         by_count = np.argsort(counts, kind="stable")
         out = np.empty(k.shape)
@@ -254,37 +251,48 @@ def _rulers_sq(
 
     Element for element the arithmetic of ``clearance.segments_clearance_sq`` (the digests pin it), with what the
     three segments share computed once: ruler 1 starts at the agent, so its obstacle offsets are the obstacles
-    themselves; both second rulers start at the end of ruler 1."""
+    themselves; both second rulers start at the end of ruler 1.
+
+    Layout: every (M, A, S) operand is a whole contiguous array and every (A, S) one a contiguous plane, so each
+    ufunc runs one inner loop over A S elements per obstacle. An (M, A, 1) operand broadcast against an (A, S)
+    one has an inner loop of S (3 in the first stage), which numpy runs through buffered copies at about twice
+    the cost; ``np.repeat`` makes the whole arrays once (elementwise IEEE operations: the same values)."""
     dim = rel.shape[2]
-    axes = [np.ascontiguousarray(rel[:, :, d].T)[:, :, None] for d in range(dim)]  # (M, A, 1) each
-    r2_agent = axes[0] * axes[0]
+    n_probes = ruler1.shape[1]
+    planes = [np.ascontiguousarray(rel[:, :, d].T)[:, :, None] for d in range(dim)]  # (M, A, 1) each
+    r2_agent = planes[0] * planes[0]
     for d in range(1, dim):
-        r2_agent += axes[d] * axes[d]
-    offsets = [axes[d] - ruler1[:, :, d] for d in range(dim)]  # (M, A, S): obstacle minus the end of ruler 1
+        r2_agent += planes[d] * planes[d]
+    # Padding rows (rel = 0) start from |rel|^2 = inf, which every segment's inf - finite keeps: the squared norms
+    # are marked once instead of each segment's result.
+    invalid = None if valid.all() else ~valid.T[:, :, None]
+    if invalid is not None:
+        np.copyto(r2_agent, np.inf, where=invalid)
+    axes = [np.repeat(a, n_probes, axis=2) for a in planes]  # (M, A, S) each
+    r2_agent = np.repeat(r2_agent, n_probes, axis=2)
+    r1 = [np.ascontiguousarray(ruler1[:, :, d]) for d in range(dim)]  # (A, S) each
+    r2 = [np.ascontiguousarray(ruler2[:, :, d]) for d in range(dim)]
+    offsets = [axes[d] - r1[d] for d in range(dim)]  # (M, A, S): obstacle minus the end of ruler 1
     r2_end = offsets[0] * offsets[0]
     for d in range(1, dim):
         r2_end += offsets[d] * offsets[d]
-    # Padding rows (rel = 0) start from |rel|^2 = inf, which every segment's inf - finite keeps: the squared norms
-    # are marked once instead of each segment's result.
-    if not valid.all():
-        invalid = ~valid.T[:, :, None]
-        np.copyto(r2_agent, np.inf, where=invalid)
+    if invalid is not None:
         np.copyto(r2_end, np.inf, where=invalid)
+    len1_sq = _sq_norm(ruler1)
     return (
-        _segment_min_sq(axes, r2_agent, ruler1),
-        _segment_min_sq(offsets, r2_end, ruler2),
-        _segment_min_sq(offsets, r2_end, ruler1),
+        _segment_min_sq(axes, r2_agent, r1, len1_sq),
+        _segment_min_sq(offsets, r2_end, r2, _sq_norm(ruler2)),
+        _segment_min_sq(offsets, r2_end, r1, len1_sq),
     )
 
 
-def _segment_min_sq(rel: list[FloatArray], r2: FloatArray, vectors: FloatArray) -> FloatArray:
-    """min over obstacles of |rel - t v|^2, t = clip(rel.v / |v|^2, 0, 1) (0 for a zero-length v), (A, S); the
-    clip at 0 after the minimum (monotone, so bit for bit the minimum of the clipped values; d2 is never NaN or
-    -0.0)."""
-    dot = rel[0] * vectors[:, :, 0]
+def _segment_min_sq(rel: list[FloatArray], r2: FloatArray, vectors: list[FloatArray], v2: FloatArray) -> FloatArray:
+    """min over obstacles of |rel - t v|^2, t = clip(rel.v / |v|^2, 0, 1) (0 for a zero-length v), (A, S); ``rel``
+    and ``r2`` (M, A, S), the coordinate planes of v (A, S) each and ``v2`` = |v|^2 (A, S). The clip at 0 after the
+    minimum (monotone, so bit for bit the minimum of the clipped values; d2 is never NaN or -0.0)."""
+    dot = rel[0] * vectors[0]
     for d in range(1, len(rel)):
-        dot += rel[d] * vectors[:, :, d]
-    v2 = _sq_norm(vectors)
+        dot += rel[d] * vectors[d]
     with np.errstate(invalid="ignore", divide="ignore"):
         t = dot / v2
     np.fmax(t, 0.0, out=t)  # also NaN from a zero-length vector: the segment is its start point
@@ -295,6 +303,17 @@ def _segment_min_sq(rel: list[FloatArray], r2: FloatArray, vectors: FloatArray) 
     np.subtract(r2, dot, out=dot)
     out = np.minimum.reduce(dot, axis=0, initial=np.inf)
     return np.asarray(np.maximum(out, 0.0, out=out), dtype=np.float64)
+
+
+def _near_any(rel: FloatArray, ends: FloatArray, reach_m: float) -> BoolArray:
+    """(R, M) obstacles ``rel`` (R, M, D) within ``reach_m`` of any of the points ``ends`` (R, S, D), all S at once
+    on (R, S, M) coordinate planes (a prefilter: its reach has slack, so its own rounding never matters)."""
+    d2 = np.zeros((ends.shape[0], ends.shape[1], rel.shape[1]))
+    for d in range(rel.shape[2]):
+        delta = rel[:, None, :, d] - ends[:, :, d, None]
+        delta *= delta
+        d2 += delta
+    return np.asarray(np.logical_or.reduce(d2 <= reach_m * reach_m, axis=1), dtype=np.bool_)
 
 
 def _near(

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.planning.clearance import compact_rows
 from apf_companion.planning.navfield import NavGrid
 from apf_companion.planning.navstate import NavField, NavState
 from apf_companion.planning.params import PlannerParams
@@ -59,6 +60,7 @@ class EscapeMaps:
         #: cell's diagonal (a point that moved by range noise re-inflates the cells it blocked before).
         self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
         self._c2 = clearance_m * clearance_m
+        self._around2 = (clearance_m + _SURFACE_M + 1e-3) ** 2
         n, h = self.grid.n, self.grid.cell_m
         on_edge = np.zeros((n, n), dtype=bool)
         on_edge[0, :] = on_edge[-1, :] = on_edge[:, 0] = on_edge[:, -1] = True
@@ -102,9 +104,9 @@ class EscapeMaps:
             rel = obs - positions_m[r][:, None, :]
             with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
                 along = np.einsum("amd,ad->am", rel, unit)
-            hit = self._line_hits(rel, along, unit, np.minimum(dist, p.nav_sight_m), obstacle_mask, r)
+            hit, off2 = self._line_hits(rel, along, unit, np.minimum(dist, p.nav_sight_m), obstacle_mask, r)
             if near_m > 0.0:
-                out[r] = _any(self._line_hits(rel, along, unit, np.minimum(dist, near_m), obstacle_mask, r), axis=1)
+                out[r] = _any(self._line_hits(rel, along, unit, np.minimum(dist, near_m), obstacle_mask, r)[0], axis=1)
             some = np.flatnonzero(_any(hit, axis=1) & ~out[r])
             if some.size == 0:
                 continue
@@ -112,12 +114,16 @@ class EscapeMaps:
             picks = np.argpartition(order, first - 1, axis=1)[:, :first]  # (S, F) the first hits along the line
             real = np.take_along_axis(hit[some], picks, axis=1)
             pts = obs[some[:, None], picks]  # (S, F, D)
-            with np.errstate(invalid="ignore", over="ignore"):
-                gap = obs[some][:, None, :, :] - pts[:, :, None, :]  # (S, F, M, D)
-                d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)
-            close = (d2 < _SURFACE_M * _SURFACE_M) & (d2 > 0.0)
+            # A pick's neighbours (within 0.45 m of a point within C of the segment) lie within C + 0.45 m of it:
+            # only those are compared (``_around2`` has 1 mm of slack over the rounding of these few metres).
+            around = off2[some] < self._around2  # NaN compares False
             if obstacle_mask is not None:
-                close &= obstacle_mask[r[some]][:, None, :]
+                around &= obstacle_mask[r[some]]
+            cand, valid = compact_rows(obs[some], around)
+            with np.errstate(invalid="ignore", over="ignore"):
+                gap = cand[:, None, :, :] - pts[:, :, None, :]  # (S, F, W, D)
+                d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)
+            close = (d2 < _SURFACE_M * _SURFACE_M) & (d2 > 0.0) & valid[:, None, :]
             surface = (np.add.reduce(close, axis=2) >= 2) & real
             out[r[some]] = _any(surface, axis=1)
         return out
@@ -130,18 +136,19 @@ class EscapeMaps:
         end: FloatArray,
         obstacle_mask: BoolArray | None,
         rows: IntArray,
-    ) -> BoolArray:
-        """(R, M) whether each point lies within C of the line's piece from one step ahead to ``end`` (R,) [m];
-        ``rel`` (R, M, D) the points minus the agents, ``along`` (R, M) their coordinates along the line,
-        ``unit`` (R, D) its direction."""
+    ) -> tuple[BoolArray, FloatArray]:
+        """(R, M) whether each point lies within C of the line's piece from one step ahead to ``end`` (R,) [m], and
+        its squared distance to that piece; ``rel`` (R, M, D) the points minus the agents, ``along`` (R, M) their
+        coordinates along the line, ``unit`` (R, D) its direction."""
         start = np.minimum(self.params.step_m, end)
         with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
             t = np.clip(along, start[:, None], end[:, None])
             off = rel - t[:, :, None] * unit[:, None, :]
-            hit: BoolArray = np.einsum("amd,amd->am", off, off) < self._c2
+            off2: FloatArray = np.einsum("amd,amd->am", off, off)
+        hit: BoolArray = off2 < self._c2
         if obstacle_mask is not None:
             hit &= obstacle_mask[rows]
-        return hit
+        return hit, off2
 
     def potentials(
         self,
@@ -200,40 +207,8 @@ class EscapeMaps:
         from the agent, |p - agent| + d(p) <= d(agent) + 2 C + h (the straight distance is a lower bound of
         the way to p). Such a field would lead the agent on into what it now sees is closed (e.g. into a U
         whose far corners were beyond the sensor when the field was made)."""
-        out = np.zeros(rows.size, dtype=bool)
-        grid = self.grid
-        n, h = grid.n, grid.cell_m
-        slack = 2.0 * self.clearance_m + h
-        reach2 = self.params.nav_sight_m**2
-        for i, r in enumerate(rows):
-            f = state.field[r]
-            if f is None:
-                continue
-            obs = obstacles_m[r]
-            rel = obs - positions_m[r]
-            d2 = np.einsum("md,md->m", rel, rel)  # non-finite rows compare False below
-            near = d2 <= reach2
-            if obstacle_mask is not None:
-                near &= obstacle_mask[r]
-            if self.params.dim == 3:
-                near &= np.abs(rel[:, 2]) <= self.clearance_m
-            if not near.any():
-                continue
-            pts = obs[near, :2]
-            ci, cj = grid.cell_of(f.origin_m[None], pts[None])
-            ci, cj = ci[0], cj[0]
-            inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
-            cells = ci[inside] * n + cj[inside]
-            new = ~f.blocked[cells]
-            if not new.any():
-                continue
-            here = grid.sample(f.origin_m, f.dist_m, positions_m[r, :2][None])[0]
-            if not np.isfinite(here):
-                out[i] = True
-                continue
-            way = np.sqrt(d2[near][inside][new]) + f.dist_m[cells[new]]
-            out[i] = bool((way <= here + slack).any())
-        return out
+        reach = (self.params.nav_sight_m, self.clearance_m)
+        return _outdated(self.grid, rows, positions_m, obstacles_m, obstacle_mask, state, reach)
 
     def mark_dead_ends(
         self,
@@ -357,6 +332,64 @@ class EscapeMaps:
             dz = pts[:, :, 2] - targets_m[rows, 2][:, None]
             values = np.sqrt(values * values + dz * dz)
         return values[:, :-1], values[:, -1]
+
+
+def _outdated(
+    grid: NavGrid,
+    rows: IntArray,
+    positions_m: FloatArray,
+    obstacles_m: FloatArray,
+    obstacle_mask: BoolArray | None,
+    state: NavState,
+    reach_m: tuple[float, float],
+) -> BoolArray:
+    """``EscapeMaps.outdated`` (its docstring has the rule); ``reach_m`` = (``nav_sight_m``, C). The distances, the
+    near points and their cells for all rows at once (2D: the two products written out, einsum's sum bit for bit;
+    3D: einsum per row, as before), the potential at the agents in one ``sample_many`` (element for element
+    ``sample``'s); only the lookups in each agent's own field stay per row."""
+    sight_m, clearance_m = reach_m
+    out = np.zeros(rows.size, dtype=bool)
+    fields = [state.field[r] for r in rows]
+    idx = np.array([i for i, f in enumerate(fields) if f is not None], dtype=np.intp)
+    if idx.size == 0:
+        return out
+    obs = obstacles_m[rows[idx]]
+    rel = obs - positions_m[rows[idx]][:, None, :]
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite rows compare False below
+        if rel.shape[2] == 2:
+            d2 = rel[:, :, 0] * rel[:, :, 0]
+            d2 += rel[:, :, 1] * rel[:, :, 1]
+        else:
+            d2 = np.stack([np.einsum("md,md->m", x, x) for x in rel])
+    near = d2 <= sight_m**2
+    if obstacle_mask is not None:
+        near &= obstacle_mask[rows[idx]]
+    if rel.shape[2] == 3:
+        near &= np.abs(rel[:, :, 2]) <= clearance_m
+    n = grid.n
+    ci, cj = grid.cell_of(np.stack([fields[i].origin_m for i in idx]), obs[:, :, :2])
+    inside = near & (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
+    cells = ci * n + cj
+    todo: list[tuple[int, int, IntArray, BoolArray]] = []
+    for k, i in enumerate(idx.tolist()):
+        if inside[k].any():
+            c = cells[k][inside[k]]
+            new = ~fields[i].blocked[c]
+            if new.any():
+                todo.append((k, i, c, new))
+    if not todo:
+        return out
+    sel = [fields[i] for _, i, _, _ in todo]
+    where = positions_m[rows[[i for _, i, _, _ in todo]], :2][:, None, :]
+    here = grid.sample_many(np.stack([f.origin_m for f in sel]), np.stack([f.dist_m for f in sel]), where)[:, 0]
+    slack = 2.0 * clearance_m + grid.cell_m
+    for (k, i, c, new), f, h0 in zip(todo, sel, here, strict=True):
+        if not np.isfinite(h0):
+            out[i] = True
+            continue
+        way = np.sqrt(d2[k][inside[k]][new]) + f.dist_m[c[new]]
+        out[i] = bool((way <= h0 + slack).any())
+    return out
 
 
 def _close_seen_edges(

@@ -59,12 +59,14 @@ class NavGrid:
         edge = np.zeros((self.n, self.n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
         self._edge_cells = np.flatnonzero(edge)
+        self._no_detour = np.zeros(self._edge_cells.size)
         src, dst, self._edge_cost = _grid_edges(self.n, self.cell_m)
         # The CSR arrays in scipy's index type (int32: fewer than 2^31 edges at 4096 cells a side), so that the
         # matrix of a field is made without converting them. Row pointers of the cells' rows; the source's row
         # (the seeds) is appended per field.
         self._indices = dst.astype(np.int32)
         self._indptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=self.size))]).astype(np.int32)
+        self._in_edges = _in_edges(dst, self.size)
 
     # --- frames ---------------------------------------------------------------------------------------------
 
@@ -177,9 +179,8 @@ class NavGrid:
         neighbours at the straight-line distance, when the goal is inside the grid, and the boundary (above);
         blocked cells are no seeds. An edge cell near the goal is listed twice: the lower value wins."""
         n, h = self.n, self.cell_m
-        gi_a, gj_a = self.cell_of(origin_m[None], goal_xy_m[None, None])
-        gi, gj = int(gi_a[0, 0]), int(gj_a[0, 0])
-        cells, detour = self._edge_cells, np.zeros(self._edge_cells.size)
+        gi, gj = self._cell_of_one(origin_m, goal_xy_m)
+        cells, detour = self._edge_cells, self._no_detour
         if 0 <= gi < n and 0 <= gj < n:
             blocked[gi * n + gj] = False  # the goal itself is always reachable in the grid
             near_i = np.arange(max(gi - 1, 0), min(gi + 2, n))
@@ -193,18 +194,32 @@ class NavGrid:
         euclid = np.hypot(origin_m[0] + (i + 0.5) * h - goal_xy_m[0], origin_m[1] + (j + 0.5) * h - goal_xy_m[1])
         return cells, np.asarray(euclid + detour, dtype=np.float64)
 
+    def _cell_of_one(self, origin_m: FloatArray, point_xy_m: FloatArray) -> tuple[int, int]:
+        """``cell_of`` of one point in one grid, on Python floats (the same IEEE arithmetic: a difference and a
+        quotient, floored; non-finite is -1; clipped to [-1, n])."""
+        out = []
+        for d in range(2):
+            rel = (float(point_xy_m[d]) - float(origin_m[d])) / self.cell_m
+            out.append(min(max(math.floor(rel), -1), self.n) if math.isfinite(rel) else -1)
+        return out[0], out[1]
+
     def _distances(self, origins_m: FloatArray, blocked: BoolArray, goals_xy_m: FloatArray) -> FloatArray:
         out = np.full(blocked.shape, np.inf)
+        n_edges = self._indices.size
         for b in range(origins_m.shape[0]):
             blk = blocked[b].copy()
             cells, values = self._seeds(origins_m[b], blk, goals_xy_m[b])
             if cells.size == 0:
                 continue
-            # An edge into a blocked cell is infinite. Edges out of one need not be: it is never reached.
-            weights = np.where(np.take(blk, self._indices), np.inf, self._edge_cost)
+            # An edge into a blocked cell is infinite (edges out of one need not be: it is never reached). The
+            # weights, then the seeds, then a scratch slot that the padding of ``_in_edges`` (-1) writes to.
+            data = np.empty(n_edges + cells.size + 1)
+            data[:n_edges] = self._edge_cost
+            data[n_edges:-1] = values
+            data[self._in_edges[np.flatnonzero(blk)]] = np.inf
             graph = csr_matrix(
                 (
-                    np.concatenate([weights, values]),
+                    data[:-1],
                     np.concatenate([self._indices, cells.astype(np.int32)]),
                     np.append(self._indptr, np.int32(self._indptr[-1] + cells.size)),
                 ),
@@ -262,3 +277,13 @@ def _grid_edges(n: int, cell_m: float) -> tuple[IntArray, IntArray, FloatArray]:
     cost = np.where((di != 0) & (dj != 0), cell_m * math.sqrt(2.0), cell_m)
     order = np.argsort(src[ok], kind="stable")
     return src[ok][order], (ii * n + jj)[ok][order], cost[ok][order]
+
+
+def _in_edges(dst: IntArray, size: int) -> IntArray:
+    """(size, 8) positions of the edges into each cell (``_grid_edges``' order), padded with -1."""
+    order = np.argsort(dst, kind="stable")
+    counts = np.bincount(dst, minlength=size)
+    slot = np.arange(dst.size) - (np.cumsum(counts) - counts)[dst[order]]
+    out = np.full((size, 8), -1, dtype=np.intp)
+    out[dst[order], slot] = order
+    return out

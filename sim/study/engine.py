@@ -487,6 +487,9 @@ class ChunkResult:
     task: ChunkTask
     records: TrialRecords
     wall_s: float
+    cpu_s: float = 0.0
+    """The worker's CPU time for the chunk [s] (``time.process_time``): unlike ``wall_s``, not stretched by other
+    processes sharing the cores. A chunk of a ``ChunkGroup`` gets the group's in proportion to its iterations."""
 
 
 def chunk_generators(seed: int, density: Density, chunk_index: int) -> tuple[np.random.Generator, ...]:
@@ -503,13 +506,13 @@ def chunk_worlds(task: ChunkTask) -> WorldBatch:
 
 def run_chunk(task: ChunkTask) -> ChunkResult:
     """Run one chunk (top-level so process pools can pickle it)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     world_rng, motion_rng = chunk_generators(task.seed, task.density, task.chunk_index)
     cfg = task.config
     worlds = draw_worlds(world_rng, task.n_trials, task.density, cfg.obstacle_box_m, cfg.dim, cfg.obstacle_sampling)
     result = simulate(cfg, task.planner_name, worlds, motion_rng)
-    wall_s = time.perf_counter() - t0
-    return ChunkResult(task=task, records=_timed(result.records, wall_s), wall_s=wall_s)
+    wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
+    return ChunkResult(task=task, records=_timed(result.records, wall_s), wall_s=wall_s, cpu_s=cpu_s)
 
 
 def _timed(rec: TrialRecords, wall_s: float) -> TrialRecords:
@@ -576,7 +579,7 @@ def run_group(group: ChunkGroup) -> list[ChunkResult]:
     tasks = group.tasks
     if len(tasks) == 1:
         return [run_chunk(tasks[0])]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     cfg, name = tasks[0].config, tasks[0].planner_name
     worlds, rngs = [], []
     for t in tasks:
@@ -588,11 +591,14 @@ def run_group(group: ChunkGroup) -> list[ChunkResult]:
     )
     starts = np.cumsum([0] + [t.n_trials for t in tasks])
     result = simulate(cfg, name, batch, rngs[0], noise=_chunk_noise(cfg, rngs, starts))
-    rec = _timed(result.records, time.perf_counter() - t0)
+    wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
+    rec = _timed(result.records, wall_s)
     out = []
     for i, t in enumerate(tasks):
         part = rec.rows(int(starts[i]), int(starts[i + 1]))
-        out.append(ChunkResult(task=t, records=part, wall_s=1e-3 * float(part.time_ms.sum())))
+        part_wall_s = 1e-3 * float(part.time_ms.sum())
+        share = part_wall_s / wall_s if wall_s > 0.0 else 0.0
+        out.append(ChunkResult(task=t, records=part, wall_s=part_wall_s, cpu_s=cpu_s * share))
     return out
 
 
@@ -685,6 +691,8 @@ class CellResult:
     records: TrialRecords
     wall_s: float
     """Sum of the chunks' wall-clock times [s] (CPU-side cost, summed over workers)."""
+    cpu_s: float = 0.0
+    """Sum of the chunks' CPU times [s] (``ChunkResult.cpu_s``)."""
 
 
 ProgressFn = Callable[[int, int], None]
@@ -791,6 +799,7 @@ def collect_cells(results: Sequence[ChunkResult]) -> list[CellResult]:
                 density=density,
                 records=TrialRecords.concat([p.records for p in parts]),
                 wall_s=sum(p.wall_s for p in parts),
+                cpu_s=sum(p.cpu_s for p in parts),
             )
         )
     return cells

@@ -19,6 +19,7 @@ from sim.study.engine import (
     ChunkTask,
     SerialExecutor,
     chunk_worlds,
+    collect_cells,
     group_tasks,
     make_tasks,
     run_chunk,
@@ -196,6 +197,12 @@ def test_a_group_of_bendyruler_chunks_equals_the_chunks_alone() -> None:
             assert a.tobytes() == b.tobytes(), field
     assert len({r.records.safety_m.tobytes() for r in alone}) == 3  # three different chunks
     assert sum(r.wall_s for r in together) > 0.0
+    # CPU time is measured per chunk, and a group's is shared like its wall time: by each chunk's iterations.
+    assert all(r.cpu_s > 0.0 for r in alone)
+    ratios = [r.cpu_s / r.wall_s for r in together]
+    assert ratios[0] > 0.0 and all(math.isclose(x, ratios[0]) for x in ratios)
+    cells = collect_cells(together)
+    assert len(cells) == 1 and math.isclose(cells[0].cpu_s, sum(r.cpu_s for r in together))
 
 
 def test_only_bendyruler_chunks_of_one_cell_are_grouped() -> None:
