@@ -21,6 +21,7 @@ __all__ = [
     "segment_clearance_sq",
     "segments_clearance_sq",
     "sweep_sq_inplace",
+    "sweep_term_inplace",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -289,10 +290,15 @@ def sweep_sq_inplace(dot: FloatArray, r2: FloatArray, v2: FloatArray) -> None:
     """``r2`` becomes the squared distance from each obstacle to each segment (``dot`` is consumed):
     |rel - t v|^2 = |rel|^2 - t (2 rel.v - t |v|^2) with t = rel.v / |v|^2 clipped to [0, 1]. ``dot`` = rel.v,
     ``r2`` = |rel|^2, ``v2`` = |v|^2 (> 0), broadcast together. May round to a tiny negative value: callers clip."""
+    sweep_term_inplace(dot, v2)
+    r2 -= dot
+
+
+def sweep_term_inplace(dot: FloatArray, v2: FloatArray) -> None:
+    """``dot`` (rel.v) becomes t (2 rel.v - t |v|^2), what ``sweep_sq_inplace`` takes from |rel|^2."""
     t = dot / v2
     np.maximum(t, 0.0, out=t)
     np.minimum(t, 1.0, out=t)
     dot *= 2.0
     dot -= t * v2
     dot *= t
-    r2 -= dot

@@ -28,7 +28,12 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import clearance_terms, lookahead_probes, sweep_sq_inplace
+from apf_companion.planning.clearance import (
+    clearance_terms,
+    lookahead_probes,
+    sweep_sq_inplace,
+    sweep_term_inplace,
+)
 from apf_companion.planning.decision import Decision, DecisionReason
 from apf_companion.planning.params import PlannerParams
 
@@ -257,12 +262,7 @@ def _closest_from(dot: FloatArray, r2: FloatArray, v2: FloatArray) -> FloatArray
     """``_closest`` of segments that all start at the agent, from (M,) ``r2`` = |rel|^2 (left to right over the
     axes, as ``_segments`` has it): ``sweep_sq_inplace``'s operations, its last one broadcast (``dot`` is
     consumed)."""
-    t = dot / v2
-    np.maximum(t, 0.0, out=t)
-    np.minimum(t, 1.0, out=t)
-    dot *= 2.0
-    dot -= t * v2
-    dot *= t
+    sweep_term_inplace(dot, v2)
     np.subtract(r2[:, None], dot, out=dot)
     swept: FloatArray = np.minimum.reduce(dot, axis=0)
     return np.maximum(swept, 0.0, out=swept)
