@@ -17,7 +17,8 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
 3. Escape with memory. In DIRECT mode g is the straight-line distance. The agent switches to ESCAPE, where g is
    the geodesic distance to the goal on a grid of the obstacles it has seen, inflated by C
    (``navfield.NavGrid``, no local minimum in front of a concave obstacle), as soon as a remembered surface
-   blocks the straight line within ``nav_sight_m`` (``EscapeMaps.sight_blocked``), and in any case when no
+   blocks the straight line within ``nav_sight_m``, or any remembered point does within ``nav_sight_points_m``
+   (``EscapeMaps.sight_blocked``), and in any case when no
    point passes (a local minimum of the paper's field). It leaves ESCAPE once the line is clear and it is closer
    to the goal than where the escape began (Bug2's leave rule), so it cannot fall back into the same trap. The
    potential is recomputed when the descent stalls, when a newly seen obstacle lies near its shortest way,
