@@ -28,6 +28,8 @@ IntArray = npt.NDArray[np.intp]
 _SIGHT_CELLS = 32768
 #: Known points closer than this to each other belong to one surface (sampled every 0.2 m, ``sight_blocked``).
 _SURFACE_M = 0.45
+#: Slack of the sight test's neighbour prefilter (``sight_blocked``): rounding is below 1e-12 m there [m].
+_AROUND_SLACK_M = 1e-3
 #: A field is tested against newly seen obstacles (``EscapeMaps.outdated``) once it is this many steps old: a
 #: bound on the fields an agent can cost while its map grows (one every few moves, not one per move).
 _OUTDATED_AGE = 8
@@ -60,7 +62,7 @@ class EscapeMaps:
         #: cell's diagonal (a point that moved by range noise re-inflates the cells it blocked before).
         self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
         self._c2 = clearance_m * clearance_m
-        self._around2 = (clearance_m + _SURFACE_M + 1e-3) ** 2
+        self._around2 = (clearance_m + _SURFACE_M + _AROUND_SLACK_M) ** 2
         n, h = self.grid.n, self.grid.cell_m
         on_edge = np.zeros((n, n), dtype=bool)
         on_edge[0, :] = on_edge[-1, :] = on_edge[:, 0] = on_edge[:, -1] = True
@@ -115,7 +117,7 @@ class EscapeMaps:
             real = np.take_along_axis(hit[some], picks, axis=1)
             pts = obs[some[:, None], picks]  # (S, F, D)
             # A pick's neighbours (within 0.45 m of a point within C of the segment) lie within C + 0.45 m of it:
-            # only those are compared (``_around2`` has 1 mm of slack over the rounding of these few metres).
+            # only those are compared (``_AROUND_SLACK_M`` over the rounding of these few metres).
             around = off2[some] < self._around2  # NaN compares False
             if obstacle_mask is not None:
                 around &= obstacle_mask[r[some]]

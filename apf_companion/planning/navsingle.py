@@ -18,7 +18,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.navescape import _SIGHT_FIRST, _SURFACE_M, EscapeMaps
+from apf_companion.planning.navescape import _AROUND_SLACK_M, _SIGHT_FIRST, _SURFACE_M, EscapeMaps
 from apf_companion.planning.navone import einsum
 from apf_companion.planning.navstate import TRAIL, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
@@ -31,8 +31,6 @@ FloatArray = npt.NDArray[np.float64]
 _TINY = float(np.finfo(np.float64).tiny)
 #: Squared distances up to this are safe to square and add again (no overflow): beyond, the batch test decides.
 _SANE_M2 = 1e300
-#: Slack of the sight test's neighbour prefilter (``SightLine``): rounding is below 1e-12 m there [m].
-_AROUND_SLACK_M = 1e-3
 #: Relative band around the trail spacing where the batch path's einsum decides (``SingleStart._record``).
 _ULPS = 1e-12
 #: ``NavState.since_*`` are int32: a count stops there (any count that high has already given up or gone stale).
