@@ -58,6 +58,9 @@ class SightLine:
         self._surface2 = _SURFACE_M * _SURFACE_M
         self._first = _SIGHT_FIRST
         self._around2 = (clearance_m + _SURFACE_M + _AROUND_SLACK_M) ** 2
+        # Caps of the two pieces' coordinates along the line: the whole piece (inf: no cap) and its first
+        # ``_near_m`` (``_pieces``).
+        self._caps = np.array([[math.inf], [self._near_m]])
 
     def __call__(self, rel_m: FloatArray, obstacles_m: FloatArray, goal_vec_m: FloatArray, g0_m: float) -> bool:
         """Whether the line is blocked. ``rel_m`` (M, D) obstacles minus the agent, ``obstacles_m`` (M, D), all
@@ -68,12 +71,11 @@ class SightLine:
         unit = goal_vec_m / max(g0_m, _TINY)
         # The einsum calls are the batch path's, on one row (the same reduction kernels, whatever the build).
         along = einsum("amd,ad->am", rel_m[None], unit[None])[0]
-        if self._near_m > 0.0 and bool(
-            np.logical_or.reduce(self._off2(rel_m, along, unit, g0_m, self._near_m) < self._c2)
-        ):
+        off2s = self._pieces(rel_m, along, unit, g0_m)
+        hits = off2s < self._c2
+        if self._near_m > 0.0 and bool(np.logical_or.reduce(hits[1])):
             return True  # any point near the agent
-        off2 = self._off2(rel_m, along, unit, g0_m, self._sight_m)
-        hit = off2 < self._c2
+        off2, hit = off2s[0], hits[0]
         picks = hit.nonzero()[0]
         if picks.size == 0:
             return False
@@ -84,21 +86,26 @@ class SightLine:
         # Fewer hits than ``first``: the batch path picks them all (its other picks are not hits).
         # A pick's neighbours lie within C + surface_m of the line (off2 is the squared distance to it; its
         # rounding is relative to these few metres): only they are compared, with the batch path's arithmetic.
-        around = obstacles_m.take((off2 < self._around2).nonzero()[0], axis=0)
+        around = obstacles_m[off2 < self._around2]
         gap = around[None, None, :, :] - obstacles_m.take(picks, axis=0)[None, :, None, :]  # (1, P, Q, D)
         d2 = einsum("sfmd,sfmd->sfm", gap, gap)[0]
         close = d2 < self._surface2
         close &= d2 > 0.0
         return bool(np.logical_or.reduce(np.add.reduce(close, axis=1) >= 2))
 
-    def _off2(self, rel_m: FloatArray, along: FloatArray, unit: FloatArray, g0_m: float, length_m: float) -> FloatArray:
-        """(M,) squared distances of the points to the line's piece from one step ahead to ``length_m``."""
-        end = min(g0_m, length_m)
+    def _pieces(self, rel_m: FloatArray, along: FloatArray, unit: FloatArray, g0_m: float) -> FloatArray:
+        """(2, M) squared distances of the points to the line's piece from one step ahead to ``nav_sight_m`` (row
+        0) and to its first ``nav_sight_points_m`` (row 1), as the batch path's two ``_line_hits`` have them.
+
+        Row 1's coordinates are row 0's capped at ``_near_m``: min(clip(a, min(s, e), e), n) = clip(a, min(s, e'),
+        e') with e' = min(e, n) (the batch path's near piece), exactly, as min and max round nothing."""
+        end = min(g0_m, self._sight_m)
         start = min(self._step_m, end)
         t = np.maximum(along, start)  # np.clip(along, start, end) without its Python wrapper
         np.minimum(t, end, out=t)
-        off = rel_m - t[:, None] * unit
-        off2: FloatArray = einsum("amd,amd->am", off[None], off[None])[0]
+        t2 = np.minimum(t, self._caps)  # (2, M)
+        off = rel_m - t2[:, :, None] * unit
+        off2: FloatArray = einsum("amd,amd->am", off, off)
         return off2
 
 
