@@ -1,6 +1,8 @@
 """``NavGrid.distances`` writes the infinite weights of the edges into blocked cells through a table of each cell's
-incoming edges; its fields equal, bit for bit, those of the graph whose every edge weight is looked up from its
-destination cell (the construction before), with the goal inside, outside, on an edge cell and on a blocked cell."""
+incoming edges, and the seeds into fixed slots of one graph kept by the grid; its fields equal, bit for bit, those
+of a graph built for each field, whose every edge weight is looked up from its destination cell and whose source
+lists only the seeds (the construction before), with the goal inside, outside, on an edge cell and on a blocked
+cell, one field after another in the same grid."""
 
 from __future__ import annotations
 
@@ -15,10 +17,37 @@ from apf_companion.planning.navfield import NavGrid
 FloatArray = npt.NDArray[np.float64]
 
 
+def _plain_seeds(
+    grid: NavGrid, origin: FloatArray, blocked: npt.NDArray[np.bool_], goal: FloatArray
+) -> tuple[npt.NDArray[np.intp], FloatArray]:
+    """The seed rule written out: the goal's cell (freed) and its in-grid neighbours at the straight-line distance
+    when the goal lies in the grid, and every edge cell at its straight-line distance plus the grid's side (plus
+    nothing when the goal lies outside); no blocked cell."""
+    n, h = grid.n, grid.cell_m
+    gi, gj = grid._cell_of_one(origin, goal)
+    edge = np.zeros((n, n), dtype=bool)
+    edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
+    cells = np.flatnonzero(edge)
+    detour = np.zeros(cells.size)
+    if 0 <= gi < n and 0 <= gj < n:
+        blocked[gi * n + gj] = False
+        near = np.array(
+            [i * n + j for i in range(gi - 1, gi + 2) for j in range(gj - 1, gj + 2) if 0 <= i < n and 0 <= j < n]
+        )
+        cells = np.concatenate([near, cells])
+        detour = np.concatenate([np.zeros(near.size), np.full(detour.size, n * h)])
+    keep = ~blocked[cells]
+    cells, detour = cells[keep], detour[keep]
+    i, j = np.divmod(cells, n)
+    euclid = np.hypot(origin[0] + (i + 0.5) * h - goal[0], origin[1] + (j + 0.5) * h - goal[1])
+    return cells, euclid + detour
+
+
 def _plain_field(grid: NavGrid, origin: FloatArray, blocked: npt.NDArray[np.bool_], goal: FloatArray) -> FloatArray:
-    """One field from a graph whose edge weights are inf where the destination is blocked, else the step cost."""
+    """One field from a graph built for it alone: edge weights inf where the destination is blocked, else the step
+    cost, and a source row that lists only the seeds."""
     blk = blocked.copy()
-    cells, values = grid._seeds(origin, blk, goal)
+    cells, values = _plain_seeds(grid, origin, blk, goal)
     if cells.size == 0:
         return np.full(grid.size, np.inf)
     weights = np.where(blk[grid._indices], np.inf, grid._edge_cost)
@@ -59,3 +88,16 @@ def test_the_goal_cell_of_one_point_equals_cell_of() -> None:
         i, j = grid.cell_of(origin[None], (points + origin)[None])
         got = [grid._cell_of_one(origin, p + origin) for p in points]
         assert got == list(zip(i[0].tolist(), j[0].tolist(), strict=True))
+
+
+def test_fields_in_turn_do_not_inherit_the_last_ones_seeds() -> None:
+    """One call over goals inside, outside, at a corner and inside again: every field equals its own graph's (the
+    goal slots a field does not use are reset)."""
+    grid = NavGrid(0.3, 16.0)
+    rng = np.random.default_rng(11)
+    goals = np.array([(7.0, 9.1), (40.0, -3.0), (0.05, 0.05), (15.95, 0.1), (8.0, 8.0), (-5.0, 30.0)])
+    origins = np.zeros((goals.shape[0], 2))
+    blocked = rng.random((goals.shape[0], grid.size)) < 0.2
+    dist = grid.distances(origins, blocked, goals)
+    for b in range(goals.shape[0]):
+        assert np.array_equal(dist[b], _plain_field(grid, origins[b], blocked[b], goals[b]))
