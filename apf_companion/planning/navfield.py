@@ -81,8 +81,7 @@ class NavGrid:
         )
         indptr = np.append(self._indptr, np.int32(self._indptr[-1] + n_source))
         self._graph = csr_matrix((self._weights[:-1], indices, indptr), shape=(self.size + 1, self.size + 1))
-        self._graph.data = self._weights[:-1]  # the matrix reads the weights written here
-        self._goal_slots = self._graph.indices[self._n_edges : self._n_edges + _GOAL_SLOTS]
+        self._goal_slots = self._link()
         h = self.cell_m
         edge_i, edge_j = np.divmod(self._edge_cells, self.n)
         self._edge_centre_i, self._edge_centre_j = (edge_i + 0.5) * h, (edge_j + 0.5) * h  # from the grid's corner
@@ -231,8 +230,16 @@ class NavGrid:
             out.append(min(max(math.floor(rel), -1), self.n) if math.isfinite(rel) else -1)
         return out[0], out[1]
 
+    def _link(self) -> IntArray:
+        """Point the matrix's weights at ``_weights`` and return the goal slots' cells, a view of its indices. Done
+        before each use: a copy of the grid (``copy.deepcopy``, pickling) copies views into separate arrays."""
+        self._graph.data = self._weights[:-1]
+        slots: IntArray = self._graph.indices[self._n_edges : self._n_edges + _GOAL_SLOTS]
+        return slots
+
     def _distances(self, origins_m: FloatArray, blocked: BoolArray, goals_xy_m: FloatArray) -> FloatArray:
         out = np.full(blocked.shape, np.inf)
+        self._goal_slots = self._link()
         weights = self._weights
         for b in range(origins_m.shape[0]):
             blk = blocked[b].copy()

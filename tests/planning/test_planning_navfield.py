@@ -6,6 +6,9 @@ cell, one field after another in the same grid."""
 
 from __future__ import annotations
 
+import copy
+import pickle
+
 import numpy as np
 import numpy.typing as npt
 import pytest
@@ -101,3 +104,16 @@ def test_fields_in_turn_do_not_inherit_the_last_ones_seeds() -> None:
     dist = grid.distances(origins, blocked, goals)
     for b in range(goals.shape[0]):
         assert np.array_equal(dist[b], _plain_field(grid, origins[b], blocked[b], goals[b]))
+
+
+def test_a_copied_grid_computes_the_same_fields() -> None:
+    """The grid keeps one graph whose weights it writes through views; a deep copy or a pickled grid (views
+    copied into separate arrays) still computes the fields of the original."""
+    grid = NavGrid(0.3, 16.0)
+    rng = np.random.default_rng(13)
+    origins = np.zeros((3, 2))
+    goals = np.array([(7.0, 9.1), (40.0, -3.0), (0.05, 0.05)])
+    blocked = rng.random((3, grid.size)) < 0.2
+    want = grid.distances(origins, blocked, goals)
+    for other in (copy.deepcopy(grid), pickle.loads(pickle.dumps(grid))):
+        assert np.array_equal(other.distances(origins, blocked, goals), want)
