@@ -415,11 +415,12 @@ class EscapeStep:
         if not ok.any():  # any feasible point down the potential (the clearance term may hold the agent)
             ok = feasible & (g_k < g0)
         cost = g_k + clear_k
-        cost0 = g0 + clear_0 if ok.any() else _INF
+        has_ok = bool(ok.any())  # then some feasible point has a finite potential (inf < x is False)
+        cost0 = g0 + clear_0 if has_ok else _INF
         any_feasible = bool(feasible.any())
         # Every feasible point off the map's free cells: back out from inside the inflated obstacles, else give up.
         gave_up = False
-        if any_feasible and not np.isfinite(g_k[feasible]).any():
+        if any_feasible and not has_ok and not np.isfinite(g_k[feasible]).any():
             if math.isfinite(g0):
                 gave_up = True
                 state.mode[0] = _GAVE_UP
