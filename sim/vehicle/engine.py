@@ -304,6 +304,9 @@ class VehicleEngine:
     def _auto_disarm(self) -> None:
         if not self.armed or not self.state.on_ground or self.landed_since_s is None:
             return
+        if self.profile_rules.disarm_timer_held(self):
+            self.landed_since_s = self.t_s
+            return
         delay = self.profile_rules.disarm_delay_s(self.params)
         if delay > 0 and self.t_s - self.landed_since_s >= delay:
             self.disarm(self.profile_rules.texts.auto_disarm)

@@ -154,6 +154,12 @@ class ArduCopterProfile:
     def disarm_delay_s(self, params: ParamTable) -> float:
         return params["DISARM_DELAY"]
 
+    def disarm_timer_held(self, v: VehicleEngine) -> bool:
+        """An accepted takeoff spools the motors up, and ArduCopter's auto_disarm_check (ArduCopter/motors.cpp)
+        restarts its timer while the spool state is above GROUND_IDLE: a vehicle taking off is not disarmed as
+        landed, however late in DISARM_DELAY the takeoff came."""
+        return v.takeoff_alt_m is not None
+
     def face_travel(self, params: ParamTable) -> bool:
         return params["WP_YAW_BEHAVIOR"] > 0
 

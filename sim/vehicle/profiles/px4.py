@@ -172,6 +172,12 @@ class Px4Profile:
     def disarm_delay_s(self, params: ParamTable) -> float:
         return params["COM_DISARM_PRFLT"]
 
+    def disarm_timer_held(self, v: VehicleEngine) -> bool:
+        """Commander's pre-flight disarm (COM_DISARM_PRFLT) counts from arming until the land detector has seen a
+        takeoff (``_have_taken_off_since_arming``), whatever was commanded: never held here
+        (src/modules/commander/Commander.cpp, the auto-disarm check)."""
+        return False
+
     def face_travel(self, params: ParamTable) -> bool:
         return False
 

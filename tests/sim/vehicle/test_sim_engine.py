@@ -120,6 +120,25 @@ def test_auto_disarm_when_left_on_the_ground() -> None:
     assert rig.engine.statustexts[-1].text == "Auto disarm: landed"
 
 
+def test_a_takeoff_late_in_the_disarm_delay_is_not_disarmed() -> None:
+    """ArduCopter restarts the landed-disarm timer while the motors spool for a takeoff (motors.cpp
+    auto_disarm_check): NAV_TAKEOFF accepted 9.5 s after arming (DISARM_DELAY 10 s) climbs, it is not disarmed;
+    left on the ground without one, the same vehicle is disarmed at 10 s (the test above)."""
+    rig = Rig(dynamics=Dynamics.ARDUCOPTER)  # its spool-up keeps the vehicle on the ground for a while
+    while not rig.engine.startup.origin_set:  # GUIDED needs the EKF origin
+        rig.run(0.5)
+    guided = rig.cmd(m.MAV_CMD_DO_SET_MODE, m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, CopterMode.GUIDED)
+    assert guided == m.MAV_RESULT_ACCEPTED
+    assert rig.cmd(m.MAV_CMD_COMPONENT_ARM_DISARM, 1) == m.MAV_RESULT_ACCEPTED
+    rig.run(9.5)
+    assert rig.cmd(m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 5.0) == m.MAV_RESULT_ACCEPTED
+    rig.run(3.0)
+    assert rig.engine.armed
+    assert "Auto disarm: landed" not in [t.text for t in rig.engine.statustexts]
+    rig.run(10.0)
+    assert rig.engine.armed and rig.engine.state.alt_m > 4.0
+
+
 def test_px4_offboard_loss_action_land() -> None:
     rig = Rig(profile=Autopilot.PX4, spawn=SpawnConfig(airborne=True, mode="OFFBOARD"), params={"COM_OBL_RC_ACT": 4})
     rig.run(1.0)
