@@ -529,6 +529,7 @@ class TakeoverDriver:
             ekf_ready=ap.ekf_ready,
             takeoff_ack_s=ap.ack_time(mavlink.MAV_CMD_NAV_TAKEOFF),
             heartbeats=ap.heartbeats,
+            arm_ack_s=ap.ack_time(mavlink.MAV_CMD_COMPONENT_ARM_DISARM),
         )
         for action in self.controller.step(now, inputs):
             self._carry_out(action, now)

@@ -114,6 +114,10 @@ class TakeoverInputs:
         ekf_ready: The autopilot's EKF has a horizontal position (True when it does not report one).
         takeoff_ack_s: When NAV_TAKEOFF was last ACCEPTED (service time), None if not (or its latest ACK failed).
         heartbeats: Autopilot HEARTBEATs heard so far, or None (not counted: the deadline alone decides).
+        arm_ack_s: When COMPONENT_ARM_DISARM was last ACCEPTED (service time), None if not (or its latest ACK
+            differed). The takeover only ever sends arm (param1 = 1), and both autopilots ACK that ACCEPTED only
+            when the vehicle is armed (ArduCopter/GCS_Mavlink.cpp: when arming succeeded or it already was; PX4
+            src/modules/commander/Commander.cpp: when the arming transition was not denied).
     """
 
     navigating: bool
@@ -127,6 +131,7 @@ class TakeoverInputs:
     ekf_ready: bool = True
     takeoff_ack_s: float | None = None
     heartbeats: int | None = None
+    arm_ack_s: float | None = None
 
 
 _HEARTBEAT_PHASES = (Phase.MODE, Phase.MODE_BEFORE_ARM, Phase.ARMING)
@@ -248,7 +253,9 @@ class TakeoverController:
         if phase is Phase.READY:
             return self._ready(inp)
         if phase is Phase.ARMING:
-            return inp.armed
+            # The ACK arrives at once, the HEARTBEAT that says armed up to a second later (more on a lossy link),
+            # and ArduCopter's DISARM_DELAY (10 s) runs from arming until a takeoff spools the motors.
+            return inp.armed or (inp.arm_ack_s is not None and inp.arm_ack_s >= self._phase_start_s)
         if phase is Phase.GLOBAL_POSITION:
             return inp.home_amsl_m is not None
         if phase is Phase.TAKEOFF:

@@ -93,6 +93,21 @@ def test_ardupilot_arm_and_takeoff_in_order_with_the_navigator_suspended() -> No
     assert out[0].value == -5.0
 
 
+def test_an_accepted_arm_ack_confirms_arming_before_the_heartbeat_does() -> None:
+    """Both autopilots ACK arm ACCEPTED only when armed: NAV_TAKEOFF goes out on the ACK, without waiting up to a
+    HEARTBEAT period (more on a lossy link) while ArduCopter's DISARM_DELAY runs. An ACK from before the phase
+    (an earlier takeover's) does not count."""
+    c = ctl(arm=True, takeoff_alt_m=5.0)
+    guided = dataclasses.replace(GROUND, mode_ok=True, arm_ack_s=-3.0)
+    c.step(0.0, dataclasses.replace(GROUND, arm_ack_s=-3.0))
+    assert kinds(c.step(0.1, guided)) == [ActionKind.ARM]
+    assert phase(c) is Phase.ARMING
+    assert c.step(0.2, guided) == []  # the old ACK: still arming
+    assert phase(c) is Phase.ARMING
+    out = c.step(0.3, dataclasses.replace(guided, arm_ack_s=0.25))  # HEARTBEAT still says disarmed
+    assert kinds(out) == [ActionKind.TAKEOFF] and phase(c) is Phase.TAKEOFF
+
+
 def test_takeoff_timeout_grows_with_the_height() -> None:
     c = ctl(arm=True, takeoff_alt_m=10.0, mode_timeout_s=5.0)
     armed = dataclasses.replace(GROUND, mode_ok=True, armed=True)
