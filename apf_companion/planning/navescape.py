@@ -63,12 +63,8 @@ class EscapeMaps:
         self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
         self._c2 = clearance_m * clearance_m
         self._around2 = (clearance_m + _SURFACE_M + _AROUND_SLACK_M) ** 2
-        n, h = self.grid.n, self.grid.cell_m
-        on_edge = np.zeros((n, n), dtype=bool)
-        on_edge[0, :] = on_edge[-1, :] = on_edge[:, 0] = on_edge[:, -1] = True
-        self._edge_cells = np.flatnonzero(on_edge)
-        ei, ej = np.divmod(self._edge_cells, n)
-        self._edge_centres = np.stack([(ei + 0.5) * h, (ej + 0.5) * h], axis=1)  # relative to the grid's corner
+        self._edge_cells = self.grid.edge_cells
+        self._edge_centres = self.grid.edge_centres_m  # relative to the grid's corner
 
     def sight_blocked(
         self,

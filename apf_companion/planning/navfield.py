@@ -63,7 +63,10 @@ class NavGrid:
         self.size = self.n * self.n
         edge = np.zeros((self.n, self.n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
-        self._edge_cells = np.flatnonzero(edge)
+        #: The boundary cells (the exits into unknown space) and their centres (E, 2) from the grid's corner [m].
+        self.edge_cells = np.flatnonzero(edge)
+        edge_i, edge_j = np.divmod(self.edge_cells, self.n)
+        self.edge_centres_m = np.stack([(edge_i + 0.5) * self.cell_m, (edge_j + 0.5) * self.cell_m], axis=1)
         src, dst, self._edge_cost = _grid_edges(self.n, self.cell_m)
         # The CSR arrays in scipy's index type (int32: fewer than 2^31 edges at 4096 cells a side), so that the
         # matrix of a field is made without converting them. Row pointers of the cells' rows; the source's row
@@ -74,17 +77,13 @@ class NavGrid:
         # The whole graph, weights written per field (``_distances``): the edges, the goal slots, the edge cells'
         # slots, and a scratch slot that the padding of ``_in_edges`` (-1) writes to.
         self._n_edges = int(dst.size)
-        n_source = _GOAL_SLOTS + self._edge_cells.size
+        n_source = _GOAL_SLOTS + self.edge_cells.size
         self._weights = np.empty(self._n_edges + n_source + 1)
         indices = np.concatenate(
-            [self._indices, np.full(_GOAL_SLOTS, self.size, dtype=np.int32), self._edge_cells.astype(np.int32)]
+            [self._indices, np.full(_GOAL_SLOTS, self.size, dtype=np.int32), self.edge_cells.astype(np.int32)]
         )
         indptr = np.append(self._indptr, np.int32(self._indptr[-1] + n_source))
         self._graph = csr_matrix((self._weights[:-1], indices, indptr), shape=(self.size + 1, self.size + 1))
-        self._goal_slots = self._link()
-        h = self.cell_m
-        edge_i, edge_j = np.divmod(self._edge_cells, self.n)
-        self._edge_centre_i, self._edge_centre_j = (edge_i + 0.5) * h, (edge_j + 0.5) * h  # from the grid's corner
 
     # --- frames ---------------------------------------------------------------------------------------------
 
@@ -192,15 +191,15 @@ class NavGrid:
         """(B, n^2) geodesic distance from each cell centre to the goal [m]; inf for blocked/unreachable cells."""
         return self._distances(origins_m, blocked, goals_xy_m)
 
-    def _seeds(self, origin_m: FloatArray, blocked: BoolArray, goal_xy_m: FloatArray) -> bool:
+    def _seeds(self, origin_m: FloatArray, blocked: BoolArray, goal_xy_m: FloatArray, goal_slots: IntArray) -> bool:
         """Write one field's source weights: the goal's cell (freed in ``blocked``) and its 8 neighbours at the
         straight-line distance, when the goal is inside the grid, and the boundary (above); inf where a cell is
-        blocked (no seed). An edge cell near the goal has two slots: the lower value wins. Whether any cell is a
-        seed."""
+        blocked (no seed). An edge cell near the goal has two slots: the lower value wins. ``goal_slots``: the goal
+        slots' cells in the graph (``_link``). Whether any cell is a seed."""
         n, h = self.n, self.cell_m
         ne = self._n_edges
         gi, gj = self._cell_of_one(origin_m, goal_xy_m)
-        self._goal_slots[:] = self.size  # unused: the source's own node, at inf
+        goal_slots[:] = self.size  # unused: the source's own node, at inf
         goal_values = self._weights[ne : ne + _GOAL_SLOTS]
         goal_values[:] = np.inf
         detour = 0.0
@@ -211,14 +210,13 @@ class NavGrid:
             near = (near_i[:, None] * n + near_j[None, :]).ravel()
             i, j = np.divmod(near, n)
             euclid = np.hypot(origin_m[0] + (i + 0.5) * h - goal_xy_m[0], origin_m[1] + (j + 0.5) * h - goal_xy_m[1])
-            self._goal_slots[: near.size] = near
+            goal_slots[: near.size] = near
             goal_values[: near.size] = np.where(blocked[near], np.inf, euclid + 0.0)
             detour = n * h
-        euclid = np.hypot(
-            origin_m[0] + self._edge_centre_i - goal_xy_m[0], origin_m[1] + self._edge_centre_j - goal_xy_m[1]
-        )
+        centres = self.edge_centres_m
+        euclid = np.hypot(origin_m[0] + centres[:, 0] - goal_xy_m[0], origin_m[1] + centres[:, 1] - goal_xy_m[1])
         edge_values = self._weights[ne + _GOAL_SLOTS : -1]
-        np.copyto(edge_values, np.where(blocked[self._edge_cells], np.inf, euclid + detour))
+        np.copyto(edge_values, np.where(blocked[self.edge_cells], np.inf, euclid + detour))
         return bool(np.isfinite(self._weights[ne:-1]).any())
 
     def _cell_of_one(self, origin_m: FloatArray, point_xy_m: FloatArray) -> tuple[int, int]:
@@ -232,18 +230,18 @@ class NavGrid:
 
     def _link(self) -> IntArray:
         """Point the matrix's weights at ``_weights`` and return the goal slots' cells, a view of its indices. Done
-        before each use: a copy of the grid (``copy.deepcopy``, pickling) copies views into separate arrays."""
+        at each use, not kept: a copy of the grid (``copy.deepcopy``, pickling) copies views into separate arrays."""
         self._graph.data = self._weights[:-1]
         slots: IntArray = self._graph.indices[self._n_edges : self._n_edges + _GOAL_SLOTS]
         return slots
 
     def _distances(self, origins_m: FloatArray, blocked: BoolArray, goals_xy_m: FloatArray) -> FloatArray:
         out = np.full(blocked.shape, np.inf)
-        self._goal_slots = self._link()
+        goal_slots = self._link()
         weights = self._weights
         for b in range(origins_m.shape[0]):
             blk = blocked[b].copy()
-            if not self._seeds(origins_m[b], blk, goals_xy_m[b]):
+            if not self._seeds(origins_m[b], blk, goals_xy_m[b], goal_slots):
                 continue
             # An edge into a blocked cell is infinite (edges out of one need not be: it is never reached).
             weights[: self._n_edges] = self._edge_cost
