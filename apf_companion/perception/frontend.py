@@ -27,7 +27,12 @@ import numpy as np
 
 from apf_companion.errors import ConfigError, ProtocolError
 from apf_companion.perception.cdr import decode_laserscan_cdr
-from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned, surface_fill_points
+from apf_companion.perception.geometry import (
+    element_half_width_rad,
+    scan_bearings_ned_rad,
+    scan_to_points_ned,
+    surface_fill_points,
+)
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     DistanceSensorLike,
@@ -317,6 +322,10 @@ class PerceptionFrontEnd:
         if scan.counts.valid + scan.counts.free == 0:
             return  # nothing usable: no news about the surroundings, ranges stay as fresh as they were
         points = scan_to_points_ned(scan, pose)
+        # A return stands for the nearest surface anywhere in its window: that far beside its point (memory.py).
+        bearings = scan_bearings_ned_rad(scan, pose)
+        finite = np.isfinite(scan.ranges_m)
+        spread = scan.ranges_m[finite] * math.sin(element_half_width_rad(bearings))
         if self.params.surface_fill:
             fill = surface_fill_points(
                 scan,
@@ -326,18 +335,19 @@ class PerceptionFrontEnd:
                 line_tol_m=self.params.surface_fill_line_tol_m,
             )
             points = np.concatenate([points, fill])  # measured returns first: the memory's merge keeps them
+            spread = np.concatenate([spread, np.zeros(fill.shape[0])])  # a chord's points lie on its line
         if points.shape[0]:
             rel = points[:, :2] - pose.pos_ned_m[:2]
             limit = self.params.max_range_m
-            points = points[np.einsum("ij,ij->i", rel, rel) <= limit * limit]
+            within = np.einsum("ij,ij->i", rel, rel) <= limit * limit
+            points, spread = points[within], spread[within]
         p = self.params
         sensor = self._sensor_id(scan.source)
         refused = self.memory.clears_refused
         self.memory.clear_observed(scan, pose, sensor=sensor, clear_scans=p.clear_scans, clear_span_s=p.clear_span_s)
         self.counters.clears_refused += self.memory.clears_refused - refused
-        bearings = scan_bearings_ned_rad(scan, pose)
         self.sectors.note(bearings[~np.isnan(scan.ranges_m)], scan.t_s)
-        self._remember(points, scan.t_s, sensor)
+        self._remember(points, scan.t_s, sensor, spread)
 
     def _sensor_id(self, source: str) -> int:
         """The clearing id of a scan source; sources after the first ``MAX_SENSOR_IDS`` share the id
@@ -350,13 +360,13 @@ class PerceptionFrontEnd:
             self._sensor_ids[source] = sensor
         return sensor
 
-    def _remember(self, points: FloatArray, t_s: float, sensor: int = -1) -> None:
+    def _remember(self, points: FloatArray, t_s: float, sensor: int = -1, spread_m: FloatArray | None = None) -> None:
         """The one write to the obstacle memory: a usable scan measured at ``t_s`` (possibly no points: all free
         is news too, it keeps the ranges fresh)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         self.latest_scan_ned_m = pts
         if pts.shape[0]:
-            self.memory.add(pts, t_s, sensor)
+            self.memory.add(pts, t_s, sensor, spread_m)
         if self._ranges_t_s is None or t_s > self._ranges_t_s:
             self._ranges_t_s = t_s
 

@@ -56,7 +56,7 @@ from apf_companion.perception.types import FloatArray, Pose, RangeScan, ScanFram
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
-__all__ = ["scan_bearings_ned_rad", "scan_to_points_ned", "surface_fill_points"]
+__all__ = ["element_half_width_rad", "scan_bearings_ned_rad", "scan_to_points_ned", "surface_fill_points"]
 
 _STEP_RTOL = 1e-3  # bearing steps within 0.1 % of the scan's increment are "one increment"
 
@@ -70,6 +70,15 @@ def scan_bearings_ned_rad(scan: RangeScan, pose: Pose) -> FloatArray:
     if scan.frame is ScanFrame.BODY_FRD:
         return np.asarray(scan.bearings_rad + pose.yaw_rad, dtype=np.float64)
     return np.asarray(scan.bearings_rad, dtype=np.float64)
+
+
+def element_half_width_rad(bearings_rad: FloatArray) -> float:
+    """Half the angular width of one scan element: half the median step of the sorted bearings around the circle
+    (0 for a single beam, which then clears nothing and places its point with no spread)."""
+    b = np.sort(np.mod(bearings_rad, 2.0 * math.pi))
+    if b.size < 2:
+        return 0.0
+    return 0.5 * float(np.median(np.diff(np.concatenate([b, b[:1] + 2.0 * math.pi]))))
 
 
 def scan_to_points_ned(scan: RangeScan, pose: Pose) -> FloatArray:

@@ -2,13 +2,28 @@
 
 The paper's planner (and the authors' code) keeps every detected obstacle for the whole run; on a real
 vehicle, drift and moving objects make that unsafe, so points here expire after ``expiry_s`` unless seen
-again. A new point within ``merge_radius_m`` of a remembered one replaces it (newest position, newest
-time), so a static obstacle seen every cycle stays one point and stays fresh.
+again. A new point within ``merge_radius_m`` of a remembered one refreshes it (newest time, first position), so a
+static obstacle seen every cycle stays one point and stays fresh, and a surface seen from a moving vehicle keeps
+the points it gave: replacing them by the newest position drags them along (below).
 
 Clearing (``clear_observed``): a beam that reports free space (+inf) or an obstacle at range ``r`` shows
 that nothing lies along it nearer than that; remembered points inside such a beam, more than ``margin_m``
 nearer than the reading and within ``vertical_window_m`` of the scan's height, are removed. Unknown and
 invalid beams (NaN) clear nothing ("unknown is not free").
+
+Where a point may be. A sector sensor reports the nearest surface in each window, and the point is placed on the
+window's centre bearing, so the surface may lie up to ``spread_m`` = range x sin(half width) beside it (0.35 m at
+8 m with 5-degree sectors). Seen at grazing incidence along a wall, such a point sits in front of the wall, and a
+later beam along the wall reads past it: the wall's points were cleared one by one and the wall turned porous
+(issue 7: walls 2-3 m open in ``apf-sim fly --world wall-gap``, where the planner then paced to and fro). So a
+point is cleared only when every beam whose window meets the disc of radius ``spread_m`` around it sees past it.
+Points with no spread (a surface-fill point no return has refreshed; ``remember``) are cleared by their own beam.
+
+Why the first position. Replacing a point by a new one within the merge radius moved the remembered wall towards
+each new window's nearest point: along a wall seen obliquely from a moving vehicle, the points slid with the
+vehicle and left the far end open (replayed along a flown wall-gap path: 1-4 m holes at 10 s and at 60 s expiry).
+ArduPilot's obstacle database keeps the first position too (AP_OADatabase.cpp, ``database_item_refresh`` updates
+the timestamp and radius only). A moving obstacle's old points go by clearing or expiry.
 
 Clearing is hard to fake (docs/hardening.md): each point remembers the sensor that saw it, and only that sensor's
 scans clear it, and only after ``clear_scans`` scans spread over at least ``clear_span_s`` saw through it; a scan
@@ -24,7 +39,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
-from apf_companion.perception.geometry import scan_bearings_ned_rad
+from apf_companion.perception.geometry import element_half_width_rad, scan_bearings_ned_rad
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
 __all__ = ["ObstacleMemory"]
@@ -72,6 +87,31 @@ def _voxel_first(points: FloatArray, cell_m: float) -> npt.NDArray[np.intp]:
     return np.sort(first)
 
 
+def _nearest_reach(
+    b_sorted: FloatArray,
+    reach: FloatArray,
+    beam: npt.NDArray[np.intp],
+    bearing: FloatArray,
+    half_rad: float,
+    sin_disc: FloatArray,
+) -> FloatArray:
+    """The shortest reach among the beams whose window (``half_rad`` either side) meets a disc seen at ``bearing``
+    with angular radius asin(``sin_disc``), starting from its nearest ``beam``: the loop runs over beam offsets
+    (at most half the scan), not over points."""
+    m = b_sorted.size
+    window = half_rad + np.arcsin(np.minimum(sin_disc, 1.0))
+    lowest = reach[beam]
+    for k in range(1, m // 2 + 1):
+        met = np.zeros(beam.size, dtype=np.bool_)
+        for j in ((beam + k) % m, (beam - k) % m):
+            hit = np.abs(np.remainder(bearing - b_sorted[j] + math.pi, _TWO_PI) - math.pi) <= window
+            lowest = np.where(hit, np.minimum(lowest, reach[j]), lowest)
+            met |= hit
+        if not met.any():  # bearings are sorted: farther offsets lie farther away
+            break
+    return np.asarray(lowest, dtype=np.float64)
+
+
 def _nearest_beam(b_sorted: FloatArray, pb: FloatArray) -> tuple[npt.NDArray[np.intp], FloatArray]:
     """For bearings ``pb``: the index of the nearest of the sorted beam bearings ``b_sorted`` (cyclically: the
     neighbours either side of the insertion point) and the angle to it [rad]."""
@@ -103,6 +143,7 @@ class ObstacleMemory:
         "_max_points",
         "_merge_radius_m",
         "_pts",
+        "_spread",
         "_src",
         "_t",
         "clears_refused",
@@ -137,6 +178,7 @@ class ObstacleMemory:
         self._src = np.empty(0, dtype=np.int64)  # the sensor that saw each point (-1: any may clear it)
         self._free_n = np.empty(0, dtype=np.int64)  # scans of that sensor that saw through it since
         self._free_t0 = np.empty(0, dtype=np.float64)  # the first of them
+        self._spread = np.empty(0, dtype=np.float64)  # how far beside it the surface may lie [m]
 
     def _keep(self, keep: npt.NDArray[np.bool_] | npt.NDArray[np.intp]) -> None:
         """Keep the rows selected by a mask or an index array (every per-point array alike)."""
@@ -145,14 +187,17 @@ class ObstacleMemory:
         self._src = self._src[keep]
         self._free_n = self._free_n[keep]
         self._free_t0 = self._free_t0[keep]
+        self._spread = self._spread[keep]
 
-    def add(self, points_ned_m: FloatArray, t_s: float, sensor: int = -1) -> None:
+    def add(self, points_ned_m: FloatArray, t_s: float, sensor: int = -1, spread_m: FloatArray | None = None) -> None:
         """Remember ``points_ned_m`` ((K, 3) float64, local NED [m]) as seen at ``t_s`` [s].
 
         Rows that are not finite or lie beyond 1e7 m are ignored. New points in the same cell of a grid with edge
         ``merge_radius_m / sqrt(3)`` are one point (the first is kept), so every dropped point lies within
         ``merge_radius_m`` of a kept one; kept points in neighbouring cells may be closer than that. A
-        remembered point within ``merge_radius_m`` of a kept new point is replaced by it.
+        remembered point within ``merge_radius_m`` of a kept new point is refreshed (time and sensor; its position
+        stays, its spread becomes the largest of its own and theirs), and that new point is not added.
+        ``spread_m`` ((K,), default 0): how far beside each point the surface may lie (module docstring) [m].
         """
         pts = np.asarray(points_ned_m, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -161,13 +206,19 @@ class ObstacleMemory:
         if not math.isfinite(t_s):
             msg = f"t_s must be finite, got {t_s}"
             raise ConfigError(msg)
-        # Also drops absurd coordinates, which would overflow the int64 grid keys.
-        pts = pts[np.all(np.abs(pts) < _MAX_COORD_M, axis=1)]
+        spread = np.zeros(pts.shape[0]) if spread_m is None else np.asarray(spread_m, dtype=np.float64)
+        if spread.shape != (pts.shape[0],):
+            msg = f"spread_m must have shape ({pts.shape[0]},), got {spread.shape}"
+            raise ConfigError(msg)
+        # Also drops absurd coordinates, which would overflow the int64 grid keys; a bad spread counts as none.
+        ok = np.all(np.abs(pts) < _MAX_COORD_M, axis=1)
+        pts, spread = pts[ok], np.where(np.isfinite(spread[ok]), np.maximum(spread[ok], 0.0), 0.0)
         if pts.shape[0] == 0:
             return
         r2 = self._merge_radius_m**2
         if pts.shape[0] > 1:
-            pts = pts[_voxel_first(pts, self._merge_radius_m / _SQRT3)]
+            first = _voxel_first(pts, self._merge_radius_m / _SQRT3)
+            pts, spread = pts[first], spread[first]
         if self._t.size:
             # Only remembered points inside the new batch's bounding box (grown by the radius) can merge.
             near = np.all(
@@ -177,18 +228,27 @@ class ObstacleMemory:
             )
             idx = np.flatnonzero(near)
             if idx.size:
-                # A remembered point seen again is replaced by the new observation.
-                stale_idx = idx[np.any(_sq_dists(self._pts[idx], pts) < r2, axis=1)]
-                if stale_idx.size:
-                    keep = np.ones(self._t.size, dtype=np.bool_)
-                    keep[stale_idx] = False
-                    self._keep(keep)
+                # A remembered point seen again is refreshed where it is; a scan that sees it restarts its
+                # clearing count.
+                close = _sq_dists(self._pts[idx], pts) < r2
+                hit = close.any(axis=1)
+                seen = idx[hit]
+                # The point now stands for these observations too: the surface may lie as far as any says.
+                spread_seen = np.where(close[hit], spread[None, :], 0.0).max(axis=1)
+                self._spread[seen] = np.maximum(self._spread[seen], spread_seen)
+                self._t[seen] = float(t_s)
+                self._src[seen] = sensor
+                self._free_n[seen] = 0
+                self._free_t0[seen] = np.nan
+                new = ~close.any(axis=0)
+                pts, spread = pts[new], spread[new]
         k = pts.shape[0]
         self._pts = np.concatenate([self._pts, pts])
         self._t = np.concatenate([self._t, np.full(k, float(t_s))])
         self._src = np.concatenate([self._src, np.full(k, sensor, dtype=np.int64)])
         self._free_n = np.concatenate([self._free_n, np.zeros(k, dtype=np.int64)])
         self._free_t0 = np.concatenate([self._free_t0, np.full(k, np.nan)])
+        self._spread = np.concatenate([self._spread, spread])
         excess = self._t.size - self._max_points
         if excess > 0:
             # Stable sort: among equal times the older rows (earlier in the arrays) go first.
@@ -234,11 +294,12 @@ class ObstacleMemory:
         scan, pose:
             The scan and the pose at its measurement time.
         beam_half_width_rad:
-            Half the angular width of one element; default half the median spacing of the bearings
+            Half the angular width of one element; default ``element_half_width_rad`` of the bearings
             (0 for a one-beam scan: a single beam then clears only what lies exactly on it, i.e. nothing).
         margin_m:
             A point must be at least this much nearer than the reading to be cleared [m]; keeps the
-            obstacle that produced the reading.
+            obstacle that produced the reading. A point with a spread must be that much nearer than the reading
+            of every beam whose window meets its disc (module docstring).
         vertical_window_m:
             Only points within this height of the vehicle are in the scan's plane [m].
         sensor, clear_scans, clear_span_s:
@@ -271,18 +332,20 @@ class ObstacleMemory:
         reach = np.where(np.isposinf(reach), scan.range_max_m, reach)
         reach = np.where(np.isnan(reach), -np.inf, reach)
         if beam_half_width_rad is None:
-            if b_sorted.size > 1:
-                gaps = np.diff(np.concatenate([b_sorted, b_sorted[:1] + _TWO_PI]))
-                beam_half_width_rad = 0.5 * float(np.median(gaps))
-            else:
-                beam_half_width_rad = 0.0
+            beam_half_width_rad = element_half_width_rad(b_sorted)
 
         rel = self._pts - pose.pos_ned_m
         dist_m = np.hypot(rel[:, 0], rel[:, 1])
-        beam, ang = _nearest_beam(b_sorted, np.mod(np.arctan2(rel[:, 1], rel[:, 0]), _TWO_PI))
+        bearing = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), _TWO_PI)
+        beam, ang = _nearest_beam(b_sorted, bearing)
         cleared = (
             (ang <= beam_half_width_rad + 1e-12)
             & (dist_m < reach[beam] - margin_m)
             & (np.abs(rel[:, 2]) <= vertical_window_m)
         )
+        wide = np.flatnonzero(cleared & (self._spread > 0.0))
+        if wide.size:
+            sin_disc = self._spread[wide] / np.maximum(dist_m[wide], 1e-9)
+            reach_w = _nearest_reach(b_sorted, reach, beam[wide], bearing[wide], beam_half_width_rad, sin_disc)
+            cleared[wide] = dist_m[wide] < reach_w - margin_m
         return np.asarray(cleared, dtype=np.bool_)

@@ -9,6 +9,7 @@ import pytest
 
 from apf_companion.errors import ConfigError
 from apf_companion.perception import ObstacleMemory, Pose, RangeScan, ScanFrame
+from apf_companion.perception.geometry import element_half_width_rad
 
 
 def test_expiry() -> None:
@@ -26,9 +27,45 @@ def test_seen_again_is_refreshed_not_duplicated() -> None:
     mem.add(np.array([[1.0, 1.0, 0.0]]), t_s=0.0)
     mem.add(np.array([[1.1, 1.0, 0.0]]), t_s=0.9)
     assert len(mem) == 1
-    # Refreshed at 0.9: still there at 1.5, and at the newest position.
-    np.testing.assert_allclose(mem.points(1.5), [[1.1, 1.0, 0.0]])
+    # Refreshed at 0.9: still there at 1.5, and where it was first seen (a new position would drag a surface's
+    # points along with the vehicle's windows; see memory.py).
+    np.testing.assert_allclose(mem.points(1.5), [[1.0, 1.0, 0.0]])
     np.testing.assert_allclose(mem.ages_s(1.5), [0.6])
+
+
+def test_points_along_a_wall_stay_where_they_were_seen() -> None:
+    # A chain of points 0.15 m apart seen again 0.1 m further along: each is refreshed in place; none slides.
+    mem = ObstacleMemory(expiry_s=10.0, merge_radius_m=0.2, max_points=100)
+    chain = np.column_stack([np.full(10, 5.0), 0.3 * np.arange(10), np.zeros(10)])
+    mem.add(chain, t_s=0.0)
+    mem.add(chain + np.array([0.0, 0.1, 0.0]), t_s=1.0)
+    np.testing.assert_allclose(mem.points(1.0), chain)
+    np.testing.assert_allclose(mem.ages_s(1.0), np.zeros(10))
+
+
+def test_a_refresh_keeps_the_largest_spread() -> None:
+    mem = ObstacleMemory(expiry_s=10.0, merge_radius_m=0.2, max_points=100)
+    mem.add(np.array([[3.0, 0.0, 0.0]]), t_s=0.0, spread_m=np.array([0.0]))  # e.g. a surface-fill point
+    mem.add(np.array([[3.05, 0.0, 0.0], [3.1, 0.0, 0.0]]), t_s=1.0, spread_m=np.array([0.2, 0.1]))
+    assert len(mem) == 1
+    pose = Pose(t_s=1.0, pos_ned_m=np.zeros(3), yaw_rad=0.0)
+
+    # Beams 7.5 degrees apart (windows 3.75 degrees either side). The point, 3 m ahead, lies 2.7 m inside the
+    # 0-degree beam's 5 m reading. Its 0.2 m spread is a disc of asin(0.2 / 3) = 3.8 degrees, which meets the
+    # -7.5 degree window (3.75 + 3.8 >= 7.5): that beam reads 2.9 m, so the surface may be there, and the point
+    # stays. With the fill point's spread 0 (or the smaller 0.1 m: 1.9 degrees) it would be cleared.
+    def scan(left_m: float) -> RangeScan:
+        return RangeScan(
+            t_s=1.0,
+            frame=ScanFrame.LOCAL_NED,
+            bearings_rad=np.deg2rad([-7.5, 0.0, 7.5]),
+            ranges_m=np.array([left_m, 5.0, 5.0]),
+            range_min_m=0.1,
+            range_max_m=10.0,
+        )
+
+    assert mem.clear_observed(scan(2.9), pose) == 0
+    assert mem.clear_observed(scan(5.0), pose) == 1  # every window that meets the disc sees past it
 
 
 def test_merge_within_one_batch_first_per_cell() -> None:
@@ -124,3 +161,27 @@ def test_clear_observed_uses_yaw() -> None:
     # Only the forward beam is free; facing east, forward is east.
     assert mem.clear_observed(_ring_scan([math.inf, math.nan, math.nan, math.nan]), facing_east) == 1
     assert len(mem) == 0
+
+
+def test_spread_input_is_checked() -> None:
+    mem = ObstacleMemory(expiry_s=10.0, merge_radius_m=0.2, max_points=100)
+    with pytest.raises(ConfigError, match="spread_m"):
+        mem.add(np.zeros((2, 3)), t_s=0.0, spread_m=np.zeros(3))
+    # A non-finite or negative spread counts as none: the point is cleared by its own beam alone.
+    mem.add(np.array([[3.0, 0.0, 0.0], [0.0, 3.0, 0.0]]), t_s=0.0, spread_m=np.array([math.nan, -1.0]))
+    pose = Pose(t_s=0.0, pos_ned_m=np.zeros(3), yaw_rad=0.0)
+    scan = RangeScan(
+        t_s=0.0,
+        frame=ScanFrame.LOCAL_NED,
+        bearings_rad=np.deg2rad(np.arange(0.0, 360.0, 5.0)),
+        ranges_m=np.where(np.arange(72) % 18 == 1, 1.0, 9.0),  # 5 and 95 degrees read 1 m, beside the points
+        range_min_m=0.1,
+        range_max_m=10.0,
+    )
+    assert mem.clear_observed(scan, pose) == 2
+
+
+def test_element_half_width() -> None:
+    assert element_half_width_rad(np.deg2rad(np.arange(0.0, 360.0, 5.0))) == pytest.approx(math.radians(2.5))
+    assert element_half_width_rad(np.array([1.0])) == 0.0
+    assert element_half_width_rad(np.deg2rad([350.0, 0.0, 10.0])) == pytest.approx(math.radians(5.0))

@@ -232,11 +232,13 @@ def test_row_of_trunks_keeps_its_passable_gaps_near_the_vehicle() -> None:
         # Each 1.0 m gap beside the vehicle stays passable: nothing within 0.35 m of its centre...
         for e in gap_centres[np.abs(gap_centres - pos[1]) <= 2.0]:
             assert np.hypot(pts[:, 0] - 3.0, pts[:, 1] - e).min() > PASSABLE_M / 2, (k, e)
-        # ... and the fill adds nothing in free space (the sector returns themselves sit up to 0.1 m off a trunk:
-        # the window error).
+        # ... and the fill adds nothing in free space. The sector returns themselves sit off a trunk by up to the
+        # window error, range x sin(2.5 deg), 0.35 m at 8 m: the memory keeps a point where it was first seen, from
+        # afar (measured: 0.30 m).
         near, near_plain = (p[np.abs(p[:, 1] - pos[1]) <= 2.0] for p in (pts, plain))
-        assert _free_points(ROW, near, 0.1).shape[0] <= _free_points(ROW, near_plain, 0.1).shape[0]
-        assert _free_points(ROW, near, 0.15).shape[0] == 0
+        for off_m in (0.1, 0.15):
+            assert _free_points(ROW, near, off_m).shape[0] <= _free_points(ROW, near_plain, off_m).shape[0]
+        assert _free_points(ROW, near, 8.0 * math.sin(math.radians(2.5))).shape[0] == 0
 
 
 def test_dense_forest_gets_no_fill_in_free_space() -> None:
