@@ -96,18 +96,21 @@ def _nearest_reach(
     sin_disc: FloatArray,
 ) -> FloatArray:
     """The shortest reach among the beams whose window (``half_rad`` either side) meets a disc seen at ``bearing``
-    with angular radius asin(``sin_disc``), starting from its nearest ``beam``: the loop runs over beam offsets
-    (at most half the scan), not over points."""
+    with angular radius asin(``sin_disc``), starting from its nearest ``beam``. The loop runs over beam offsets
+    (at most half the scan), each pass over the discs that the last offset still met: bearings are sorted, so a
+    disc that misses both windows at offset k misses every farther one."""
     m = b_sorted.size
     window = half_rad + np.arcsin(np.minimum(sin_disc, 1.0))
-    lowest = reach[beam]
+    lowest = reach[beam].copy()
+    active = np.arange(beam.size)
     for k in range(1, m // 2 + 1):
-        met = np.zeros(beam.size, dtype=np.bool_)
-        for j in ((beam + k) % m, (beam - k) % m):
-            hit = np.abs(np.remainder(bearing - b_sorted[j] + math.pi, _TWO_PI) - math.pi) <= window
-            lowest = np.where(hit, np.minimum(lowest, reach[j]), lowest)
+        met = np.zeros(active.size, dtype=np.bool_)
+        for j in ((beam[active] + k) % m, (beam[active] - k) % m):
+            hit = np.abs(np.remainder(bearing[active] - b_sorted[j] + math.pi, _TWO_PI) - math.pi) <= window[active]
+            lowest[active[hit]] = np.minimum(lowest[active[hit]], reach[j[hit]])
             met |= hit
-        if not met.any():  # bearings are sorted: farther offsets lie farther away
+        active = active[met]
+        if active.size == 0:
             break
     return np.asarray(lowest, dtype=np.float64)
 
