@@ -23,7 +23,9 @@ Why the first position. Replacing a point by a new one within the merge radius m
 each new window's nearest point: along a wall seen obliquely from a moving vehicle, the points slid with the
 vehicle and left the far end open (replayed along a flown wall-gap path: 1-4 m holes at 10 s and at 60 s expiry).
 ArduPilot's obstacle database keeps the first position too (AP_OADatabase.cpp, ``database_item_refresh`` updates
-the timestamp and radius only). A moving obstacle's old points go by clearing or expiry.
+the timestamp and radius only). A moving obstacle's old points go by clearing or expiry. Two exceptions: a return
+at least twice as precise within a point's spread supersedes it (a closer look: the window error of a far first
+sighting does not stay), and a refreshed point takes the newest height (a climb must not stack layers).
 
 Clearing is hard to fake (docs/hardening.md): each point remembers the sensor that saw it, and only that sensor's
 scans clear it, and only after ``clear_scans`` scans spread over at least ``clear_span_s`` saw through it; a scan
@@ -198,9 +200,9 @@ class ObstacleMemory:
         Rows that are not finite or lie beyond 1e7 m are ignored. New points in the same cell of a grid with edge
         ``merge_radius_m / sqrt(3)`` are one point (the first is kept), so every dropped point lies within
         ``merge_radius_m`` of a kept one; kept points in neighbouring cells may be closer than that. A
-        remembered point within ``merge_radius_m`` of a kept new point is refreshed (time and sensor; its position
-        stays, its spread becomes the largest of its own and theirs), and that new point is not added.
-        ``spread_m`` ((K,), default 0): how far beside each point the surface may lie (module docstring) [m].
+        remembered point within ``merge_radius_m`` of a kept new point is refreshed in place and that new point is
+        not added, unless a new point supersedes it (``_merge``). ``spread_m`` ((K,), default 0): how far beside each
+        point the surface may lie (module docstring) [m].
         """
         pts = np.asarray(points_ned_m, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -218,33 +220,17 @@ class ObstacleMemory:
         pts, spread = pts[ok], np.where(np.isfinite(spread[ok]), np.maximum(spread[ok], 0.0), 0.0)
         if pts.shape[0] == 0:
             return
-        r2 = self._merge_radius_m**2
         if pts.shape[0] > 1:
             first = _voxel_first(pts, self._merge_radius_m / _SQRT3)
             pts, spread = pts[first], spread[first]
         if self._t.size:
-            # Only remembered points inside the new batch's bounding box (grown by the radius) can merge.
-            near = np.all(
-                (self._pts >= pts.min(axis=0) - self._merge_radius_m)
-                & (self._pts <= pts.max(axis=0) + self._merge_radius_m),
-                axis=1,
-            )
+            # Only remembered points inside the new batch's bounding box, grown by the merge radius or the largest
+            # spread, can merge or be superseded.
+            grow = max(self._merge_radius_m, float(self._spread.max(initial=0.0)))
+            near = np.all((self._pts >= pts.min(axis=0) - grow) & (self._pts <= pts.max(axis=0) + grow), axis=1)
             idx = np.flatnonzero(near)
             if idx.size:
-                # A remembered point seen again is refreshed where it is; a scan that sees it restarts its
-                # clearing count.
-                close = _sq_dists(self._pts[idx], pts) < r2
-                hit = close.any(axis=1)
-                seen = idx[hit]
-                # The point now stands for these observations too: the surface may lie as far as any says.
-                spread_seen = np.where(close[hit], spread[None, :], 0.0).max(axis=1)
-                self._spread[seen] = np.maximum(self._spread[seen], spread_seen)
-                self._t[seen] = float(t_s)
-                self._src[seen] = sensor
-                self._free_n[seen] = 0
-                self._free_t0[seen] = np.nan
-                new = ~close.any(axis=0)
-                pts, spread = pts[new], spread[new]
+                pts, spread = self._merge(idx, pts, spread, t_s, sensor)
         k = pts.shape[0]
         self._pts = np.concatenate([self._pts, pts])
         self._t = np.concatenate([self._t, np.full(k, float(t_s))])
@@ -259,6 +245,42 @@ class ObstacleMemory:
             order.sort()
             self._keep(order)
             self.dropped_full += excess
+
+    def _merge(
+        self, idx: npt.NDArray[np.intp], pts: FloatArray, spread: FloatArray, t_s: float, sensor: int
+    ) -> tuple[FloatArray, FloatArray]:
+        """Merge a batch with the remembered points ``idx``; returns the batch's points still to add.
+
+        A new return at least twice as precise (half the spread) within a remembered point's spread is the same
+        surface seen closer: it supersedes that point, which goes. Otherwise a remembered point within the merge
+        radius of new points is refreshed in place: time and sensor, clearing count restarted, the spread the
+        largest of its own and theirs, and the height of the nearest of them (a horizontal scan's height is the
+        vehicle's: climbing must not stack the points in layers). Those new points are not added.
+        """
+        d2 = _sq_dists(self._pts[idx], pts)
+        old = self._spread[idx]
+        reach2 = np.maximum(old, self._merge_radius_m) ** 2
+        sharper = (spread[None, :] > 0.0) & (2.0 * spread[None, :] <= old[:, None]) & (d2 < reach2[:, None])
+        gone: npt.NDArray[np.bool_] = np.asarray(sharper.any(axis=1))
+        close = (d2 < self._merge_radius_m**2) & ~gone[:, None]
+        hit: npt.NDArray[np.bool_] = np.asarray(close.any(axis=1))
+        seen = idx[hit]
+        self._spread[seen] = np.maximum(old[hit], np.where(close[hit], spread[None, :], 0.0).max(axis=1))
+        self._pts[seen, 2] = pts[np.argmin(np.where(close[hit], d2[hit], np.inf), axis=1), 2]
+        self._t[seen] = float(t_s)
+        self._src[seen] = sensor
+        self._free_n[seen] = 0
+        self._free_t0[seen] = np.nan
+        # Every new point stays within the merge radius of a remembered one: those the new heights leave farther
+        # are added.
+        new: npt.NDArray[np.bool_] = np.ones(pts.shape[0], dtype=np.bool_)
+        if seen.size:
+            new = np.asarray(~(_sq_dists(self._pts[seen], pts) < self._merge_radius_m**2).any(axis=0))
+        if gone.any():
+            keep = np.ones(self._t.size, dtype=np.bool_)
+            keep[idx[gone]] = False
+            self._keep(keep)
+        return pts[new], spread[new]
 
     def expire(self, now_s: float) -> int:
         """Drop points last seen more than ``expiry_s`` before ``now_s``; returns how many."""

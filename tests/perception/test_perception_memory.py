@@ -185,3 +185,34 @@ def test_element_half_width() -> None:
     assert element_half_width_rad(np.deg2rad(np.arange(0.0, 360.0, 5.0))) == pytest.approx(math.radians(2.5))
     assert element_half_width_rad(np.array([1.0])) == 0.0
     assert element_half_width_rad(np.deg2rad([350.0, 0.0, 10.0])) == pytest.approx(math.radians(5.0))
+
+
+def test_a_closer_look_supersedes_a_far_one() -> None:
+    # A return placed from 8 m (spread 0.35 m) and the same jamb seen from 2 m (spread 0.09 m), 0.3 m away: outside
+    # the merge radius, inside the old point's spread, and four times as precise: the old point goes.
+    mem = ObstacleMemory(expiry_s=10.0, merge_radius_m=0.2, max_points=100)
+    mem.add(np.array([[8.0, 11.0, -5.0], [8.0, 5.0, -5.0]]), t_s=0.0, spread_m=np.array([0.35, 0.35]))
+    mem.add(np.array([[8.0, 10.7, -5.0]]), t_s=1.0, spread_m=np.array([0.09]))
+    np.testing.assert_allclose(mem.points(1.0), [[8.0, 5.0, -5.0], [8.0, 10.7, -5.0]])
+    # Not twice as precise: refreshed in place (0.1 m away), nothing superseded.
+    mem.add(np.array([[8.0, 5.1, -5.0]]), t_s=2.0, spread_m=np.array([0.2]))
+    np.testing.assert_allclose(mem.points(2.0), [[8.0, 5.0, -5.0], [8.0, 10.7, -5.0]])
+    np.testing.assert_allclose(mem.ages_s(2.0), [0.0, 1.0])
+    # A fill point (spread 0) supersedes nothing (it refreshes the point 0.15 m away), and nothing supersedes it.
+    mem.add(np.array([[8.0, 5.15, -5.0]]), t_s=3.0, spread_m=np.array([0.0]))
+    assert len(mem) == 2
+    mem.add(np.array([[0.0, 0.0, -5.0]]), t_s=3.0, spread_m=np.array([0.0]))
+    mem.add(np.array([[0.0, 0.1, -5.0]]), t_s=3.0, spread_m=np.array([0.01]))
+    np.testing.assert_allclose(mem.points(3.0)[-1], [0.0, 0.0, -5.0])
+
+
+def test_a_climb_does_not_stack_points_in_layers() -> None:
+    # A horizontal scan's points are at the vehicle's height: climbing 0.1 m per scan past a wall, the refreshed
+    # points follow the newest height instead of leaving a layer every 0.2 m.
+    mem = ObstacleMemory(expiry_s=100.0, merge_radius_m=0.2, max_points=10_000)
+    wall = np.column_stack([np.full(20, 5.0), 0.2 * np.arange(20), np.zeros(20)])
+    for k in range(50):
+        mem.add(wall + np.array([0.0, 0.0, -0.1 * k]), t_s=0.1 * k, spread_m=np.full(20, 0.1))
+    pts = mem.points(5.0)
+    assert len(pts) == 20
+    np.testing.assert_allclose(pts[:, 2], -4.9)
