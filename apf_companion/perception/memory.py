@@ -16,7 +16,9 @@ window's centre bearing, so the surface may lie up to ``spread_m`` = range x sin
 8 m with 5-degree sectors). Seen at grazing incidence along a wall, such a point sits in front of the wall, and a
 later beam along the wall reads past it: the wall's points were cleared one by one and the wall turned porous
 (issue 7: walls 2-3 m open in ``apf-sim fly --world wall-gap``, where the planner then paced to and fro). So a
-point is cleared only when every beam whose window meets the disc of radius ``spread_m`` around it sees past it.
+point is cleared only when every beam whose window meets the disc of radius ``spread_m`` around it sees past it,
+or when one of the scan's returns lies within its spread (that return stands for the surface it may be: a door's
+jamb seen closer, not a wall seen along its length, where the returns lie metres apart).
 Points with no spread (a surface-fill point no return has refreshed; ``remember``) are cleared by their own beam.
 
 Why the first position. Replacing a point by a new one within the merge radius moved the remembered wall towards
@@ -372,5 +374,18 @@ class ObstacleMemory:
         if wide.size:
             sin_disc = self._spread[wide] / np.maximum(dist_m[wide], 1e-9)
             reach_w = _nearest_reach(b_sorted, reach, beam[wide], bearing[wide], beam_half_width_rad, sin_disc)
-            cleared[wide] = dist_m[wide] < reach_w - margin_m
+            seen = dist_m[wide] < reach_w - margin_m
+            # A point the disc keeps goes all the same when one of this scan's returns lies within its spread: that
+            # return (added after clearing) stands for the surface the point may be, and measures it better. Along
+            # a wall seen at grazing incidence there is none near (returns metres apart), at a door's jamb there is.
+            kept = wide[~seen]
+            hits = np.isfinite(scan.ranges_m[order])
+            if kept.size and hits.any():
+                ret = pose.pos_ned_m[:2] + reach[hits, None] * np.column_stack(
+                    [np.cos(b_sorted[hits]), np.sin(b_sorted[hits])]
+                )
+                rel_k = self._pts[kept, None, :2] - ret[None, :, :]
+                near = (np.einsum("ijk,ijk->ij", rel_k, rel_k) < self._spread[kept, None] ** 2).any(axis=1)
+                seen[~seen] = near
+            cleared[wide] = seen
         return np.asarray(cleared, dtype=np.bool_)

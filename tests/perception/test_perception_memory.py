@@ -216,3 +216,25 @@ def test_a_climb_does_not_stack_points_in_layers() -> None:
     pts = mem.points(5.0)
     assert len(pts) == 20
     np.testing.assert_allclose(pts[:, 2], -4.9)
+
+
+def test_a_return_within_the_spread_stands_for_the_kept_point() -> None:
+    # P, 5 m out at 5 degrees, lies in a free window; the 0-degree window reads 5.0 m, a return 0.44 m from P. With
+    # a spread of 0.4 m, P's disc meets that window and the return is farther than the spread: P may be a surface
+    # that scan cannot see, and stays. With 0.5 m the return lies within the spread and stands for it: P goes.
+    pose = Pose(t_s=1.0, pos_ned_m=np.zeros(3), yaw_rad=0.0)
+    ranges = np.full(72, math.inf)
+    ranges[0] = 5.0
+    scan = RangeScan(
+        t_s=1.0,
+        frame=ScanFrame.LOCAL_NED,
+        bearings_rad=np.deg2rad(5.0 * np.arange(72)),
+        ranges_m=ranges,
+        range_min_m=0.1,
+        range_max_m=9.0,
+    )
+    p = np.array([[5.0 * math.cos(math.radians(5.0)), 5.0 * math.sin(math.radians(5.0)), 0.0]])
+    for spread, removed in ((0.4, 0), (0.5, 1)):
+        mem = ObstacleMemory(expiry_s=10.0, merge_radius_m=0.2, max_points=100)
+        mem.add(p, t_s=0.0, spread_m=np.array([spread]))
+        assert mem.clear_observed(scan, pose) == removed
