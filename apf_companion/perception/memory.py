@@ -267,17 +267,20 @@ class ObstacleMemory:
         close = (d2 < self._merge_radius_m**2) & ~gone[:, None]
         hit: npt.NDArray[np.bool_] = np.asarray(close.any(axis=1))
         seen = idx[hit]
-        self._spread[seen] = np.maximum(old[hit], np.where(close[hit], spread[None, :], 0.0).max(axis=1))
-        self._pts[seen, 2] = pts[np.argmin(np.where(close[hit], d2[hit], np.inf), axis=1), 2]
+        close_seen = close[hit]
+        self._spread[seen] = np.maximum(old[hit], np.where(close_seen, spread[None, :], 0.0).max(axis=1))
+        z_new = pts[np.argmin(np.where(close_seen, d2[hit], np.inf), axis=1), 2]
+        moved = z_new != self._pts[seen, 2]
+        self._pts[seen, 2] = z_new
         self._t[seen] = float(t_s)
         self._src[seen] = sensor
         self._free_n[seen] = 0
         self._free_t0[seen] = np.nan
-        # Every new point stays within the merge radius of a remembered one: those the new heights leave farther
+        # Every new point stays within the merge radius of a remembered one: those a new height leaves farther
         # are added.
-        new: npt.NDArray[np.bool_] = np.ones(pts.shape[0], dtype=np.bool_)
-        if seen.size:
-            new = np.asarray(~(_sq_dists(self._pts[seen], pts) < self._merge_radius_m**2).any(axis=0))
+        if moved.any():
+            close_seen[moved] = _sq_dists(self._pts[seen[moved]], pts) < self._merge_radius_m**2
+        new: npt.NDArray[np.bool_] = np.asarray(~close_seen.any(axis=0))
         if gone.any():
             keep = np.ones(self._t.size, dtype=np.bool_)
             keep[idx[gone]] = False
