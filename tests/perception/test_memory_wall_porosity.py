@@ -127,4 +127,4 @@ def test_the_wall_behind_the_vehicle_stays_closed(face_distance_m: float) -> Non
 @pytest.mark.parametrize("face_distance_m", [0.5, 1.0, 2.0])
 def test_remembered_wall_has_no_passable_gap_within_three_metres_with_surface_fill(face_distance_m: float) -> None:
     gap = _fly_along_service(face_distance_m, reach_m=3.0)
-    assert gap < PASSABLE_M  # measured 0.40-0.51 m (0.22-0.23 m with the replacing memory, to session 17)
+    assert gap < PASSABLE_M  # measured 0.44-0.51 m (0.22-0.23 m with the replacing memory, to session 17)
