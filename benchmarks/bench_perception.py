@@ -31,7 +31,7 @@ from apf_companion.perception import (
     scan_to_points_ned,
     surface_fill_points,
 )
-from apf_companion.perception.geometry import element_half_width_rad
+from apf_companion.perception.geometry import return_spread_m
 
 
 def _time(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
@@ -151,7 +151,7 @@ def _surface_fill_rows(rep: int) -> list[tuple[str, tuple[float, float]]]:
 
         def place(fill: bool, scan: RangeScan = scan, pose: Pose = pose, mem: ObstacleMemory = mem) -> None:
             pts = scan_to_points_ned(scan, pose)
-            spread = scan.ranges_m[np.isfinite(scan.ranges_m)] * math.sin(element_half_width_rad(scan.bearings_rad))
+            spread = return_spread_m(scan)
             if fill:
                 fill_pts = surface_fill_points(scan, pose)
                 pts = np.concatenate([pts, fill_pts])

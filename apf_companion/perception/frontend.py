@@ -28,7 +28,7 @@ import numpy as np
 from apf_companion.errors import ConfigError, ProtocolError
 from apf_companion.perception.cdr import decode_laserscan_cdr
 from apf_companion.perception.geometry import (
-    element_half_width_rad,
+    return_spread_m,
     scan_bearings_ned_rad,
     scan_to_points_ned,
     surface_fill_points,
@@ -322,10 +322,7 @@ class PerceptionFrontEnd:
         if scan.counts.valid + scan.counts.free == 0:
             return  # nothing usable: no news about the surroundings, ranges stay as fresh as they were
         points = scan_to_points_ned(scan, pose)
-        # A return stands for the nearest surface anywhere in its window: that far beside its point (memory.py).
-        bearings = scan_bearings_ned_rad(scan, pose)
-        finite = np.isfinite(scan.ranges_m)
-        spread = scan.ranges_m[finite] * math.sin(element_half_width_rad(bearings))
+        spread = return_spread_m(scan)  # how far beside its point each return's surface may lie (memory.py)
         if self.params.surface_fill:
             fill = surface_fill_points(
                 scan,
@@ -346,6 +343,7 @@ class PerceptionFrontEnd:
         refused = self.memory.clears_refused
         self.memory.clear_observed(scan, pose, sensor=sensor, clear_scans=p.clear_scans, clear_span_s=p.clear_span_s)
         self.counters.clears_refused += self.memory.clears_refused - refused
+        bearings = scan_bearings_ned_rad(scan, pose)
         self.sectors.note(bearings[~np.isnan(scan.ranges_m)], scan.t_s)
         self._remember(points, scan.t_s, sensor, spread)
 

@@ -56,7 +56,13 @@ from apf_companion.perception.types import FloatArray, Pose, RangeScan, ScanFram
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
-__all__ = ["element_half_width_rad", "scan_bearings_ned_rad", "scan_to_points_ned", "surface_fill_points"]
+__all__ = [
+    "element_half_width_rad",
+    "return_spread_m",
+    "scan_bearings_ned_rad",
+    "scan_to_points_ned",
+    "surface_fill_points",
+]
 
 _STEP_RTOL = 1e-3  # bearing steps within 0.1 % of the scan's increment are "one increment"
 
@@ -79,6 +85,13 @@ def element_half_width_rad(bearings_rad: FloatArray) -> float:
     if b.size < 2:
         return 0.0
     return 0.5 * float(np.median(np.diff(np.concatenate([b, b[:1] + 2.0 * math.pi]))))
+
+
+def return_spread_m(scan: RangeScan) -> FloatArray:
+    """(K,) how far beside each of ``scan_to_points_ned``'s points the surface may lie [m]: a return is the nearest
+    surface anywhere in its element's window but is placed on the window's centre, so range x sin(half width)."""
+    r = scan.ranges_m[np.isfinite(scan.ranges_m)]
+    return np.asarray(r * math.sin(element_half_width_rad(scan.bearings_rad)), dtype=np.float64)
 
 
 def scan_to_points_ned(scan: RangeScan, pose: Pose) -> FloatArray:

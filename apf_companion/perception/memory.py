@@ -43,7 +43,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
-from apf_companion.perception.geometry import element_half_width_rad, scan_bearings_ned_rad
+from apf_companion.perception.geometry import element_half_width_rad, scan_bearings_ned_rad, scan_to_points_ned
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
 __all__ = ["ObstacleMemory"]
@@ -382,11 +382,8 @@ class ObstacleMemory:
             # return (added after clearing) stands for the surface the point may be, and measures it better. Along
             # a wall seen at grazing incidence there is none near (returns metres apart), at a door's jamb there is.
             kept = wide[~seen]
-            hits = np.isfinite(scan.ranges_m[order])
-            if kept.size and hits.any():
-                ret = pose.pos_ned_m[:2] + reach[hits, None] * np.column_stack(
-                    [np.cos(b_sorted[hits]), np.sin(b_sorted[hits])]
-                )
+            ret = scan_to_points_ned(scan, pose)[:, :2] if kept.size else np.empty((0, 2))
+            if ret.shape[0]:
                 rel_k = self._pts[kept, None, :2] - ret[None, :, :]
                 near = (np.einsum("ijk,ijk->ij", rel_k, rel_k) < self._spread[kept, None] ** 2).any(axis=1)
                 seen[~seen] = near
