@@ -52,7 +52,7 @@ from apf_companion.links.messages import (
 )
 from apf_companion.navigator import Navigator
 from apf_companion.outbox import Outbox
-from apf_companion.perception import PerceptionFrontEnd
+from apf_companion.perception import PerceptionFrontEnd, euler_yaw_rate_rad_s
 from apf_companion.reporter import ServiceCounters
 from apf_companion.streams import StreamKeeper, wanted_streams
 
@@ -264,7 +264,8 @@ class AutopilotHandlers:
         self.perception.gate.note_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate
 
     def _on_attitude(self, rec: Attitude, now_s: float) -> None:
-        self.perception.on_attitude(rec.yaw)
+        rate = euler_yaw_rate_rad_s(rec.roll, rec.pitch, rec.pitchspeed, rec.yawspeed)
+        self.perception.on_attitude(rec.yaw, time_boot_ms=rec.time_boot_ms, yaw_rate_rad_s=rate)
 
     def _on_global_position(self, rec: GlobalPositionInt, now_s: float) -> None:
         pose = self.navigator.pose

@@ -79,6 +79,8 @@ class Attitude:
     roll: float  # [rad]
     pitch: float
     yaw: float  # [rad], 0 = north, clockwise positive
+    pitchspeed: float = 0.0  # body rates [rad/s], FRD (the autopilots send gyro rates, not Euler rates)
+    yawspeed: float = 0.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -280,6 +282,8 @@ def _attitude(msg: Any) -> Attitude:
         roll=float(msg.roll),
         pitch=float(msg.pitch),
         yaw=float(msg.yaw),
+        pitchspeed=float(msg.pitchspeed),
+        yawspeed=float(msg.yawspeed),
     )
 
 

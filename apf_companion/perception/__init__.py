@@ -18,6 +18,7 @@ from apf_companion.perception.cdr import (
 from apf_companion.perception.forward import FORWARD_SECTORS, ForwardSectors, obstacle_sectors_cm
 from apf_companion.perception.frontend import PerceptionCounters, PerceptionFrontEnd, PerceptionParams
 from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_points_ned, surface_fill_points
+from apf_companion.perception.heading import HeadingTrack, euler_yaw_rate_rad_s
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     points_from_obstacle_distance_3d,
@@ -45,6 +46,7 @@ __all__ = [
     "SCAN_SCHEMA",
     "ForwardSectors",
     "GoalCommand",
+    "HeadingTrack",
     "LaserScanMsg",
     "ObstacleMemory",
     "PerceptionCounters",
@@ -65,6 +67,7 @@ __all__ = [
     "encode_goal_json",
     "encode_laserscan_cdr",
     "encode_scan_json",
+    "euler_yaw_rate_rad_s",
     "laserscan_to_scan",
     "obstacle_sectors_cm",
     "parse_laserscan_cdr",

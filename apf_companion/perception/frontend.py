@@ -1,9 +1,10 @@
 """The perception front end: the one owner of pose history, scan timing and the obstacle memory.
 
-Poses (LOCAL_POSITION_NED with the latest ATTITUDE yaw) go into a ``PoseHistory``; range scans (MAVLink
-OBSTACLE_DISTANCE / DISTANCE_SENSOR / OBSTACLE_DISTANCE_3D, zenoh JSON or CDR) are stamped on the service clock,
-placed in local NED with the pose at their measurement time and written to the ``ObstacleMemory``. Nothing else
-writes that memory: the navigator reads it through ``points`` and ``ranges_t_s`` (the ``ObstacleView`` protocol).
+Poses (LOCAL_POSITION_NED with the ATTITUDE yaw at its own time, ``HeadingTrack``) go into a ``PoseHistory``;
+range scans (MAVLink OBSTACLE_DISTANCE / DISTANCE_SENSOR / OBSTACLE_DISTANCE_3D, zenoh JSON or CDR) are stamped on
+the service clock, placed in local NED with the pose at their measurement time and written to the
+``ObstacleMemory``. Nothing else writes that memory: the navigator reads it through ``points`` and
+``ranges_t_s`` (the ``ObstacleView`` protocol).
 
 A scan measured after the newest pose waits for the next pose (at most ``SCAN_DEFER_S``, at most
 ``SCAN_DEFER_MAX`` scans), so that it is placed with the pose interpolated at its time rather than the previous
@@ -33,6 +34,7 @@ from apf_companion.perception.geometry import (
     scan_to_points_ned,
     surface_fill_points,
 )
+from apf_companion.perception.heading import HeadingTrack
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
     DistanceSensorLike,
@@ -129,7 +131,7 @@ class PerceptionFrontEnd:
         self.history = PoseHistory(POSE_HISTORY_LEN)
         self.counters = PerceptionCounters()
         self.deferred: collections.deque[RangeScan] = collections.deque()
-        self._yaw_rad: float | None = None
+        self.heading = HeadingTrack()
         self.gate = PoseGate(params.pose_limits)
         self.sectors = SectorFreshness(params.sectors, params.sector_max_age_s)
         self._sensor_ids: dict[str, int] = {}
@@ -159,17 +161,18 @@ class PerceptionFrontEnd:
     @property
     def yaw_rad(self) -> float | None:
         """The latest ATTITUDE yaw [rad] (0 north, clockwise), None before the first."""
-        return self._yaw_rad
+        return self.heading.latest_rad
 
     def autopilot_boot_s(self, now_s: float) -> float | None:
         """The autopilot's time since boot at service time ``now_s`` (offset of the latest pose), None before."""
         return None if self._boot_offset_s is None else now_s - self._boot_offset_s
 
     # ---- poses ---------------------------------------------------------------------------------------------
-    def on_attitude(self, yaw_rad: float) -> None:
-        """ATTITUDE.yaw: the heading the next poses carry."""
+    def on_attitude(self, yaw_rad: float, *, time_boot_ms: int | None = None, yaw_rate_rad_s: float = 0.0) -> None:
+        """ATTITUDE.yaw [rad] measured at ``time_boot_ms``, with the heading rate [rad/s]: poses take the yaw at
+        their own time from these samples (perception/heading.py). Without a time, the next poses carry it as is."""
         if np.isfinite(yaw_rad):
-            self._yaw_rad = float(yaw_rad)
+            self.heading.update(float(yaw_rad), time_boot_ms, yaw_rate_rad_s)
         else:
             self.counters.bad_poses += 1
 
@@ -184,7 +187,8 @@ class PerceptionFrontEnd:
         None when it is stale, non-finite or no heading is known yet. An implausible reported velocity does not
         reject the pose: the pose carries no velocity (the navigator's braking envelope is then off)."""
         self.counters.poses += 1
-        if self._yaw_rad is None:
+        yaw_rad = self.heading.at(time_boot_ms)
+        if yaw_rad is None:
             return None  # no ATTITUDE yet: body-frame ranges could not be placed
         verdict = self.gate.check(time_boot_ms, pos_ned_m, now_s)
         if verdict is Verdict.RESET:
@@ -195,9 +199,7 @@ class PerceptionFrontEnd:
             return None
         vel = self._plausible_velocity(vel_ned_m_s)
         try:
-            pose = Pose(
-                t_s=now_s, pos_ned_m=np.array(pos_ned_m, dtype=np.float64), yaw_rad=self._yaw_rad, vel_ned_m_s=vel
-            )
+            pose = Pose(t_s=now_s, pos_ned_m=np.array(pos_ned_m, dtype=np.float64), yaw_rad=yaw_rad, vel_ned_m_s=vel)
         except ConfigError:
             self.counters.bad_poses += 1
             return None

@@ -160,8 +160,15 @@ def _gps_raw_int(v: VehicleEngine) -> Any:
 
 
 def _attitude(v: VehicleEngine) -> Any:
+    """ATTITUDE's rates are body (gyro) rates, as ArduPilot (``GCS_Common.cpp`` ``send_attitude``:
+    ``ahrs.get_gyro()``) and PX4 (``vehicle_angular_velocity``) send them: the heading rate psi_dot, with roll
+    and pitch held, is p = -sin(theta) psi_dot, q = sin(phi) cos(theta) psi_dot, r = cos(phi) cos(theta) psi_dot."""
     roll, pitch = v.state.attitude_rad()
-    return v.mav.attitude_encode(v.time_boot_ms, roll, pitch, v.state.yaw_rad, 0.0, 0.0, v.state.yaw_rate_rad_s)
+    psi_dot = v.state.yaw_rate_rad_s
+    p = -math.sin(pitch) * psi_dot
+    q = math.sin(roll) * math.cos(pitch) * psi_dot
+    r = math.cos(roll) * math.cos(pitch) * psi_dot
+    return v.mav.attitude_encode(v.time_boot_ms, roll, pitch, v.state.yaw_rad, p, q, r)
 
 
 def landed_state(v: VehicleEngine) -> int:

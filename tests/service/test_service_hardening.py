@@ -78,7 +78,7 @@ async def test_an_exception_in_a_handler_is_counted_and_survived() -> None:
         await within(svc.clock.now, lambda: len(ap.setpoints()) > 5, 10.0, "flying")
         calls = 0
 
-        def explode(yaw_rad: float) -> None:
+        def explode(yaw_rad: float, *, time_boot_ms: int | None = None, yaw_rate_rad_s: float = 0.0) -> None:
             nonlocal calls
             calls += 1
             raise RuntimeError("a handler bug")

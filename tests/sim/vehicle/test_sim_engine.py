@@ -19,6 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY, Autopilot, CopterMode
 from apf_companion.errors import ConfigError
 from apf_companion.links import MavlinkLink
+from apf_companion.perception import euler_yaw_rate_rad_s
 from sim.vehicle import Dynamics, EngineConfig, SimConfig, SpawnConfig, VehicleEngine
 from sim.vehicle.geo import latlon_to_ne
 from sim.vehicle.telemetry import build
@@ -300,3 +301,25 @@ def test_arducopter_reports_a_position_only_guided_target_as_a_location() -> Non
     rig.setpoint(MASK_POS_VEL, (12.0, -4.0, -7.0), (1.0, 0.0, 0.0))  # a companion's stream: PosVelAccel
     rig.run(0.1)
     assert build(rig.engine, m.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT) is None
+
+
+def test_attitude_carries_body_rates_that_give_back_the_heading_rate() -> None:
+    """ATTITUDE's rates are gyro (body) rates on both autopilots; while the vehicle turns and tilts, the service's
+    Euler conversion gets the simulator's heading rate back (with level-body rates it would be off by cos(roll))."""
+    rig = Rig(spawn=SpawnConfig(airborne=True, mode="GUIDED"))
+    rig.run(0.2)
+    rig.setpoint(MASK_POSITION, (-8.0, 12.0, -5.0))  # behind and to the right: a turn while accelerating
+    seen = 0
+    for _ in range(round(6.0 / rig.engine.dt)):
+        rig.engine.step()
+        roll, pitch = rig.engine.state.attitude_rad()
+        psi_dot = rig.engine.state.yaw_rate_rad_s
+        if abs(psi_dot) < 0.05 or max(abs(roll), abs(pitch)) < 0.02:
+            continue
+        msg = wire(build(rig.engine, m.MAVLINK_MSG_ID_ATTITUDE))
+        assert euler_yaw_rate_rad_s(msg.roll, msg.pitch, msg.pitchspeed, msg.yawspeed) == pytest.approx(
+            psi_dot, rel=1e-5, abs=1e-6
+        )
+        assert msg.yawspeed != pytest.approx(psi_dot, rel=1e-6)  # body r differs from psi_dot while tilted
+        seen += 1
+    assert seen > 10
