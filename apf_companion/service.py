@@ -530,6 +530,7 @@ class TakeoverDriver:
             takeoff_ack_s=ap.ack_time(mavlink.MAV_CMD_NAV_TAKEOFF),
             heartbeats=ap.heartbeats,
             arm_ack_s=ap.ack_time(mavlink.MAV_CMD_COMPONENT_ARM_DISARM),
+            acks=ap.acks,
         )
         for action in self.controller.step(now, inputs):
             self._carry_out(action, now)

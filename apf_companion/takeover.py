@@ -23,7 +23,10 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import Autopilot
 
@@ -49,8 +52,9 @@ TAKEOFF_S_PER_M = 4.0  # the takeoff phase's timeout grows by this much per metr
 TAKEOFF_CLIMBING_M = 0.1  # above the start: the takeoff is under way, NAV_TAKEOFF is not resent
 PRESTREAM_EXTRA_S = 5.0  # the pre-stream phase may take this much longer than a mode change
 # GUIDED / OFFBOARD and arming are confirmed only by the autopilot's HEARTBEAT (1 Hz). Past its deadline such a
-# phase fails only once this many HEARTBEATs since it began said "not yet": on a lossy link (or with the autopilot
-# behind the service's clock) fewer arrived, and it waits on, up to HARD_TIMEOUT_FACTOR times its timeout.
+# phase fails only once the autopilot has answered its command (COMMAND_ACK) and this many HEARTBEATs since then
+# said "not yet" (since the phase began, for a refusal). On a lossy link the commands, their answers or the
+# HEARTBEATs may all have been lost so far, and it waits on, resending, up to HARD_TIMEOUT_FACTOR times its timeout.
 HEARTBEATS_TO_FAIL = 3
 HARD_TIMEOUT_FACTOR = 2.0
 
@@ -114,6 +118,10 @@ class TakeoverInputs:
         ekf_ready: The autopilot's EKF has a horizontal position (True when it does not report one).
         takeoff_ack_s: When NAV_TAKEOFF was last ACCEPTED (service time), None if not (or its latest ACK failed).
         heartbeats: Autopilot HEARTBEATs heard so far, or None (not counted: the deadline alone decides).
+        acks: The latest COMMAND_ACK to us per command: (MAV_RESULT, service time). A mode or arm phase whose
+            command has had no answer since it began does not fail before its hard limit (the commands or the
+            answers were lost). ArduCopter ACKs DO_SET_MODE ACCEPTED only when the mode was set
+            (GCS_Common.cpp ``_set_mode_common``), PX4 only when the transition was not denied (Commander.cpp).
         arm_ack_s: When COMPONENT_ARM_DISARM was last ACCEPTED (service time), None if not (or its latest ACK
             differed). The takeover only ever sends arm (param1 = 1), and both autopilots ACK that ACCEPTED only
             when the vehicle is armed (ArduCopter/GCS_Mavlink.cpp: when arming succeeded or it already was; PX4
@@ -132,9 +140,15 @@ class TakeoverInputs:
     takeoff_ack_s: float | None = None
     heartbeats: int | None = None
     arm_ack_s: float | None = None
+    acks: Mapping[int, tuple[int, float]] = field(default_factory=dict)
 
 
-_HEARTBEAT_PHASES = (Phase.MODE, Phase.MODE_BEFORE_ARM, Phase.ARMING)
+# The phases confirmed only by HEARTBEAT, and the command each sends.
+_HEARTBEAT_PHASES = {
+    Phase.MODE: mavlink.MAV_CMD_DO_SET_MODE,
+    Phase.MODE_BEFORE_ARM: mavlink.MAV_CMD_DO_SET_MODE,
+    Phase.ARMING: mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+}
 
 
 class TakeoverController:
@@ -154,6 +168,8 @@ class TakeoverController:
         self._prestream_since_s: float | None = None
         self._last_prestream_s: float | None = None
         self._hb_at_enter: int | None = None  # HEARTBEATs heard when the phase began
+        self._accepted_s: float | None = None  # the phase's command ACCEPTED at (service time), as first seen
+        self._hb_at_accepted: int | None = None  # HEARTBEATs heard when that ACK was first seen
 
     @property
     def poll_interval_s(self) -> float:
@@ -177,6 +193,7 @@ class TakeoverController:
         while self.phase is not Phase.IDLE:
             if self._hb_at_enter is None:
                 self._hb_at_enter = inp.heartbeats
+            self._note_answer(inp)
             if self._condition(now_s, inp):
                 self._advance(now_s, inp, acts)
                 continue
@@ -214,12 +231,30 @@ class TakeoverController:
         else:
             self._enter(self._after_arming(), now_s)
 
+    def _answer(self, inp: TakeoverInputs) -> tuple[int, float] | None:
+        """The autopilot's latest answer to this phase's command since the phase began, or None."""
+        command = _HEARTBEAT_PHASES.get(self.phase)
+        ack = None if command is None else inp.acks.get(command)
+        return ack if ack is not None and ack[1] >= self._phase_start_s else None
+
+    def _note_answer(self, inp: TakeoverInputs) -> None:
+        ack = self._answer(inp)
+        if ack is not None and ack[0] == mavlink.MAV_RESULT_ACCEPTED and ack[1] != self._accepted_s:
+            self._accepted_s, self._hb_at_accepted = ack[1], inp.heartbeats
+
     def _enough_evidence(self, now_s: float, inp: TakeoverInputs) -> bool:
-        """Past the deadline: fail unless the phase's only evidence (HEARTBEAT) has mostly been lost so far."""
+        """Past the deadline: fail unless the phase's evidence (its command's answer, then HEARTBEATs saying "not
+        yet") has been lost so far; at the hard limit, fail regardless."""
         if inp.heartbeats is None or self._hb_at_enter is None or self.phase not in _HEARTBEAT_PHASES:
             return True
-        heard = inp.heartbeats - self._hb_at_enter
-        return heard >= HEARTBEATS_TO_FAIL or now_s > self._deadline_s + (HARD_TIMEOUT_FACTOR - 1.0) * self._timeout_s()
+        if now_s > self._deadline_s + (HARD_TIMEOUT_FACTOR - 1.0) * self._timeout_s():
+            return True
+        ack = self._answer(inp)
+        if ack is None:
+            return False  # every command or every answer lost so far: the HEARTBEATs' "not yet" says nothing
+        accepted = ack[0] == mavlink.MAV_RESULT_ACCEPTED
+        since = self._hb_at_accepted if accepted and self._hb_at_accepted is not None else self._hb_at_enter
+        return inp.heartbeats - since >= HEARTBEATS_TO_FAIL
 
     def _after_arming(self) -> Phase:
         return Phase.MODE if self._ardupilot else Phase.PRESTREAM
@@ -230,6 +265,7 @@ class TakeoverController:
         self._next_send_s = now_s
         self._phase_start_s = now_s
         self._hb_at_enter = None
+        self._accepted_s = self._hb_at_accepted = None
 
     def _timeout_s(self) -> float:
         p = self.params

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as m
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.takeover import (
@@ -20,6 +21,7 @@ from apf_companion.takeover import (
 )
 
 ROUTE = object()  # the goal, compared by identity
+SET_MODE = m.MAV_CMD_DO_SET_MODE
 GROUND = TakeoverInputs(navigating=True, engaged=False, route=ROUTE, mode_ok=False, armed=False, down_m=0.0)
 
 
@@ -260,12 +262,42 @@ def test_on_a_lossy_link_a_mode_phase_waits_for_heartbeat_evidence_before_failin
     assert kinds(c.step(3.0, dataclasses.replace(heard, heartbeats=12, mode_ok=True))) == [ActionKind.DONE]
 
 
-def test_enough_heartbeats_saying_not_yet_fail_at_the_deadline() -> None:
+def test_a_refused_command_and_enough_heartbeats_saying_not_yet_fail_at_the_deadline() -> None:
     c = ctl(mode_timeout_s=2.0)
     c.step(0.0, dataclasses.replace(GROUND, heartbeats=0))
-    assert kinds(c.step(1.9, dataclasses.replace(GROUND, heartbeats=HEARTBEATS_TO_FAIL))) == [ActionKind.SET_MODE]
-    out = c.step(2.01, dataclasses.replace(GROUND, heartbeats=HEARTBEATS_TO_FAIL))
+    refused = dataclasses.replace(GROUND, heartbeats=HEARTBEATS_TO_FAIL, acks={SET_MODE: (m.MAV_RESULT_FAILED, 0.1)})
+    assert kinds(c.step(1.9, refused)) == [ActionKind.SET_MODE]
+    out = c.step(2.01, refused)
     assert kinds(out) == [ActionKind.FAILED] and out[0].drop_goal
+
+
+def test_unanswered_mode_commands_are_resent_past_the_deadline_up_to_the_hard_limit() -> None:
+    """Seed 10 of the lossy-link batch: four DO_SET_MODE lost in a row. HEARTBEATs saying "not GUIDED" are no
+    evidence of a refusal while no command has been answered; an ACK from before the phase is not an answer."""
+    c = ctl(mode_timeout_s=2.0)
+    c.step(0.0, dataclasses.replace(GROUND, heartbeats=0))
+    unanswered = dataclasses.replace(GROUND, heartbeats=5, acks={SET_MODE: (m.MAV_RESULT_FAILED, -1.0)})
+    for t in (2.01, 3.02):
+        assert kinds(c.step(t, unanswered)) == [ActionKind.SET_MODE] and phase(c) is Phase.MODE
+    assert c.step(3.99, unanswered) == [] and phase(c) is Phase.MODE
+    out = c.step(HARD_TIMEOUT_FACTOR * 2.0 + 0.01, unanswered)
+    assert kinds(out) == [ActionKind.FAILED] and out[0].reason == "GUIDED not confirmed within 2.0 s"
+
+
+def test_an_accepted_mode_command_waits_for_heartbeats_after_its_answer() -> None:
+    """ACCEPTED just before the deadline: the HEARTBEATs heard before it said "not yet" about a command that had
+    not arrived; the phase fails only once HEARTBEATS_TO_FAIL more say so, and GUIDED in the next one ends it."""
+    c = ctl(mode_timeout_s=2.0)
+    c.step(0.0, dataclasses.replace(GROUND, heartbeats=0))
+    accepted = dataclasses.replace(GROUND, heartbeats=4, acks={SET_MODE: (m.MAV_RESULT_ACCEPTED, 1.9)})
+    c.step(1.95, accepted)
+    assert ActionKind.FAILED not in kinds(c.step(2.5, dataclasses.replace(accepted, heartbeats=5)))
+    assert kinds(c.step(2.9, dataclasses.replace(accepted, heartbeats=6, mode_ok=True))) == [ActionKind.DONE]
+    c2 = ctl(mode_timeout_s=2.0)
+    c2.step(0.0, dataclasses.replace(GROUND, heartbeats=0))
+    c2.step(1.95, accepted)
+    late = dataclasses.replace(accepted, heartbeats=4 + HEARTBEATS_TO_FAIL)
+    assert kinds(c2.step(3.5, late)) == [ActionKind.FAILED]  # accepted, then three HEARTBEATs without GUIDED
 
 
 def test_without_heartbeats_the_phase_still_fails_at_the_hard_limit() -> None:
