@@ -25,6 +25,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError
 from apf_companion.links import MavlinkLink
+from apf_companion.perception import HeadingTrack, euler_yaw_rate_rad_s
 from sim.vehicle.sensor import (
     RangeSensorConfig,
     Scan,
@@ -117,7 +118,8 @@ class SensorSimulator:
         self.rng = np.random.default_rng(cfg.seed)
         self.sysid: int | None = cfg.autopilot_sysid
         self.pos_ned_m: np.ndarray | None = None
-        self.yaw_rad: float | None = None
+        self.yaw_rad: float | None = None  # the latest ATTITUDE's
+        self.heading = HeadingTrack()  # the scan takes the yaw at its position's time, as a real sensor would
         self.time_boot_ms = 0
         self._pose_wall_t = -math.inf
         self.scans = 0
@@ -261,6 +263,8 @@ class SensorSimulator:
             elif mtype == "ATTITUDE":
                 self.attitudes += 1
                 self.yaw_rad = float(msg.yaw)
+                rate = euler_yaw_rate_rad_s(msg.roll, msg.pitch, msg.pitchspeed, msg.yawspeed)
+                self.heading.update(self.yaw_rad, int(msg.time_boot_ms), rate)
 
     def _track(self) -> None:
         assert self.pos_ned_m is not None
@@ -289,12 +293,13 @@ class SensorSimulator:
 
     def _scan(self) -> Scan:
         assert self.pos_ned_m is not None and self.yaw_rad is not None
+        yaw = self.heading.at(self.time_boot_ms)
         return scan_world(
             self.cfg.world,
             self.cfg.sensor,
             t_s=self.time_boot_ms / 1000.0,
             pos_ned_m=self.pos_ned_m,
-            yaw_rad=self.yaw_rad,
+            yaw_rad=self.yaw_rad if yaw is None else yaw,
             min_range_m=self.cfg.min_range_m,
             max_range_m=self.cfg.max_range_m,
             noise_sd_m=self.cfg.noise_sd_m,

@@ -267,3 +267,42 @@ def test_sensor_cli_says_what_it_waits_for() -> None:
     assert "started as 1/158" in out
     assert "apf-sim sensor waiting: no HEARTBEAT" in out
     assert "ready" not in out
+
+
+async def test_sensor_only_scans_with_the_yaw_at_its_positions_time() -> None:
+    """A real sensor measures at the attitude of the moment; the sensor-only simulator scans at the latest
+    LOCAL_POSITION_NED, so it takes the ATTITUDE yaw at that position's time (carried by the rate), not the
+    latest ATTITUDE (0.2 s older here: 11.5 degrees at 1 rad/s, two sectors)."""
+    sensor_port = free_port(socket.SOCK_DGRAM)
+    companion = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=42, source_component=191)
+    assert companion.local_address is not None
+    autopilot = await MavlinkLink.open(f"udpout:127.0.0.1:{sensor_port}", source_system=1, source_component=1)
+    sensor = await SensorSimulator.start(
+        SensorOnlyConfig(
+            autopilot=f"udpin:127.0.0.1:{sensor_port}",
+            outputs=(f"udpout:127.0.0.1:{companion.local_address[1]}",),
+            world=World.from_obstacles([np.array([5.0, 0.0])], [0.0]),  # a point 5 m north
+            rate_hz=20.0,
+        )
+    )
+    mav = autopilot.mav
+    try:
+
+        async def feed() -> None:
+            while True:
+                autopilot.send(mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0))
+                autopilot.send(mav.attitude_encode(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))  # yaw 0, turning 1 rad/s
+                autopilot.send(mav.local_position_ned_encode(1200, 0.0, 0.0, -5.0, 0.0, 0.0, 0.0))
+                await asyncio.sleep(0.05)
+
+        feeder = asyncio.create_task(feed())
+        try:
+            od = await companion.recv_match(type="OBSTACLE_DISTANCE", timeout=HANG_S)
+        finally:
+            feeder.cancel()
+        # the point is at body bearing -11.5 deg: sector 70 (-10 deg) holds it, sector 0 (the latest yaw's) does not
+        assert od.distances[70] == 500 and od.distances[0] == FREE_CM
+    finally:
+        await sensor.aclose()
+        await autopilot.aclose()
+        await companion.aclose()
