@@ -109,6 +109,8 @@ class PerceptionCounters:
     pose_time_jumps: int = 0  # time_boot_ms forward beyond the receive clock, or far back without reboot evidence
     pose_resets: int = 0  # re-anchored on a sustained new position / time base (EKF reset, reboot)
     bad_velocities: int = 0  # a reported velocity non-finite or beyond [safety] max_speed_m_s: pose kept, no velocity
+    stale_attitudes: int = 0  # an ATTITUDE not newer than the newest (reordered, duplicate): ignored
+    bad_attitude_rates: int = 0  # ATTITUDE body rates non-finite or beyond 720 deg/s: the heading rate taken as 0
     scans: int = 0
     bad_scans: int = 0  # ProtocolError from a decoder (malformed message / payload)
     invalid_sectors: int = 0  # readings classified invalid (below min, zero, out of range)
@@ -172,7 +174,9 @@ class PerceptionFrontEnd:
         """ATTITUDE.yaw [rad] measured at ``time_boot_ms``, with the heading rate [rad/s]: poses take the yaw at
         their own time from these samples (perception/heading.py). Without a time, the next poses carry it as is."""
         if np.isfinite(yaw_rad):
-            self.heading.update(float(yaw_rad), time_boot_ms, yaw_rate_rad_s)
+            h = self.heading
+            h.update(float(yaw_rad), time_boot_ms, yaw_rate_rad_s)
+            self.counters.stale_attitudes, self.counters.bad_attitude_rates = h.stale, h.bad_rates
         else:
             self.counters.bad_poses += 1
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["MAX_EXTRAPOLATION_S", "MAX_RATE_RAD_S", "HeadingTrack", "euler_yaw_rate_rad_s"]
+__all__ = ["CLOCK_RESTART_S", "MAX_EXTRAPOLATION_S", "MAX_RATE_RAD_S", "HeadingTrack", "euler_yaw_rate_rad_s"]
 
 MAX_EXTRAPOLATION_S = 0.25
 """Longest time [s] a yaw is carried by its rate. A position further from the nearest ATTITUDE (the stream
@@ -25,6 +25,10 @@ stalled) gets the yaw carried this far and no further: the rate is no longer evi
 
 MAX_RATE_RAD_S = 2.0 * math.tau
 """A heading rate beyond this (720 deg/s, past any multicopter's yaw) is a corrupt field: it is taken as 0."""
+
+CLOCK_RESTART_S = 1.0
+"""An ATTITUDE this much older than the newest is from a restarted clock (a reboot, or time_boot_ms wrapping
+after 49.7 days): the track starts over from it. Less is a reordered datagram, ignored."""
 
 _MIN_COS_PITCH = 0.1  # |pitch| > 84 deg: the Euler rate is ill-defined; the body yaw rate is used instead
 
@@ -47,19 +51,19 @@ class _Sample:
 
 
 class HeadingTrack:
-    """The two latest ATTITUDE samples; ``at`` answers the yaw at a time on the autopilot's boot clock."""
+    """The two latest ATTITUDE samples; ``at`` answers the yaw at a time on the autopilot's boot clock.
 
-    __slots__ = ("_last", "_prev", "_untimed")
+    Counted: ``stale`` (a reordered or duplicate ATTITUDE, ignored), ``bad_rates`` (a rate not finite or beyond
+    ``MAX_RATE_RAD_S``, taken as 0)."""
+
+    __slots__ = ("_last", "_prev", "_untimed", "bad_rates", "stale")
 
     def __init__(self) -> None:
         self._prev: _Sample | None = None
         self._last: _Sample | None = None
         self._untimed = False  # the latest yaw came without a time: it is used as is
-
-    def clear(self) -> None:
-        """Forget the samples (the autopilot rebooted: its clock restarted)."""
-        self._prev = self._last = None
-        self._untimed = False
+        self.stale = 0
+        self.bad_rates = 0
 
     @property
     def latest_rad(self) -> float | None:
@@ -72,16 +76,21 @@ class HeadingTrack:
         if not math.isfinite(yaw_rad):
             return
         yaw_rad = math.remainder(yaw_rad, math.tau)
-        rate = rate_rad_s if math.isfinite(rate_rad_s) and abs(rate_rad_s) <= MAX_RATE_RAD_S else 0.0
+        rate = rate_rad_s
+        if not (math.isfinite(rate) and abs(rate) <= MAX_RATE_RAD_S):
+            self.bad_rates += 1
+            rate = 0.0
         if time_boot_ms is None:
             self._prev, self._last, self._untimed = None, _Sample(0.0, yaw_rad, 0.0), True
             return
         sample = _Sample(time_boot_ms / 1000.0, yaw_rad, rate)
         last = self._last
         if last is not None and not self._untimed and sample.t_s <= last.t_s:
-            if sample.t_s < last.t_s - 1.0:
-                self._prev, self._last = None, sample  # the clock went back: the autopilot rebooted
-            return  # a duplicate or reordered datagram: the newer sample stays
+            if sample.t_s < last.t_s - CLOCK_RESTART_S:
+                self._prev, self._last = None, sample
+            else:
+                self.stale += 1  # the newer sample stays
+            return
         self._prev = None if self._untimed else last
         self._last, self._untimed = sample, False
 

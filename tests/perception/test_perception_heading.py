@@ -40,7 +40,7 @@ def test_duplicates_and_reordered_samples_are_ignored_and_a_clock_restart_starts
     h.update(0.2, 1100, 0.0)
     h.update(0.9, 1050, 0.0)  # reordered datagram
     h.update(0.9, 1100, 0.0)  # duplicate time
-    assert h.at(1100) == pytest.approx(0.2) and h.at(1050) == pytest.approx(0.1)
+    assert h.at(1100) == pytest.approx(0.2) and h.at(1050) == pytest.approx(0.1) and h.stale == 2
     h.update(-1.0, 200, 0.0)  # 0.9 s back: a late datagram, ignored
     assert h.latest_rad == pytest.approx(0.2)
     h.update(-1.0, 50, 0.0)  # more than a second back: a new boot, the old samples are on another clock
@@ -54,7 +54,7 @@ def test_a_yaw_without_a_time_is_used_as_is_and_corrupt_fields_do_no_harm() -> N
     h.update(0.4, 1000, math.nan)
     assert h.at(1100) == 0.4
     h.update(0.5, 1100, 1e30)  # an implausible rate is no rate
-    assert h.at(1200) == 0.5
+    assert h.at(1200) == 0.5 and h.bad_rates == 2
     h.update(math.inf, 1200, 0.0)  # a non-finite yaw is not a sample
     assert h.latest_rad == 0.5
     h.update(3e38, 1300, 1.0)  # finite but absurd: wrapped, never overflows
@@ -109,3 +109,15 @@ def test_in_a_turn_a_return_is_placed_on_the_surface_it_saw() -> None:
     stale_yaw = RATE * 1.4  # what the latest ATTITUDE said when this position arrived
     old = 10.0 * np.array([math.cos(stale_yaw), math.sin(stale_yaw)])
     assert float(np.linalg.norm(old - want)) > 0.5
+
+
+def test_the_front_end_counts_reordered_attitudes_and_corrupt_rates() -> None:
+    p = PerceptionFrontEnd(PerceptionParams())
+    p.on_attitude(0.1, time_boot_ms=2000, yaw_rate_rad_s=0.0)
+    p.on_attitude(0.2, time_boot_ms=1900, yaw_rate_rad_s=0.0)  # reordered
+    p.on_attitude(0.3, time_boot_ms=2100, yaw_rate_rad_s=math.inf)
+    p.on_attitude(math.nan, time_boot_ms=2200)
+    c = p.counters
+    assert (c.stale_attitudes, c.bad_attitude_rates, c.bad_poses) == (1, 1, 1)
+    pose = p.on_local_position(2150, (0.0, 0.0, -5.0), 10.0)
+    assert pose is not None and pose.yaw_rad == pytest.approx(0.3)  # held, not carried by the corrupt rate
