@@ -38,6 +38,7 @@ import argparse
 import asyncio
 import contextlib
 import dataclasses
+import errno
 import importlib.util
 import json
 import math
@@ -98,6 +99,10 @@ class FlyOptions:
     service_args: tuple[str, ...] = field(default_factory=tuple)
     link_faults: LinkFaults | None = None
     signing_key: Path | None = None  # both processes sign with this key file and require signed input
+
+
+PORT_ATTEMPTS = 3
+_EADDRINUSE = f"[Errno {errno.EADDRINUSE}]"  # how OSError words it in the service's error
 
 
 def free_udp_port() -> int:
@@ -409,7 +414,27 @@ def expected_flight_s(opt: FlyOptions) -> float:
 
 
 async def fly(opt: FlyOptions) -> dict[str, Any]:
-    """Fly once; returns the result record (also written to ``opt.out/result.json`` and ``opt.json_path``)."""
+    """Fly once; returns the result record (also written to ``opt.out/result.json`` and ``opt.json_path``).
+
+    The service's UDP port is picked free here and bound by the service a moment later, in another process; on a
+    busy machine another program may take it in between. The service then exits before the flight starts
+    ("Address already in use"), and the flight is set up again on a new port, at most ``PORT_ATTEMPTS`` times
+    (``port_retries`` in the record)."""
+    for attempt in range(PORT_ATTEMPTS):
+        record = await _fly_once(opt)
+        if not _port_taken(record) or attempt == PORT_ATTEMPTS - 1:
+            break
+    record["port_retries"] = attempt
+    _write_result(opt, record, _read_json(opt.out / "sim_result.json"))
+    return record
+
+
+def _port_taken(record: dict[str, Any]) -> bool:
+    """The flight never started because the service could not bind the port picked for it."""
+    return record["outcome"] == "error" and record["steps"] == 0 and _EADDRINUSE in str(record.get("error", ""))
+
+
+async def _fly_once(opt: FlyOptions) -> dict[str, Any]:
     opt.out.mkdir(parents=True, exist_ok=True)
     for stale in ("sim_result.json", "service_result.json", *(p.name for p in opt.out.glob("apf-*.mcap"))):
         (opt.out / stale).unlink(missing_ok=True)
@@ -464,7 +489,6 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
         record["link_faults"] = str(opt.link_faults)
         record["link_stats"] = proxy.stats_dict()
         record["blackout_windows_s"] = proxy.blackout_windows()
-    _write_result(opt, record, sim_res)
     return record
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -12,8 +14,9 @@ import pytest
 from pymavlink import mavutil
 
 from apf_companion.viz import Topic
+from sim import fly as fly_module
 from sim.cli import main as sim_main
-from sim.fly import _outcome
+from sim.fly import FlyOptions, _outcome
 from sim.mcap_plot import read_recording
 
 pytestmark = pytest.mark.timeout(120)
@@ -113,3 +116,22 @@ def test_fly_error_prints_the_reason_and_only_outputs_it_wrote(tmp_path: Path) -
     assert "companion.tlog" not in listed and "trajectory.png" not in listed
     assert not (out / "companion.tlog").exists() and not (out / "trajectory.png").exists()
     assert "planner.name" in json.loads((out / "result.json").read_text())["error"]
+
+
+def test_a_port_taken_before_the_service_binds_it_is_picked_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The service's port is picked free and bound a moment later by another process; another program took it in
+    between (seen in a batch beside another: "Address already in use"). The flight is set up again on a new port."""
+    taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    taken.bind(("127.0.0.1", 0))
+    picks = [int(taken.getsockname()[1])]
+    real = fly_module.free_udp_port
+    monkeypatch.setattr(fly_module, "free_udp_port", lambda: picks.pop() if picks else real())
+    opt = FlyOptions(obstacles="0", goal_ne_m=(6.0, 6.0), out=tmp_path / "out", plot=False, progress=False)
+    try:
+        rec = asyncio.run(fly_module.fly(opt))
+    finally:
+        taken.close()
+    assert rec["port_retries"] == 1 and rec["outcome"] == "arrived", rec
+    assert json.loads((tmp_path / "out" / "result.json").read_text())["port_retries"] == 1
