@@ -66,6 +66,7 @@ log = logging.getLogger(__name__)
 MAX_SENSOR_IDS = 64
 SCAN_DEFER_S = 0.25  # a scan newer than the newest pose waits this long at most for the next pose [s]
 SCAN_DEFER_MAX = 8  # and at most this many scans wait
+MAX_HEADING_AGE_S = 1.0  # a pose this far from every ATTITUDE (the stream stopped) places no ranges [s]
 POSE_HISTORY_LEN = 200  # poses kept to place scans (10 s at 20 Hz)
 STAMP_PLAUSIBLE_S = 5.0  # a stamp older than this (or in the future) is on another clock: use receive time
 UNIX_USEC = 10**15  # OBSTACLE_DISTANCE.time_usec at or above this is UNIX time, not time since boot
@@ -110,6 +111,7 @@ class PerceptionCounters:
     pose_resets: int = 0  # re-anchored on a sustained new position / time base (EKF reset, reboot)
     bad_velocities: int = 0  # a reported velocity non-finite or beyond [safety] max_speed_m_s: pose kept, no velocity
     stale_attitudes: int = 0  # an ATTITUDE not newer than the newest (reordered, duplicate): ignored
+    poses_without_heading: int = 0  # no ATTITUDE within MAX_HEADING_AGE_S of the pose: no range placed with it
     bad_attitude_rates: int = 0  # ATTITUDE body rates non-finite or beyond 720 deg/s: the heading rate taken as 0
     scans: int = 0
     bad_scans: int = 0  # ProtocolError from a decoder (malformed message / payload)
@@ -208,6 +210,11 @@ class PerceptionFrontEnd:
             self.counters.bad_poses += 1
             return None
         self._boot_offset_s = now_s - time_boot_ms / 1000.0
+        if self.heading.age_s(time_boot_ms) > MAX_HEADING_AGE_S:
+            # The ATTITUDE stream stopped: the navigator still gets the position, but no range is placed with
+            # a guessed heading (scans then find no pose, the memory ages, and "ranges stale" holds).
+            self.counters.poses_without_heading += 1
+            return pose
         self.history.add(pose)
         if self.deferred:
             self._place_deferred()  # before the cycle this pose triggers

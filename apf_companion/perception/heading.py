@@ -94,6 +94,18 @@ class HeadingTrack:
         self._prev = None if self._untimed else last
         self._last, self._untimed = sample, False
 
+    def age_s(self, time_boot_ms: int) -> float:
+        """How far [s] ``time_boot_ms`` lies outside the samples' span (0 within it, or for a yaw without a time;
+        inf before the first ATTITUDE)."""
+        last, prev = self._last, self._prev
+        if last is None:
+            return math.inf
+        if self._untimed:
+            return 0.0
+        t = time_boot_ms / 1000.0
+        first = last.t_s if prev is None else prev.t_s
+        return max(t - last.t_s, first - t, 0.0)
+
     def at(self, time_boot_ms: int) -> float | None:
         """The yaw [rad] at ``time_boot_ms`` (autopilot boot clock), None before the first ATTITUDE."""
         last, prev = self._last, self._prev

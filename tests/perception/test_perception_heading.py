@@ -24,6 +24,7 @@ def test_the_yaw_between_two_samples_is_interpolated_the_short_way_through_pi() 
     h.update(-math.pi + 0.1, 1100, RATE)  # crossed +-pi: 0.2 rad turned, not 2 pi - 0.2
     assert h.at(1050) == pytest.approx(math.pi, abs=1e-9) or h.at(1050) == pytest.approx(-math.pi, abs=1e-9)
     assert h.at(1025) == pytest.approx(math.pi - 0.05)
+    assert [h.age_s(1050), h.age_s(1300), h.age_s(900)] == pytest.approx([0.0, 0.2, 0.1])
 
 
 def test_a_position_newer_than_the_latest_attitude_gets_the_yaw_carried_by_the_rate_for_a_bounded_time() -> None:
@@ -121,3 +122,29 @@ def test_the_front_end_counts_reordered_attitudes_and_corrupt_rates() -> None:
     assert (c.stale_attitudes, c.bad_attitude_rates, c.bad_poses) == (1, 1, 1)
     pose = p.on_local_position(2150, (0.0, 0.0, -5.0), 10.0)
     assert pose is not None and pose.yaw_rad == pytest.approx(0.3)  # held, not carried by the corrupt rate
+
+
+def test_without_attitude_for_a_second_the_position_flies_on_but_no_range_is_placed() -> None:
+    """ATTITUDE stopped (a stream rate set to 0, a link dropping it) while LOCAL_POSITION_NED goes on: the
+    navigator still gets the position, but a scan is not placed with a heading a second old (it may be turning)."""
+    p = PerceptionFrontEnd(PerceptionParams())
+    src = Source(1, 1)
+    p.on_attitude(0.0, time_boot_ms=1000, yaw_rate_rad_s=RATE)
+    assert p.on_local_position(1900, (0.0, 0.0, -5.0), 10.9) is not None and len(p.history) == 1
+    pose = p.on_local_position(2100, (0.2, 0.0, -5.0), 11.1)  # 1.1 s after the last ATTITUDE
+    assert pose is not None and pose.pos_ned_m[0] == 0.2
+    assert p.counters.poses_without_heading == 1 and len(p.history) == 1
+    ahead = ObstacleDistance3d(
+        src=src,
+        time_boot_ms=2100,
+        frame=mavlink.MAV_FRAME_BODY_FRD,
+        x=5.0,
+        y=0.0,
+        z=0.0,
+        min_distance=0.1,
+        max_distance=20.0,
+    )
+    p.on_obstacle_distance_3d(ahead, 11.1)
+    assert len(p) == 0 and p.counters.scans_without_pose == 1
+    p.on_attitude(RATE * 1.2, time_boot_ms=2200, yaw_rate_rad_s=RATE)  # the stream is back
+    assert p.on_local_position(2250, (0.3, 0.0, -5.0), 11.25) is not None and len(p.history) == 2
