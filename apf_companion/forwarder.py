@@ -1,14 +1,16 @@
 """OBSTACLE_DISTANCE forwarding: the companion's obstacle memory, told to the autopilot at a fixed rate.
 
 Optional (``[sensors] forward_obstacle_distance``). Each period it reads the remembered points, the latest pose's
-position and the latest ATTITUDE yaw, encodes the 72 body-FRD sectors (``perception.obstacle_sectors_cm``) and
-sends them from our component id (``Outbox.obstacle_distance``). ArduPilot's proximity library takes them with
-PRX1_TYPE = 2 (``AP_Proximity_MAV.cpp``); its backend reports "no data" 0.5 s after the last one, so the rate must
-stay well above 2 Hz.
+position and the heading now (``PerceptionFrontEnd.yaw_now``: the ATTITUDE samples carried to the present; the
+autopilot keeps the sectors in the body frame, so they are computed with the heading they arrive at), encodes the
+72 body-FRD sectors (``perception.obstacle_sectors_cm``) and sends them from our component id
+(``Outbox.obstacle_distance``). ArduPilot's proximity library takes them with PRX1_TYPE = 2
+(``AP_Proximity_MAV.cpp``); its backend reports "no data" 0.5 s after the last one, so the rate must stay well
+above 2 Hz.
 
-Without a fresh pose or a heading nothing is sent (counted in ``forward_skipped``): sectors placed with an old
-position would tell the autopilot about obstacles where they no longer are; silence makes it mark proximity
-unhealthy instead.
+Without a fresh pose or a heading (no ATTITUDE for ``MAX_HEADING_AGE_S``) nothing is sent (counted in
+``forward_skipped``): sectors placed with an old position would tell the autopilot about obstacles where they no
+longer are; silence makes it mark proximity unhealthy instead.
 """
 
 from __future__ import annotations
@@ -65,7 +67,7 @@ class ObstacleForwarder:
 
     def send(self, now_s: float) -> bool:
         """One OBSTACLE_DISTANCE from the view at ``now_s``; False (counted) without a fresh pose or heading."""
-        pose, yaw = self.navigator.pose, self.perception.yaw_rad
+        pose, yaw = self.navigator.pose, self.perception.yaw_now(now_s)
         boot_s = self.perception.autopilot_boot_s(now_s)
         if pose is None or yaw is None or boot_s is None or not self.navigator.pose_fresh(now_s):
             self.counters.forward_skipped += 1

@@ -162,10 +162,15 @@ class PerceptionFrontEnd:
         """The azimuth sector of ``bearing_ned_rad`` (local NED) has a recent reading (``[safety] sectors``)."""
         return self.sectors.fresh(bearing_ned_rad, now_s)
 
-    @property
-    def yaw_rad(self) -> float | None:
-        """The latest ATTITUDE yaw [rad] (0 north, clockwise), None before the first."""
-        return self.heading.latest_rad
+    def yaw_now(self, now_s: float) -> float | None:
+        """The heading [rad] at service time ``now_s``: the ATTITUDE samples carried to the autopilot's present (by
+        the rate, at most 0.25 s). None before the first pose or ATTITUDE, or with no ATTITUDE for
+        ``MAX_HEADING_AGE_S`` (the stream stopped)."""
+        boot_s = self.autopilot_boot_s(now_s)
+        if boot_s is None:
+            return None
+        boot_ms = round(boot_s * 1000.0)
+        return None if self.heading.age_s(boot_ms) > MAX_HEADING_AGE_S else self.heading.at(boot_ms)
 
     def autopilot_boot_s(self, now_s: float) -> float | None:
         """The autopilot's time since boot at service time ``now_s`` (offset of the latest pose), None before."""

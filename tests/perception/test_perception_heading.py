@@ -148,3 +148,15 @@ def test_without_attitude_for_a_second_the_position_flies_on_but_no_range_is_pla
     assert len(p) == 0 and p.counters.scans_without_pose == 1
     p.on_attitude(RATE * 1.2, time_boot_ms=2200, yaw_rate_rad_s=RATE)  # the stream is back
     assert p.on_local_position(2250, (0.3, 0.0, -5.0), 11.25) is not None and len(p.history) == 2
+
+
+def test_the_heading_now_is_carried_to_the_autopilots_present_and_lapses_with_the_stream() -> None:
+    """What the OBSTACLE_DISTANCE forwarder rotates its sectors by: the autopilot turns them back with its heading
+    at arrival, not with the one of the latest ATTITUDE."""
+    p = PerceptionFrontEnd(PerceptionParams())
+    assert p.yaw_now(10.0) is None  # no pose: no autopilot clock yet
+    p.on_attitude(0.0, time_boot_ms=1000, yaw_rate_rad_s=RATE)
+    p.on_local_position(1000, (0.0, 0.0, -5.0), 10.0)  # the autopilot's 1.0 s is the service's 10.0 s
+    assert p.yaw_now(10.1) == pytest.approx(0.1 * RATE)
+    assert p.yaw_now(10.9) == pytest.approx(MAX_EXTRAPOLATION_S * RATE)
+    assert p.yaw_now(11.1) is None  # no ATTITUDE for 1.1 s
