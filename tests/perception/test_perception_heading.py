@@ -17,6 +17,20 @@ from apf_companion.perception.heading import MAX_EXTRAPOLATION_S
 RATE = math.radians(30.0)  # a brisk turn [rad/s]
 
 
+def straight_ahead(time_boot_ms: int, range_m: float) -> ObstacleDistance3d:
+    """One return on the vehicle's nose (body FRD), measured at ``time_boot_ms``."""
+    return ObstacleDistance3d(
+        src=Source(1, 1),
+        time_boot_ms=time_boot_ms,
+        frame=mavlink.MAV_FRAME_BODY_FRD,
+        x=range_m,
+        y=0.0,
+        z=0.0,
+        min_distance=0.1,
+        max_distance=20.0,
+    )
+
+
 def test_the_yaw_between_two_samples_is_interpolated_the_short_way_through_pi() -> None:
     h = HeadingTrack()
     assert h.at(1000) is None and h.latest_rad is None
@@ -84,7 +98,6 @@ def test_in_a_turn_a_return_is_placed_on_the_surface_it_saw() -> None:
     A return straight ahead at 10 m, measured with the position, must land 10 m along the true heading: with the
     latest yaw it landed 0.52 m to the side."""
     p = PerceptionFrontEnd(PerceptionParams())
-    src = Source(1, 1)
     for k in range(5):
         att_ms = 1000 + 100 * k
         lpn_ms = att_ms + 100
@@ -92,17 +105,7 @@ def test_in_a_turn_a_return_is_placed_on_the_surface_it_saw() -> None:
         pose = p.on_local_position(lpn_ms, (0.0, 0.0, -5.0), 10.0 + lpn_ms / 1000.0)  # service = boot + 10 s
         assert pose is not None and pose.yaw_rad == pytest.approx(RATE * lpn_ms / 1000.0)
     t_ms = 1500  # the newest position's time
-    ahead = ObstacleDistance3d(
-        src=src,
-        time_boot_ms=t_ms,
-        frame=mavlink.MAV_FRAME_BODY_FRD,
-        x=10.0,
-        y=0.0,
-        z=0.0,
-        min_distance=0.1,
-        max_distance=20.0,
-    )
-    p.on_obstacle_distance_3d(ahead, 11.52)
+    p.on_obstacle_distance_3d(straight_ahead(t_ms, 10.0), 11.52)
     true_yaw = RATE * t_ms / 1000.0
     want = 10.0 * np.array([math.cos(true_yaw), math.sin(true_yaw)])
     got = p.points(11.52)[0, :2]
@@ -128,23 +131,12 @@ def test_without_attitude_for_a_second_the_position_flies_on_but_no_range_is_pla
     """ATTITUDE stopped (a stream rate set to 0, a link dropping it) while LOCAL_POSITION_NED goes on: the
     navigator still gets the position, but a scan is not placed with a heading a second old (it may be turning)."""
     p = PerceptionFrontEnd(PerceptionParams())
-    src = Source(1, 1)
     p.on_attitude(0.0, time_boot_ms=1000, yaw_rate_rad_s=RATE)
     assert p.on_local_position(1900, (0.0, 0.0, -5.0), 10.9) is not None and len(p.history) == 1
     pose = p.on_local_position(2100, (0.2, 0.0, -5.0), 11.1)  # 1.1 s after the last ATTITUDE
     assert pose is not None and pose.pos_ned_m[0] == 0.2
     assert p.counters.poses_without_heading == 1 and len(p.history) == 1
-    ahead = ObstacleDistance3d(
-        src=src,
-        time_boot_ms=2100,
-        frame=mavlink.MAV_FRAME_BODY_FRD,
-        x=5.0,
-        y=0.0,
-        z=0.0,
-        min_distance=0.1,
-        max_distance=20.0,
-    )
-    p.on_obstacle_distance_3d(ahead, 11.1)
+    p.on_obstacle_distance_3d(straight_ahead(2100, 5.0), 11.1)
     assert len(p) == 0 and p.counters.scans_without_pose == 1
     p.on_attitude(RATE * 1.2, time_boot_ms=2200, yaw_rate_rad_s=RATE)  # the stream is back
     assert p.on_local_position(2250, (0.3, 0.0, -5.0), 11.25) is not None and len(p.history) == 2
