@@ -50,6 +50,7 @@ class ScriptedAutopilot:
         self.freeze_pose_ms: int | None = None
         self.send_ranges = True
         self.follow_setpoints = True
+        self.lose_set_mode = 0  # DO_SET_MODE commands still to lose on the way in (a lossy link)
         self.ranges_cm: list[int] | None = None
         self.received: list[tuple[float, Any]] = []
         self.sent_by: dict[str, tuple[int, int]] = {}
@@ -82,7 +83,9 @@ class ScriptedAutopilot:
             self.received.append((self.t_s, msg))
             kind = msg.get_type()
             self.sent_by[kind] = (msg.get_srcSystem(), msg.get_srcComponent())
-            if kind == "COMMAND_LONG" and msg.command == 176:
+            if kind == "COMMAND_LONG" and msg.command == 176 and self.lose_set_mode > 0:
+                self.lose_set_mode -= 1
+            elif kind == "COMMAND_LONG" and msg.command == 176:
                 self.custom_mode = int(msg.param2)
                 self.link.send(self.link.mav.command_ack_encode(176, 0, 0, 0, 1, 191))
             elif kind == "SET_POSITION_TARGET_LOCAL_NED" and self.follow_setpoints and msg.type_mask != MASK_VELOCITY:
@@ -184,6 +187,19 @@ async def test_takeover_guided_then_fly_to_goal() -> None:
         await within(svc.clock.now, lambda: len(ap.of_type("NAMED_VALUE_FLOAT")) > 0, 3.0, "named values")
         names = {m.name for m in ap.of_type("NAMED_VALUE_FLOAT")}
         assert "APF_DGOAL" in names
+
+
+async def test_a_takeover_whose_mode_commands_are_lost_waits_past_its_deadline() -> None:
+    """The link loses the first five DO_SET_MODE (the lossy batch's seed 10 lost four): the HEARTBEATs say LOITER
+    all along, but no command was answered, so that is no refusal; the sixth, sent past the 5 s deadline, is
+    ACCEPTED and the flight goes on. Before session 19 the takeover failed at 5 s and dropped the goal."""
+    route = Route.point(3.0, 0.0, -5.0, source="test")
+    async with rig(route=route) as (svc, ap):
+        ap.lose_set_mode = 5
+        await within(svc.clock.now, lambda: svc.navigator.state is State.ARRIVED, 30.0, "arrived")
+        modes = [m for m in ap.of_type("COMMAND_LONG") if m.command == 176]
+        assert len(modes) >= 6 and svc.reporter.counters.mode_requests >= 6
+        assert ap.t_s > 5.0 and svc.navigator.route is not None
 
 
 async def test_bad_input_is_counted_and_never_a_setpoint() -> None:
