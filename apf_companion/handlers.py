@@ -171,11 +171,6 @@ class AutopilotHandlers:
             bool(self.ekf_flags & EKF_POSITION_FLAGS) and not self.ekf_flags & mavlink.EKF_CONST_POS_MODE
         )
 
-    def ack_time(self, command: int, result: int = mavlink.MAV_RESULT_ACCEPTED) -> float | None:
-        """When ``command`` was last acknowledged with ``result`` (service time), None if its latest ACK differs."""
-        ack = self.acks.get(command)
-        return ack[1] if ack is not None and ack[0] == result else None
-
     def handle(self, rec: Record, now_s: float) -> None:
         if rec.src == self.params.autopilot:
             stream = _STREAM_OF.get(type(rec))

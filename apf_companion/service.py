@@ -34,8 +34,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
-
 from apf_companion.autopilot import Autopilot
 from apf_companion.builders import (
     build_navigator,
@@ -527,9 +525,7 @@ class TakeoverDriver:
             home_amsl_m=ap.home_amsl_m(),
             waiting=nav.state is State.HOLDING and not nav.engaged,
             ekf_ready=ap.ekf_ready,
-            takeoff_ack_s=ap.ack_time(mavlink.MAV_CMD_NAV_TAKEOFF),
             heartbeats=ap.heartbeats,
-            arm_ack_s=ap.ack_time(mavlink.MAV_CMD_COMPONENT_ARM_DISARM),
             acks=ap.acks,
         )
         for action in self.controller.step(now, inputs):

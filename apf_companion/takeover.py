@@ -116,16 +116,17 @@ class TakeoverInputs:
         waiting: The navigator holds for a goal it has not taken over for yet because its inputs are missing (no
             pose yet: the takeover starts and waits in READY).
         ekf_ready: The autopilot's EKF has a horizontal position (True when it does not report one).
-        takeoff_ack_s: When NAV_TAKEOFF was last ACCEPTED (service time), None if not (or its latest ACK failed).
         heartbeats: Autopilot HEARTBEATs heard so far, or None (not counted: the deadline alone decides).
-        acks: The latest COMMAND_ACK to us per command: (MAV_RESULT, service time). A mode or arm phase whose
-            command has had no answer since it began does not fail before its hard limit (the commands or the
-            answers were lost). ArduCopter ACKs DO_SET_MODE ACCEPTED only when the mode was set
-            (GCS_Common.cpp ``_set_mode_common``), PX4 only when the transition was not denied (Commander.cpp).
-        arm_ack_s: When COMPONENT_ARM_DISARM was last ACCEPTED (service time), None if not (or its latest ACK
-            differed). The takeover only ever sends arm (param1 = 1), and both autopilots ACK that ACCEPTED only
-            when the vehicle is armed (ArduCopter/GCS_Mavlink.cpp: when arming succeeded or it already was; PX4
-            src/modules/commander/Commander.cpp: when the arming transition was not denied).
+        acks: The latest COMMAND_ACK to us per command: (MAV_RESULT, service time).
+            - A mode or arm phase whose command has had no answer since it began does not fail before its hard
+              limit (the commands or the answers were lost). ArduCopter ACKs DO_SET_MODE ACCEPTED only when the
+              mode was set (GCS_Common.cpp ``_set_mode_common``), PX4 only when the transition was not denied
+              (Commander.cpp).
+            - COMPONENT_ARM_DISARM ACCEPTED since the arming phase began is proof of arming. The takeover only
+              ever sends arm (param1 = 1), and both autopilots ACK that ACCEPTED only when the vehicle is armed
+              (ArduCopter/GCS_Mavlink.cpp: when arming succeeded or it already was; PX4
+              src/modules/commander/Commander.cpp: when the arming transition was not denied).
+            - NAV_TAKEOFF ACCEPTED since the takeoff phase began: the takeoff is under way, not resent.
     """
 
     navigating: bool
@@ -137,10 +138,14 @@ class TakeoverInputs:
     home_amsl_m: float | None = None
     waiting: bool = False
     ekf_ready: bool = True
-    takeoff_ack_s: float | None = None
     heartbeats: int | None = None
-    arm_ack_s: float | None = None
     acks: Mapping[int, tuple[int, float]] = field(default_factory=dict)
+
+
+def _accepted_s(inp: TakeoverInputs, command: int) -> float | None:
+    """When ``command`` was last ACCEPTED (service time), None if not (or its latest ACK differed)."""
+    ack = inp.acks.get(command)
+    return ack[1] if ack is not None and ack[0] == mavlink.MAV_RESULT_ACCEPTED else None
 
 
 # The phases confirmed only by HEARTBEAT, and the command each sends.
@@ -291,7 +296,8 @@ class TakeoverController:
         if phase is Phase.ARMING:
             # The ACK arrives at once, the HEARTBEAT that says armed up to a second later (more on a lossy link),
             # and ArduCopter's DISARM_DELAY (10 s) runs from arming until a takeoff spools the motors.
-            return inp.armed or (inp.arm_ack_s is not None and inp.arm_ack_s >= self._phase_start_s)
+            arm_ack_s = _accepted_s(inp, mavlink.MAV_CMD_COMPONENT_ARM_DISARM)
+            return inp.armed or (arm_ack_s is not None and arm_ack_s >= self._phase_start_s)
         if phase is Phase.GLOBAL_POSITION:
             return inp.home_amsl_m is not None
         if phase is Phase.TAKEOFF:
@@ -316,7 +322,8 @@ class TakeoverController:
 
     def _taking_off(self, inp: TakeoverInputs) -> bool:
         """NAV_TAKEOFF was ACCEPTED in this phase, or the vehicle climbs."""
-        acked = inp.takeoff_ack_s is not None and inp.takeoff_ack_s >= self._phase_start_s
+        takeoff_ack_s = _accepted_s(inp, mavlink.MAV_CMD_NAV_TAKEOFF)
+        acked = takeoff_ack_s is not None and takeoff_ack_s >= self._phase_start_s
         climbing = inp.down_m is not None and self._home_down_m - inp.down_m > TAKEOFF_CLIMBING_M
         return acked or climbing
 

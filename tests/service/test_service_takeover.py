@@ -22,6 +22,8 @@ from apf_companion.takeover import (
 
 ROUTE = object()  # the goal, compared by identity
 SET_MODE = m.MAV_CMD_DO_SET_MODE
+ARM = m.MAV_CMD_COMPONENT_ARM_DISARM
+TAKEOFF = m.MAV_CMD_NAV_TAKEOFF
 GROUND = TakeoverInputs(navigating=True, engaged=False, route=ROUTE, mode_ok=False, armed=False, down_m=0.0)
 
 
@@ -100,13 +102,15 @@ def test_an_accepted_arm_ack_confirms_arming_before_the_heartbeat_does() -> None
     HEARTBEAT period (more on a lossy link) while ArduCopter's DISARM_DELAY runs. An ACK from before the phase
     (an earlier takeover's) does not count."""
     c = ctl(arm=True, takeoff_alt_m=5.0)
-    guided = dataclasses.replace(GROUND, mode_ok=True, arm_ack_s=-3.0)
-    c.step(0.0, dataclasses.replace(GROUND, arm_ack_s=-3.0))
+    guided = dataclasses.replace(GROUND, mode_ok=True, acks={ARM: (m.MAV_RESULT_ACCEPTED, -3.0)})
+    c.step(0.0, dataclasses.replace(GROUND, acks={ARM: (m.MAV_RESULT_ACCEPTED, -3.0)}))
     assert kinds(c.step(0.1, guided)) == [ActionKind.ARM]
     assert phase(c) is Phase.ARMING
     assert c.step(0.2, guided) == []  # the old ACK: still arming
     assert phase(c) is Phase.ARMING
-    out = c.step(0.3, dataclasses.replace(guided, arm_ack_s=0.25))  # HEARTBEAT still says disarmed
+    out = c.step(
+        0.3, dataclasses.replace(guided, acks={ARM: (m.MAV_RESULT_ACCEPTED, 0.25)})
+    )  # HEARTBEAT still says disarmed
     assert kinds(out) == [ActionKind.TAKEOFF] and phase(c) is Phase.TAKEOFF
 
 
@@ -216,13 +220,13 @@ def test_takeoff_is_resent_only_without_an_accepted_ack_and_without_a_climb() ->
     # no ACK, still on the ground: resent after COMMAND_RETRY_S (the first may have been lost)
     assert kinds(c.step(0.1 + COMMAND_RETRY_S, armed)) == [ActionKind.TAKEOFF]
     # ACCEPTED (ArduCopter spools up for seconds before it leaves the ground): not resent while it has not climbed
-    acked = dataclasses.replace(armed, takeoff_ack_s=0.1 + COMMAND_RETRY_S + 0.05)
+    acked = dataclasses.replace(armed, acks={TAKEOFF: (m.MAV_RESULT_ACCEPTED, 0.1 + COMMAND_RETRY_S + 0.05)})
     for k in range(2, 6):
         assert c.step(0.1 + k * COMMAND_RETRY_S, acked) == []
     # an ACCEPTED from before this phase does not count
     c2 = ctl(arm=True, takeoff_alt_m=5.0)
     c2.step(10.0, dataclasses.replace(GROUND, mode_ok=True))
-    stale = dataclasses.replace(armed, takeoff_ack_s=1.0)
+    stale = dataclasses.replace(armed, acks={TAKEOFF: (m.MAV_RESULT_ACCEPTED, 1.0)})
     assert kinds(c2.step(10.1, stale)) == [ActionKind.TAKEOFF]
     assert kinds(c2.step(10.1 + COMMAND_RETRY_S, stale)) == [ActionKind.TAKEOFF]
 
