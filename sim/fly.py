@@ -421,11 +421,11 @@ async def fly(opt: FlyOptions) -> dict[str, Any]:
     ("Address already in use"), and the flight is set up again on a new port, at most ``PORT_ATTEMPTS`` times
     (``port_retries`` in the record)."""
     for attempt in range(PORT_ATTEMPTS):
-        record = await _fly_once(opt)
+        record, sim_res = await _fly_once(opt)
         if not _port_taken(record) or attempt == PORT_ATTEMPTS - 1:
             break
     record["port_retries"] = attempt
-    _write_result(opt, record, _read_json(opt.out / "sim_result.json"))
+    _write_result(opt, record, sim_res)
     return record
 
 
@@ -434,7 +434,8 @@ def _port_taken(record: dict[str, Any]) -> bool:
     return record["outcome"] == "error" and record["steps"] == 0 and _EADDRINUSE in str(record.get("error", ""))
 
 
-async def _fly_once(opt: FlyOptions) -> dict[str, Any]:
+async def _fly_once(opt: FlyOptions) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """One attempt: the result record and the simulator's result (None if it wrote none)."""
     opt.out.mkdir(parents=True, exist_ok=True)
     for stale in ("sim_result.json", "service_result.json", *(p.name for p in opt.out.glob("apf-*.mcap"))):
         (opt.out / stale).unlink(missing_ok=True)
@@ -489,7 +490,7 @@ async def _fly_once(opt: FlyOptions) -> dict[str, Any]:
         record["link_faults"] = str(opt.link_faults)
         record["link_stats"] = proxy.stats_dict()
         record["blackout_windows_s"] = proxy.blackout_windows()
-    return record
+    return record, sim_res
 
 
 async def _start_service(
