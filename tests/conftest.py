@@ -8,6 +8,7 @@ happen at once.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import os
 import socket
 from collections.abc import Callable
@@ -28,11 +29,35 @@ POLL_S = 0.01  # how often ``until`` looks again
 TICK_S = 1e-6  # resolution of SimulatorClock
 
 
+#: ``free_port``'s ports lie below Linux's ephemeral range (32768-60999 by default), so no bind to port 0 on the
+#: machine is handed one between the pick and the test's own bind, and each pytest-xdist worker ("gw0", "gw1",
+#: ...) has its own block of them, so two workers never pick the same port.
+PORT_BASE = 20000
+PORT_BLOCK = 500
+PORT_BLOCKS = 24  # 20000-31999
+_port_picks = itertools.count()
+
+
+def worker_port_block() -> int:
+    """The first port of this process's block: by its pytest-xdist worker number (block 0 without xdist)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
+    return PORT_BASE + (index % PORT_BLOCKS) * PORT_BLOCK
+
+
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A port on 127.0.0.1 that was free a moment ago (bind to 0, read it back, release)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A port on 127.0.0.1 that was free a moment ago: the next in this worker's block that binds, released."""
+    base = worker_port_block()
+    for _ in range(PORT_BLOCK):
+        port = base + next(_port_picks) % PORT_BLOCK
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:  # taken, or a TCP port still in TIME_WAIT: the next one
+                continue
+            return port
+    msg = f"no free {kind!r} port in {base}-{base + PORT_BLOCK - 1}"
+    raise RuntimeError(msg)
 
 
 async def until(condition: Callable[[], object], timeout_s: float = HANG_S, what: str = "condition") -> None:
