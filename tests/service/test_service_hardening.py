@@ -285,7 +285,10 @@ async def test_rejected_input_is_in_named_value_int_and_the_status() -> None:
             got = [m.value for m in ap.of_type("NAMED_VALUE_INT") if m.name == name]
             return got[-1] if got else -1
 
-        await within(svc.clock.now, lambda: nvi("APF_RJPOSE") >= 5, 5.0, "rejected poses reported")
+        # Both from the same burst of NAMED_VALUE_INTs; APF_ERRORS comes after APF_RJPOSE, so wait for it too.
+        await within(
+            svc.clock.now, lambda: nvi("APF_RJPOSE") >= 5 and nvi("APF_ERRORS") >= 0, 5.0, "rejected poses reported"
+        )
         status = svc.reporter.status_dict(svc.clock.now())
         assert status["rejected"]["APF_RJPOSE"] >= 5 and status["counters"]["implausible_poses"] >= 5
         assert "nav_unknown_direction_holds" in status["counters"] and nvi("APF_ERRORS") == 0
