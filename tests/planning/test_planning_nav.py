@@ -247,15 +247,19 @@ def test_fields_equal_a_plain_dijkstra(goal: tuple[float, float]) -> None:
 # --- escape and give-up on worlds ---------------------------------------------------------------------------
 
 
-def _fly_world(name: str, dim: int = 2, max_steps: int = 1500) -> tuple[str, np.ndarray, float]:
-    """Fly a bundled world with a simulated 8 m range scanner (72 rays) and a remembered point cloud (no noise).
+def _fly_world(
+    name: str, dim: int = 2, max_steps: int = 1500, shift_east_m: float = 0.0
+) -> tuple[str, np.ndarray, float]:
+    """Fly a bundled world with a simulated 8 m range scanner (72 rays) and a remembered point cloud (no noise);
+    ``shift_east_m`` moves its start and goal east.
 
     Returns (how it ended, final position, lowest clearance to the remembered points)."""
     world = load_world(example_world_path(name))
     params = PlannerParams(dim=dim)
     planner = get_planner("bapf-nav", params)
-    start = np.array(world.start_ne_m if world.start_ne_m is not None else (3.0, 3.0), dtype=np.float64)
-    goal = np.array(world.goal_ne_m if world.goal_ne_m is not None else (22.0, 22.0), dtype=np.float64)
+    shift = np.array([0.0, shift_east_m])
+    start = np.array(world.start_ne_m if world.start_ne_m is not None else (3.0, 3.0), dtype=np.float64) + shift
+    goal = np.array(world.goal_ne_m if world.goal_ne_m is not None else (22.0, 22.0), dtype=np.float64) + shift
     pos = np.concatenate([start, [5.0]])[:dim]
     target = np.concatenate([goal, [5.0]])[:dim]
     bearings = np.radians(np.arange(0.0, 360.0, 5.0))
@@ -286,6 +290,17 @@ def _fly_world(name: str, dim: int = 2, max_steps: int = 1500) -> tuple[str, np.
 def test_escape_reaches_the_goal_of_each_bundled_world(name: str) -> None:
     outcome, _, lowest = _fly_world(name)
     assert outcome == "arrived"
+    assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+@pytest.mark.parametrize("shift_east_m", [-8.0, -6.0, -5.0, 0.0])
+def test_wall_gap_from_the_closed_side_comes_back_and_arrives(shift_east_m: float) -> None:
+    """wall-gap with start and goal moved west along the crossing wall: the nearer end is the closed one, so the
+    agent tries it first and has to come back past where it met the wall. The edge cells it passed on its way
+    are no exits (``nav_seen_m``). Session 20 tried them as exits at a cost of 2 m and 4 m more (wall-gap's
+    study path 1.627 -> 1.531 / 1.542): from -5 to -8 m the agent then walked to and fro and gave up."""
+    outcome, pos, lowest = _fly_world("wall-gap", shift_east_m=shift_east_m)
+    assert outcome == "arrived", pos
     assert lowest >= PlannerParams().clearance_m - 1e-9
 
 
