@@ -10,7 +10,9 @@ from __future__ import annotations
 import asyncio
 import itertools
 import os
+import random
 import socket
+import zlib
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
 
@@ -30,19 +32,22 @@ TICK_S = 1e-6  # resolution of SimulatorClock
 
 
 #: ``free_port``'s ports lie below Linux's ephemeral range (32768-60999 by default), so no bind to port 0 on the
-#: machine is handed one between the pick and the test's own bind, and each pytest-xdist worker ("gw0", "gw1",
-#: ...) has its own block of them, so two workers never pick the same port.
+#: machine is handed one between the pick and the test's own bind. Each pytest-xdist worker ("gw0", "gw1", ...)
+#: of a run has its own block of them, so two workers never pick the same port; the run's blocks are rotated by
+#: its id, and a process starts at a random place in its block, so two runs at once are unlikely to meet.
 PORT_BASE = 20000
 PORT_BLOCK = 500
 PORT_BLOCKS = 24  # 20000-31999
-_port_picks = itertools.count()
+_port_picks = itertools.count(random.randrange(PORT_BLOCK))
 
 
 def worker_port_block() -> int:
-    """The first port of this process's block: by its pytest-xdist worker number (block 0 without xdist)."""
+    """The first port of this process's block: by its pytest-xdist worker number, rotated by the run's id (the
+    test run's uid under xdist, else the process id)."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")
     index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
-    return PORT_BASE + (index % PORT_BLOCKS) * PORT_BLOCK
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID") or str(os.getpid())
+    return PORT_BASE + (zlib.crc32(run.encode()) + index) % PORT_BLOCKS * PORT_BLOCK
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:

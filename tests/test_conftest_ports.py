@@ -13,16 +13,21 @@ from tests.conftest import PORT_BLOCK, free_port, worker_port_block
 
 
 def test_each_worker_has_its_own_block_below_the_ephemeral_range(monkeypatch: pytest.MonkeyPatch) -> None:
-    bases = []
-    for worker in ("gw0", "gw1", "gw2", "gw23"):
-        monkeypatch.setenv("PYTEST_XDIST_WORKER", worker)
-        bases.append(worker_port_block())
-    assert len(set(bases)) == len(bases)
     ephemeral = Path("/proc/sys/net/ipv4/ip_local_port_range")
     low = int(ephemeral.read_text().split()[0]) if ephemeral.exists() else 32768
-    assert max(bases) + PORT_BLOCK <= low
+    for run in ("run-a", "run-b"):
+        monkeypatch.setenv("PYTEST_XDIST_TESTRUNUID", run)
+        bases = []
+        for worker in ("gw0", "gw1", "gw2", "gw23"):
+            monkeypatch.setenv("PYTEST_XDIST_WORKER", worker)
+            bases.append(worker_port_block())
+        assert len(set(bases)) == len(bases)
+        assert all(b >= conftest.PORT_BASE and b + PORT_BLOCK <= low for b in bases)
+        assert all((b - conftest.PORT_BASE) % PORT_BLOCK == 0 for b in bases)
     monkeypatch.delenv("PYTEST_XDIST_WORKER")
-    assert worker_port_block() == conftest.PORT_BASE
+    monkeypatch.delenv("PYTEST_XDIST_TESTRUNUID")
+    alone = worker_port_block()  # without xdist: a block by the process id
+    assert alone >= conftest.PORT_BASE and alone + PORT_BLOCK <= low
 
 
 @pytest.mark.parametrize("kind", [socket.SOCK_STREAM, socket.SOCK_DGRAM])
