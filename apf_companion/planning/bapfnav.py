@@ -132,7 +132,7 @@ class BapfNavPlanner(StatefulPlanner):
         same = _all(state.target_m == targets_m, axis=1)
         if not _all(same, axis=None):
             changed = ~same
-            state.restart(np.flatnonzero(changed), targets_m[changed])
+            self._restart(np.flatnonzero(changed), targets_m[changed], state)
         goal_vec, g0 = self._start(positions_m, targets_m, obstacles_m, obstacle_mask, state)
         return self._decide(positions_m, targets_m, obstacles_m, obstacle_mask, state, goal_vec, g0)
 
@@ -167,7 +167,7 @@ class BapfNavPlanner(StatefulPlanner):
         pos, tgt, obs, state = self._one(position_m, target_m, obstacles_m)
         assert isinstance(state, NavState)
         if state.target_m[0].tolist() != tgt.tolist():  # also NaN (no target yet): NaN != NaN
-            state.restart(np.zeros(1, dtype=np.intp), tgt[None])
+            self._restart(np.zeros(1, dtype=np.intp), tgt[None], state)
         goal_vec, g0, rel, r2 = self._start_one(pos, tgt, obs, state)
         mode = state.mode[0]
         if mode == _GAVE_UP or not math.isfinite(g0):  # (finite g0: finite position and target) the batch path
@@ -182,6 +182,18 @@ class BapfNavPlanner(StatefulPlanner):
             state.prev_dir[0] = self._units[decision.chosen_index]
         age_field(state)
         return decision
+
+    def _restart(self, rows: npt.NDArray[np.intp], targets_m: FloatArray, state: NavState) -> None:
+        """A new target for ``rows``: forget the old one; with a flying area (``nav_area_ne_m``) a target outside
+        it has no way, so the agent gives up at once instead of flying out of the area."""
+        state.restart(rows, targets_m)
+        area = self.params.nav_area_ne_m
+        if area is not None:
+            north, east = targets_m[:, 0], targets_m[:, 1]
+            with np.errstate(invalid="ignore"):
+                inside = (area[0] <= north) & (north <= area[2]) & (area[1] <= east) & (east <= area[3])
+            outside = ~inside & np.isfinite(targets_m[:, :2]).all(axis=1)
+            state.mode[rows[outside]] = _GAVE_UP
 
     def _decide(
         self,

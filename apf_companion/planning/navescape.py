@@ -48,7 +48,7 @@ class EscapeMaps:
 
     def __init__(self, params: PlannerParams, offsets_m: FloatArray, clearance_m: float) -> None:
         self.params = params
-        self.grid = NavGrid(params.nav_cell_m, params.nav_grid_m)
+        self.grid = NavGrid(params.nav_cell_m, params.nav_grid_m, params.nav_area_ne_m)
         self.clearance_m = clearance_m
         self._offsets = offsets_m
         self._pad_m = 2.0 * params.step_m + clearance_m + 1.0
@@ -303,7 +303,7 @@ class EscapeMaps:
         memory without these closures. When they leave the agent and its candidate points no way, it is computed
         with the edge open.
         """
-        seen_m = self.params.nav_seen_m
+        seen_m = self.params.nav_seen_m if self.grid.exits else 0.0  # a flying area's grid has no exits
         if seen_m <= 0.0:
             return _recall(self.grid, memos, origins, blocked, goals)
         closed = _close_seen_edges(blocked, rows, origins, state, self._edge_cells, self._edge_centres, seen_m)

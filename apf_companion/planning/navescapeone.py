@@ -61,7 +61,7 @@ class FieldOne:
         self._side_m = maps.grid.n * maps.grid.cell_m
         self._dim = p.dim
         self._replan = p.nav_replan_steps
-        self._seen2 = p.nav_seen_m * p.nav_seen_m
+        self._seen2 = p.nav_seen_m * p.nav_seen_m if maps.grid.exits else 0.0  # a flying area's grid: no exits
         self._sight2 = p.nav_sight_m**2
         self._clearance_m = maps.clearance_m
         self._slack_m = 2.0 * maps.clearance_m + maps.grid.cell_m
@@ -235,6 +235,8 @@ class FieldOne:
     def _origin(self, xy_m: FloatArray, goal_m: FloatArray) -> FloatArray:
         """``NavGrid.origins`` of one agent in Python floats: the same operations on each coordinate (the
         distance is the batch path's einsum on the same layout)."""
+        if self._grid.fixed_origin_m is not None:
+            return self._grid.fixed_origin_m.copy()
         delta = goal_m - xy_m
         dist = float(np.sqrt(einsum("bd,bd->b", delta[None], delta[None]))[0])
         side, h = self._side_m, self._h

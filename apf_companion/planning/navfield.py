@@ -17,6 +17,10 @@ reached), and the goal's cells into their slots. No Python loop runs over cells 
 The space beyond the grid is unknown, so optimistically free: the boundary cells start at their straight-line
 distance to the goal, plus the grid's side when the goal lies inside the grid (a way out of the map and back is
 taken only when the map has no way in), so "no path" means the agent's own region is closed.
+
+A grid over a given flying area (``PlannerParams.nav_area_ne_m``) has a fixed corner, blocks its cells outside the
+area and has no exits: beyond its edge is outside the area, so the goal's cells are the only seeds, and a goal
+outside the area has none (no way).
 """
 
 from __future__ import annotations
@@ -57,10 +61,26 @@ class NavGrid:
     checks per field (about 15 % of a field): a grid computes one field at a time (not thread-safe).
     """
 
-    def __init__(self, cell_m: float, side_m: float) -> None:
+    def __init__(
+        self, cell_m: float, side_m: float, area_ne_m: tuple[float, float, float, float] | None = None
+    ) -> None:
         self.cell_m = float(cell_m)
-        self.n = math.ceil(side_m / cell_m - 1e-9)
+        #: The flying area (north_min, east_min, north_max, east_max) [m] the grid covers, or None: a grid of side
+        #: ``side_m`` that moves with the agent and whose edge cells are exits.
+        self.area_ne_m = area_ne_m
+        #: The grid's corner when it covers a flying area (on the lattice of multiples of the cell size), else None.
+        self.fixed_origin_m: FloatArray | None = None
+        if area_ne_m is None:
+            self.n = math.ceil(side_m / cell_m - 1e-9)
+        else:
+            low = np.array(area_ne_m[:2], dtype=np.float64)
+            high = np.array(area_ne_m[2:], dtype=np.float64)
+            self.fixed_origin_m = np.floor(low / self.cell_m) * self.cell_m
+            self.n = max(math.ceil(float(x) / self.cell_m - 1e-9) for x in high - self.fixed_origin_m)
         self.size = self.n * self.n
+        #: Whether the edge cells are exits into unknown space (no flying area).
+        self.exits = area_ne_m is None
+        self._outside = self._outside_cells()
         edge = np.zeros((self.n, self.n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
         #: The boundary cells (the exits into unknown space) and their centres (E, 2) from the grid's corner [m].
@@ -95,6 +115,8 @@ class NavGrid:
         Corners lie on the lattice of multiples of the cell size, so grids of one agent overlap cell for cell
         (``shift_blocked``).
         """
+        if self.fixed_origin_m is not None:
+            return np.broadcast_to(self.fixed_origin_m, positions_xy_m.shape).copy()
         side = self.n * self.cell_m
         delta = goals_xy_m - positions_xy_m
         dist = np.sqrt(np.einsum("bd,bd->b", delta, delta))
@@ -202,6 +224,10 @@ class NavGrid:
         goal_slots[:] = self.size  # unused: the source's own node, at inf
         goal_values = self._weights[ne : ne + _GOAL_SLOTS]
         goal_values[:] = np.inf
+        if self._outside is not None:
+            if not self._in_area(goal_xy_m):
+                return False  # no way to a goal outside the flying area
+            blocked |= self._outside  # before the goal's cell is freed below: it stays reachable
         detour = 0.0
         if 0 <= gi < n and 0 <= gj < n:
             blocked[gi * n + gj] = False  # the goal itself is always reachable in the grid
@@ -217,7 +243,25 @@ class NavGrid:
         euclid = np.hypot(origin_m[0] + centres[:, 0] - goal_xy_m[0], origin_m[1] + centres[:, 1] - goal_xy_m[1])
         edge_values = self._weights[ne + _GOAL_SLOTS : -1]
         np.copyto(edge_values, np.where(blocked[self.edge_cells], np.inf, euclid + detour))
+        if not self.exits:
+            edge_values[:] = np.inf
         return bool(np.isfinite(self._weights[ne:-1]).any())
+
+    def _outside_cells(self) -> BoolArray | None:
+        """(n^2,) the cells whose centre lies outside the flying area (None: no area)."""
+        if self.area_ne_m is None or self.fixed_origin_m is None:
+            return None
+        centres = self.fixed_origin_m[:, None] + (np.arange(self.n) + 0.5)[None, :] * self.cell_m  # (2, n)
+        low, high = self.area_ne_m[:2], self.area_ne_m[2:]
+        out_n = (centres[0] < low[0]) | (centres[0] > high[0])
+        out_e = (centres[1] < low[1]) | (centres[1] > high[1])
+        out: BoolArray = (out_n[:, None] | out_e[None, :]).ravel()
+        return out
+
+    def _in_area(self, point_xy_m: FloatArray) -> bool:
+        assert self.area_ne_m is not None
+        n_min, e_min, n_max, e_max = self.area_ne_m
+        return bool(n_min <= point_xy_m[0] <= n_max and e_min <= point_xy_m[1] <= e_max)
 
     def _cell_of_one(self, origin_m: FloatArray, point_xy_m: FloatArray) -> tuple[int, int]:
         """``cell_of`` of one point in one grid, on Python floats (the same IEEE arithmetic: a difference and a

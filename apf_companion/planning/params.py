@@ -125,6 +125,13 @@ class PlannerParams:
         are not exits into unknown space (it has looked there) [m], >= 0 (0 = every edge cell is an exit).
     nav_patience_steps : bapf-nav: give up (STUCK) after this many steps without a new closest approach to the
         target, >= 1.
+    nav_area_ne_m : bapf-nav: the flying area, (north_min, east_min, north_max, east_max) in local NED [m], or None
+        (default). When set, the navigation grid covers the whole area instead of ``nav_grid_m`` around the agent:
+        its cells outside the area are blocked and its edge is no exit into unknown space, so an escape searches
+        every way the area holds, as ArduPilot's Dijkstra planner plans within its fence
+        (libraries/AC_Avoidance/AP_OADijkstra.h, "path planning around polygon fence"). A target outside the
+        area has no way: the agent gives up at once (STUCK). At least 8 and at most 4096 cells of ``nav_cell_m`` a
+        side; a field costs O(cells), so a large area makes escape steps slower.
     br_lookahead_m : bendyruler: probe length OA_BR_LOOKAHEAD [m], > 0.
     br_margin_max_m : bendyruler: clearance OA_MARGIN_MAX that makes a direction "sufficiently open" [m], > 0.
     br_cont_ratio : bendyruler: OA_BR_CONT_RATIO, >= 1.
@@ -166,6 +173,7 @@ class PlannerParams:
     nav_sight_points_m: float = 2.0
     nav_seen_m: float = 4.0
     nav_patience_steps: int = 300
+    nav_area_ne_m: tuple[float, float, float, float] | None = None
     br_lookahead_m: float = 1.2
     br_margin_max_m: float = 0.6
     br_cont_ratio: float = 1.5
@@ -243,6 +251,22 @@ class PlannerParams:
             value: Any = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise _fail(name, value, "an int >= 1")
+        self._check_area()
+
+    def _check_area(self) -> None:
+        """``nav_area_ne_m``: None or four finite numbers, min < max, 8 to 4096 cells a side; kept as a tuple of
+        floats (a config file gives a list)."""
+        area: Any = self.nav_area_ne_m
+        if area is None:
+            return
+        allowed = "None or [north_min, east_min, north_max, east_max] [m], min < max, 8 to 4096 cells a side"
+        if isinstance(area, str | bytes) or not isinstance(area, tuple | list) or len(area) != 4:
+            raise _fail("nav_area_ne_m", area, allowed)
+        values = tuple(_finite("nav_area_ne_m", v) for v in area)
+        sides = (values[2] - values[0], values[3] - values[1])
+        if not all(8.0 * self.nav_cell_m <= side <= 4096.0 * self.nav_cell_m for side in sides):
+            raise _fail("nav_area_ne_m", area, allowed)
+        object.__setattr__(self, "nav_area_ne_m", values)
 
     @classmethod
     def paper(cls, **overrides: Any) -> PlannerParams:

@@ -248,14 +248,14 @@ def test_fields_equal_a_plain_dijkstra(goal: tuple[float, float]) -> None:
 
 
 def _fly_world(
-    name: str, dim: int = 2, max_steps: int = 1500, shift_east_m: float = 0.0
+    name: str, dim: int = 2, max_steps: int = 1500, shift_east_m: float = 0.0, area: bool = False
 ) -> tuple[str, np.ndarray, float]:
     """Fly a bundled world with a simulated 8 m range scanner (72 rays) and a remembered point cloud (no noise);
-    ``shift_east_m`` moves its start and goal east.
+    ``shift_east_m`` moves its start and goal east; ``area``: plan over the world file's flying area.
 
     Returns (how it ended, final position, lowest clearance to the remembered points)."""
     world = load_world(example_world_path(name))
-    params = PlannerParams(dim=dim)
+    params = PlannerParams(dim=dim, nav_area_ne_m=world.area_ne_m if area else None)
     planner = get_planner("bapf-nav", params)
     shift = np.array([0.0, shift_east_m])
     start = np.array(world.start_ne_m if world.start_ne_m is not None else (3.0, 3.0), dtype=np.float64) + shift
@@ -302,6 +302,35 @@ def test_wall_gap_from_the_closed_side_comes_back_and_arrives(shift_east_m: floa
     outcome, pos, lowest = _fly_world("wall-gap", shift_east_m=shift_east_m)
     assert outcome == "arrived", pos
     assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+@pytest.mark.parametrize("shift_east_m", [-8.0, -5.0, 0.0, 4.0])
+@pytest.mark.parametrize("name", ["wall-gap", "rooms"])
+def test_worlds_with_a_flying_area_arrive_from_either_side(name: str, shift_east_m: float) -> None:
+    """The same flights over the world file's flying area (``nav_area_ne_m``): the grid holds the whole arena and
+    has no exits, so the closed end is closed once it is seen and the agent turns back there. Starts and goals
+    moved along the walls, so that either end is the nearer one."""
+    outcome, pos, lowest = _fly_world(name, shift_east_m=shift_east_m * (0.25 if name == "rooms" else 1.0), area=True)
+    assert outcome == "arrived", pos
+    assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+@pytest.mark.parametrize("target", [(30.0, 0.0), (10.0, -12.5), (-3.5, 0.0), (10.0, 12.5)])
+def test_a_target_outside_the_flying_area_gives_up_at_once(target: tuple[float, float]) -> None:
+    """A target outside ``nav_area_ne_m`` has no way: the first step gives up (the caller reports STUCK) instead
+    of flying straight out of the area, on the single-agent and the batch path alike; a target inside moves."""
+    params = PlannerParams(nav_area_ne_m=(-3.0, -12.0, 23.0, 12.0))
+    single = get_planner("bapf-nav", params)
+    batch = BapfNavPlanner(params)
+    state = batch.initial_state(2)
+    targets = np.array([target, (20.0, 0.0)])
+    none = np.zeros((0, 2))
+    assert single.step(np.zeros(2), np.array(target), none).reason is DecisionReason.GAVE_UP
+    assert single.step(np.zeros(2), np.array([20.0, 0.0]), none).reason is DecisionReason.GREEDY
+    for _ in range(2):  # and it stays given up
+        bd = batch.step_batch(np.zeros((2, 2)), targets, np.zeros((2, 0, 2)), np.zeros((2, 0), bool), state=state)
+        assert [r.reason for r in (bd.row(0), bd.row(1))] == [DecisionReason.GAVE_UP, DecisionReason.GREEDY]
+        assert bd.row(0).next_point_m is None
 
 
 def test_the_line_of_sight_is_blocked_by_surfaces_and_by_near_points() -> None:

@@ -22,6 +22,8 @@ _PARAMS = {
     "no trail closure": PlannerParams(nav_seen_m=0.0),
     "no sight, replan often": PlannerParams(nav_sight_m=0.0, nav_replan_steps=3),
     "no clearance term": PlannerParams(nav_clearance_gain_m=0.0),
+    # Holds every start, target and point of ``_worlds`` (the thickets reach 28 m): a grid of 100 x 120 cells.
+    "a flying area": PlannerParams(nav_area_ne_m=(-4.0, -8.0, 26.0, 28.0)),
 }
 _STATE_FIELDS = (
     "target_m",

@@ -117,3 +117,92 @@ def test_a_copied_grid_computes_the_same_fields() -> None:
     want = grid.distances(origins, blocked, goals)
     for other in (copy.deepcopy(grid), pickle.loads(pickle.dumps(grid))):
         assert np.array_equal(other.distances(origins, blocked, goals), want)
+
+
+_AREA = (-3.0, -12.0, 23.0, 12.05)  # north_min, east_min, north_max, east_max: a corner off the cell lattice
+
+
+def test_a_grid_over_a_flying_area_has_a_fixed_corner_and_no_exits() -> None:
+    """``nav_area_ne_m``: the grid's corner is the area's south-west corner on the cell lattice, wherever the
+    agent and the goal are; the square holds the whole area; the edge cells are no exits."""
+    grid = NavGrid(0.3, 16.0, _AREA)
+    assert grid.fixed_origin_m is not None and not grid.exits
+    assert np.allclose(grid.fixed_origin_m, [-3.0, -12.0])
+    assert grid.n * grid.cell_m >= max(_AREA[2] - _AREA[0], _AREA[3] - _AREA[1]) - 1e-9
+    assert grid.n == 87  # ceil(26 / 0.3)
+    rng = np.random.default_rng(3)
+    agents, goals = rng.uniform(-20.0, 30.0, (5, 2)), rng.uniform(-20.0, 30.0, (5, 2))
+    assert np.array_equal(grid.origins(agents, goals, 2.0), np.tile(grid.fixed_origin_m, (5, 1)))
+    moving = NavGrid(0.3, 16.0)
+    assert moving.fixed_origin_m is None and moving.exits
+
+
+def _area_field(grid: NavGrid, blocked: npt.NDArray[np.bool_], goal: FloatArray) -> FloatArray:
+    """The area's rule written out: the cells whose centre is outside the area blocked, the goal's cell (freed,
+    even where its centre is outside) and its neighbours the only seeds, none when the goal is outside the
+    area."""
+    assert grid.fixed_origin_m is not None
+    n, h, origin = grid.n, grid.cell_m, grid.fixed_origin_m
+    inside_goal = _AREA[0] <= goal[0] <= _AREA[2] and _AREA[1] <= goal[1] <= _AREA[3]
+    if not inside_goal:
+        return np.full(grid.size, np.inf)
+    i, j = np.divmod(np.arange(grid.size), n)
+    north, east = origin[0] + (i + 0.5) * h, origin[1] + (j + 0.5) * h
+    outside = (north < _AREA[0]) | (north > _AREA[2]) | (east < _AREA[1]) | (east > _AREA[3])
+    gi, gj = grid._cell_of_one(origin, goal)
+    blk = blocked | outside
+    blk[gi * n + gj] = False  # the goal's own cell stays free, also where its centre is outside the area
+    near = np.array(
+        [a * n + b for a in range(gi - 1, gi + 2) for b in range(gj - 1, gj + 2) if 0 <= a < n and 0 <= b < n]
+    )
+    near = near[~blk[near]]
+    a, b = np.divmod(near, n)
+    values = np.hypot(origin[0] + (a + 0.5) * h - goal[0], origin[1] + (b + 0.5) * h - goal[1])
+    weights = np.where(blk[grid._indices], np.inf, grid._edge_cost)
+    indptr = np.append(grid._indptr, np.int32(grid._indptr[-1] + near.size))
+    graph = csr_matrix(
+        (np.concatenate([weights, values]), np.concatenate([grid._indices, near.astype(np.int32)]), indptr),
+        shape=(grid.size + 1, grid.size + 1),
+    )
+    field: FloatArray = dijkstra(graph, directed=True, indices=grid.size, limit=1e300)[: grid.size]
+    return field
+
+
+@pytest.mark.parametrize("goal", [(20.0, 0.0), (22.9, 12.0), (-2.9, -11.9), (30.0, 0.0), (10.0, 12.2)])
+def test_area_fields_seed_only_the_goal_and_block_outside(goal: tuple[float, float]) -> None:
+    """Fields over a flying area equal the plain graph's whose only seeds are the goal's cells, with the cells
+    outside the area blocked (the square is wider than the area to the north: 26 m against 24.05 m); a goal
+    outside the area (the last two) has no way from anywhere."""
+    grid = NavGrid(0.3, 16.0, _AREA)
+    assert grid.fixed_origin_m is not None
+    rng = np.random.default_rng(17)
+    g = np.array(goal)
+    for density in (0.0, 0.2):
+        blocked = rng.random((2, grid.size)) < density
+        dist = grid.distances(np.tile(grid.fixed_origin_m, (2, 1)), blocked, np.tile(g, (2, 1)))
+        for b in range(2):
+            assert np.array_equal(dist[b], _area_field(grid, blocked[b], g))
+    inside = _AREA[0] <= goal[0] <= _AREA[2] and _AREA[1] <= goal[1] <= _AREA[3]
+    assert np.isfinite(dist).any() == inside
+
+
+def test_an_area_field_goes_round_a_wall_the_moving_grid_only_guesses_at() -> None:
+    """wall-gap's geometry: a wall across the area from its west side to 1.6 m short of its east side. Over the
+    area the potential south of the wall leads east, through the gap: the way round the west end does not exist
+    (no exits). On a 16 m grid around the agent (east -8..8, the wall seen across it) the west edge is an exit,
+    and from 2 m west of the middle it looks as short as the way east."""
+    grid = NavGrid(0.3, 16.0, _AREA)
+    origin = grid.fixed_origin_m
+    assert origin is not None
+    n, h = grid.n, grid.cell_m
+    i, j = np.divmod(np.arange(grid.size), n)
+    north, east = origin[0] + (i + 0.5) * h, origin[1] + (j + 0.5) * h
+    wall = (np.abs(north - 10.0) < 0.7) & (east < 10.3 + 0.7)  # the wall inflated by C = 0.6 m plus a bit
+    goal = np.array([20.0, 0.0])
+    dist = grid.distances(origin[None], wall[None], goal[None])[0]
+    agent = np.array([8.5, -2.0])
+    gi, gj = grid._cell_of_one(origin, agent)
+    via_gap = np.hypot(9.3 - agent[0], 11.15 - agent[1]) + 1.4 + np.hypot(20.0 - 10.7, 11.15)
+    assert dist[gi * n + gj] == pytest.approx(via_gap, rel=0.06)
+    west, east_side = dist[gi * n + gj - 10], dist[gi * n + gj + 10]  # 3 m west and east of the agent
+    assert east_side < dist[gi * n + gj] < west

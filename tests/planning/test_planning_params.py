@@ -73,7 +73,20 @@ BAD: list[tuple[str, dict[str, Any]]] = [
     ("abapf_search", {"abapf_search": "grid"}),
     ("random_walk", {"random_walk": None}),
     ("agent_repulsion", {"agent_repulsion": 1}),
+    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 1.0, 1.0)}),  # under 8 cells a side
+    ("nav_area_ne_m", {"nav_area_ne_m": (10.0, 0.0, 0.0, 10.0)}),  # min > max
+    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 10.0)}),
+    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, float("nan"), 10.0)}),
+    ("nav_area_ne_m", {"nav_area_ne_m": "0,0,10,10"}),
+    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 2000.0, 10.0)}),  # over 4096 cells a side
 ]
+
+
+def test_a_flying_area_is_kept_as_a_tuple_of_floats() -> None:
+    assert PlannerParams().nav_area_ne_m is None
+    p = PlannerParams(nav_area_ne_m=[-3, -12, 23, 12])  # type: ignore[arg-type]  # a config file gives a list
+    assert p.nav_area_ne_m == (-3.0, -12.0, 23.0, 12.0)
+    assert all(type(v) is float for v in p.nav_area_ne_m)
 
 
 @pytest.mark.parametrize(("field", "kwargs"), BAD, ids=[f"{f}-{k}" for f, k in BAD])
