@@ -646,8 +646,12 @@ def _coerce(key: str, value: Any, annotation: str) -> Any:
         if not isinstance(value, dict):
             raise _fail(key, "a table", value)
         for sub_key, sub_value in value.items():
-            if isinstance(sub_value, dict | list):
-                raise _fail(f"{key}.{sub_key}", "a number, string or boolean", sub_value)
+            # A list of numbers is a vector parameter (planner.params.nav_area_ne_m); the planner checks its length.
+            numbers = isinstance(sub_value, list) and all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in sub_value
+            )
+            if isinstance(sub_value, dict) or (isinstance(sub_value, list) and not numbers):
+                raise _fail(f"{key}.{sub_key}", "a number, string, boolean or list of numbers", sub_value)
         return dict(value)
     msg = f"internal: no coercion for {key} ({annotation})"
     raise AssertionError(msg)

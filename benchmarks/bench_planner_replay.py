@@ -1,6 +1,8 @@
 """bapf-nav step time along real flights through the bundled worlds, by how many points the memory holds.
 
-Run: ``python benchmarks/bench_planner_replay.py [--trials 3] [--worlds NAME,...]``. Prints markdown tables.
+Run: ``python benchmarks/bench_planner_replay.py [--trials 3] [--worlds NAME,...] [--no-area]``. Prints markdown
+tables. Worlds whose file gives a flying area (``area_ne_m``: wall-gap, rooms) are planned over it unless
+``--no-area``.
 
 ``bench_planner_step`` times steps in synthetic scenes: N points uniform in the 8 m disc around the agent. At
 300 points that disc is a thicket (about 1.5 points per square metre; with the default clearance more than half
@@ -20,6 +22,7 @@ surfaces the way a flight meets them.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import sys
@@ -45,10 +48,15 @@ DEFAULT_WORLDS = ("u-trap-goal", "wall-gap", "corridor-bend", "rooms", "slit", "
 BUCKETS = ((0, 100), (100, 200), (200, 400), (400, 800), (800, 10**9))
 
 
-def flights(world: str, trials: int, seed: int) -> tuple[FloatArray, FloatArray, FloatArray, StudyConfig]:
+def flights(
+    world: str, trials: int, seed: int, *, area: bool = True
+) -> tuple[FloatArray, FloatArray, FloatArray, StudyConfig]:
     """(T, A, 2) positions of ``trials`` study flights (NaN once a trial ended), the surface samples (K, 2),
-    the goal (2,) and the study config."""
+    the goal (2,) and the study config (with the world file's flying area as bapf-nav's ``nav_area_ne_m``
+    unless ``area`` is False)."""
     case = load_case(world)
+    if not area:
+        case = dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
     config = world_config(StudyConfig.from_preset("reference"), case.world)
     samples = case.samples_ne_m
     batch = WorldBatch(
@@ -102,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=3, help="flights per world (default 3)")
     ap.add_argument("--worlds", default=",".join(DEFAULT_WORLDS), help="comma-separated bundled worlds or files")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-area", action="store_true", help="fly without the world files' flying areas (area_ne_m)")
     args = ap.parse_args(argv)
     print(f"python {sys.version.split()[0]}, numpy {np.__version__}, {platform.machine()}, {os.cpu_count()} cpus")
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
@@ -110,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     all_m: list[int] = []
     per_world = []
     for world in args.worlds.split(","):
-        positions, samples, goal, config = flights(world, args.trials, args.seed)
+        positions, samples, goal, config = flights(world, args.trials, args.seed, area=not args.no_area)
         planner = get_planner("bapf-nav", config.planner_params)
         assert isinstance(planner, StatefulPlanner)
         planner.step(positions[0, 0], goal, samples[:0])  # warm-up: imports, first allocations
@@ -122,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
             all_t += t
             all_n += n
             all_m += m
-        per_world.append((f"{world} (memory up to {max(all_n[-len(w_t) :])} points)", np.asarray(w_t)))
+        fenced = ", over its flying area" if config.planner_params.nav_area_ne_m is not None else ""
+        per_world.append((f"{world} (memory up to {max(all_n[-len(w_t) :])} points{fenced})", np.asarray(w_t)))
     times, sizes, modes = np.asarray(all_t), np.asarray(all_n), np.asarray(all_m)
     print(f"## bapf-nav `step` along {args.trials} flight(s) per world, by world\n")
     table(per_world)

@@ -87,6 +87,8 @@ class FlyOptions:
     world: str | None = None
     start_ne_m: tuple[float, float] = PAPER_START
     goal_ne_m: tuple[float, float] = PAPER_GOAL
+    #: The world file's flying area (north_min, east_min, north_max, east_max) [m]: bapf-nav's nav_area_ne_m.
+    area_ne_m: tuple[float, float, float, float] | None = None
     alt_m: float = 5.0
     speedup: float = 5.0
     rate_hz: float = 10.0
@@ -199,7 +201,7 @@ name = "{opt.planner}"
 seed = {opt.seed}
 # The study allows 900 iterations (~0.5 s each here); give the random walk comparable room.
 progress_timeout_s = 120.0
-
+{_area_toml(opt)}
 [cycle]
 rate_hz = {opt.rate_hz}
 time_scale = {opt.speedup}
@@ -211,6 +213,17 @@ north_m = {north}
 east_m = {east}
 down_m = {-opt.alt_m}
 """ + _visualisation_toml(opt)
+
+
+def _area_toml(opt: FlyOptions) -> str:
+    """bapf-nav plans over the world's flying area when the world file gives one (the other planners have none)."""
+    if opt.area_ne_m is None or opt.planner != "bapf-nav":
+        return ""
+    return f"""
+[planner.params]
+# the world file's flying area (north_min, east_min, north_max, east_max) [m]
+nav_area_ne_m = {list(opt.area_ne_m)}
+"""
 
 
 def _visualisation_toml(opt: FlyOptions) -> str:
@@ -698,6 +711,11 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", help=f"world TOML file or bundled example ({', '.join(_bundled_worlds())})")
     p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
     p.add_argument("--goal", type=_pair, metavar="N,E", help="goal (default: the world file's, else 22,22)")
+    p.add_argument(
+        "--no-area",
+        action="store_true",
+        help="fly without the world file's flying area (area_ne_m): bapf-nav's grid then moves with the vehicle",
+    )
     # "--start -12.0,0.0": argparse takes a word starting with "-" for an option unless it looks like a negative
     # number, and its pattern (argparse._ActionsContainer) has no comma; widen it to N,E pairs for this parser.
     p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d*\.?\d*,-?\d*\.?\d*$")
@@ -761,21 +779,26 @@ def _link_faults(text: str) -> LinkFaults:
         raise argparse.ArgumentTypeError(str(err)) from err
 
 
-def _start_goal(args: argparse.Namespace) -> tuple[tuple[float, float], tuple[float, float]]:
-    """--start/--goal, else the world file's suggested start/goal, else the paper's (3, 3) -> (22, 22)."""
+def _start_goal(
+    args: argparse.Namespace,
+) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float, float, float] | None]:
+    """--start/--goal, else the world file's suggested start/goal, else the paper's (3, 3) -> (22, 22); and the
+    world file's flying area unless --no-area."""
     start, goal = PAPER_START, PAPER_GOAL
+    area = None
     if args.world is not None:
         from sim.world import load_world
 
         world = load_world(args.world)
         start = world.start_ne_m or start
         goal = world.goal_ne_m or goal
-    return (args.start or start), (args.goal or goal)
+        area = None if args.no_area else world.area_ne_m
+    return (args.start or start), (args.goal or goal), area
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
     try:
-        start, goal = _start_goal(args)
+        start, goal, area = _start_goal(args)
         if args.signing_key is not None:
             load_signing_key(args.signing_key)  # a key file others can read: refused before anything starts
     except ApfCompanionError as err:
@@ -791,6 +814,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         world=args.world,
         start_ne_m=start,
         goal_ne_m=goal,
+        area_ne_m=area,
         alt_m=args.alt,
         speedup=args.speedup,
         rate_hz=args.rate,

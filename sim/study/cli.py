@@ -195,6 +195,11 @@ def _register_worlds(p: argparse.ArgumentParser) -> None:
         "judged on the true geometry",
     )
     p.add_argument(
+        "--no-area",
+        action="store_true",
+        help="leave out the world files' flying areas (area_ne_m): bapf-nav's grid then moves with the agent",
+    )
+    p.add_argument(
         "--surface-spacing",
         type=float,
         default=None,
@@ -420,6 +425,8 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
         load_case(w, spacing_m=spacing, optimum_clearance_m=kw["clearance_m"], optimum_resolution_m=kw["resolution_m"])
         for w in args.world
     ]
+    if args.no_area:
+        cases = [dataclasses.replace(c, world=dataclasses.replace(c.world, area_ne_m=None)) for c in cases]
     labels = [c.label for c in cases]
     if len(set(labels)) != len(labels):
         raise ConfigError(f"--world: each world needs its own name (file stem), got {labels}")
@@ -441,6 +448,9 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
         f"true geometry. A* = full-knowledge grid optimum (clearance {kw['clearance_m']} m, grid "
         f"{kw['resolution_m']} m) to the goal circle (radius {config.goal_radius_m} m); mean path over successes."
     )
+    fenced = [c.label for c in cases if c.world.area_ne_m is not None]
+    if fenced and "bapf-nav" in planners:
+        print(f"bapf-nav plans over the flying area (area_ne_m) of: {', '.join(fenced)}; --no-area leaves it out.")
     _write_worlds(args, config, planners, cases, cells, spacing, kw)
     return 0
 

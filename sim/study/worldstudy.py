@@ -111,9 +111,15 @@ class WorldChunkResult:
 
 
 def world_config(config: StudyConfig, world: World) -> StudyConfig:
-    """The study's rules with the world's start and goal (2D)."""
+    """The study's rules with the world's start and goal (2D), and its flying area, if it has one, as bapf-nav's
+    ``nav_area_ne_m`` (the other planners do not read it)."""
     assert world.start_ne_m is not None and world.goal_ne_m is not None
-    return dataclasses.replace(config, start_m=tuple(world.start_ne_m), target_m=tuple(world.goal_ne_m))
+    params = config.planner_params
+    if world.area_ne_m is not None:
+        params = dataclasses.replace(params, nav_area_ne_m=world.area_ne_m)
+    return dataclasses.replace(
+        config, start_m=tuple(world.start_ne_m), target_m=tuple(world.goal_ne_m), planner_params=params
+    )
 
 
 def motion_generator(seed: int, label: str, chunk_index: int) -> np.random.Generator:

@@ -5,6 +5,8 @@ Format (all coordinates local NED north/east metres relative to home = the EKF o
     name = "forest"                     # a label
     start_ne_m = [3.0, 3.0]             # suggested start (north, east)
     goal_ne_m = [22.0, 22.0]            # suggested goal
+    area_ne_m = [[0.0, 0.0], [25.0, 25.0]]  # the flying area (south-west, north-east corners), as a user would
+                                        # fence it: bapf-nav plans over all of it (PlannerParams.nav_area_ne_m)
 
     [[cylinder]]                        # a vertical cylinder standing on the ground (a tree, a pole)
     ne_m = [8.0, 9.5]                   # centre
@@ -34,6 +36,7 @@ Unknown keys are errors (a typo must not silently drop an obstacle).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from collections.abc import Mapping
@@ -50,7 +53,17 @@ __all__ = ["EXAMPLES_DIR", "example_world_path", "load_world", "world_from_mappi
 
 EXAMPLES_DIR = Path(__file__).parent / "examples"
 
-_TOP_KEYS = {"name", "description", "start_ne_m", "goal_ne_m", "cylinder", "wall", "polygon", "random_field"}
+_TOP_KEYS = {
+    "name",
+    "description",
+    "start_ne_m",
+    "goal_ne_m",
+    "area_ne_m",
+    "cylinder",
+    "wall",
+    "polygon",
+    "random_field",
+}
 _KEYS = {
     "cylinder": {"ne_m", "radius_m", "height_m"},
     "wall": {"from_ne_m", "to_ne_m", "thickness_m", "height_m"},
@@ -203,6 +216,17 @@ def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") 
         start_ne_m=start,
         goal_ne_m=goal,
     )
+    if "area_ne_m" in data:
+        world = dataclasses.replace(world, area_ne_m=_area(data["area_ne_m"]))
     if "random_field" in data:
         world = _with_random_field(world, data["random_field"], str(name))
     return world
+
+
+def _area(value: Any) -> tuple[float, float, float, float]:
+    """``area_ne_m = [[north_min, east_min], [north_max, east_max]]``."""
+    if isinstance(value, str) or not isinstance(value, list | tuple) or len(value) != 2:
+        msg = f"world: area_ne_m must be [[north_min, east_min], [north_max, east_max]], got {value!r}"
+        raise ConfigError(msg)
+    low, high = _pair(value[0], "area_ne_m[0]"), _pair(value[1], "area_ne_m[1]")
+    return (*low, *high)

@@ -47,6 +47,8 @@ class World:
         wall_heights_m: (M,) wall top above ground [m] (inf = unbounded).
         name: a label for logs and results.
         start_ne_m / goal_ne_m: optional suggested start and goal (the paper's (3, 3) and (22, 22)).
+        area_ne_m: optional flying area (north_min, east_min, north_max, east_max) [m], the bounds a user would
+            fence: given to bapf-nav as ``nav_area_ne_m`` by the study and ``apf-sim fly``.
     """
 
     circles_ne_m: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
@@ -58,8 +60,11 @@ class World:
     name: str = "empty"
     start_ne_m: tuple[float, float] | None = None
     goal_ne_m: tuple[float, float] | None = None
+    area_ne_m: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.area_ne_m is not None:
+            object.__setattr__(self, "area_ne_m", _area(self.area_ne_m))
         circles = _as_array(self.circles_ne_m, (2,), "circles_ne_m")
         n = circles.shape[0]
         radii = np.broadcast_to(np.asarray(self.circle_radii_m, dtype=np.float64), (n,)).copy()
@@ -131,6 +136,7 @@ class World:
             name=name or self.name,
             start_ne_m=self.start_ne_m or other.start_ne_m,
             goal_ne_m=self.goal_ne_m or other.goal_ne_m,
+            area_ne_m=self.area_ne_m or other.area_ne_m,
         )
 
     @staticmethod
@@ -315,7 +321,17 @@ class World:
             "wall_heights_m": [h if math.isfinite(h) else None for h in self.wall_heights_m.tolist()],
             "start_ne_m": list(self.start_ne_m) if self.start_ne_m else None,
             "goal_ne_m": list(self.goal_ne_m) if self.goal_ne_m else None,
+            "area_ne_m": list(self.area_ne_m) if self.area_ne_m else None,
         }
+
+
+def _area(value: Sequence[float]) -> tuple[float, float, float, float]:
+    """A flying area (north_min, east_min, north_max, east_max) [m], checked: finite, min < max."""
+    area = tuple(float(v) for v in value)
+    if len(area) != 4 or not all(math.isfinite(v) for v in area) or not (area[0] < area[2] and area[1] < area[3]):
+        msg = f"world: area_ne_m must be finite [[north_min, east_min], [north_max, east_max]], min < max: {value!r}"
+        raise ConfigError(msg)
+    return area[0], area[1], area[2], area[3]
 
 
 def _wrap_pi(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:

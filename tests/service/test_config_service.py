@@ -88,6 +88,12 @@ def test_planner_params_overrides_and_errors() -> None:
         build_planner(config_from_mapping({"planner": {"params": {"random_walk": "drunk"}}}))
     with pytest.raises(ConfigError, match=r"rho_u_m"):
         build_planner(config_from_mapping({"planner": {"params": {"rho_u_m": 0.1}}}))
+    area = build_planner(config_from_mapping({"planner": {"params": {"nav_area_ne_m": [-3, -12.0, 23, 12]}}}))
+    assert area.params.nav_area_ne_m == (-3.0, -12.0, 23.0, 12.0)  # a list of numbers: a vector parameter
+    with pytest.raises(ConfigError, match=r"planner\.params\.nav_area_ne_m.*list of numbers"):
+        config_from_mapping({"planner": {"params": {"nav_area_ne_m": [0, "a", 1, 2]}}})
+    with pytest.raises(ConfigError, match=r"nav_area_ne_m"):
+        build_planner(config_from_mapping({"planner": {"params": {"nav_area_ne_m": [0, 0, 1]}}}))
 
 
 def test_load_config_file_errors(tmp_path: Path) -> None:

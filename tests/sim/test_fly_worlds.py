@@ -6,12 +6,15 @@ import json
 import os
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
 
+from apf_companion.builders import build_planner
+from apf_companion.config import config_from_mapping
 from sim.cli import build_parser
-from sim.fly import FlyOptions, _sim_argv, _start_goal
+from sim.fly import FlyOptions, _service_toml, _sim_argv, _start_goal
 from sim.world import EXAMPLES_DIR, load_world
 
 
@@ -31,8 +34,8 @@ def test_negative_start_is_one_word_for_the_vehicle() -> None:
 )
 def test_fly_cli_takes_negative_pairs(words: list[str]) -> None:
     args = build_parser().parse_args(["fly", "--world", "slit", *words])
-    start, goal = _start_goal(args)
-    assert start[0] == -12.0
+    start, goal, area = _start_goal(args)
+    assert start[0] == -12.0 and area is None  # slit has no flying area
     assert goal == ((4.5, -2.0) if "--goal" in words else (16.0, 0.0))
 
 
@@ -45,9 +48,24 @@ def test_fly_cli_still_rejects_a_missing_value() -> None:
 def test_every_bundled_world_gives_fly_its_start_and_goal(name: str) -> None:
     args = build_parser().parse_args(["fly", "--world", name])
     world = load_world(name)
-    assert _start_goal(args) == (world.start_ne_m, world.goal_ne_m)
+    assert _start_goal(args) == (world.start_ne_m, world.goal_ne_m, world.area_ne_m)
     argv = _sim_argv(FlyOptions(world=name, start_ne_m=_start_goal(args)[0]), 1, 2)
     assert build_parser().parse_args(argv[3:]).start == world.start_ne_m
+
+
+@pytest.mark.parametrize("words", [[], ["--no-area"], ["--planner", "bendyruler"]])
+def test_a_world_s_flying_area_reaches_the_service_s_planner(tmp_path: Path, words: list[str]) -> None:
+    """``apf-sim fly --world wall-gap`` writes the world file's flying area into the service's config as
+    ``planner.params.nav_area_ne_m``, and the service's planner gets it; ``--no-area`` and the other planners
+    (which have no such parameter) fly without it."""
+    args = build_parser().parse_args(["fly", "--world", "wall-gap", *words])
+    start, goal, area = _start_goal(args)
+    opt = FlyOptions(planner=args.planner, world="wall-gap", start_ne_m=start, goal_ne_m=goal, area_ne_m=area)
+    text = _service_toml(opt, 14550, tmp_path / "c.tlog")
+    planner = build_planner(config_from_mapping(tomllib.loads(text)))
+    want = None if words else (-3.0, -12.0, 23.0, 12.0)
+    assert planner.params.nav_area_ne_m == want
+    assert ("nav_area_ne_m" in text) == (want is not None)
 
 
 @pytest.mark.slow

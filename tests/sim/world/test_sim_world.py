@@ -128,6 +128,9 @@ def test_invalid_worlds_raise() -> None:
         world_from_mapping({"cylinder": [{"ne_m": [1, 2], "radius_m": -1}]})
     with pytest.raises(ConfigError, match="no example world"):
         load_world("nonexistent-world")
+    for bad in ([[0, 0]], [[0, 0], [0, 5]], [[0, 0], [5, "x"]], "0,0,5,5", [[0, 0], [5, math.inf]]):
+        with pytest.raises(ConfigError, match="area_ne_m"):
+            world_from_mapping({"area_ne_m": bad})
 
 
 def test_examples_load_and_start_is_clear() -> None:
@@ -150,6 +153,10 @@ def test_examples_load_and_start_is_clear() -> None:
         assert w.start_ne_m is not None and w.goal_ne_m is not None
         assert w.clearance_m(w.start_ne_m) > 1.0
         assert w.clearance_m(w.goal_ne_m) > 1.0
+        if w.area_ne_m is not None:  # a flying area holds the start and the goal
+            for n, e in (w.start_ne_m, w.goal_ne_m):
+                assert w.area_ne_m[0] < n < w.area_ne_m[2] and w.area_ne_m[1] < e < w.area_ne_m[3]
+    assert {n for n in names if load_world(n).area_ne_m is not None} == {"rooms", "wall-gap"}  # the closed arenas
 
 
 def test_world_file_format(tmp_path: Path) -> None:
@@ -158,6 +165,7 @@ def test_world_file_format(tmp_path: Path) -> None:
         """
 name = "t"
 start_ne_m = [1, 2]
+area_ne_m = [[-1, -2], [30, 31.5]]
 [[cylinder]]
 ne_m = [5, 5]
 radius_m = 0.5
@@ -176,6 +184,8 @@ seed = 3
     )
     w = load_world(path)
     assert w.name == "t" and w.start_ne_m == (1.0, 2.0)
+    assert w.area_ne_m == (-1.0, -2.0, 30.0, 31.5)  # kept when the random field is merged in
+    assert w.describe()["area_ne_m"] == [-1.0, -2.0, 30.0, 31.5]
     assert w.n_circles == 1 + 7
     assert w.n_walls == 1 + 3  # a closed triangle has 3 sides
     assert w.circle_heights_m[0] == 3.0 and np.isinf(w.circle_heights_m[1:]).all()
