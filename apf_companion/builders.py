@@ -15,7 +15,7 @@ from apf_companion.adopt import AdoptParams
 from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.forwarder import ForwarderParams
-from apf_companion.goal import Route, load_route
+from apf_companion.goal import Route, load_route, route_outside_limits
 from apf_companion.handlers import COMMAND_MESSAGES, HandlerParams
 from apf_companion.linkquality import CautionParams
 from apf_companion.links import (
@@ -245,13 +245,38 @@ def reporter_params(config: ServiceConfig) -> ReporterParams:
 
 
 def initial_route(config: ServiceConfig) -> Route | None:
-    """The goal from the config's ``[goal]`` (a point or a route file), if any."""
+    """The goal from the config's ``[goal]`` (a point or a route file), if any.
+
+    Raises:
+        ConfigError: the route file is invalid, or a waypoint lies outside bapf-nav's flying area
+            (``planner.params.nav_area_ne_m``), where the planner would give up at once.
+    """
     g = config.goal
+    route = None
     if g.route:
-        return load_route(config.resolve(g.route), source="config:route")
-    if g.north_m is not None and g.east_m is not None:
-        return Route.point(g.north_m, g.east_m, g.down_m, source="config")
-    return None
+        route = load_route(config.resolve(g.route), source="config:route")
+    elif g.north_m is not None and g.east_m is not None:
+        route = Route.point(g.north_m, g.east_m, g.down_m, source="config")
+    if route is not None:
+        _check_route_in_area(config, route)
+    return route
+
+
+def _check_route_in_area(config: ServiceConfig, route: Route) -> None:
+    """A configured waypoint outside the flying area is a config error, not a STUCK after take-off."""
+    why = route_outside_limits(route, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=flying_area(config))
+    if why is not None:
+        raise ConfigError(f"goal: {why}: bapf-nav would give up at once")
+
+
+def flying_area(config: ServiceConfig) -> tuple[float, float, float, float] | None:
+    """bapf-nav's ``planner.params.nav_area_ne_m`` as four floats, or None (another planner, or no area; a
+    malformed one is ``build_planner``'s error)."""
+    area = config.planner.params.get("nav_area_ne_m")
+    if config.planner.name != PlannerName.BAPF_NAV or not isinstance(area, list | tuple) or len(area) != 4:
+        return None
+    n_min, e_min, n_max, e_max = (float(v) for v in area)
+    return n_min, e_min, n_max, e_max
 
 
 @dataclass(frozen=True, slots=True)

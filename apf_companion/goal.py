@@ -255,12 +255,28 @@ def local_goal_from_reposition(
 
 
 def route_outside_limits(
-    route: Route, pos_ned_m: npt.ArrayLike | None, *, max_altitude_m: float, max_distance_m: float
+    route: Route,
+    pos_ned_m: npt.ArrayLike | None,
+    *,
+    max_altitude_m: float,
+    max_distance_m: float,
+    area_ne_m: tuple[float, float, float, float] | None = None,
 ) -> str | None:
     """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home), or
-    horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet).
-    0 = no limit. A mistyped or hostile goal (the fuzz sent DO_REPOSITION z = -8576 m) is refused, not flown."""
+    horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet),
+    or outside the planner's flying area ``area_ne_m`` (north_min, east_min, north_max, east_max; bapf-nav would
+    give up at once). 0 / None = no limit. A mistyped or hostile goal (the fuzz sent DO_REPOSITION z = -8576 m) is
+    refused, not flown."""
     wp = route.waypoints_ned_m
+    if area_ne_m is not None:
+        n_min, e_min, n_max, e_max = area_ne_m
+        out = ~((wp[:, 0] >= n_min) & (wp[:, 0] <= n_max) & (wp[:, 1] >= e_min) & (wp[:, 1] <= e_max))
+        if out.any():
+            i = int(np.flatnonzero(out)[0])
+            return (
+                f"waypoint {i} (north {wp[i, 0]:g} m, east {wp[i, 1]:g} m) lies outside the flying area "
+                f"planner.params.nav_area_ne_m = {list(area_ne_m)}"
+            )
     if max_altitude_m > 0.0:
         up = -wp[:, 2]
         high = np.flatnonzero(np.isfinite(up) & (up > max_altitude_m))

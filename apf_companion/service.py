@@ -39,6 +39,7 @@ from apf_companion.builders import (
     build_navigator,
     build_outbox,
     build_planner,
+    flying_area,
     forwarder_params,
     handler_params,
     initial_route,
@@ -243,6 +244,7 @@ class CompanionService:
         self.link = link
         self.zenoh = zenoh
         self.planner = build_planner(config)
+        self._flying_area = flying_area(config)  # bapf-nav's nav_area_ne_m: goals outside it are refused
         self.perception = PerceptionFrontEnd(perception_params(config))
         self.counters = ServiceCounters()
         self.faults = FaultLog(self.counters)
@@ -398,6 +400,7 @@ class CompanionService:
             None if pose is None else pose.pos_ned_m,
             max_altitude_m=gc.max_altitude_m,
             max_distance_m=gc.max_distance_m,
+            area_ne_m=self._flying_area,
         )
         if why is not None:
             self.counters.bad_goals += 1

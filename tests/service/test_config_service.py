@@ -96,6 +96,22 @@ def test_planner_params_overrides_and_errors() -> None:
         build_planner(config_from_mapping({"planner": {"params": {"nav_area_ne_m": [0, 0, 1]}}}))
 
 
+def test_a_configured_goal_outside_the_flying_area_is_a_config_error() -> None:
+    """bapf-nav gives up at once on a target outside ``nav_area_ne_m``: a configured goal there is refused when
+    the config is loaded (``apf-companion check``, the service's start), not after take-off; other planners have
+    no area."""
+    area = {"nav_area_ne_m": [-3.0, -12.0, 23.0, 12.0]}
+    inside = config_from_mapping({"planner": {"params": area}, "goal": {"north_m": 20.0, "east_m": 0.0}})
+    assert initial_route(inside) is not None
+    outside = config_from_mapping({"planner": {"params": area}, "goal": {"north_m": 30.0, "east_m": 0.0}})
+    with pytest.raises(ConfigError, match=r"waypoint 0 .*outside planner\.params\.nav_area_ne_m"):
+        initial_route(outside)
+    other = config_from_mapping(
+        {"planner": {"name": "cr-bapf*", "params": area}, "goal": {"north_m": 30.0, "east_m": 0.0}}
+    )
+    assert initial_route(other) is not None
+
+
 def test_load_config_file_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"cannot read config file"):
         load_config(tmp_path / "missing.toml")

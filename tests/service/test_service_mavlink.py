@@ -19,6 +19,7 @@ import math
 from collections.abc import AsyncIterator
 from typing import Any
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -371,6 +372,25 @@ async def test_a_goal_beyond_the_altitude_or_distance_limit_is_refused() -> None
             assert all(m.z > -10.0 for _, m in ap.setpoints())  # no setpoint went up towards it
 
 
+async def test_a_goal_outside_the_flying_area_is_refused() -> None:
+    """With bapf-nav's flying area set (``planner.params.nav_area_ne_m``), a ground station's goal outside it is
+    refused and counted (the planner would give up at once); one inside is flown."""
+    cfg = fast_config(planner={"params": {"nav_area_ne_m": [-10.0, -10.0, 40.0, 10.0]}})
+    async with rig(cfg, route=Route.point(30.0, 0.0, -5.0, source="test")) as (svc, ap):
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 5, 10.0, "flying")
+        async with gcs_for(svc) as gcs:
+            bad = svc.counters.bad_goals
+            gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, 500_000, 50_000, -5.0))
+            ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+            assert ack.command == 192 and ack.result != mavlink.MAV_RESULT_ACCEPTED  # north 50 m: outside
+            assert svc.counters.bad_goals == bad + 1
+            assert svc.navigator.route is not None and svc.navigator.route.source == "test"
+            gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, 200_000, 50_000, -5.0))
+            ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+            assert ack.command == 192 and ack.result == mavlink.MAV_RESULT_ACCEPTED  # north 20 m, east 5 m
+            assert svc.navigator.route is not None and svc.navigator.route.source == "mavlink:255/190"
+
+
 def test_route_limits() -> None:
     up = Route.point(0.0, 0.0, -121.0, source="t")
     assert route_outside_limits(up, None, max_altitude_m=120.0, max_distance_m=0.0) is not None
@@ -379,6 +399,11 @@ def test_route_limits() -> None:
     assert route_outside_limits(keep, (0.0, 0.0, -5.0), max_altitude_m=120.0, max_distance_m=100.0) is None
     assert route_outside_limits(keep, (-95.0, 0.0, -5.0), max_altitude_m=120.0, max_distance_m=100.0) is not None
     assert route_outside_limits(keep, None, max_altitude_m=120.0, max_distance_m=5.0) is None  # no pose yet
+    area = (-10.0, -10.0, 40.0, 10.0)
+    assert route_outside_limits(keep, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=area) is None
+    far = Route(waypoints_ned_m=np.array([[10.0, 0.0, -5.0], [41.0, 0.0, -5.0]]), source="t")
+    why = route_outside_limits(far, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=area)
+    assert why is not None and why.startswith("waypoint 1 ") and "nav_area_ne_m" in why
 
 
 async def test_commands_broadcast_to_system_0_are_answered() -> None:
