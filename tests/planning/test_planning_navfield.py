@@ -53,6 +53,14 @@ def _plain_field(grid: NavGrid, origin: FloatArray, blocked: npt.NDArray[np.bool
     cells, values = _plain_seeds(grid, origin, blk, goal)
     if cells.size == 0:
         return np.full(grid.size, np.inf)
+    return _graph_field(grid, blk, cells, values)
+
+
+def _graph_field(
+    grid: NavGrid, blk: npt.NDArray[np.bool_], cells: npt.NDArray[np.intp], values: FloatArray
+) -> FloatArray:
+    """Dijkstra on a graph built for one field: edge weights inf into blocked cells, the seeds ``cells`` at
+    ``values`` in the source's row."""
     weights = np.where(blk[grid._indices], np.inf, grid._edge_cost)
     indptr = np.append(grid._indptr, np.int32(grid._indptr[-1] + cells.size))
     graph = csr_matrix(
@@ -158,14 +166,7 @@ def _area_field(grid: NavGrid, blocked: npt.NDArray[np.bool_], goal: FloatArray)
     near = near[~blk[near]]
     a, b = np.divmod(near, n)
     values = np.hypot(origin[0] + (a + 0.5) * h - goal[0], origin[1] + (b + 0.5) * h - goal[1])
-    weights = np.where(blk[grid._indices], np.inf, grid._edge_cost)
-    indptr = np.append(grid._indptr, np.int32(grid._indptr[-1] + near.size))
-    graph = csr_matrix(
-        (np.concatenate([weights, values]), np.concatenate([grid._indices, near.astype(np.int32)]), indptr),
-        shape=(grid.size + 1, grid.size + 1),
-    )
-    field: FloatArray = dijkstra(graph, directed=True, indices=grid.size, limit=1e300)[: grid.size]
-    return field
+    return _graph_field(grid, blk, near, values)
 
 
 @pytest.mark.parametrize("goal", [(20.0, 0.0), (22.9, 12.0), (-2.9, -11.9), (30.0, 0.0), (10.0, 12.2)])
