@@ -104,7 +104,7 @@ def test_a_configured_goal_outside_the_flying_area_is_a_config_error() -> None:
     inside = config_from_mapping({"planner": {"params": area}, "goal": {"north_m": 20.0, "east_m": 0.0}})
     assert initial_route(inside) is not None
     outside = config_from_mapping({"planner": {"params": area}, "goal": {"north_m": 30.0, "east_m": 0.0}})
-    with pytest.raises(ConfigError, match=r"waypoint 0 .*outside planner\.params\.nav_area_ne_m"):
+    with pytest.raises(ConfigError, match=r"waypoint 0 .*outside the flying area planner\.params\.nav_area_ne_m"):
         initial_route(outside)
     other = config_from_mapping(
         {"planner": {"name": "cr-bapf*", "params": area}, "goal": {"north_m": 30.0, "east_m": 0.0}}
