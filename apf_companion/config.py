@@ -196,7 +196,8 @@ class PlannerConfig:
             which the service gives up: STUCK.
         progress_timeout_s: No new best distance to the goal (by 0.1 m) for this long -> STUCK [s].
         params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
-            safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner.
+            safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner. Values are
+            numbers, strings, booleans, or lists of numbers (bapf-nav's flying area, nav_area_ne_m).
     """
 
     name: str = str(DEFAULT_PLANNER)
