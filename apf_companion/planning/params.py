@@ -61,6 +61,12 @@ class RandomWalkRule(enum.Enum):
     SINGLE_DRAW = "single-draw"
 
 
+#: Cells a side of a flying area's grid (``nav_area_ne_m``), at most. A field is one Dijkstra search over every
+#: cell, in the service's cycle: 256 x 256 cells took 22.6 ms on the 2-core development VM (384 x 384: 54 ms, more
+#: than a 20 Hz cycle), so a larger area must take larger cells (docs/planner.md, "A flying area").
+MAX_AREA_CELLS = 256
+
+
 def _fail(name: str, value: object, allowed: str) -> ConfigError:
     return ConfigError(f"PlannerParams.{name} = {value!r} is invalid; allowed: {allowed}")
 
@@ -130,8 +136,9 @@ class PlannerParams:
         its cells outside the area are blocked and its edge is no exit into unknown space, so an escape searches
         every way the area holds, as ArduPilot's Dijkstra planner plans within its fence
         (libraries/AC_Avoidance/AP_OADijkstra.h, "path planning around polygon fence"). A target outside the
-        area has no way: the agent gives up at once (STUCK). At least 8 and at most 4096 cells of ``nav_cell_m`` a
-        side; a field costs O(cells), so a large area makes escape steps slower.
+        area has no way: the agent gives up at once (STUCK). At least 8 and at most ``MAX_AREA_CELLS`` = 256 cells
+        of ``nav_cell_m`` a side (76.8 m at 0.3 m cells): a field is a search over every cell, in the service's
+        cycle.
     br_lookahead_m : bendyruler: probe length OA_BR_LOOKAHEAD [m], > 0.
     br_margin_max_m : bendyruler: clearance OA_MARGIN_MAX that makes a direction "sufficiently open" [m], > 0.
     br_cont_ratio : bendyruler: OA_BR_CONT_RATIO, >= 1.
@@ -254,17 +261,20 @@ class PlannerParams:
         self._check_area()
 
     def _check_area(self) -> None:
-        """``nav_area_ne_m``: None or four finite numbers, min < max, 8 to 4096 cells a side; kept as a tuple of
+        """``nav_area_ne_m``: None or four finite numbers, min < max, 8 to 256 cells a side; kept as a tuple of
         floats (a config file gives a list)."""
         area: Any = self.nav_area_ne_m
         if area is None:
             return
-        allowed = "None or [north_min, east_min, north_max, east_max] [m], min < max, 8 to 4096 cells a side"
+        allowed = (
+            f"None or [north_min, east_min, north_max, east_max] [m], min < max, 8 to {MAX_AREA_CELLS} cells of "
+            "nav_cell_m a side (a larger area: a larger nav_cell_m)"
+        )
         if isinstance(area, str | bytes) or not isinstance(area, tuple | list) or len(area) != 4:
             raise _fail("nav_area_ne_m", area, allowed)
         values = tuple(_finite("nav_area_ne_m", v) for v in area)
         sides = (values[2] - values[0], values[3] - values[1])
-        if not all(8.0 * self.nav_cell_m <= side <= 4096.0 * self.nav_cell_m for side in sides):
+        if not all(8.0 * self.nav_cell_m <= side <= MAX_AREA_CELLS * self.nav_cell_m for side in sides):
             raise _fail("nav_area_ne_m", area, allowed)
         object.__setattr__(self, "nav_area_ne_m", values)
 

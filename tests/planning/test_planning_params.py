@@ -78,7 +78,8 @@ BAD: list[tuple[str, dict[str, Any]]] = [
     ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 10.0)}),
     ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, float("nan"), 10.0)}),
     ("nav_area_ne_m", {"nav_area_ne_m": "0,0,10,10"}),
-    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 2000.0, 10.0)}),  # over 4096 cells a side
+    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 76.9, 10.0)}),  # over 256 cells of 0.3 m a side
+    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 100.0, 10.0), "nav_cell_m": 0.39}),
 ]
 
 
@@ -87,6 +88,8 @@ def test_a_flying_area_is_kept_as_a_tuple_of_floats() -> None:
     p = PlannerParams(nav_area_ne_m=[-3, -12, 23, 12])  # type: ignore[arg-type]  # a config file gives a list
     assert p.nav_area_ne_m == (-3.0, -12.0, 23.0, 12.0)
     assert all(type(v) is float for v in p.nav_area_ne_m)
+    assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 76.8, 76.8)).nav_area_ne_m is not None  # 256 cells a side
+    assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 100.0, 10.0), nav_cell_m=0.4).nav_area_ne_m is not None
 
 
 @pytest.mark.parametrize(("field", "kwargs"), BAD, ids=[f"{f}-{k}" for f, k in BAD])
