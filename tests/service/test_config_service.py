@@ -98,7 +98,7 @@ def test_planner_params_overrides_and_errors() -> None:
 
 def test_a_configured_goal_outside_the_flying_area_is_a_config_error() -> None:
     """bapf-nav gives up at once on a target outside ``nav_area_ne_m``: a configured goal there is refused when
-    the config is loaded (``apf-companion check``, the service's start), not after take-off; other planners have
+    the config is loaded (``apf-companion check-config``, the service's start), not after take-off; other planners have
     no area."""
     area = {"nav_area_ne_m": [-3.0, -12.0, 23.0, 12.0]}
     inside = config_from_mapping({"planner": {"params": area}, "goal": {"north_m": 20.0, "east_m": 0.0}})
