@@ -67,6 +67,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="M",
         help="spacing of the surface samples the planners see on worlds [m] (default 0.2, as apf-sim study)",
     )
+    p.add_argument(
+        "--no-area",
+        action="store_true",
+        help="leave out the worlds' flying areas (area_ne_m), as apf-sim study --no-area: needed to sweep nav_grid_m "
+        "on wall-gap or rooms, whose area grid replaces it",
+    )
     p.add_argument("--preset", choices=PRESET_NAMES, default="reference", help="study rules (default reference)")
     p.add_argument("--trials", type=int, default=200, help="trials per cell (default 200)")
     p.add_argument("--chunk-trials", type=int, default=None, help="trials per seeded chunk (default 500)")
@@ -116,7 +122,10 @@ def _scenarios(args: argparse.Namespace) -> tuple[Scenario, ...]:
         if not name:
             continue
         try:
-            worlds.append(load_case(name, spacing_m=spacing))
+            case = load_case(name, spacing_m=spacing)
+            if args.no_area:
+                case = dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
+            worlds.append(case)
         except ConfigError as err:
             errors.append(str(err))
     if errors:

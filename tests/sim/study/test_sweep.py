@@ -188,6 +188,25 @@ def test_world_cells_are_the_world_studys_trials() -> None:
     assert not np.array_equal(low.path_length_m, high.path_length_m)
 
 
+def test_a_world_s_flying_area_replaces_the_grid_it_would_sweep(capsys: pytest.CaptureFixture[str]) -> None:
+    """wall-gap gives bapf-nav its arena as the flying area, whose grid replaces ``nav_grid_m``: sweeping that
+    changes nothing there, and ``--no-area`` (here: the case without its area) makes it count."""
+    config = dataclasses.replace(StudyConfig.reference(), chunk_trials=3)
+    case = load_case("wall-gap")
+    bare = dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
+    swept = parse_params(["nav_grid_m=12,20"], config.planner_params)
+    paths = {}
+    for scenario in (case, bare):  # one world per sweep: the label keys its seeds and rows
+        for c in run_sweep(plan_sweep(config, ("bapf-nav",), swept, (scenario,), 3, 0)):
+            paths[c.point["nav_grid_m"], scenario is case] = c.path_length_m
+    np.testing.assert_array_equal(paths[12.0, True], paths[20.0, True])
+    assert not np.array_equal(paths[12.0, False], paths[20.0, False])
+    argv = ["--param", "nav_grid_m=12,20", "--worlds", "wall-gap", "--planners", "bapf-nav", "--trials", "1",
+            "--workers", "1", "--no-area"]  # fmt: skip
+    assert _run(argv) == 0
+    assert "| bapf-nav | nav_grid_m=20 | wall-gap | 1 |" in capsys.readouterr().out
+
+
 def test_cli_sweeps_worlds_instead_of_densities(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "sweep"
     argv = ["--param", "rho_l=0.3,0.5", "--worlds", "corridor-bend, forest", "--trials", "2", "--workers", "1",
