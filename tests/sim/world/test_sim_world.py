@@ -131,6 +131,8 @@ def test_invalid_worlds_raise() -> None:
     for bad in ([[0, 0]], [[0, 0], [0, 5]], [[0, 0], [5, "x"]], "0,0,5,5", [[0, 0], [5, math.inf]]):
         with pytest.raises(ConfigError, match="area_ne_m"):
             world_from_mapping({"area_ne_m": bad})
+    with pytest.raises(ConfigError, match=r"goal_ne_m = \[12.0, 1.0\] lies outside area_ne_m"):
+        world_from_mapping({"area_ne_m": [[0, 0], [10, 10]], "start_ne_m": [1, 1], "goal_ne_m": [12, 1]})
 
 
 def test_examples_load_and_start_is_clear() -> None:
