@@ -1,6 +1,7 @@
 """bapf-nav's path through a walled world from shifted starts, with and without the world file's flying area.
 
-Run: ``OPENBLAS_NUM_THREADS=1 python benchmarks/area_paths.py [--world wall-gap] [--shifts -8,-5,-2,0,2,4]``.
+Run: ``OPENBLAS_NUM_THREADS=1 python benchmarks/area_paths.py [--world wall-gap] [--shifts=-8,-5,-2,0,2,4]``
+(``--shifts=...`` with the equals sign: a list that starts with a minus is otherwise taken for an option).
 Not collected by pytest. The flights are ``tests/planning/test_planning_nav.py``'s harness: the planner's own
 ``step`` with a ray-cast scanner of 72 rays (5 degrees) reaching 8 m, every return remembered (merged on a
 0.1 m lattice), no noise. Start and goal are the world file's, moved east by each shift, so that either end of a
@@ -59,7 +60,7 @@ def fly(world: World, shift_east_m: float, *, area: bool, max_steps: int = 1500)
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--world", default="wall-gap", help="bundled world or file with area_ne_m (default wall-gap)")
-    ap.add_argument("--shifts", default="-8,-5,-2,0,2,4", help="east shifts of start and goal [m]")
+    ap.add_argument("--shifts", default="-8,-5,-2,0,2,4", help="east shifts of start and goal [m] (--shifts=-2,0,2)")
     args = ap.parse_args(argv)
     world = load_world(args.world)
     if world.area_ne_m is None:
