@@ -30,7 +30,7 @@ from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionParams, PoseLimits
-from apf_companion.planning import PlannerName, PlannerParams, get_planner
+from apf_companion.planning import AreaNE, PlannerName, PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
 
@@ -269,7 +269,7 @@ def _check_route_in_area(config: ServiceConfig, route: Route) -> None:
         raise ConfigError(f"goal: {why}: bapf-nav would give up at once")
 
 
-def flying_area(config: ServiceConfig) -> tuple[float, float, float, float] | None:
+def flying_area(config: ServiceConfig) -> AreaNE | None:
     """bapf-nav's ``planner.params.nav_area_ne_m`` as four floats, or None (another planner, or no area; a
     malformed one is ``build_planner``'s error)."""
     area = config.planner.params.get("nav_area_ne_m")

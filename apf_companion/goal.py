@@ -30,6 +30,7 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError, ProtocolError
+from apf_companion.planning.area import AreaNE, inside_area
 
 __all__ = [
     "EARTH_RADIUS_M",
@@ -260,7 +261,7 @@ def route_outside_limits(
     *,
     max_altitude_m: float,
     max_distance_m: float,
-    area_ne_m: tuple[float, float, float, float] | None = None,
+    area_ne_m: AreaNE | None = None,
 ) -> str | None:
     """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home), or
     horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet),
@@ -269,8 +270,7 @@ def route_outside_limits(
     refused, not flown."""
     wp = route.waypoints_ned_m
     if area_ne_m is not None:
-        n_min, e_min, n_max, e_max = area_ne_m
-        out = ~((wp[:, 0] >= n_min) & (wp[:, 0] <= n_max) & (wp[:, 1] >= e_min) & (wp[:, 1] <= e_max))
+        out = ~inside_area(area_ne_m, wp[:, 0], wp[:, 1])
         if out.any():
             i = int(np.flatnonzero(out)[0])
             return (

@@ -22,7 +22,6 @@ surfaces the way a flight meets them.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import platform
 import sys
@@ -37,7 +36,7 @@ from apf_companion.planning import NavMode, NavState, StatefulPlanner, get_plann
 from sim.study.config import StudyConfig
 from sim.study.engine import simulate
 from sim.study.worlds import WorldBatch
-from sim.study.worldstudy import load_case, motion_generator, world_config
+from sim.study.worldstudy import load_case, motion_generator, without_area, world_config
 from sim.world.geometry import segment_clearance_m
 
 FloatArray = npt.NDArray[np.float64]
@@ -56,7 +55,7 @@ def flights(
     unless ``area`` is False)."""
     case = load_case(world)
     if not area:
-        case = dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
+        case = without_area(case)
     config = world_config(StudyConfig.from_preset("reference"), case.world)
     samples = case.samples_ne_m
     batch = WorldBatch(

@@ -106,7 +106,7 @@ def _list_params(config: StudyConfig) -> int:
 def _scenarios(args: argparse.Namespace) -> tuple[Scenario, ...]:
     """The densities, then the worlds (each loaded, sampled and given its optimum as ``apf-sim study --world``
     does); every world that cannot be loaded is reported in one ``ConfigError``."""
-    from sim.study.worldstudy import load_case
+    from sim.study.worldstudy import load_case, without_area
     from sim.world.geometry import SURFACE_SPACING_M
 
     density_text = args.densities
@@ -124,7 +124,7 @@ def _scenarios(args: argparse.Namespace) -> tuple[Scenario, ...]:
         try:
             case = load_case(name, spacing_m=spacing)
             if args.no_area:
-                case = dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
+                case = without_area(case)
             worlds.append(case)
         except ConfigError as err:
             errors.append(str(err))

@@ -15,6 +15,7 @@ comparison baseline (``bendyruler.py``).
 from __future__ import annotations
 
 from apf_companion.planning.abapf import AbapfPlanner
+from apf_companion.planning.area import AreaNE, inside_area
 from apf_companion.planning.bapf import BapfPlanner
 from apf_companion.planning.bapfnav import BapfNavPlanner
 from apf_companion.planning.base import Planner
@@ -53,6 +54,7 @@ __all__ = [
     "AbapfRule",
     "AbapfSearch",
     "AgentState",
+    "AreaNE",
     "BapfNavPlanner",
     "BapfPlanner",
     "BatchDecision",
@@ -77,6 +79,7 @@ __all__ = [
     "bacteria_sphere",
     "branch_obstacle_potential",
     "get_planner",
+    "inside_area",
     "log_sum_exp",
     "moves_downhill",
     "obstacle_potential",

@@ -46,6 +46,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.planning.area import inside_area
 from apf_companion.planning.clearance import MoveSweep, clearance_terms, lookahead_probes, near_obstacles
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps
@@ -189,9 +190,7 @@ class BapfNavPlanner(StatefulPlanner):
         state.restart(rows, targets_m)
         area = self.params.nav_area_ne_m
         if area is not None:
-            north, east = targets_m[:, 0], targets_m[:, 1]
-            with np.errstate(invalid="ignore"):
-                inside = (area[0] <= north) & (north <= area[2]) & (area[1] <= east) & (east <= area[3])
+            inside = inside_area(area, targets_m[:, 0], targets_m[:, 1])
             outside = ~inside & np.isfinite(targets_m[:, :2]).all(axis=1)
             state.mode[rows[outside]] = _GAVE_UP
 

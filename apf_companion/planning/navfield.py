@@ -32,6 +32,8 @@ import numpy.typing as npt
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from apf_companion.planning.area import AreaNE, inside_area
+
 __all__ = ["NavGrid"]
 
 FloatArray = npt.NDArray[np.float64]
@@ -61,9 +63,7 @@ class NavGrid:
     checks per field (about 15 % of a field): a grid computes one field at a time (not thread-safe).
     """
 
-    def __init__(
-        self, cell_m: float, side_m: float, area_ne_m: tuple[float, float, float, float] | None = None
-    ) -> None:
+    def __init__(self, cell_m: float, side_m: float, area_ne_m: AreaNE | None = None) -> None:
         self.cell_m = float(cell_m)
         #: The flying area (north_min, east_min, north_max, east_max) [m] the grid covers, or None: a grid of side
         #: ``side_m`` that moves with the agent and whose edge cells are exits.
@@ -78,8 +78,6 @@ class NavGrid:
             self.fixed_origin_m = np.floor(low / self.cell_m) * self.cell_m
             self.n = max(math.ceil(float(x) / self.cell_m - 1e-9) for x in high - self.fixed_origin_m)
         self.size = self.n * self.n
-        #: Whether the edge cells are exits into unknown space (no flying area).
-        self.exits = area_ne_m is None
         self._outside = self._outside_cells()
         edge = np.zeros((self.n, self.n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
@@ -104,6 +102,11 @@ class NavGrid:
         )
         indptr = np.append(self._indptr, np.int32(self._indptr[-1] + n_source))
         self._graph = csr_matrix((self._weights[:-1], indices, indptr), shape=(self.size + 1, self.size + 1))
+
+    @property
+    def exits(self) -> bool:
+        """Whether the edge cells are exits into unknown space (no flying area)."""
+        return self.area_ne_m is None
 
     # --- frames ---------------------------------------------------------------------------------------------
 
@@ -224,8 +227,8 @@ class NavGrid:
         goal_slots[:] = self.size  # unused: the source's own node, at inf
         goal_values = self._weights[ne : ne + _GOAL_SLOTS]
         goal_values[:] = np.inf
-        if self._outside is not None:
-            if not self._in_area(goal_xy_m):
+        if self.area_ne_m is not None and self._outside is not None:
+            if not inside_area(self.area_ne_m, goal_xy_m[0], goal_xy_m[1]):
                 return False  # no way to a goal outside the flying area
             blocked |= self._outside  # before the goal's cell is freed below: it stays reachable
         detour = 0.0
@@ -252,16 +255,8 @@ class NavGrid:
         if self.area_ne_m is None or self.fixed_origin_m is None:
             return None
         centres = self.fixed_origin_m[:, None] + (np.arange(self.n) + 0.5)[None, :] * self.cell_m  # (2, n)
-        low, high = self.area_ne_m[:2], self.area_ne_m[2:]
-        out_n = (centres[0] < low[0]) | (centres[0] > high[0])
-        out_e = (centres[1] < low[1]) | (centres[1] > high[1])
-        out: BoolArray = (out_n[:, None] | out_e[None, :]).ravel()
+        out: BoolArray = ~inside_area(self.area_ne_m, centres[0][:, None], centres[1][None, :]).ravel()
         return out
-
-    def _in_area(self, point_xy_m: FloatArray) -> bool:
-        assert self.area_ne_m is not None
-        n_min, e_min, n_max, e_max = self.area_ne_m
-        return bool(n_min <= point_xy_m[0] <= n_max and e_min <= point_xy_m[1] <= e_max)
 
     def _cell_of_one(self, origin_m: FloatArray, point_xy_m: FloatArray) -> tuple[int, int]:
         """``cell_of`` of one point in one grid, on Python floats (the same IEEE arithmetic: a difference and a

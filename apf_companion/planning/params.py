@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from apf_companion.errors import ConfigError
+from apf_companion.planning.area import AreaNE
 
 __all__ = ["AbapfRule", "AbapfSearch", "PlannerParams", "Preset", "RandomWalkRule"]
 
@@ -180,7 +181,7 @@ class PlannerParams:
     nav_sight_points_m: float = 2.0
     nav_seen_m: float = 4.0
     nav_patience_steps: int = 300
-    nav_area_ne_m: tuple[float, float, float, float] | None = None
+    nav_area_ne_m: AreaNE | None = None
     br_lookahead_m: float = 1.2
     br_margin_max_m: float = 0.6
     br_cont_ratio: float = 1.5

@@ -417,7 +417,7 @@ def _world_spacing(args: argparse.Namespace, config: StudyConfig) -> float:
 
 def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[str, ...]) -> int:
     from sim.study.executors import study_executor
-    from sim.study.worldstudy import load_case, run_world_study, world_table
+    from sim.study.worldstudy import load_case, run_world_study, without_area, world_table
 
     spacing = _world_spacing(args, config)
     kw = _optimum_kwargs(args)
@@ -426,7 +426,7 @@ def _run_worlds(args: argparse.Namespace, config: StudyConfig, planners: tuple[s
         for w in args.world
     ]
     if args.no_area:
-        cases = [dataclasses.replace(c, world=dataclasses.replace(c.world, area_ne_m=None)) for c in cases]
+        cases = [without_area(c) for c in cases]
     labels = [c.label for c in cases]
     if len(set(labels)) != len(labels):
         raise ConfigError(f"--world: each world needs its own name (file stem), got {labels}")

@@ -45,6 +45,7 @@ __all__ = [
     "make_world_tasks",
     "run_world_chunk",
     "run_world_study",
+    "without_area",
     "world_table",
 ]
 
@@ -89,6 +90,11 @@ def load_case(
         samples_ne_m=surface_samples_ne_m(world, spacing_m),
         optimum_m=opt.length_m,
     )
+
+
+def without_area(case: WorldCase) -> WorldCase:
+    """The case without its world file's flying area (``--no-area``): bapf-nav's grid then moves with the agent."""
+    return dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

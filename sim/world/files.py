@@ -218,20 +218,9 @@ def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") 
     )
     if "area_ne_m" in data:
         world = dataclasses.replace(world, area_ne_m=_area(data["area_ne_m"]))
-        _check_in_area(world)
     if "random_field" in data:
         world = _with_random_field(world, data["random_field"], str(name))
     return world
-
-
-def _check_in_area(world: World) -> None:
-    """The start and the goal lie in the flying area (bapf-nav gives up at once on a goal outside it)."""
-    assert world.area_ne_m is not None
-    n_min, e_min, n_max, e_max = world.area_ne_m
-    for key, point in (("start_ne_m", world.start_ne_m), ("goal_ne_m", world.goal_ne_m)):
-        if point is not None and not (n_min <= point[0] <= n_max and e_min <= point[1] <= e_max):
-            msg = f"world: {key} = {list(point)} lies outside area_ne_m = {list(world.area_ne_m)}"
-            raise ConfigError(msg)
 
 
 def _area(value: Any) -> tuple[float, float, float, float]:

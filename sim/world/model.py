@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
+from apf_companion.planning import AreaNE, inside_area
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -60,11 +61,12 @@ class World:
     name: str = "empty"
     start_ne_m: tuple[float, float] | None = None
     goal_ne_m: tuple[float, float] | None = None
-    area_ne_m: tuple[float, float, float, float] | None = None
+    area_ne_m: AreaNE | None = None
 
     def __post_init__(self) -> None:
         if self.area_ne_m is not None:
             object.__setattr__(self, "area_ne_m", _area(self.area_ne_m))
+            self._check_in_area(self.area_ne_m)
         circles = _as_array(self.circles_ne_m, (2,), "circles_ne_m")
         n = circles.shape[0]
         radii = np.broadcast_to(np.asarray(self.circle_radii_m, dtype=np.float64), (n,)).copy()
@@ -91,6 +93,13 @@ class World:
         ):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
+
+    def _check_in_area(self, area: AreaNE) -> None:
+        """The start and the goal lie in the flying area (bapf-nav gives up at once on a goal outside it)."""
+        for key, point in (("start_ne_m", self.start_ne_m), ("goal_ne_m", self.goal_ne_m)):
+            if point is not None and not inside_area(area, point[0], point[1]):
+                msg = f"world: {key} = {[float(v) for v in point]} lies outside area_ne_m = {list(area)}"
+                raise ConfigError(msg)
 
     # ------------------------------------------------------------------------------------------- builders
     @classmethod
@@ -325,7 +334,7 @@ class World:
         }
 
 
-def _area(value: Sequence[float]) -> tuple[float, float, float, float]:
+def _area(value: Sequence[float]) -> AreaNE:
     """A flying area (north_min, east_min, north_max, east_max) [m], checked: finite, min < max."""
     area = tuple(float(v) for v in value)
     if len(area) != 4 or not all(math.isfinite(v) for v in area) or not (area[0] < area[2] and area[1] < area[3]):

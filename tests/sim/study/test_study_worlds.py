@@ -17,7 +17,7 @@ from sim.study.config import StudyConfig
 from sim.study.engine import SerialExecutor, simulate
 from sim.study.metrics import Outcome
 from sim.study.worlds import WorldBatch
-from sim.study.worldstudy import WorldCase, load_case, optimum_to_goal_circle, run_world_study
+from sim.study.worldstudy import WorldCase, load_case, optimum_to_goal_circle, run_world_study, without_area
 from sim.world import World
 from sim.world.geometry import segment_clearance_m
 
@@ -134,7 +134,7 @@ def test_over_the_flying_area_a_wrong_guess_turns_back_sooner() -> None:
     assert case.world.area_ne_m == (-3.0, -12.0, 23.0, 12.0)
     config = dataclasses.replace(StudyConfig.from_preset("reference"), chunk_trials=32)
     worst = []
-    for c in (case, dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))):
+    for c in (case, without_area(case)):
         (cell,) = run_world_study(config, ["bapf-nav"], [c], 32, 0, SerialExecutor())
         assert (cell.records.outcome == Outcome.SUCCESS).all()
         assert cell.records.path_m is not None

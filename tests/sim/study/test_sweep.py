@@ -16,7 +16,7 @@ from apf_companion.planning import PlannerParams, RandomWalkRule
 from sim.study.cli import eta_text
 from sim.study.config import Density, StudyConfig
 from sim.study.engine import Trace, run_tasks
-from sim.study.worldstudy import WorldCase, load_case, run_world_study
+from sim.study.worldstudy import WorldCase, load_case, run_world_study, without_area
 from sim.sweep import path_lengths, plan_sweep, point_config, run_sweep, scenario_label
 from sim.sweep_cli import register
 from sim.sweep_grid import grid_points, parse_params, resolve_name, sweepable_fields
@@ -193,7 +193,7 @@ def test_a_world_s_flying_area_replaces_the_grid_it_would_sweep(capsys: pytest.C
     changes nothing there, and ``--no-area`` (here: the case without its area) makes it count."""
     config = dataclasses.replace(StudyConfig.reference(), chunk_trials=3)
     case = load_case("wall-gap")
-    bare = dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
+    bare = without_area(case)
     swept = parse_params(["nav_grid_m=12,20"], config.planner_params)
     paths = {}
     for scenario in (case, bare):  # one world per sweep: the label keys its seeds and rows
