@@ -188,7 +188,9 @@ def test_world_cells_are_the_world_studys_trials() -> None:
     assert not np.array_equal(low.path_length_m, high.path_length_m)
 
 
-def test_a_world_s_flying_area_replaces_the_grid_it_would_sweep(capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_world_s_flying_area_replaces_the_grid_it_would_sweep(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """wall-gap gives bapf-nav its arena as the flying area, whose grid replaces ``nav_grid_m``: sweeping that
     changes nothing there, and ``--no-area`` (here: the case without its area) makes it count."""
     config = dataclasses.replace(StudyConfig.reference(), chunk_trials=3)
@@ -202,7 +204,7 @@ def test_a_world_s_flying_area_replaces_the_grid_it_would_sweep(capsys: pytest.C
     np.testing.assert_array_equal(paths[12.0, True], paths[20.0, True])
     assert not np.array_equal(paths[12.0, False], paths[20.0, False])
     argv = ["--param", "nav_grid_m=12,20", "--worlds", "wall-gap", "--planners", "bapf-nav", "--trials", "1",
-            "--workers", "1", "--no-area"]  # fmt: skip
+            "--workers", "1", "--no-area", "--out", str(tmp_path / "sweep")]  # fmt: skip
     assert _run(argv) == 0
     assert "| bapf-nav | nav_grid_m=20 | wall-gap | 1 |" in capsys.readouterr().out
 
