@@ -61,6 +61,11 @@ class EscapeMaps:
         #: Around a point known now, remembered obstacle cells give way to the points' own inflation: C plus a
         #: cell's diagonal (a point that moved by range noise re-inflates the cells it blocked before).
         self._reach_m = clearance_m + params.nav_cell_m * 2.0**0.5
+        #: The inflation of a field computed again for an agent that its field closes in (``refresh``): C less
+        #: half a cell. Cells are blocked by their centre, so at C a gap of width w >= 2 C opens only where the
+        #: lattice puts a centre in the w - 2 C between its inflated sides; at C - h / 2 that interval is at
+        #: least a cell wide, so every gap the vehicle passes opens, and none narrower than 2 C - h.
+        self.loose_m = max(clearance_m - 0.5 * params.nav_cell_m, 0.0)
         self._c2 = clearance_m * clearance_m
         self._around2 = (clearance_m + _SURFACE_M + _AROUND_SLACK_M) ** 2
         self._edge_cells = self.grid.edge_cells
@@ -255,6 +260,14 @@ class EscapeMaps:
         whose inflated edges jitter by a cell as the range noise moves its points (seen in a 1.5 m door at
         C = 0.6 m: a free column one cell wide, alternating between two columns). Dead ends (``virtual``) are
         always kept.
+
+        A field that leaves the agent and its candidate points no way is computed again with the obstacles
+        inflated by ``loose_m`` = C - h / 2 instead of C (the dead ends and the remembered cells as before): the
+        lattice of cell centres alone can close a gap the vehicle passes (a 1.5 m door at C = 0.6 m leaves
+        0.3 m, one cell, which range noise on the door's points closes; seen in `apf-sim fly --world rooms`,
+        where the agent dithered for 36 s in a room its map had closed). The field's ``blocked`` stays the cells
+        at C; moves keep C (the sweep), so a gap between 2 C - h and 2 C that this opens is refused at its
+        mouth and closed by the dead-end rule.
         """
         grid = self.grid
         xy = positions_m[rows, :2]
@@ -271,7 +284,11 @@ class EscapeMaps:
         inflated, known, keys = _occupancy(grid, (self.clearance_m, self._reach_m), rows, origins, obs_xy, valid, state)
         blocked = inflated | (old_blocked & ~known) | old_virtual
         memos = [[] if state.field[r] is None else list(state.field[r].memo) for r in rows]
-        dist = self._distances(rows, xy, origins, blocked, goals, state, memos)
+        dist, lost = self._distances(rows, xy, origins, blocked, goals, state, memos)
+        if lost.any():  # closed in: again with the inflation loosened to C - h / 2 (``loose_m``)
+            ix = np.flatnonzero(lost)
+            loose = grid.blocked(origins[ix], obs_xy[ix], valid[ix], self.loose_m) | (old_blocked[ix] & ~known[ix])
+            dist[ix] = _recall(grid, [memos[k] for k in ix], origins[ix], loose | old_virtual[ix], goals[ix])
         for i, r in enumerate(rows):
             state.field[r] = NavField(
                 origin_m=origins[i].copy(),
@@ -292,8 +309,9 @@ class EscapeMaps:
         goals: FloatArray,
         state: NavState,
         memos: list[list[tuple[bytes, FloatArray]]],
-    ) -> FloatArray:
-        """The fields of ``rows``, with the grid's edge closed where the agent has already looked beyond it.
+    ) -> tuple[FloatArray, BoolArray]:
+        """The fields of ``rows``, with the grid's edge closed where the agent has already looked beyond it, and
+        which of them leave the agent and its candidate points no way (R,).
 
         An edge cell is an exit into unknown space (``navfield``): the way on from it costs only the straight
         line. Edge cells within ``nav_seen_m`` of the agent's trail are not unknown: that space was seen, and
@@ -304,17 +322,21 @@ class EscapeMaps:
         with the edge open.
         """
         seen_m = self.params.nav_seen_m if self.grid.exits else 0.0  # a flying area's grid has no exits
-        if seen_m <= 0.0:
-            return _recall(self.grid, memos, origins, blocked, goals)
-        closed = _close_seen_edges(blocked, rows, origins, state, self._edge_cells, self._edge_centres, seen_m)
+        closed = blocked
+        if seen_m > 0.0:
+            closed = _close_seen_edges(blocked, rows, origins, state, self._edge_cells, self._edge_centres, seen_m)
         dist = _recall(self.grid, memos, origins, closed, goals)
+        lost = self._lost(xy, origins, dist)
+        if seen_m > 0.0 and lost.any():
+            ix = np.flatnonzero(lost)
+            dist[ix] = _recall(self.grid, [memos[k] for k in ix], origins[ix], blocked[ix], goals[ix])
+            lost[ix] = self._lost(xy[ix], origins[ix], dist[ix])
+        return dist, lost
+
+    def _lost(self, xy: FloatArray, origins: FloatArray, dist: FloatArray) -> BoolArray:
+        """(R,) fields with no finite value at the agent (``xy``) nor at any of its candidate points."""
         around = xy[:, None, :] + np.vstack([self._offsets[:, :2], np.zeros((1, 2))])[None]
-        lost = ~np.isfinite(self.grid.sample_many(origins, dist, around)).any(axis=1)
-        if lost.any():
-            dist[lost] = _recall(
-                self.grid, [memos[i] for i in np.flatnonzero(lost)], origins[lost], blocked[lost], goals[lost]
-            )
-        return dist
+        return np.asarray(~_any(np.isfinite(self.grid.sample_many(origins, dist, around)), axis=1), dtype=np.bool_)
 
     def geodesic(
         self, rows: IntArray, positions_m: FloatArray, targets_m: FloatArray, state: NavState

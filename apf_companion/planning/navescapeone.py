@@ -66,6 +66,7 @@ class FieldOne:
         self._clearance_m = maps.clearance_m
         self._slack_m = 2.0 * maps.clearance_m + maps.grid.cell_m
         self._radii_m = (maps.clearance_m, maps._reach_m)
+        self._loose_m = maps.loose_m
         self._pad_m = maps._pad_m
         self._keep_m = maps._keep_m
         self._half_room_m = max(self._side_m / 2.0 - max(self._pad_m, self._side_m / 3.0), 0.0)
@@ -209,6 +210,11 @@ class FieldOne:
         blocked = inflated.copy() if old_blocked is None else inflated | (old_blocked & ~known) | old_virtual
         memo = [] if old is None else list(old.memo)
         dist, values = self._distances(xy, origin, blocked, goal, state, memo)
+        if values is None:  # closed in: again with the inflation loosened (``EscapeMaps.loose_m``)
+            loose = self._grid.blocked(origin[None], obs_xy[None], valid[None], self._loose_m)[0]
+            if old_blocked is not None and old_virtual is not None:
+                loose = loose | (old_blocked & ~known) | old_virtual
+            dist = self._recall(memo, origin, loose, goal)
         state.field[0] = NavField(
             origin_m=origin,
             blocked=blocked,
@@ -274,16 +280,19 @@ class FieldOne:
         state: NavState,
         memo: list[tuple[bytes, FloatArray]],
     ) -> tuple[FloatArray, FloatArray | None]:
-        """``EscapeMaps._distances`` of one agent: the field, and its values at the points and the agent (None
-        where the field was recomputed with the edge open)."""
-        if self._seen2 <= 0.0:
-            return self._recall(memo, origin_m, blocked, goal_m), None
-        closed = self._close_seen_edges(blocked, origin_m, state)
+        """``EscapeMaps._distances`` of one agent: the field, and its values at the points and the agent (None:
+        no finite value, the agent is closed in)."""
+        closed = self._close_seen_edges(blocked, origin_m, state) if self._seen2 > 0.0 else blocked
         dist = self._recall(memo, origin_m, closed, goal_m)
         values = self._sampled(origin_m, dist, xy_m)
         if np.isfinite(values).any():
             return dist, values
-        return self._recall(memo, origin_m, blocked, goal_m), None
+        if self._seen2 > 0.0:  # again with the edge open
+            dist = self._recall(memo, origin_m, blocked, goal_m)
+            values = self._sampled(origin_m, dist, xy_m)
+            if np.isfinite(values).any():
+                return dist, values
+        return dist, None
 
     def _close_seen_edges(self, blocked: BoolArray, origin_m: FloatArray, state: NavState) -> BoolArray:
         """``navescape._close_seen_edges`` of one agent. The edge cells to close depend only on the grid's corner

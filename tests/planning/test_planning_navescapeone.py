@@ -14,6 +14,7 @@ import pytest
 
 from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
 from apf_companion.planning.navescapeone import FieldSampler
+from apf_companion.planning.navfield import NavGrid
 from apf_companion.planning.navstate import NavField
 from tests.planning.same_decision import assert_same_decision
 
@@ -99,11 +100,20 @@ class _Counting:
 
 
 def _fly(
-    params: PlannerParams, start: np.ndarray, target: np.ndarray, surface: np.ndarray, seed: int, junk: bool = False
+    params: PlannerParams,
+    start: np.ndarray,
+    target: np.ndarray,
+    surface: np.ndarray,
+    seed: int,
+    junk: bool = False,
+    noise_m: float = 0.05,
+    steps: int = 140,
+    stop_at_goal: bool = False,
 ) -> dict[str, int]:
     """Fly ``step`` and ``step_batch`` side by side (the batch one replays the single one's positions), with the
     points seen so far within 8 m and position noise (``junk``: plus non-finite rows); returns counts of what
-    happened."""
+    happened, "arrived" (within 0.7 m of the target; ``stop_at_goal``: the flight ends there) and "gave up"
+    among them."""
     single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
     counting = _Counting(single._escape_one)
     single._escape_one = counting  # type: ignore[assignment]
@@ -116,7 +126,9 @@ def _fly(
     seen = np.zeros(len(surface), dtype=bool)
     pos = start
     counts = {"escape steps": 0}
-    for _ in range(140):
+    for _ in range(steps):
+        if stop_at_goal and np.linalg.norm(pos[:2] - target[:2]) <= 0.7:
+            break
         seen |= np.linalg.norm(surface[:, :2] - pos[:2], axis=1) <= 8.0
         obstacles = surface[seen]
         if junk:  # rows a broken sensor might report: not finite, ignored by both paths
@@ -133,10 +145,12 @@ def _fly(
         if d.next_point_m is None:
             if state.mode[0] == NavMode.GAVE_UP:
                 break
-            pos = pos + rng.normal(0.0, 0.05, dim)
+            pos = pos + rng.normal(0.0, noise_m, dim)
         else:
-            pos = d.next_point_m + rng.normal(0.0, 0.05, dim)  # noise: sometimes inside the clearance
+            pos = d.next_point_m + rng.normal(0.0, noise_m, dim)  # noise: sometimes inside the clearance
     counts["single escape steps"] = counting.calls
+    counts["arrived"] = int(np.linalg.norm(pos[:2] - target[:2]) <= 0.7)
+    counts["gave up"] = int(state.mode[0] == NavMode.GAVE_UP)
     return counts
 
 
@@ -187,6 +201,60 @@ def test_repeated_steps_in_thickets_equal_the_batch_path(dim: int) -> None:
         field = state.field[0]
         marked += int(field is not None and bool(field.virtual.any()))
     assert marked >= (1 if dim == 2 else 0)  # in 2D a dead end was marked on the single path (seed 312)
+
+
+def _room(door_from_m: float, door_to_m: float) -> np.ndarray:
+    """A room (north -1..6, east -1..5) whose north wall has a door from east ``door_from_m`` to ``door_to_m``
+    (its jambs' last points), surfaces sampled every 0.2 m."""
+    return np.vstack(
+        [
+            _segment((-1.0, -1.0), (-1.0, 5.0)),
+            _segment((-1.0, -1.0), (6.0, -1.0)),
+            _segment((-1.0, 5.0), (6.0, 5.0)),
+            _segment((6.0, -1.0), (6.0, door_from_m)),
+            _segment((6.0, door_to_m), (6.0, 5.0)),
+        ]
+    )
+
+
+def _door_open(params: PlannerParams, surface: np.ndarray, radius_m: float) -> bool:
+    """Whether the grid's cells at ``radius_m`` from the points leave a way through the north wall (north 6)."""
+    grid = NavGrid(params.nav_cell_m, 15.0)
+    origin = np.array([-3.0, -3.0])  # on the lattice of cell multiples, as every grid's corner; room inside
+    blocked = grid.blocked(origin[None], surface[None], np.ones((1, len(surface)), bool), radius_m)[0]
+    dist = grid.distances(origin[None], blocked[None], np.array([[11.0, 2.0]]))[0]
+    return bool(np.isfinite(grid.sample(origin, dist, np.array([[2.0, 2.0]])))[0])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("which", ["defaults", "a flying area"])
+def test_a_door_the_lattice_closes_at_c_is_passed_on_the_loosened_field(dim: int, which: str) -> None:
+    """A 1.45 m door (the vehicle needs 2 C = 1.2 m) placed so that no cell centre lies in its 0.25 m of free
+    centres: at C the room is closed and the agent had no way (it backed out and dithered, as in the rooms
+    world, both paths alike). The field computed again at C - h / 2 (``EscapeMaps.loose_m``) opens it: both
+    paths agree and the agent flies through to a target beyond the wall."""
+    params = dataclasses.replace(_PARAMS[which], dim=dim)
+    surface = _room(1.375, 2.825)
+    assert not _door_open(params, surface, params.clearance_m)  # the case under test: closed at C
+    assert _door_open(params, surface, BapfNavPlanner(params)._escape.loose_m)
+    counts = _fly(
+        params, np.array([1.0, 0.5]), np.array([10.0, 0.5]), surface, seed=5, noise_m=0.0, steps=300, stop_at_goal=True
+    )
+    # 14 escape steps in 2D and 3D. Without the loosened field, in 2D: 300 escape steps, neither through nor
+    # given up (in 3D the agent climbed over the walls, 117 steps).
+    assert counts["arrived"] == 1 and counts["escape steps"] <= 40, counts
+
+
+def test_a_door_narrower_than_2c_less_a_cell_stays_closed_and_the_agent_gives_up() -> None:
+    """A 0.8 m door (narrower than 2 C - h = 0.9 m) is closed at C and at C - h / 2: the agent in the room gives
+    up (GAVE_UP) within the flight, the same on both paths, and never gets through (2D: in 3D it climbs over)."""
+    params = PlannerParams()
+    surface = _room(1.6, 2.4)
+    assert not _door_open(params, surface, BapfNavPlanner(params)._escape.loose_m)
+    counts = _fly(
+        params, np.array([1.0, 0.5]), np.array([10.0, 0.5]), surface, seed=6, noise_m=0.0, steps=600, stop_at_goal=True
+    )
+    assert counts["gave up"] == 1 and counts["arrived"] == 0, counts
 
 
 def _enclosed_state(planner: BapfNavPlanner, position: np.ndarray, target: np.ndarray) -> NavState:
