@@ -159,7 +159,7 @@ class DirectStep:
 
     def plain_geometry(self, rel_m: FloatArray, d2_m2: FloatArray) -> tuple[BoolArray, FloatArray, FloatArray, float]:
         """Feasible moves (K,), their swept squared clearance (K,) and the clearance terms at the points (K,) and
-        the agent of an agent that does not look ahead (ESCAPE mode: ``BapfNavPlanner._group`` with ``direct``
+        the agent of an agent that does not look ahead (ESCAPE mode: ``navgeometry.MoveGeometry`` with ``direct``
         False); ``rel_m`` and ``d2_m2`` as in ``__call__``."""
         near = (d2_m2 <= self._reach2).nonzero()[0]
         if near.size == 0:  # the batch path's values without near obstacles
