@@ -1,12 +1,12 @@
 """bapf-nav's path through a walled world from shifted starts, with and without the world file's flying area.
 
 Run: ``OPENBLAS_NUM_THREADS=1 python benchmarks/area_paths.py [--world wall-gap] [--shifts=-8,-5,-2,0,2,4]``
-(``--shifts=...`` with the equals sign: a list that starts with a minus is otherwise taken for an option).
-Not collected by pytest. The flights are ``tests/planning/test_planning_nav.py``'s harness: the planner's own
-``step`` with a ray-cast scanner of 72 rays (5 degrees) reaching 8 m, every return remembered (merged on a
-0.1 m lattice), no noise. Start and goal are the world file's, moved east by each shift, so that either end of a
-long wall can be the nearer one. Printed per shift: how each flight ended, its path (m) and how far west it got
-(m east); then the mean path of each column. The world file must give ``area_ne_m`` (wall-gap and rooms do; a
+(``--shifts=...`` with the equals sign: a list that starts with a minus is otherwise taken for an option). Not
+collected by pytest. The flights are ``tests/planning/test_planning_nav.py``'s harness: the planner's own ``step``
+with ``sim.world.scan.ScanMemory``, a ray-cast scanner of 72 rays (5 degrees) reaching 8 m, every return remembered
+(merged on a 0.1 m lattice), no noise. Start and goal are the world file's, moved east by each shift, so that either
+end of a long wall can be the nearer one. Printed per shift: how each flight ended, its path (m) and how far west it
+got (m east); then the mean path of each column. The world file must give ``area_ne_m`` (wall-gap and rooms do; a
 file path works too).
 """
 
@@ -22,10 +22,9 @@ import numpy.typing as npt
 
 from apf_companion.planning import DecisionReason, PlannerParams, get_planner
 from sim.world import World, load_world
+from sim.world.scan import ScanMemory
 
 FloatArray = npt.NDArray[np.float64]
-BEARINGS_RAD = np.radians(np.arange(0.0, 360.0, 5.0))
-RANGE_M = 8.0
 GOAL_RADIUS_M = 0.7
 
 
@@ -36,17 +35,12 @@ def fly(world: World, shift_east_m: float, *, area: bool, max_steps: int = 1500)
     shift = np.array([0.0, shift_east_m])
     pos: FloatArray = np.array(world.start_ne_m) + shift
     goal = np.array(world.goal_ne_m) + shift
-    memory: dict[tuple[int, int], FloatArray] = {}
+    scanner = ScanMemory(world)
     path_m, west_m = 0.0, float(pos[1])
     for _ in range(max_steps):
         if np.linalg.norm(pos - goal) <= GOAL_RADIUS_M:
             return "arrived", path_m, west_m
-        ranges = world.ray_cast_m(pos, BEARINGS_RAD)
-        hit = ranges <= RANGE_M
-        returns = pos + ranges[hit, None] * np.stack([np.cos(BEARINGS_RAD[hit]), np.sin(BEARINGS_RAD[hit])], axis=1)
-        for q in returns:
-            memory.setdefault((round(q[0] / 0.1), round(q[1] / 0.1)), q)
-        cloud = np.array(list(memory.values())) if memory else np.zeros((0, 2))
+        cloud = scanner.scan(pos)
         decision = planner.step(pos, goal, cloud)
         if decision.reason is DecisionReason.GAVE_UP:
             return "gave up", path_m, west_m

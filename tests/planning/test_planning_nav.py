@@ -34,6 +34,7 @@ from sim.study.metrics import Outcome, summarize
 from sim.study.worlds import WorldBatch, draw_worlds
 from sim.world.files import example_world_path, load_world
 from sim.world.geometry import surface_samples_ne_m
+from sim.world.scan import ScanMemory
 
 PRODUCT = ("bapf-nav", "bendyruler")
 
@@ -262,18 +263,12 @@ def _fly_world(
     goal = np.array(world.goal_ne_m if world.goal_ne_m is not None else (22.0, 22.0), dtype=np.float64) + shift
     pos = np.concatenate([start, [5.0]])[:dim]
     target = np.concatenate([goal, [5.0]])[:dim]
-    bearings = np.radians(np.arange(0.0, 360.0, 5.0))
-    memory: dict[tuple[int, int], np.ndarray] = {}
+    scanner = ScanMemory(world)
     lowest = math.inf
     for _ in range(max_steps):
         if np.linalg.norm(pos[:2] - goal) <= 0.7:
             return "arrived", pos, lowest
-        ranges = world.ray_cast_m(pos[:2], bearings)
-        hit = ranges <= 8.0
-        pts = pos[:2] + ranges[hit, None] * np.stack([np.cos(bearings[hit]), np.sin(bearings[hit])], axis=1)
-        for q in pts:
-            memory.setdefault((round(q[0] / 0.1), round(q[1] / 0.1)), q)
-        cloud = np.array(list(memory.values())) if memory else np.zeros((0, 2))
+        cloud = scanner.scan(pos)
         if dim == 3:
             cloud = np.concatenate([cloud, np.full((cloud.shape[0], 1), 5.0)], axis=1)
         d = planner.step(pos, target, cloud)

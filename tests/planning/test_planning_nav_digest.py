@@ -20,6 +20,7 @@ from sim.study.config import Density, StudyConfig
 from sim.study.engine import simulate
 from sim.study.worlds import draw_worlds
 from sim.world.files import example_world_path, load_world
+from sim.world.scan import ScanMemory
 
 # bapf-nav re-pinned on branch pathratio (was 2f2d1b990ae7b400): the early escape by sight (nav_sight_m), the
 # refresh of outdated fields, the seen exits (nav_seen_m) and the quarter-step progress rule change its decisions
@@ -59,15 +60,9 @@ def _world_flight(name: str, planner_name: str, dim: int, steps: int, digest: _D
     goal = np.asarray(world.goal_ne_m if world.goal_ne_m is not None else (22.0, 22.0), dtype=np.float64)
     pos = np.concatenate([start, [5.0]])[:dim]
     target = np.concatenate([goal, [5.0]])[:dim]
-    bearings = np.radians(np.arange(0.0, 360.0, 5.0))
-    memory: dict[tuple[int, int], np.ndarray] = {}
+    scanner = ScanMemory(world)
     for _ in range(steps):
-        ranges = world.ray_cast_m(pos[:2], bearings)
-        hit = ranges <= 8.0
-        pts = pos[:2] + ranges[hit, None] * np.stack([np.cos(bearings[hit]), np.sin(bearings[hit])], axis=1)
-        for q in pts:
-            memory.setdefault((round(q[0] / 0.1), round(q[1] / 0.1)), q)
-        cloud = np.array(list(memory.values())) if memory else np.zeros((0, 2))
+        cloud = scanner.scan(pos)
         if dim == 3:
             cloud = np.concatenate([cloud, np.full((cloud.shape[0], 1), 5.0)], axis=1)
         d = planner.step(pos, target, cloud)
