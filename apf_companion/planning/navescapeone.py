@@ -27,6 +27,7 @@ from apf_companion.planning.navescape import (
     _OUTDATED_AGE,
     EscapeMaps,
     field_key,
+    mark_dead_end,
     occupancy_key,
     seen_edge_cells,
 )
@@ -155,16 +156,7 @@ class FieldOne:
         refused = ~feasible & (g_k < g0)
         if not refused.any():
             return False
-        n = self._n
-        pts = position_m[:2] + self._offsets_xy[refused]
-        ci, cj = self._grid.cell_of(field.origin_m[None], pts[None])
-        own_i, own_j = self._grid.cell_of(field.origin_m[None], position_m[None, None, :2])
-        ok = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n) & ~((ci == own_i[0, 0]) & (cj == own_j[0, 0]))
-        cells = ci[ok] * n + cj[ok]
-        marked = not field.blocked[cells].all()  # a cell already blocked only turns virtual: same field
-        field.blocked[cells] = True
-        field.virtual[cells] = True
-        return marked
+        return mark_dead_end(self._grid, field, position_m[:2], position_m[:2] + self._offsets_xy[refused])
 
     def _geodesic(
         self, position_m: FloatArray, target_m: FloatArray, field: NavField, values: FloatArray | None

@@ -295,6 +295,20 @@ class NavGrid:
         """Bilinear value of one field at points (P, 2), over the finite corners only; inf outside or enclosed."""
         return np.asarray(self.sample_many(origin_m[None], dist_m[None], points_xy_m[None])[0], dtype=np.float64)
 
+    def corner_cells(self, origin_m: FloatArray, points_xy_m: FloatArray) -> IntArray:
+        """The cells (flat indices) whose values ``sample`` weighs (weight > 0) at points (P, 2) of one grid."""
+        n, h = self.n, self.cell_m
+        rel = (points_xy_m - origin_m) / h - 0.5
+        i0 = np.floor(rel[:, 0]).astype(np.intp)
+        j0 = np.floor(rel[:, 1]).astype(np.intp)
+        fi, fj = rel[:, 0] - i0, rel[:, 1] - j0
+        out = []
+        for di, wi in ((0, 1.0 - fi), (1, fi)):
+            for dj, wj in ((0, 1.0 - fj), (1, fj)):
+                i, j = np.clip(i0 + di, 0, n - 1), np.clip(j0 + dj, 0, n - 1)
+                out.append((i * n + j)[wi * wj > 0.0])
+        return np.concatenate(out)
+
     def sample_many(self, origins_m: FloatArray, dists_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
         """``sample`` for R fields at once: origins (R, 2), fields (R, n^2), points (R, P, 2) -> (R, P).
 

@@ -29,7 +29,7 @@ from apf_companion.planning.clearance import near_obstacles, segment_clearance_s
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navfield import NavGrid
 from sim.study.config import Density, StudyConfig
-from sim.study.engine import SerialExecutor, run_study, simulate
+from sim.study.engine import SerialExecutor, chunk_generators, run_study, simulate
 from sim.study.metrics import Outcome, summarize
 from sim.study.worlds import WorldBatch, draw_worlds
 from sim.world.files import example_world_path, load_world
@@ -490,9 +490,29 @@ def test_marking_dead_ends_reports_only_rows_that_gained_a_blocked_cell() -> Non
     g_k, g0 = np.zeros((1, offsets.shape[0])), np.ones(1)
     before = state.field[0].blocked.copy()
     assert maps.mark_dead_ends(rows, agent, refused, g_k, g0, state).tolist() == [True]
-    assert state.field[0].blocked.sum() > before.sum()
+    marked = state.field[0].blocked.copy()
+    assert marked.sum() > before.sum()
+    # The points' own cells are blocked now: the free corners of their bilinear stencils are marked next.
+    assert maps.mark_dead_ends(rows, agent, refused, g_k, g0, state).tolist() == [True]
+    assert state.field[0].blocked.sum() > marked.sum()
     assert maps.mark_dead_ends(rows, agent, refused, g_k, g0, state).tolist() == [False]
     assert maps.mark_dead_ends(rows, agent, refused, np.full_like(g_k, 2.0), g0, state).tolist() == [False]
+
+
+@pytest.mark.parametrize(("density", "trial"), [((45, 70), 3192), ((70, 95), 16), ((70, 95), 1100), ((70, 95), 2143)])
+def test_study_trials_that_sat_beside_a_refused_gap_arrive(density: tuple[int, int], trial: int) -> None:
+    """Noise-free study trials (seed 0) that gave up before session 22: the agent sat beside a gap between two
+    obstacles that the grid passes diagonally and the sweep refuses, every downhill point in a cell already
+    marked as a dead end, yet downhill on the free corners of its bilinear stencil; no point moved it, until its
+    patience ran out. The dead-end rule now marks those corners (``navescape.mark_dead_end``)."""
+    cfg = dataclasses.replace(StudyConfig.reference(), noise_std_m=0.0)
+    d = Density(n_low=density[0], n_high=density[1])
+    chunk, k = divmod(trial, cfg.chunk_trials)
+    world_rng, motion_rng = chunk_generators(0, d, chunk)
+    worlds = draw_worlds(world_rng, cfg.chunk_trials, d, cfg.obstacle_box_m, cfg.dim, cfg.obstacle_sampling)
+    one = WorldBatch(obstacles_m=worlds.obstacles_m[k : k + 1], mask=worlds.mask[k : k + 1])
+    records = simulate(cfg, "bapf-nav", one, motion_rng).records
+    assert Outcome(int(records.outcome[0])) is Outcome.SUCCESS, records.iterations
 
 
 def _fly_u_trap_goal(params: PlannerParams) -> tuple[float, float]:

@@ -29,9 +29,10 @@ from sim.world.scan import ScanMemory
 # (``EscapeMaps.sight_blocked``). Re-pinned in session 22 (was 0883da6fed753d07): a field that closes the agent in
 # is computed again at C - h / 2 (``EscapeMaps.loose_m``); of the scenarios only the 2D walks in thickets of 300
 # points changed (agents enclosed by their 8 m ball of points); the world flights and the studies hash the same.
-# bendyruler unchanged.
+# Then (was 687321b0f5a5709f) dead ends whose cells are blocked already mark the free corners of the refused
+# points' stencils (``navescape.mark_dead_end``): again only the 2D thicket walks changed. bendyruler unchanged.
 PINNED = {
-    "bapf-nav": "687321b0f5a5709f",
+    "bapf-nav": "3936c9e1c0c13ae9",
     "bendyruler": "549eac0d9465ed7b",
 }
 
