@@ -302,9 +302,12 @@ class BapfNavPlanner(StatefulPlanner):
         cost[rows] = g_k + clear_k[rows]
         cost0[rows] = np.where(np.asarray(ok.any(axis=1)), g0 + clear_0[rows], np.inf)
         # Every feasible point is off the map's free cells: inside the inflated obstacles (noise put the agent
-        # there), the agent first backs out (least clearance term); from a free cell it is "no path": give up.
+        # there: no value at it and its own cell blocked), the agent first backs out (least clearance term); from
+        # a free cell it is "no path" (its region is closed, even at C - h / 2): give up.
         lost = feasible[rows].any(axis=1) & ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1)
         inside = lost & ~np.isfinite(g0)
+        for i in np.flatnonzero(inside):  # no value at the agent: inside only where its own cell is blocked
+            inside[i] = self._escape.own_cell_blocked(state.field[rows[i]], positions_m[rows[i], :2])
         ok[inside] = feasible[rows[inside]]
         cost[rows[inside]] = clear_k[rows[inside]]
         cost0[rows[inside]] = np.inf

@@ -197,6 +197,17 @@ class EscapeMaps:
             ok[dead] = feasible[again] & (g_k[dead] + clear_k[again] < (g0[dead] + clear_0[again])[:, None])
         return g_k, g0, ok
 
+    def own_cell_blocked(self, field: NavField | None, position_xy_m: FloatArray) -> bool:
+        """Whether the agent's own cell is blocked in ``field`` (off the grid or no field: True). An agent with no
+        value on its field is inside the inflated obstacles when its cell is blocked (noise put it there: it
+        backs out), and closed in when its cell is free (no way: it gives up, Design item 7)."""
+        if field is None:
+            return True
+        n = self.grid.n
+        ci, cj = self.grid.cell_of(field.origin_m[None], position_xy_m[None, None])
+        i, j = int(ci[0, 0]), int(cj[0, 0])
+        return not (0 <= i < n and 0 <= j < n) or bool(field.blocked[i * n + j])
+
     def outdated(
         self,
         rows: IntArray,

@@ -394,6 +394,7 @@ class EscapeStep:
 
     def __init__(self, maps: EscapeMaps, direct: DirectStep, offsets_m: FloatArray, units: FloatArray) -> None:
         self._field = FieldOne(maps)
+        self._maps = maps
         self._direct = direct
         self._offsets = offsets_m
         self._units = units
@@ -424,7 +425,7 @@ class EscapeStep:
         # Every feasible point off the map's free cells: back out from inside the inflated obstacles, else give up.
         gave_up = False
         if any_feasible and not has_ok and not np.isfinite(g_k[feasible]).any():
-            if math.isfinite(g0):
+            if math.isfinite(g0) or not self._maps.own_cell_blocked(state.field[0], position_m[:2]):
                 gave_up = True
                 state.mode[0] = _GAVE_UP
             else:

@@ -30,9 +30,11 @@ from sim.world.scan import ScanMemory
 # is computed again at C - h / 2 (``EscapeMaps.loose_m``); of the scenarios only the 2D walks in thickets of 300
 # points changed (agents enclosed by their 8 m ball of points); the world flights and the studies hash the same.
 # Then (was 687321b0f5a5709f) dead ends whose cells are blocked already mark the free corners of the refused
-# points' stencils (``navescape.mark_dead_end``): again only the 2D thicket walks changed. bendyruler unchanged.
+# points' stencils (``navescape.mark_dead_end``), and (was 3936c9e1c0c13ae9) an agent with no value on its field
+# gives up when its own cell is free (closed in) instead of backing out: again only the 2D thicket walks changed.
+# bendyruler unchanged.
 PINNED = {
-    "bapf-nav": "3936c9e1c0c13ae9",
+    "bapf-nav": "93ea50c065f5690c",
     "bendyruler": "549eac0d9465ed7b",
 }
 
