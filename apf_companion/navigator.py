@@ -44,6 +44,7 @@ from apf_companion.envelope import BrakingEnvelope
 from apf_companion.goal import Route
 from apf_companion.linkquality import CLEAN_LINK, CautionParams, LinkQuality, caution_scale
 from apf_companion.perception import Pose
+from apf_companion.planning import ExplainsGiveUp, GiveUp
 from apf_companion.setpoint import Setpoint, SetpointKind, brake, hold, navigate, silent_safe_velocity
 
 __all__ = [
@@ -84,7 +85,8 @@ class Decision(enum.Enum):
     GREEDY = "GREEDY"
     RANDOM_WALK = "RANDOM_WALK"
     LOCAL_MINIMUM = "LOCAL_MINIMUM"
-    #: The planner gave up (bapf-nav: no path on the remembered map, or no progress for its patience).
+    #: The planner gave up (bapf-nav: no way on the remembered map, no progress for its patience, or a goal
+    #: outside its flying area; the STUCK reason says which, ``planning.GiveUp``).
     GAVE_UP = "GAVE_UP"
     TRACKING = "TRACKING"
 
@@ -587,6 +589,15 @@ class Recovery:
             nav._change(now_s, State.NAVIGATING, "autopilot heartbeat back: taking over again for the goal")
 
 
+def _planner_give_up(planner: object) -> str:
+    """The STUCK reason of a planner that gave up, with its cause where it says one (bapf-nav)."""
+    if isinstance(planner, ExplainsGiveUp):
+        cause = planner.give_up_cause()
+        if cause is not GiveUp.NONE:
+            return f"planner gave up: {cause.text}"
+    return "planner gave up"
+
+
 def _reset_planner(planner: object) -> None:
     """A stateful planner (bapf-nav) that gave up stays given up until its target changes: a new goal, even the
     same point again (a retry, the next flight of a long-lived service), starts it afresh."""
@@ -854,7 +865,7 @@ class Navigator:
         n = int(obstacles.shape[0])
         give_up = self._legs.give_up(leg, inp.now_s)
         if reason == Decision.GAVE_UP.value:
-            give_up = "stuck: the planner gave up (no path on the remembered map, or no progress)"
+            give_up = _planner_give_up(self.planner)
         if give_up is not None:
             self._enter_hold_state(inp.now_s, State.STUCK, give_up)
             return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=True), dist, decision=reason, n_obstacles=n)

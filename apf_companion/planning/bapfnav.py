@@ -53,7 +53,7 @@ from apf_companion.planning.navescapeone import EscapeStep
 from apf_companion.planning.navgeometry import MoveGeometry, obstacle_reach_m
 from apf_companion.planning.navone import DirectStep
 from apf_companion.planning.navsingle import FIELD_AGE_CAP, SightLine, SingleStart, age_field
-from apf_companion.planning.navstate import NavMode, NavState
+from apf_companion.planning.navstate import GiveUp, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 from apf_companion.planning.stateful import AgentState, StatefulPlanner, decision_from_choice
 
@@ -111,6 +111,13 @@ class BapfNavPlanner(StatefulPlanner):
 
     def initial_state(self, n_agents: int) -> NavState:
         return NavState.empty(n_agents, self.params.dim)
+
+    def give_up_cause(self) -> GiveUp:
+        """Why the single agent of ``step`` gave up (``GiveUp.NONE`` while it has not)."""
+        state = self.own_state
+        if not isinstance(state, NavState) or state.mode[0] != _GAVE_UP:
+            return GiveUp.NONE
+        return GiveUp(int(state.gave_up[0]))
 
     # --- the step ---------------------------------------------------------------------------------------------
 
@@ -186,6 +193,7 @@ class BapfNavPlanner(StatefulPlanner):
             inside = inside_area(area, targets_m[:, 0], targets_m[:, 1])
             outside = ~inside & np.isfinite(targets_m[:, :2]).all(axis=1)
             state.mode[rows[outside]] = _GAVE_UP
+            state.gave_up[rows[outside]] = GiveUp.OUTSIDE_AREA
 
     def _decide(
         self,
@@ -272,7 +280,10 @@ class BapfNavPlanner(StatefulPlanner):
         if _any(sighted, axis=None):
             state.mode[sighted] = _ESCAPE
             state.hit_dist_m[sighted] = g0[sighted]
-        state.mode[state.since_best > self.params.nav_patience_steps] = _GAVE_UP
+        tired = state.since_best > self.params.nav_patience_steps
+        if _any(tired, axis=None):
+            state.gave_up[tired & (state.mode != _GAVE_UP)] = GiveUp.NO_PROGRESS
+            state.mode[tired] = _GAVE_UP
 
     # --- escape -----------------------------------------------------------------------------------------------
 
@@ -313,6 +324,7 @@ class BapfNavPlanner(StatefulPlanner):
         cost0[rows[inside]] = np.inf
         passing[rows] = ok
         state.mode[rows[lost & ~inside]] = _GAVE_UP
+        state.gave_up[rows[lost & ~inside]] = GiveUp.NO_WAY
 
 
 def _squeeze_out(chosen: IntArray, boxed: BoolArray, seg2: FloatArray, floor2: float) -> None:

@@ -33,7 +33,7 @@ from apf_companion.planning.navescape import (
 )
 from apf_companion.planning.navone import DirectStep, einsum
 from apf_companion.planning.navsingle import age_field
-from apf_companion.planning.navstate import NavField, NavMode, NavState
+from apf_companion.planning.navstate import GiveUp, NavField, NavMode, NavState
 
 __all__ = ["EscapeStep", "FieldOne", "FieldSampler"]
 
@@ -428,6 +428,7 @@ class EscapeStep:
             if math.isfinite(g0) or not self._maps.own_cell_blocked(state.field[0], position_m[:2]):
                 gave_up = True
                 state.mode[0] = _GAVE_UP
+                state.gave_up[0] = GiveUp.NO_WAY
             else:
                 ok, cost, cost0 = feasible, clear_k, _INF
         scores = np.where(ok, cost, _INF)

@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from apf_companion.planning.navescape import _AROUND_SLACK_M, _SIGHT_FIRST, _SURFACE_M, EscapeMaps
 from apf_companion.planning.navone import einsum
-from apf_companion.planning.navstate import TRAIL, NavMode, NavState
+from apf_companion.planning.navstate import TRAIL, GiveUp, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 
 __all__ = ["FIELD_AGE_CAP", "SightLine", "SingleStart", "age_field"]
@@ -199,6 +199,8 @@ class SingleStart:
             mode = _ESCAPE
             state.hit_dist_m[0] = g0
         if since > self._patience:
+            if mode != _GAVE_UP:
+                state.gave_up[0] = GiveUp.NO_PROGRESS
             mode = _GAVE_UP
         state.mode[0] = mode
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, fields
-from typing import Self
+from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["TRAIL", "NavField", "NavMode", "NavState"]
+__all__ = ["TRAIL", "ExplainsGiveUp", "GiveUp", "NavField", "NavMode", "NavState"]
 
 FloatArray = npt.NDArray[np.float64]
 #: Trail points kept per agent (``NavState.trail_m``): at 1 m apart, the last 64 m of the way.
@@ -26,6 +26,41 @@ class NavMode(enum.IntEnum):
     ESCAPE = 1
     #: Gave up (no path on the remembered map, or no progress): no moves until the target changes.
     GAVE_UP = 2
+
+
+class GiveUp(enum.IntEnum):
+    """Why an agent gave up (``NavState.gave_up``): the service's STUCK says it to the pilot."""
+
+    #: Not given up.
+    NONE = 0
+    #: No way to the target on the remembered map: the agent's region is closed (at C and at C - h / 2).
+    NO_WAY = 1
+    #: No new closest approach to the target for ``nav_patience_steps`` steps.
+    NO_PROGRESS = 2
+    #: The target lies outside the flying area (``nav_area_ne_m``).
+    OUTSIDE_AREA = 3
+
+    @property
+    def text(self) -> str:
+        """What a pilot reads (STATUSTEXT): the cause in a few words (no way on the remembered map: the region is
+        closed; no new closest approach for ``nav_patience_steps``; the target outside ``nav_area_ne_m``)."""
+        return _GIVE_UP_TEXT[self]
+
+
+@runtime_checkable
+class ExplainsGiveUp(Protocol):
+    """A planner that says why its single agent (``step``) gave up (bapf-nav)."""
+
+    def give_up_cause(self) -> GiveUp: ...
+
+
+#: Short: "APF STUCK: planner gave up: <text>" must fit the 50 characters of one STATUSTEXT.
+_GIVE_UP_TEXT = {
+    GiveUp.NONE: "not given up",
+    GiveUp.NO_WAY: "no way on the map",
+    GiveUp.NO_PROGRESS: "no progress",
+    GiveUp.OUTSIDE_AREA: "goal outside area",
+}
 
 
 @dataclass(slots=True)
@@ -59,6 +94,7 @@ class NavState:
     field: npt.NDArray[np.object_]  # (A,) NavField | None
     trail_m: FloatArray  # (A, TRAIL, 2) where the agent has been (north, east), about 1 m apart; NaN: unused
     trail_next: npt.NDArray[np.int32]  # (A,) slot the next trail point goes to (a ring buffer)
+    gave_up: npt.NDArray[np.int8]  # (A,) GiveUp: why the agent is in GAVE_UP mode (NONE otherwise)
 
     @classmethod
     def empty(cls, n_agents: int, dim: int) -> NavState:
@@ -73,6 +109,7 @@ class NavState:
             field=np.full(n_agents, None, dtype=object),
             trail_m=np.full((n_agents, TRAIL, 2), np.nan),
             trail_next=np.zeros(n_agents, dtype=np.int32),
+            gave_up=np.zeros(n_agents, dtype=np.int8),
         )
 
     def __len__(self) -> int:
@@ -97,6 +134,7 @@ class NavState:
         self.field[rows] = None
         self.trail_m[rows] = np.nan
         self.trail_next[rows] = 0
+        self.gave_up[rows] = GiveUp.NONE
 
     def record(self, positions_m: FloatArray, spacing_m: float) -> None:
         """Add each agent's position (north, east) to its trail when it is ``spacing_m`` from the last point."""

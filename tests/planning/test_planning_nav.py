@@ -18,6 +18,7 @@ from apf_companion.planning import (
     BapfNavPlanner,
     BendyRulerPlanner,
     DecisionReason,
+    GiveUp,
     NavMode,
     NavState,
     PlannerName,
@@ -321,11 +322,14 @@ def test_a_target_outside_the_flying_area_gives_up_at_once(target: tuple[float, 
     targets = np.array([target, (20.0, 0.0)])
     none = np.zeros((0, 2))
     assert single.step(np.zeros(2), np.array(target), none).reason is DecisionReason.GAVE_UP
+    assert isinstance(single, BapfNavPlanner) and single.give_up_cause() is GiveUp.OUTSIDE_AREA
     assert single.step(np.zeros(2), np.array([20.0, 0.0]), none).reason is DecisionReason.GREEDY
+    assert single.give_up_cause() is GiveUp.NONE
     for _ in range(2):  # and it stays given up
         bd = batch.step_batch(np.zeros((2, 2)), targets, np.zeros((2, 0, 2)), np.zeros((2, 0), bool), state=state)
         assert [r.reason for r in (bd.row(0), bd.row(1))] == [DecisionReason.GAVE_UP, DecisionReason.GREEDY]
         assert bd.row(0).next_point_m is None
+        assert state.gave_up.tolist() == [GiveUp.OUTSIDE_AREA, GiveUp.NONE]
 
 
 def test_the_line_of_sight_is_blocked_by_surfaces_and_by_near_points() -> None:
@@ -573,8 +577,10 @@ def test_an_enclosed_goal_ends_in_a_bounded_give_up() -> None:
         if d.next_point_m is not None:
             pos = d.next_point_m
     assert steps <= 200 + 100  # patience + the way there
+    assert isinstance(planner, BapfNavPlanner) and planner.give_up_cause() is GiveUp.NO_PROGRESS
     again = planner.step(pos, np.array([10.0, 10.0]), ring)
     assert again.reason is DecisionReason.GAVE_UP and again.next_point_m is None
+    assert planner.give_up_cause() is GiveUp.NO_PROGRESS  # the first cause stays while the patience runs on
     planner.reset()
     assert planner.step(pos, np.array([-5.0, 0.0]), ring).reason is DecisionReason.GREEDY
 

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from apf_companion.planning import BapfNavPlanner, Decision, NavMode, NavState, PlannerParams
+from apf_companion.planning import BapfNavPlanner, Decision, GiveUp, NavMode, NavState, PlannerParams
 from apf_companion.planning.navescapeone import FieldSampler
 from apf_companion.planning.navfield import NavGrid
 from apf_companion.planning.navstate import NavField
@@ -36,6 +36,7 @@ _STATE_FIELDS = (
     "prev_dir",
     "trail_m",
     "trail_next",
+    "gave_up",
 )
 
 
@@ -151,6 +152,7 @@ def _fly(
     counts["single escape steps"] = counting.calls
     counts["arrived"] = int(np.linalg.norm(pos[:2] - target[:2]) <= 0.7)
     counts["gave up"] = int(state.mode[0] == NavMode.GAVE_UP)
+    counts["cause"] = int(single.give_up_cause())
     return counts
 
 
@@ -257,6 +259,7 @@ def test_a_door_narrower_than_2c_less_a_cell_stays_closed_and_the_agent_gives_up
         params, np.array([1.0, 0.5]), np.array([10.0, 0.5]), surface, seed=6, noise_m=0.0, steps=600, stop_at_goal=True
     )
     assert counts["gave up"] == 1 and counts["arrived"] == 0 and counts["single escape steps"] == 1, counts
+    assert counts["cause"] == GiveUp.NO_WAY
 
 
 def _enclosed_state(planner: BapfNavPlanner, position: np.ndarray, target: np.ndarray) -> NavState:

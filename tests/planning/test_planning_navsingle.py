@@ -9,10 +9,20 @@ import warnings
 import numpy as np
 import pytest
 
-from apf_companion.planning import BapfNavPlanner, NavMode, NavState, PlannerParams
+from apf_companion.planning import BapfNavPlanner, GiveUp, NavMode, NavState, PlannerParams
 from apf_companion.planning.navsingle import SightLine
 
-_STATE_FIELDS = ("target_m", "mode", "hit_dist_m", "best_dist_m", "since_best", "since_field", "trail_m", "trail_next")
+_STATE_FIELDS = (
+    "target_m",
+    "mode",
+    "hit_dist_m",
+    "best_dist_m",
+    "since_best",
+    "since_field",
+    "trail_m",
+    "trail_next",
+    "gave_up",
+)
 
 
 def _lattice_scene(rng: np.random.Generator, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -70,6 +80,8 @@ def _random_state(rng: np.random.Generator, dim: int, target: np.ndarray, patien
     filled = int(rng.integers(0, 70))
     state.trail_m[0, : min(filled, 64)] = rng.uniform(-3.0, 3.0, (min(filled, 64), 2))
     state.trail_next[0] = filled % 64
+    if state.mode[0] == NavMode.GAVE_UP:  # a cause from before: kept, not overwritten by the patience rule
+        state.gave_up[0] = rng.choice([GiveUp.NO_WAY, GiveUp.NO_PROGRESS, GiveUp.OUTSIDE_AREA])
     return state
 
 

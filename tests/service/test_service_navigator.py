@@ -14,8 +14,10 @@ from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.navigator import Navigator, State
 from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, Pose
+from apf_companion.planning import GiveUp
 from apf_companion.service import build_planner
 from apf_companion.setpoint import SetpointKind
+from apf_companion.status import STATUSTEXT_MAX, statustext_for
 
 
 def make(cfg: ServiceConfig | None = None) -> Navigator:
@@ -331,3 +333,38 @@ def test_the_same_goal_again_after_stuck_starts_the_planner_afresh() -> None:
     assert nav.set_route(goal, t)
     t, pos = fly(nav, t, pos, 200)
     assert nav.state is State.ARRIVED
+
+
+@pytest.mark.parametrize(
+    ("centre_ne_m", "cause"),
+    [((6.0, 0.0), GiveUp.NO_PROGRESS), ((0.0, 0.0), GiveUp.NO_WAY)],
+    ids=["goal-enclosed", "vehicle-enclosed"],
+)
+def test_stuck_says_why_bapf_nav_gave_up(centre_ne_m: tuple[float, float], cause: GiveUp) -> None:
+    """The STUCK reason (a STATUSTEXT) names bapf-nav's cause: a ring of points around the goal is no progress
+    for its patience; a ring around the vehicle is no way on the remembered map, at once."""
+    cfg = config_from_mapping({"planner": {"name": "bapf-nav", "params": {"nav_patience_steps": 60}}})
+    nav = make(cfg)
+    feed(nav, 0.1, (0, 0, -5))
+    ang = np.linspace(0.0, 2.0 * np.pi, 120, endpoint=False)
+    north, east = centre_ne_m
+    ring = np.stack([north + 1.5 * np.cos(ang), east + 1.5 * np.sin(ang), np.full(120, -5.0)], axis=1)
+    scan(nav, ring, 0.1)
+    assert nav.set_route(Route.point(6.0, 0.0, -5.0, source="test"), 0.1)
+    t, pos, reasons = 0.1, np.array([0.0, 0.0, -5.0]), []
+    for _ in range(600):
+        t += 0.1
+        feed(nav, t, (pos[0], pos[1], pos[2]))
+        out = nav.cycle(t)
+        reasons += [c.reason for c in out.changes if c.new is State.STUCK]
+        if out.setpoint is not None:
+            pos = np.array(out.setpoint.pos_ned_m)
+        if nav.state is State.STUCK:
+            break
+    assert reasons == [f"planner gave up: {cause.text}"]
+    assert statustext_for(State.STUCK, reasons[0]).endswith(cause.text)  # one STATUSTEXT holds all of it
+
+
+def test_every_give_up_cause_fits_one_statustext() -> None:
+    for cause in GiveUp:
+        assert len(f"APF {State.STUCK.value}: planner gave up: {cause.text}") <= STATUSTEXT_MAX
