@@ -1,8 +1,22 @@
-"""A check shared by the tests that compare bapf-nav's single-agent paths with its batch path, bit for bit."""
+"""Checks shared by the tests that compare bapf-nav's single-agent paths with its batch path, bit for bit."""
 
 from __future__ import annotations
 
 from apf_companion.planning import Decision
+
+#: The per-agent arrays of ``NavState`` (its ``field`` is compared on its own).
+NAV_STATE_FIELDS = (
+    "target_m",
+    "mode",
+    "hit_dist_m",
+    "best_dist_m",
+    "since_best",
+    "since_field",
+    "prev_dir",
+    "trail_m",
+    "trail_next",
+    "gave_up",
+)
 
 
 def assert_same_decision(single: Decision, row: Decision) -> None:

@@ -16,7 +16,7 @@ from apf_companion.planning import BapfNavPlanner, Decision, GiveUp, NavMode, Na
 from apf_companion.planning.navescapeone import FieldSampler
 from apf_companion.planning.navfield import NavGrid
 from apf_companion.planning.navstate import NavField
-from tests.planning.same_decision import assert_same_decision
+from tests.planning.same_decision import NAV_STATE_FIELDS, assert_same_decision
 
 _PARAMS = {
     "defaults": PlannerParams(),
@@ -26,22 +26,10 @@ _PARAMS = {
     # Holds every start, target and point of ``_worlds`` (the thickets reach 28 m): a grid of 100 x 120 cells.
     "a flying area": PlannerParams(nav_area_ne_m=(-4.0, -8.0, 26.0, 28.0)),
 }
-_STATE_FIELDS = (
-    "target_m",
-    "mode",
-    "hit_dist_m",
-    "best_dist_m",
-    "since_best",
-    "since_field",
-    "prev_dir",
-    "trail_m",
-    "trail_next",
-    "gave_up",
-)
 
 
 def _assert_same_state(single: NavState, batch: NavState) -> None:
-    for name in _STATE_FIELDS:
+    for name in NAV_STATE_FIELDS:
         assert getattr(single, name).tobytes() == getattr(batch, name).tobytes(), name
     a, b = single.field[0], batch.field[0]
     assert (a is None) == (b is None)

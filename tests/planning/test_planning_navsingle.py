@@ -11,18 +11,7 @@ import pytest
 
 from apf_companion.planning import BapfNavPlanner, GiveUp, NavMode, NavState, PlannerParams
 from apf_companion.planning.navsingle import SightLine
-
-_STATE_FIELDS = (
-    "target_m",
-    "mode",
-    "hit_dist_m",
-    "best_dist_m",
-    "since_best",
-    "since_field",
-    "trail_m",
-    "trail_next",
-    "gave_up",
-)
+from tests.planning.same_decision import NAV_STATE_FIELDS
 
 
 def _lattice_scene(rng: np.random.Generator, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -101,7 +90,7 @@ def test_the_single_agent_start_updates_the_state_as_the_batch_start(dim: int) -
         assert goal_vec.tobytes() == goal_b[0].tobytes() and np.float64(g0).tobytes() == g0_b[0].tobytes()
         assert rel.tobytes() == (obstacles - pos).tobytes()
         assert r2.tobytes() == np.einsum("nd,nd->n", rel, rel).tobytes()
-        for name in _STATE_FIELDS:
+        for name in NAV_STATE_FIELDS:
             assert getattr(single, name).tobytes() == getattr(batch, name).tobytes(), name
         modes.add(int(batch.mode[0]))
     assert modes == {NavMode.DIRECT, NavMode.ESCAPE, NavMode.GAVE_UP}
