@@ -18,7 +18,7 @@ Each step tests the N_b bacteria points around the agent (the paper's candidates
    the geodesic distance to the goal on a grid of the obstacles it has seen, inflated by C
    (``navfield.NavGrid``, no local minimum in front of a concave obstacle), as soon as a remembered surface
    blocks the straight line within ``nav_sight_m``, or any remembered point does within ``nav_sight_points_m``
-   (``EscapeMaps.sight_blocked``), and in any case when no
+   (``navsight.LineOfSight``), and in any case when no
    point passes (a local minimum of the paper's field). It leaves ESCAPE once the line is clear and it is closer
    to the goal than where the escape began (Bug2's leave rule), so it cannot fall back into the same trap. The
    potential is recomputed when the descent stalls, when a newly seen obstacle lies near its shortest way,
@@ -48,10 +48,11 @@ import numpy.typing as npt
 
 from apf_companion.planning.area import inside_area
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
-from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navescape import EscapeMaps, own_cell_blocked
 from apf_companion.planning.navescapeone import EscapeStep
 from apf_companion.planning.navgeometry import MoveGeometry, obstacle_reach_m
 from apf_companion.planning.navone import DirectStep
+from apf_companion.planning.navsight import LineOfSight
 from apf_companion.planning.navsingle import FIELD_AGE_CAP, SightLine, SingleStart, age_field
 from apf_companion.planning.navstate import GiveUp, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
@@ -106,8 +107,9 @@ class BapfNavPlanner(StatefulPlanner):
         self._cos_hold = math.cos(math.radians(p.nav_hold_angle_deg))
         self._direct_one = DirectStep(p, offsets, self._units, self.clearance_m, obstacle_reach_m(p))
         self._escape_one = EscapeStep(self._escape, self._direct_one, offsets, self._units)
+        self._sight = LineOfSight(p, self.clearance_m)
         sight = SightLine(p, self.clearance_m)
-        self._start_one = SingleStart(p, self._escape, sight, _TRAIL_SPACING_M, _PROGRESS_SHARE)
+        self._start_one = SingleStart(p, self._sight, sight, _TRAIL_SPACING_M, _PROGRESS_SHARE)
 
     def initial_state(self, n_agents: int) -> NavState:
         return NavState.empty(n_agents, self.params.dim)
@@ -150,7 +152,7 @@ class BapfNavPlanner(StatefulPlanner):
         g0 = np.sqrt(np.einsum("ad,ad->a", goal_vec, goal_vec))
         # The line of sight decides entries (DIRECT agents) and exits (escaping agents past Bug2's leave point).
         looking = (state.mode == _DIRECT) | ((state.mode == _ESCAPE) & (g0 < state.hit_dist_m - self.params.step_m))
-        blocked = self._escape.sight_blocked(looking, positions_m, targets_m, obstacles_m, obstacle_mask)
+        blocked = self._sight.blocked(looking, positions_m, targets_m, obstacles_m, obstacle_mask)
         state.record(positions_m, _TRAIL_SPACING_M)
         self._progress(state, g0, blocked)
         return goal_vec, g0
@@ -318,7 +320,7 @@ class BapfNavPlanner(StatefulPlanner):
         lost = feasible[rows].any(axis=1) & ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1)
         inside = lost & ~np.isfinite(g0)
         for i in np.flatnonzero(inside):  # no value at the agent: inside only where its own cell is blocked
-            inside[i] = self._escape.own_cell_blocked(state.field[rows[i]], positions_m[rows[i], :2])
+            inside[i] = own_cell_blocked(self._escape.grid, state.field[rows[i]], positions_m[rows[i], :2])
         ok[inside] = feasible[rows[inside]]
         cost[rows[inside]] = clear_k[rows[inside]]
         cost0[rows[inside]] = np.inf

@@ -1,11 +1,11 @@
 """bapf-nav's escape maps: per agent, the navigation potential of the remembered obstacles (``navfield``).
 
-Owns the grid geometry, the line-of-sight test that starts an escape early (``sight_blocked``), and the rules of
-when a potential is (re)computed: on entering ESCAPE without one, when it is ``nav_replan_steps`` steps old, when
-a newly seen obstacle lies near its shortest way (``outdated``), when the descent stalls, and after marking
-refused downhill cells as virtual obstacles (the grid let the potential through a gap that the swept test
-refuses). Blocked cells are remembered across recomputations and carried over when the grid moves; edge cells
-near the agent's trail are not taken as exits (``_distances``).
+Owns the grid geometry and the rules of when a potential is (re)computed: on entering ESCAPE without one, when
+it is ``nav_replan_steps`` steps old, when a newly seen obstacle lies near its shortest way (``outdated``), when
+the descent stalls, and after marking refused downhill cells as virtual obstacles (the grid let the potential
+through a gap that the swept test refuses). The line of sight that starts an escape early is ``navsight``.
+Blocked cells are remembered across recomputations and carried over when the grid moves; edge cells near the
+agent's trail are not taken as exits (``_distances``).
 """
 
 from __future__ import annotations
@@ -13,31 +13,20 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.clearance import compact_rows
 from apf_companion.planning.navfield import NavGrid
 from apf_companion.planning.navstate import NavField, NavState
 from apf_companion.planning.params import PlannerParams
 
-__all__ = ["EscapeMaps"]
+__all__ = ["EscapeMaps", "mark_dead_end", "own_cell_blocked"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
-#: Agents x obstacle points per group in the line-of-sight test (``EscapeMaps.sight_blocked``).
-_SIGHT_CELLS = 32768
-#: Known points closer than this to each other belong to one surface (sampled every 0.2 m, ``sight_blocked``).
-_SURFACE_M = 0.45
-#: Slack of the sight test's neighbour prefilter (``sight_blocked``): rounding is below 1e-12 m there [m].
-_AROUND_SLACK_M = 1e-3
 #: A field is tested against newly seen obstacles (``EscapeMaps.outdated``) once it is this many steps old: a
 #: bound on the fields an agent can cost while its map grows (one every few moves, not one per move).
 _OUTDATED_AGE = 8
-#: Smallest normal float64: the divisor for an agent on its goal (zero direction, never 0/0).
-_TINY = float(np.finfo(np.float64).tiny)
 _any = np.logical_or.reduce
-#: Blocking points tested for being part of a surface, the first along the line (``sight_blocked``).
-_SIGHT_FIRST = 3
 #: Fields an agent's memo keeps (``NavField.memo``): the closed and the open field of one input. Over 300 study
 #: trials at 70-95 one or four reuse as many fields as two; the memory is the agent's, 23 kB a field at 54 x 54.
 _MEMO = 2
@@ -66,92 +55,8 @@ class EscapeMaps:
         #: lattice puts a centre in the w - 2 C between its inflated sides; at C - h / 2 that interval is at
         #: least a cell wide, so every gap the vehicle passes opens, and none narrower than 2 C - h.
         self.loose_m = max(clearance_m - 0.5 * params.nav_cell_m, 0.0)
-        self._c2 = clearance_m * clearance_m
-        self._around2 = (clearance_m + _SURFACE_M + _AROUND_SLACK_M) ** 2
         self._edge_cells = self.grid.edge_cells
         self._edge_centres = self.grid.edge_centres_m  # relative to the grid's corner
-
-    def sight_blocked(
-        self,
-        active: BoolArray,
-        positions_m: FloatArray,
-        targets_m: FloatArray,
-        obstacles_m: FloatArray,
-        obstacle_mask: BoolArray | None,
-    ) -> BoolArray:
-        """(A,) agents of ``active`` whose straight line to the goal is blocked on the remembered map.
-
-        The line runs from one step ahead of the agent (an obstacle beside the agent that noise brought within C
-        does not block it) to ``nav_sight_m`` towards the goal, or to the goal. A known obstacle point closer to
-        it than the clearance C lies on the inflated map that the escape grid is built from. The line is blocked
-        when such a point lies on its first ``nav_sight_points_m`` (any point: a cluster of the paper's point
-        obstacles just ahead is passed on the grid's potential, not greedily on the side met first), or when
-        one of the first ``_SIGHT_FIRST`` such points along the whole line is part of a surface: two other known
-        points lie within ``_SURFACE_M`` of it (its neighbours on a wall or trunk sampled every 0.2 m), which
-        starts the escape before a concave wall traps the agent. All off when ``nav_sight_m`` is 0.
-        """
-        p = self.params
-        out = np.zeros(positions_m.shape[0], dtype=bool)
-        if p.nav_sight_m <= 0.0 or obstacles_m.shape[1] == 0:
-            return out
-        rows = np.flatnonzero(active)
-        first = min(_SIGHT_FIRST, obstacles_m.shape[1])
-        near_m = min(p.nav_sight_points_m, p.nav_sight_m)
-        group = max(1, _SIGHT_CELLS // obstacles_m.shape[1])  # (group, M) temporaries stay small
-        for lo in range(0, rows.size, group):
-            r = rows[lo : lo + group]
-            to_goal = targets_m[r] - positions_m[r]
-            dist = np.sqrt(np.einsum("ad,ad->a", to_goal, to_goal))
-            unit = to_goal / np.maximum(dist, _TINY)[:, None]
-            obs = obstacles_m[r]
-            rel = obs - positions_m[r][:, None, :]
-            with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
-                along = np.einsum("amd,ad->am", rel, unit)
-            hit, off2 = self._line_hits(rel, along, unit, np.minimum(dist, p.nav_sight_m), obstacle_mask, r)
-            if near_m > 0.0:
-                out[r] = _any(self._line_hits(rel, along, unit, np.minimum(dist, near_m), obstacle_mask, r)[0], axis=1)
-            some = np.flatnonzero(_any(hit, axis=1) & ~out[r])
-            if some.size == 0:
-                continue
-            order = np.where(hit[some], along[some], np.inf)
-            picks = np.argpartition(order, first - 1, axis=1)[:, :first]  # (S, F) the first hits along the line
-            real = np.take_along_axis(hit[some], picks, axis=1)
-            pts = obs[some[:, None], picks]  # (S, F, D)
-            # A pick's neighbours (within 0.45 m of a point within C of the segment) lie within C + 0.45 m of it:
-            # only those are compared (``_AROUND_SLACK_M`` over the rounding of these few metres).
-            around = off2[some] < self._around2  # NaN compares False
-            if obstacle_mask is not None:
-                around &= obstacle_mask[r[some]]
-            cand, valid = compact_rows(obs[some], around)
-            with np.errstate(invalid="ignore", over="ignore"):
-                gap = cand[:, None, :, :] - pts[:, :, None, :]  # (S, F, W, D)
-                d2 = np.einsum("sfmd,sfmd->sfm", gap, gap)
-            close = (d2 < _SURFACE_M * _SURFACE_M) & (d2 > 0.0) & valid[:, None, :]
-            surface = (np.add.reduce(close, axis=2) >= 2) & real
-            out[r[some]] = _any(surface, axis=1)
-        return out
-
-    def _line_hits(
-        self,
-        rel: FloatArray,
-        along: FloatArray,
-        unit: FloatArray,
-        end: FloatArray,
-        obstacle_mask: BoolArray | None,
-        rows: IntArray,
-    ) -> tuple[BoolArray, FloatArray]:
-        """(R, M) whether each point lies within C of the line's piece from one step ahead to ``end`` (R,) [m], and
-        its squared distance to that piece; ``rel`` (R, M, D) the points minus the agents, ``along`` (R, M) their
-        coordinates along the line, ``unit`` (R, D) its direction."""
-        start = np.minimum(self.params.step_m, end)
-        with np.errstate(invalid="ignore", over="ignore"):  # unknown rows may be non-finite: they compare False
-            t = np.clip(along, start[:, None], end[:, None])
-            off = rel - t[:, :, None] * unit[:, None, :]
-            off2: FloatArray = np.einsum("amd,amd->am", off, off)
-        hit: BoolArray = off2 < self._c2
-        if obstacle_mask is not None:
-            hit &= obstacle_mask[rows]
-        return hit, off2
 
     def potentials(
         self,
@@ -196,17 +101,6 @@ class EscapeMaps:
             g_k[dead], g0[dead] = self.geodesic(again, positions_m, targets_m, state)
             ok[dead] = feasible[again] & (g_k[dead] + clear_k[again] < (g0[dead] + clear_0[again])[:, None])
         return g_k, g0, ok
-
-    def own_cell_blocked(self, field: NavField | None, position_xy_m: FloatArray) -> bool:
-        """Whether the agent's own cell is blocked in ``field`` (off the grid or no field: True). An agent with no
-        value on its field is inside the inflated obstacles when its cell is blocked (noise put it there: it
-        backs out), and closed in when its cell is free (no way: it gives up, Design item 7)."""
-        if field is None:
-            return True
-        n = self.grid.n
-        ci, cj = self.grid.cell_of(field.origin_m[None], position_xy_m[None, None])
-        i, j = int(ci[0, 0]), int(cj[0, 0])
-        return not (0 <= i < n and 0 <= j < n) or bool(field.blocked[i * n + j])
 
     def outdated(
         self,
@@ -454,9 +348,7 @@ def mark_dead_end(grid: NavGrid, field: NavField, position_xy_m: FloatArray, poi
     single-agent escape (``navescapeone``)."""
     n = grid.n
     ci, cj = grid.cell_of(field.origin_m[None], points_xy_m[None])
-    own_i, own_j = grid.cell_of(field.origin_m[None], position_xy_m[None, None])
-    oi, oj = int(own_i[0, 0]), int(own_j[0, 0])
-    own = oi * n + oj if 0 <= oi < n and 0 <= oj < n else -1
+    own = grid.flat_cell(field.origin_m, position_xy_m)
     ok = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
     cells = ci[ok] * n + cj[ok]
     cells = cells[cells != own]
@@ -468,6 +360,17 @@ def mark_dead_end(grid: NavGrid, field: NavField, position_xy_m: FloatArray, poi
     field.blocked[cells] = True
     field.virtual[cells] = True
     return marked
+
+
+def own_cell_blocked(grid: NavGrid, field: NavField | None, position_xy_m: FloatArray) -> bool:
+    """Whether the agent's own cell is blocked in ``field`` (off the grid or no field: True). An agent with no
+    value on its field is inside the inflated obstacles when its cell is blocked (noise put it there: it backs
+    out), and closed in when its cell is free (no way: it gives up, Design item 7). Shared by the batch and the
+    single-agent escape step."""
+    if field is None:
+        return True
+    cell = grid.flat_cell(field.origin_m, position_xy_m)
+    return cell < 0 or bool(field.blocked[cell])
 
 
 def occupancy_key(origin_m: FloatArray, obs_xy_m: FloatArray, valid: BoolArray) -> bytes:

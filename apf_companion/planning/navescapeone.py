@@ -29,6 +29,7 @@ from apf_companion.planning.navescape import (
     field_key,
     mark_dead_end,
     occupancy_key,
+    own_cell_blocked,
     seen_edge_cells,
 )
 from apf_companion.planning.navone import DirectStep, einsum
@@ -394,7 +395,7 @@ class EscapeStep:
 
     def __init__(self, maps: EscapeMaps, direct: DirectStep, offsets_m: FloatArray, units: FloatArray) -> None:
         self._field = FieldOne(maps)
-        self._maps = maps
+        self._grid = maps.grid
         self._direct = direct
         self._offsets = offsets_m
         self._units = units
@@ -425,7 +426,7 @@ class EscapeStep:
         # Every feasible point off the map's free cells: back out from inside the inflated obstacles, else give up.
         gave_up = False
         if any_feasible and not has_ok and not np.isfinite(g_k[feasible]).any():
-            if math.isfinite(g0) or not self._maps.own_cell_blocked(state.field[0], position_m[:2]):
+            if math.isfinite(g0) or not own_cell_blocked(self._grid, state.field[0], position_m[:2]):
                 gave_up = True
                 state.mode[0] = _GAVE_UP
                 state.gave_up[0] = GiveUp.NO_WAY

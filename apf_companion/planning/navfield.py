@@ -258,6 +258,11 @@ class NavGrid:
         out: BoolArray = ~inside_area(self.area_ne_m, centres[0][:, None], centres[1][None, :]).ravel()
         return out
 
+    def flat_cell(self, origin_m: FloatArray, point_xy_m: FloatArray) -> int:
+        """The cell (flat index) of one point in one grid, -1 off the grid."""
+        i, j = self._cell_of_one(origin_m, point_xy_m)
+        return i * self.n + j if 0 <= i < self.n and 0 <= j < self.n else -1
+
     def _cell_of_one(self, origin_m: FloatArray, point_xy_m: FloatArray) -> tuple[int, int]:
         """``cell_of`` of one point in one grid, on Python floats (the same IEEE arithmetic: a difference and a
         quotient, floored; non-finite is -1; clipped to [-1, n])."""

@@ -1,7 +1,7 @@
 """bapf-nav's single-agent prologue (the service's ``step``): target, sight, trail and progress rules of one agent.
 
 ``BapfNavPlanner._start`` runs these rules on (A,) arrays; at one agent each of its numpy calls costs more than
-the arithmetic, so ``SingleStart`` runs them on Python floats and the line of sight (``EscapeMaps.sight_blocked``)
+the arithmetic, so ``SingleStart`` runs them on Python floats and the line of sight (``LineOfSight.blocked``)
 on 1-D arrays, with no group loop and no floating-point error state to switch (the caller checks the numbers are
 finite first; non-finite or absurdly large ones take the batch test). Every value comes from the same
 floating-point operations as in the batch path: Python's float arithmetic and ``math.sqrt`` are IEEE double like
@@ -18,8 +18,8 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.navescape import _AROUND_SLACK_M, _SIGHT_FIRST, _SURFACE_M, EscapeMaps
 from apf_companion.planning.navone import einsum
+from apf_companion.planning.navsight import _AROUND_SLACK_M, _SIGHT_FIRST, _SURFACE_M, LineOfSight
 from apf_companion.planning.navstate import TRAIL, GiveUp, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 
@@ -27,7 +27,7 @@ __all__ = ["FIELD_AGE_CAP", "SightLine", "SingleStart", "age_field"]
 
 FloatArray = npt.NDArray[np.float64]
 
-#: Smallest normal float64 (the divisor for an agent on its goal, as in ``EscapeMaps.sight_blocked``).
+#: Smallest normal float64 (the divisor for an agent on its goal, as in ``LineOfSight.blocked``).
 _TINY = float(np.finfo(np.float64).tiny)
 #: Squared distances up to this are safe to square and add again (no overflow): beyond, the batch test decides.
 _SANE_M2 = 1e300
@@ -43,7 +43,7 @@ _GAVE_UP = int(NavMode.GAVE_UP)
 
 
 class SightLine:
-    """``EscapeMaps.sight_blocked`` of one agent on 1-D arrays (its docstring has the rule), the same result.
+    """``LineOfSight.blocked`` of one agent on 1-D arrays (its docstring has the rule), the same result.
 
     Parameters
     ----------
@@ -115,20 +115,20 @@ class SingleStart:
 
     Parameters
     ----------
-    params : the planner's parameters; escape : the planner's escape maps (their batch sight test decides where
-    the numbers are not finite); sight : the single-agent sight test; trail_spacing_m : ``NavState.record``'s
+    params : the planner's parameters; batch_sight : the planner's batch line-of-sight test (it decides where the
+    numbers are not finite); sight : the single-agent sight test; trail_spacing_m : ``NavState.record``'s
     spacing [m]; progress_share : a new closest approach beats the old one by this share of a step.
     """
 
     def __init__(
         self,
         params: PlannerParams,
-        escape: EscapeMaps,
+        batch_sight: LineOfSight,
         sight: SightLine,
         trail_spacing_m: float,
         progress_share: float,
     ) -> None:
-        self._escape = escape
+        self._batch_sight = batch_sight
         self._sight = sight
         self._step_m = params.step_m
         self._patience = params.nav_patience_steps
@@ -167,7 +167,7 @@ class SingleStart:
         if math.isfinite(g0) and total <= _SANE_M2:  # also False for NaN
             return self._sight(rel, obstacles_m, goal_vec, g0)
         every = np.ones(1, dtype=bool)
-        return bool(self._escape.sight_blocked(every, position_m[None], target_m[None], obstacles_m[None], None)[0])
+        return bool(self._batch_sight.blocked(every, position_m[None], target_m[None], obstacles_m[None], None)[0])
 
     def _record(self, position_m: FloatArray, state: NavState) -> None:
         """``NavState.record`` of one agent. Its squared distance in Python floats is within a few ulp of the

@@ -29,6 +29,7 @@ from apf_companion.planning import (
 from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq
 from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navfield import NavGrid
+from apf_companion.planning.navsight import LineOfSight
 from sim.study.config import Density, StudyConfig
 from sim.study.engine import SerialExecutor, chunk_generators, run_study, simulate
 from sim.study.metrics import Outcome, summarize
@@ -333,11 +334,11 @@ def test_a_target_outside_the_flying_area_gives_up_at_once(target: tuple[float, 
 
 
 def test_the_line_of_sight_is_blocked_by_surfaces_and_by_near_points() -> None:
-    """``EscapeMaps.sight_blocked``: a wall across the line blocks it; a lone point on it only within
+    """``LineOfSight.blocked``: a wall across the line blocks it; a lone point on it only within
     ``nav_sight_points_m`` (2 m); a wall beside the line (farther than C) does not, unknown (masked, non-finite)
     rows are ignored, and ``nav_sight_m`` = 0 or a wall beyond it is no block."""
     params = PlannerParams()
-    maps = EscapeMaps(params, BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
+    maps = LineOfSight(params, params.clearance_m)
     wall = np.stack([np.full(21, 5.0), np.linspace(-2.0, 2.0, 21)], axis=1)  # north 5, 0.2 m apart
     point = np.array([[5.0, 0.5]])  # 0.5 m east of the line (within C = 0.6 m), 5 m ahead: beyond 2 m
     near = np.array([[1.9, 0.5]])  # the same, 1.9 m ahead
@@ -353,14 +354,14 @@ def test_the_line_of_sight_is_blocked_by_surfaces_and_by_near_points() -> None:
     positions = np.zeros((len(scenes), 2))
     targets = np.tile([20.0, 0.0], (len(scenes), 1))
     active = np.ones(len(scenes), dtype=bool)
-    blocked = maps.sight_blocked(active, positions, targets, obstacles, mask)
+    blocked = maps.blocked(active, positions, targets, obstacles, mask)
     assert blocked.tolist() == [True, False, True, False, False, False]
     points_off = PlannerParams(nav_sight_points_m=0.0)
-    surfaces = EscapeMaps(points_off, BapfNavPlanner(points_off).bacteria_offsets_m, points_off.clearance_m)
-    assert surfaces.sight_blocked(active, positions, targets, obstacles, mask).tolist()[:3] == [True, False, False]
-    assert not maps.sight_blocked(~active, positions, targets, obstacles, mask).any()
-    off = EscapeMaps(PlannerParams(nav_sight_m=0.0), BapfNavPlanner(params).bacteria_offsets_m, params.clearance_m)
-    assert not off.sight_blocked(active, positions, targets, obstacles, mask).any()
+    surfaces = LineOfSight(points_off, points_off.clearance_m)
+    assert surfaces.blocked(active, positions, targets, obstacles, mask).tolist()[:3] == [True, False, False]
+    assert not maps.blocked(~active, positions, targets, obstacles, mask).any()
+    off = LineOfSight(PlannerParams(nav_sight_m=0.0), params.clearance_m)
+    assert not off.blocked(active, positions, targets, obstacles, mask).any()
 
 
 def _line(a: tuple[float, float], b: tuple[float, float], spacing_m: float = 0.2) -> np.ndarray:

@@ -10,6 +10,7 @@ import pytest
 
 from apf_companion.planning import BapfNavPlanner, NavState, PlannerParams
 from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navsight import LineOfSight
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -76,9 +77,9 @@ def test_outdated_fields_equal_the_per_agent_test(dim: int) -> None:
 
 
 def _sight_all_points(
-    maps: EscapeMaps, pos: FloatArray, target: FloatArray, obs: FloatArray, mask: BoolArray
+    maps: LineOfSight, pos: FloatArray, target: FloatArray, obs: FloatArray, mask: BoolArray
 ) -> BoolArray:
-    """``EscapeMaps.sight_blocked`` before the neighbour prefilter: each pick against every known point (one group,
+    """``LineOfSight.blocked`` before the neighbour prefilter: each pick against every known point (one group,
     every agent looking)."""
     p, c2 = maps.params, maps.clearance_m**2
     to_goal = target - pos
@@ -116,7 +117,7 @@ def _sight_all_points(
 def test_the_sight_test_equals_the_all_points_test(dim: int) -> None:
     """Each pick compared only with the points near the line answers what comparing it with every known point
     answered: agents on a 0.1 m lattice (ties along the line), walls of neighbours and isolated points, masks."""
-    maps = BapfNavPlanner(PlannerParams(dim=dim))._escape
+    maps = BapfNavPlanner(PlannerParams(dim=dim))._sight
     rng = np.random.default_rng(31 + dim)
     answers: list[bool] = []
     for _ in range(20):
@@ -128,7 +129,7 @@ def test_the_sight_test_equals_the_all_points_test(dim: int) -> None:
         obs = pos[:, None, :] + np.round(rng.uniform(-1.0, 9.0, (n_agents, width, dim)) * spread, 1)
         known = rng.random((n_agents, width)) < 0.8
         obs[~known] = np.nan
-        got = maps.sight_blocked(np.ones(n_agents, dtype=bool), pos, pos + ahead, obs, known)
+        got = maps.blocked(np.ones(n_agents, dtype=bool), pos, pos + ahead, obs, known)
         assert got.tolist() == _sight_all_points(maps, pos, pos + ahead, obs, known).tolist()
         answers.extend(got.tolist())
     assert any(answers) and not all(answers)

@@ -42,7 +42,7 @@ def _lattice_scene(rng: np.random.Generator, dim: int) -> tuple[np.ndarray, np.n
 def test_the_single_agent_sight_equals_the_batch_test(dim: int, sight_m: float, points_m: float) -> None:
     params = PlannerParams(dim=dim, nav_sight_m=sight_m, nav_sight_points_m=points_m)
     planner = BapfNavPlanner(params)
-    maps, sight = planner._escape, SightLine(params, params.clearance_m)
+    maps, sight = planner._sight, SightLine(params, params.clearance_m)
     rng = np.random.default_rng(7 + dim)
     answers = []
     for _ in range(400):
@@ -51,7 +51,7 @@ def test_the_single_agent_sight_equals_the_batch_test(dim: int, sight_m: float, 
         g0 = float(np.sqrt(np.einsum("ad,ad->a", goal_vec[None], goal_vec[None]))[0])
         single = sight(obstacles - pos, obstacles, goal_vec, g0)
         every = np.ones(1, dtype=bool)
-        batch = maps.sight_blocked(every, pos[None], target[None], obstacles[None], None)
+        batch = maps.blocked(every, pos[None], target[None], obstacles[None], None)
         assert single == bool(batch[0])
         answers.append(single)
     assert any(answers) == (sight_m > 0.0)  # the scenes do block (and sometimes not)
