@@ -44,7 +44,7 @@ from apf_companion.envelope import BrakingEnvelope
 from apf_companion.goal import Route
 from apf_companion.linkquality import CLEAN_LINK, CautionParams, LinkQuality, caution_scale
 from apf_companion.perception import Pose
-from apf_companion.planning import ExplainsGiveUp, GiveUp
+from apf_companion.planning import GiveUp
 from apf_companion.setpoint import Setpoint, SetpointKind, brake, hold, navigate, silent_safe_velocity
 
 __all__ = [
@@ -590,10 +590,13 @@ class Recovery:
 
 
 def _planner_give_up(planner: object) -> str:
-    """The STUCK reason of a planner that gave up, with its cause where it says one (bapf-nav)."""
-    if isinstance(planner, ExplainsGiveUp):
-        cause = planner.give_up_cause()
-        if cause is not GiveUp.NONE:
+    """The STUCK reason of a planner that gave up, with its cause where it says one (bapf-nav's
+    ``give_up_cause``; looked up by name, as ``reset`` below, so that it reaches through the service's
+    ``observe.PlanTap``, which forwards attributes by ``__getattr__``)."""
+    give_up_cause = getattr(planner, "give_up_cause", None)
+    if callable(give_up_cause):
+        cause = give_up_cause()
+        if isinstance(cause, GiveUp) and cause is not GiveUp.NONE:
             return f"planner gave up: {cause.text}"
     return "planner gave up"
 

@@ -24,7 +24,7 @@ from apf_companion.planning.capf import CapfPlanner
 from apf_companion.planning.crbapf import CrBapfPlanner, CrBapfStarPlanner
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.geometry import bacteria_offsets, bacteria_ring, bacteria_sphere
-from apf_companion.planning.navstate import ExplainsGiveUp, GiveUp, NavMode, NavState
+from apf_companion.planning.navstate import GiveUp, NavMode, NavState
 from apf_companion.planning.params import AbapfRule, AbapfSearch, PlannerParams, Preset, RandomWalkRule
 from apf_companion.planning.potentials import (
     agent_potential,
@@ -65,7 +65,6 @@ __all__ = [
     "CrBapfStarPlanner",
     "Decision",
     "DecisionReason",
-    "ExplainsGiveUp",
     "GiveUp",
     "NavMode",
     "NavState",

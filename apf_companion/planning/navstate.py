@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, fields
-from typing import Protocol, Self, runtime_checkable
+from typing import Self
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["TRAIL", "ExplainsGiveUp", "GiveUp", "NavField", "NavMode", "NavState"]
+__all__ = ["TRAIL", "GiveUp", "NavField", "NavMode", "NavState"]
 
 FloatArray = npt.NDArray[np.float64]
 #: Trail points kept per agent (``NavState.trail_m``): at 1 m apart, the last 64 m of the way.
@@ -45,13 +45,6 @@ class GiveUp(enum.IntEnum):
         """What a pilot reads (STATUSTEXT): the cause in a few words (no way on the remembered map: the region is
         closed; no new closest approach for ``nav_patience_steps``; the target outside ``nav_area_ne_m``)."""
         return _GIVE_UP_TEXT[self]
-
-
-@runtime_checkable
-class ExplainsGiveUp(Protocol):
-    """A planner that says why its single agent (``step``) gave up (bapf-nav)."""
-
-    def give_up_cause(self) -> GiveUp: ...
 
 
 #: Short: "APF STUCK: planner gave up: <text>" must fit the 50 characters of one STATUSTEXT.

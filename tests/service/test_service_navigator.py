@@ -13,6 +13,7 @@ from apf_companion.builders import build_navigator
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.navigator import Navigator, State
+from apf_companion.observe import PlanTap
 from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, Pose
 from apf_companion.planning import GiveUp
 from apf_companion.service import build_planner
@@ -20,10 +21,12 @@ from apf_companion.setpoint import SetpointKind
 from apf_companion.status import STATUSTEXT_MAX, statustext_for
 
 
-def make(cfg: ServiceConfig | None = None) -> Navigator:
+def make(cfg: ServiceConfig | None = None, *, tapped: bool = False) -> Navigator:
+    """``tapped``: the planner behind the service's ``PlanTap``, as the service builds it."""
     cfg = cfg or ServiceConfig()
     perception = PerceptionFrontEnd(PerceptionParams(memory_expiry_s=30.0, merge_radius_m=0.1))
-    nav = build_navigator(cfg, build_planner(cfg), perception)
+    planner = build_planner(cfg)
+    nav = build_navigator(cfg, PlanTap(planner) if tapped else planner, perception)
     nav.rng = np.random.default_rng(1)
     return nav
 
@@ -335,16 +338,18 @@ def test_the_same_goal_again_after_stuck_starts_the_planner_afresh() -> None:
     assert nav.state is State.ARRIVED
 
 
+@pytest.mark.parametrize("tapped", [False, True], ids=["planner", "service-tap"])
 @pytest.mark.parametrize(
     ("centre_ne_m", "cause"),
     [((6.0, 0.0), GiveUp.NO_PROGRESS), ((0.0, 0.0), GiveUp.NO_WAY)],
     ids=["goal-enclosed", "vehicle-enclosed"],
 )
-def test_stuck_says_why_bapf_nav_gave_up(centre_ne_m: tuple[float, float], cause: GiveUp) -> None:
+def test_stuck_says_why_bapf_nav_gave_up(centre_ne_m: tuple[float, float], cause: GiveUp, tapped: bool) -> None:
     """The STUCK reason (a STATUSTEXT) names bapf-nav's cause: a ring of points around the goal is no progress
-    for its patience; a ring around the vehicle is no way on the remembered map, at once."""
+    for its patience; a ring around the vehicle is no way on the remembered map, at once. Also behind the
+    service's ``PlanTap`` (``tapped``), which forwards the planner's attributes by ``__getattr__``."""
     cfg = config_from_mapping({"planner": {"name": "bapf-nav", "params": {"nav_patience_steps": 60}}})
-    nav = make(cfg)
+    nav = make(cfg, tapped=tapped)
     feed(nav, 0.1, (0, 0, -5))
     ang = np.linspace(0.0, 2.0 * np.pi, 120, endpoint=False)
     north, east = centre_ne_m
