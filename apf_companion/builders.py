@@ -30,7 +30,7 @@ from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionParams, PoseLimits
-from apf_companion.planning import AreaNE, PlannerName, PlannerParams, get_planner
+from apf_companion.planning import AreaNE, BapfNavPlanner, PlannerName, PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
 
@@ -244,8 +244,9 @@ def reporter_params(config: ServiceConfig) -> ReporterParams:
     )
 
 
-def initial_route(config: ServiceConfig) -> Route | None:
-    """The goal from the config's ``[goal]`` (a point or a route file), if any.
+def initial_route(config: ServiceConfig, planner: object) -> Route | None:
+    """The goal from the config's ``[goal]`` (a point or a route file), if any; ``planner``: the one
+    ``build_planner(config)`` built (its flying area).
 
     Raises:
         ConfigError: the route file is invalid, or a waypoint lies outside bapf-nav's flying area
@@ -258,25 +259,18 @@ def initial_route(config: ServiceConfig) -> Route | None:
     elif g.north_m is not None and g.east_m is not None:
         route = Route.point(g.north_m, g.east_m, g.down_m, source="config")
     if route is not None:
-        _check_route_in_area(config, route)
+        # A configured waypoint outside the flying area is a config error, not a STUCK after take-off.
+        area = flying_area(planner)
+        why = route_outside_limits(route, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=area)
+        if why is not None:
+            raise ConfigError(f"goal: {why}: bapf-nav would give up at once")
     return route
 
 
-def _check_route_in_area(config: ServiceConfig, route: Route) -> None:
-    """A configured waypoint outside the flying area is a config error, not a STUCK after take-off."""
-    why = route_outside_limits(route, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=flying_area(config))
-    if why is not None:
-        raise ConfigError(f"goal: {why}: bapf-nav would give up at once")
-
-
-def flying_area(config: ServiceConfig) -> AreaNE | None:
-    """bapf-nav's ``planner.params.nav_area_ne_m`` as four floats, or None (another planner, or no area; a
-    malformed one is ``build_planner``'s error)."""
-    area = config.planner.params.get("nav_area_ne_m")
-    if config.planner.name != PlannerName.BAPF_NAV or not isinstance(area, list | tuple) or len(area) != 4:
-        return None
-    n_min, e_min, n_max, e_max = (float(v) for v in area)
-    return n_min, e_min, n_max, e_max
+def flying_area(planner: object) -> AreaNE | None:
+    """The flying area bapf-nav plans over (its validated ``params.nav_area_ne_m``), or None: no area, or another
+    planner (they do not use one)."""
+    return planner.params.nav_area_ne_m if isinstance(planner, BapfNavPlanner) else None
 
 
 @dataclass(frozen=True, slots=True)

@@ -244,8 +244,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.config)
-        build_planner(cfg)
-        route = initial_route(cfg)
+        route = initial_route(cfg, build_planner(cfg))
         signing_setup(cfg)  # the key file's mode and contents, the timestamp file
     except ConfigError as err:
         print(f"{args.config}: {err}", file=sys.stderr)

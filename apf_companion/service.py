@@ -244,7 +244,6 @@ class CompanionService:
         self.link = link
         self.zenoh = zenoh
         self.planner = build_planner(config)
-        self._flying_area = flying_area(config)  # bapf-nav's nav_area_ne_m: goals outside it are refused
         self.perception = PerceptionFrontEnd(perception_params(config))
         self.counters = ServiceCounters()
         self.faults = FaultLog(self.counters)
@@ -260,7 +259,7 @@ class CompanionService:
             counters=self.counters,
             set_route=self.set_route,
             on_pose=self._pose_arrived,
-            route_at_start=route if route is not None else initial_route(config),
+            route_at_start=route if route is not None else initial_route(config, self.planner),
             on_param=lambda rec: self.params.handle(rec),
         )
         self.reporter = StatusReporter(
@@ -314,8 +313,8 @@ class CompanionService:
             ConfigError: planner parameters or the route file are invalid.
             LinkError: a link cannot be opened.
         """
-        build_planner(config)  # config errors (planner, route file) before any socket is opened
-        route = route if route is not None else initial_route(config)
+        planner = build_planner(config)  # config errors (planner, route file) before any socket is opened
+        route = route if route is not None else initial_route(config, planner)
         link, keeper = await _open_mavlink(config)
         zenoh = None
         try:
@@ -400,7 +399,7 @@ class CompanionService:
             None if pose is None else pose.pos_ned_m,
             max_altitude_m=gc.max_altitude_m,
             max_distance_m=gc.max_distance_m,
-            area_ne_m=self._flying_area,
+            area_ne_m=flying_area(self.planner),  # bapf-nav's: goals outside it are refused
         )
         if why is not None:
             self.counters.bad_goals += 1

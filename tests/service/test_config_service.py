@@ -102,14 +102,14 @@ def test_a_configured_goal_outside_the_flying_area_is_a_config_error() -> None:
     no area."""
     area = {"nav_area_ne_m": [-3.0, -12.0, 23.0, 12.0]}
     inside = config_from_mapping({"planner": {"params": area}, "goal": {"north_m": 20.0, "east_m": 0.0}})
-    assert initial_route(inside) is not None
+    assert initial_route(inside, build_planner(inside)) is not None
     outside = config_from_mapping({"planner": {"params": area}, "goal": {"north_m": 30.0, "east_m": 0.0}})
     with pytest.raises(ConfigError, match=r"waypoint 0 .*outside the flying area planner\.params\.nav_area_ne_m"):
-        initial_route(outside)
+        initial_route(outside, build_planner(outside))
     other = config_from_mapping(
         {"planner": {"name": "cr-bapf*", "params": area}, "goal": {"north_m": 30.0, "east_m": 0.0}}
     )
-    assert initial_route(other) is not None
+    assert initial_route(other, build_planner(other)) is not None
 
 
 def test_load_config_file_errors(tmp_path: Path) -> None:
@@ -126,7 +126,7 @@ def test_route_file_resolves_against_config_dir(tmp_path: Path) -> None:
     cfgfile = tmp_path / "c.toml"
     cfgfile.write_text('[goal]\nroute = "route.csv"\n')
     cfg = load_config(cfgfile)
-    route = initial_route(cfg)
+    route = initial_route(cfg, build_planner(cfg))
     assert route is not None and len(route) == 2
     assert route.waypoints_ned_m[0].tolist() == [1.0, 2.0, -3.0]
     assert math.isnan(route.waypoints_ned_m[1, 2])
