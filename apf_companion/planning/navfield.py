@@ -302,17 +302,9 @@ class NavGrid:
 
     def corner_cells(self, origin_m: FloatArray, points_xy_m: FloatArray) -> IntArray:
         """The cells (flat indices) whose values ``sample`` weighs (weight > 0) at points (P, 2) of one grid."""
-        n, h = self.n, self.cell_m
-        rel = (points_xy_m - origin_m) / h - 0.5
-        i0 = np.floor(rel[:, 0]).astype(np.intp)
-        j0 = np.floor(rel[:, 1]).astype(np.intp)
-        fi, fj = rel[:, 0] - i0, rel[:, 1] - j0
-        out = []
-        for di, wi in ((0, 1.0 - fi), (1, fi)):
-            for dj, wj in ((0, 1.0 - fj), (1, fj)):
-                i, j = np.clip(i0 + di, 0, n - 1), np.clip(j0 + dj, 0, n - 1)
-                out.append((i * n + j)[wi * wj > 0.0])
-        return np.concatenate(out)
+        cells, w = self._corners((points_xy_m - origin_m) / self.cell_m - 0.5)
+        out: IntArray = cells[w > 0.0]
+        return out
 
     def sample_many(self, origins_m: FloatArray, dists_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
         """``sample`` for R fields at once: origins (R, 2), fields (R, n^2), points (R, P, 2) -> (R, P).
@@ -321,17 +313,9 @@ class NavGrid:
         """
         n, h = self.n, self.cell_m
         rel = (points_xy_m - origins_m[:, None, :]) / h - 0.5
-        i0 = np.floor(rel[..., 0]).astype(np.intp)
-        j0 = np.floor(rel[..., 1]).astype(np.intp)
-        fi = rel[..., 0] - i0
-        fj = rel[..., 1] - j0
         rows = np.arange(origins_m.shape[0])[None, :, None]
-        # The four corners (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1) stacked on a first axis.
-        ii = (np.minimum(np.maximum(i0, 0), n - 1), np.minimum(np.maximum(i0 + 1, 0), n - 1))
-        jj = (np.minimum(np.maximum(j0, 0), n - 1), np.minimum(np.maximum(j0 + 1, 0), n - 1))
-        wi, wj = (1.0 - fi, fi), (1.0 - fj, fj)
-        val = dists_m[rows, np.stack([ii[a] * n + jj[b] for a in (0, 1) for b in (0, 1)])]
-        w = np.stack([wi[a] * wj[b] for a in (0, 1) for b in (0, 1)])
+        cells, w = self._corners(rel)
+        val = dists_m[rows, cells]
         ok = np.isfinite(val) & (w > 0.0)
         term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
         weight = np.where(ok, w, 0.0)
@@ -342,6 +326,21 @@ class NavGrid:
         with np.errstate(invalid="ignore", divide="ignore"):
             out = np.where(inside & (den > 0.0), num / den, np.inf)
         return np.asarray(out, dtype=np.float64)
+
+    def _corners(self, rel: FloatArray) -> tuple[IntArray, FloatArray]:
+        """The bilinear corners of points ``rel`` (..., 2) in cells less half a cell: their flat cells (clamped to the
+        grid) and weights, (4, ...) each, in the order (i0, j0), (i0, j0 + 1), (i0 + 1, j0), (i0 + 1, j0 + 1)."""
+        n = self.n
+        i0 = np.floor(rel[..., 0]).astype(np.intp)
+        j0 = np.floor(rel[..., 1]).astype(np.intp)
+        fi = rel[..., 0] - i0
+        fj = rel[..., 1] - j0
+        ii = (np.minimum(np.maximum(i0, 0), n - 1), np.minimum(np.maximum(i0 + 1, 0), n - 1))
+        jj = (np.minimum(np.maximum(j0, 0), n - 1), np.minimum(np.maximum(j0 + 1, 0), n - 1))
+        wi, wj = (1.0 - fi, fi), (1.0 - fj, fj)
+        cells = np.stack([ii[a] * n + jj[b] for a in (0, 1) for b in (0, 1)])
+        w = np.stack([wi[a] * wj[b] for a in (0, 1) for b in (0, 1)])
+        return cells, w
 
 
 def _grid_edges(n: int, cell_m: float) -> tuple[IntArray, IntArray, FloatArray]:
