@@ -30,7 +30,7 @@ from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionParams, PoseLimits
-from apf_companion.planning import AreaNE, BapfNavPlanner, PlannerName, PlannerParams, get_planner
+from apf_companion.planning import BapfNavPlanner, FlyingArea, PlannerName, PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
 
@@ -267,7 +267,7 @@ def initial_route(config: ServiceConfig, planner: object) -> Route | None:
     return route
 
 
-def flying_area(planner: object) -> AreaNE | None:
+def flying_area(planner: object) -> FlyingArea | None:
     """The flying area bapf-nav plans over (its validated ``params.nav_area_ne_m``), or None: no area, or another
     planner (they do not use one)."""
     return planner.params.nav_area_ne_m if isinstance(planner, BapfNavPlanner) else None

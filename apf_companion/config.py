@@ -197,7 +197,8 @@ class PlannerConfig:
         progress_timeout_s: No new best distance to the goal (by 0.1 m) for this long -> STUCK [s].
         params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
             safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner. Values are
-            numbers, strings, booleans, or lists of numbers (bapf-nav's flying area, nav_area_ne_m).
+            numbers, strings, booleans, or lists of numbers or of number pairs (bapf-nav's flying area,
+            nav_area_ne_m: a rectangle or a polygon).
     """
 
     name: str = str(DEFAULT_PLANNER)
@@ -647,15 +648,22 @@ def _coerce(key: str, value: Any, annotation: str) -> Any:
         if not isinstance(value, dict):
             raise _fail(key, "a table", value)
         for sub_key, sub_value in value.items():
-            # A list of numbers is a vector parameter (planner.params.nav_area_ne_m); the planner checks its length.
-            numbers = isinstance(sub_value, list) and all(
-                isinstance(v, int | float) and not isinstance(v, bool) for v in sub_value
+            # A list of numbers, or of lists of numbers, is a vector parameter (planner.params.nav_area_ne_m: a
+            # rectangle or a polygon's vertices); the planner checks its shape.
+            vector = isinstance(sub_value, list) and (
+                _numbers(sub_value) or all(isinstance(v, list) and _numbers(v) for v in sub_value)
             )
-            if isinstance(sub_value, dict) or (isinstance(sub_value, list) and not numbers):
-                raise _fail(f"{key}.{sub_key}", "a number, string, boolean or list of numbers", sub_value)
+            if isinstance(sub_value, dict) or (isinstance(sub_value, list) and not vector):
+                allowed = "a number, string, boolean, list of numbers or list of lists of numbers"
+                raise _fail(f"{key}.{sub_key}", allowed, sub_value)
         return dict(value)
     msg = f"internal: no coercion for {key} ({annotation})"
     raise AssertionError(msg)
+
+
+def _numbers(values: list[Any]) -> bool:
+    """Whether every item of ``values`` is a number (a bool is not)."""
+    return all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
 
 
 def _own_error(prefix: str, err: ConfigError) -> bool:

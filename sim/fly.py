@@ -59,6 +59,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink, load_signing_key
+from apf_companion.planning import FlyingArea, area_text
 from sim.linkfaults import LinkFaults, LinkProxy
 
 if TYPE_CHECKING:
@@ -87,8 +88,8 @@ class FlyOptions:
     world: str | None = None
     start_ne_m: tuple[float, float] = PAPER_START
     goal_ne_m: tuple[float, float] = PAPER_GOAL
-    #: The world file's flying area (north_min, east_min, north_max, east_max) [m]: bapf-nav's nav_area_ne_m.
-    area_ne_m: tuple[float, float, float, float] | None = None
+    #: The world file's flying area (a rectangle or a polygon, local NED) [m]: bapf-nav's nav_area_ne_m.
+    area_ne_m: FlyingArea | None = None
     alt_m: float = 5.0
     speedup: float = 5.0
     rate_hz: float = 10.0
@@ -221,8 +222,8 @@ def _area_toml(opt: FlyOptions) -> str:
         return ""
     return f"""
 [planner.params]
-# the world file's flying area (north_min, east_min, north_max, east_max) [m]
-nav_area_ne_m = {list(opt.area_ne_m)}
+# the world file's flying area [m]: (north_min, east_min, north_max, east_max) or polygon vertices (north, east)
+nav_area_ne_m = {area_text(opt.area_ne_m)}
 """
 
 
@@ -781,7 +782,7 @@ def _link_faults(text: str) -> LinkFaults:
 
 def _start_goal(
     args: argparse.Namespace,
-) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float, float, float] | None]:
+) -> tuple[tuple[float, float], tuple[float, float], FlyingArea | None]:
     """--start/--goal, else the world file's suggested start/goal, else the paper's (3, 3) -> (22, 22); and the
     world file's flying area unless --no-area."""
     start, goal = PAPER_START, PAPER_GOAL

@@ -15,7 +15,15 @@ comparison baseline (``bendyruler.py``).
 from __future__ import annotations
 
 from apf_companion.planning.abapf import AbapfPlanner
-from apf_companion.planning.area import AreaNE, inside_area
+from apf_companion.planning.area import (
+    AreaNE,
+    FlyingArea,
+    PolygonNE,
+    area_bounds,
+    area_text,
+    inside_area,
+    polygon_problem,
+)
 from apf_companion.planning.bapf import BapfPlanner
 from apf_companion.planning.bapfnav import BapfNavPlanner
 from apf_companion.planning.base import Planner
@@ -65,16 +73,20 @@ __all__ = [
     "CrBapfStarPlanner",
     "Decision",
     "DecisionReason",
+    "FlyingArea",
     "GiveUp",
     "NavMode",
     "NavState",
     "Planner",
     "PlannerName",
     "PlannerParams",
+    "PolygonNE",
     "Preset",
     "RandomWalkRule",
     "StatefulPlanner",
     "agent_potential",
+    "area_bounds",
+    "area_text",
     "bacteria_offsets",
     "bacteria_ring",
     "bacteria_sphere",
@@ -84,6 +96,7 @@ __all__ = [
     "log_sum_exp",
     "moves_downhill",
     "obstacle_potential",
+    "polygon_problem",
     "target_potential",
     "total_obstacle_potential",
 ]

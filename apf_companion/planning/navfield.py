@@ -32,7 +32,7 @@ import numpy.typing as npt
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from apf_companion.planning.area import AreaNE, inside_area
+from apf_companion.planning.area import FlyingArea, area_bounds, inside_area
 
 __all__ = ["NavGrid"]
 
@@ -63,18 +63,19 @@ class NavGrid:
     checks per field (about 15 % of a field): a grid computes one field at a time (not thread-safe).
     """
 
-    def __init__(self, cell_m: float, side_m: float, area_ne_m: AreaNE | None = None) -> None:
+    def __init__(self, cell_m: float, side_m: float, area_ne_m: FlyingArea | None = None) -> None:
         self.cell_m = float(cell_m)
-        #: The flying area (north_min, east_min, north_max, east_max) [m] the grid covers, or None: a grid of side
-        #: ``side_m`` that moves with the agent and whose edge cells are exits.
+        #: The flying area (a rectangle or a polygon, ``area``) [m] the grid covers (its bounds), or None: a grid of
+        #: side ``side_m`` that moves with the agent and whose edge cells are exits.
         self.area_ne_m = area_ne_m
         #: The grid's corner when it covers a flying area (on the lattice of multiples of the cell size), else None.
         self.fixed_origin_m: FloatArray | None = None
         if area_ne_m is None:
             self.n = math.ceil(side_m / cell_m - 1e-9)
         else:
-            low = np.array(area_ne_m[:2], dtype=np.float64)
-            high = np.array(area_ne_m[2:], dtype=np.float64)
+            bounds = area_bounds(area_ne_m)
+            low = np.array(bounds[:2], dtype=np.float64)
+            high = np.array(bounds[2:], dtype=np.float64)
             self.fixed_origin_m = np.floor(low / self.cell_m) * self.cell_m
             self.n = max(math.ceil(float(x) / self.cell_m - 1e-9) for x in high - self.fixed_origin_m)
         self.size = self.n * self.n

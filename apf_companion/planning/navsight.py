@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.planning.area import is_polygon, leaves_area
 from apf_companion.planning.clearance import compact_rows
 from apf_companion.planning.params import PlannerParams
 
@@ -61,8 +62,25 @@ class LineOfSight:
         obstacles just ahead is passed on the grid's potential, not greedily on the side met first), or when
         one of the first ``_SIGHT_FIRST`` such points along the whole line is part of a surface: two other known
         points lie within ``_SURFACE_M`` of it (its neighbours on a wall or trunk sampled every 0.2 m), which
-        starts the escape before a concave wall traps the agent. All off when ``nav_sight_m`` is 0.
+        starts the escape before a concave wall traps the agent. All off when ``nav_sight_m`` is 0. A line that
+        leaves a polygonal flying area is blocked too, whatever ``nav_sight_m`` (``area.leaves_area``).
         """
+        out = self._points_block(active, positions_m, targets_m, obstacles_m, obstacle_mask)
+        area = self.params.nav_area_ne_m
+        if area is not None and is_polygon(area):
+            rows = np.flatnonzero(active)
+            out[rows] |= leaves_area(area, positions_m[rows, :2], targets_m[rows, :2])
+        return out
+
+    def _points_block(
+        self,
+        active: BoolArray,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+    ) -> BoolArray:
+        """``blocked`` by the remembered points alone."""
         p = self.params
         out = np.zeros(positions_m.shape[0], dtype=bool)
         if p.nav_sight_m <= 0.0 or obstacles_m.shape[1] == 0:

@@ -18,6 +18,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.planning.area import FlyingArea, is_polygon, leaves_area
 from apf_companion.planning.navone import einsum
 from apf_companion.planning.navsight import _AROUND_SLACK_M, _SIGHT_FIRST, _SURFACE_M, LineOfSight
 from apf_companion.planning.navstate import TRAIL, GiveUp, NavMode, NavState
@@ -130,6 +131,9 @@ class SingleStart:
     ) -> None:
         self._batch_sight = batch_sight
         self._sight = sight
+        area = params.nav_area_ne_m
+        #: A polygonal flying area: a line that leaves it is blocked (``LineOfSight.blocked``), else None.
+        self._polygon: FlyingArea | None = area if area is not None and is_polygon(area) else None
         self._step_m = params.step_m
         self._patience = params.nav_patience_steps
         self._spacing2 = trail_spacing_m * trail_spacing_m
@@ -165,7 +169,11 @@ class SingleStart:
         """The line of sight; non-finite or huge numbers go to the batch test (its floating-point state)."""
         total = float(np.add.reduce(r2)) if r2.shape[0] else 0.0
         if math.isfinite(g0) and total <= _SANE_M2:  # also False for NaN
-            return self._sight(rel, obstacles_m, goal_vec, g0)
+            if self._sight(rel, obstacles_m, goal_vec, g0):
+                return True
+            return self._polygon is not None and bool(
+                leaves_area(self._polygon, position_m[None, :2], target_m[None, :2])[0]
+            )
         every = np.ones(1, dtype=bool)
         return bool(self._batch_sight.blocked(every, position_m[None], target_m[None], obstacles_m[None], None)[0])
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning.area import AreaNE
+from apf_companion.planning.area import FlyingArea, area_bounds, polygon_problem
 
 __all__ = ["AbapfRule", "AbapfSearch", "PlannerParams", "Preset", "RandomWalkRule"]
 
@@ -66,6 +66,8 @@ class RandomWalkRule(enum.Enum):
 #: cell, in the service's cycle: 256 x 256 cells took 22.6 ms on the 2-core development VM (384 x 384: 54 ms, more
 #: than a 20 Hz cycle), so a larger area must take larger cells (docs/planner.md, "A flying area").
 MAX_AREA_CELLS = 256
+#: Vertices of a polygonal flying area, at most: the line-of-sight test crosses every edge each step.
+MAX_AREA_VERTICES = 64
 
 
 def _fail(name: str, value: object, allowed: str) -> ConfigError:
@@ -132,14 +134,16 @@ class PlannerParams:
         are not exits into unknown space (it has looked there) [m], >= 0 (0 = every edge cell is an exit).
     nav_patience_steps : bapf-nav: give up (STUCK) after this many steps without a new closest approach to the
         target, >= 1.
-    nav_area_ne_m : bapf-nav: the flying area, (north_min, east_min, north_max, east_max) in local NED [m], or None
-        (default). When set, the navigation grid covers the whole area instead of ``nav_grid_m`` around the agent:
-        its cells outside the area are blocked and its edge is no exit into unknown space, so an escape searches
-        every way the area holds, as ArduPilot's Dijkstra planner plans within its fence
+    nav_area_ne_m : bapf-nav: the flying area in local NED [m], or None (default): a rectangle (north_min,
+        east_min, north_max, east_max) or a polygon ((north, east), ...), which may be concave. When set, the
+        navigation grid covers the whole area (its bounds) instead of ``nav_grid_m`` around the agent: its cells
+        outside the area are blocked and its edge is no exit into unknown space, so an escape searches every way
+        the area holds, as ArduPilot's Dijkstra planner plans within its fence
         (libraries/AC_Avoidance/AP_OADijkstra.h, "path planning around polygon fence"). A target outside the
-        area has no way: the agent gives up at once (STUCK). At least 8 and at most ``MAX_AREA_CELLS`` = 256 cells
-        of ``nav_cell_m`` a side (76.8 m at 0.3 m cells): a field is a search over every cell, in the service's
-        cycle.
+        area has no way: the agent gives up at once (STUCK). A straight line to the target that leaves a
+        polygon starts an escape, as an obstacle on it does (``area.leaves_area``). The bounds are at least 8
+        and at most ``MAX_AREA_CELLS`` = 256 cells of ``nav_cell_m`` a side (76.8 m at 0.3 m cells): a field is
+        a search over every cell, in the service's cycle.
     br_lookahead_m : bendyruler: probe length OA_BR_LOOKAHEAD [m], > 0.
     br_margin_max_m : bendyruler: clearance OA_MARGIN_MAX that makes a direction "sufficiently open" [m], > 0.
     br_cont_ratio : bendyruler: OA_BR_CONT_RATIO, >= 1.
@@ -181,7 +185,7 @@ class PlannerParams:
     nav_sight_points_m: float = 2.0
     nav_seen_m: float = 4.0
     nav_patience_steps: int = 300
-    nav_area_ne_m: AreaNE | None = None
+    nav_area_ne_m: FlyingArea | None = None
     br_lookahead_m: float = 1.2
     br_margin_max_m: float = 0.6
     br_cont_ratio: float = 1.5
@@ -262,22 +266,36 @@ class PlannerParams:
         self._check_area()
 
     def _check_area(self) -> None:
-        """``nav_area_ne_m``: None or four finite numbers, min < max, 8 to 256 cells a side; kept as a tuple of
-        floats (a config file gives a list)."""
+        """``nav_area_ne_m``: None, a rectangle (four finite numbers, min < max) or a polygon (3 to
+        ``MAX_AREA_VERTICES`` finite [north, east] pairs, edges that do not cross), 8 to 256 cells a side (its
+        bounds); kept as a tuple of floats or of pairs (a config file gives lists)."""
         area: Any = self.nav_area_ne_m
         if area is None:
             return
         allowed = (
-            f"None or [north_min, east_min, north_max, east_max] [m], min < max, 8 to {MAX_AREA_CELLS} cells of "
-            "nav_cell_m a side (a larger area: a larger nav_cell_m)"
+            f"None, [north_min, east_min, north_max, east_max] (min < max) or [[north, east], ...] (3 to "
+            f"{MAX_AREA_VERTICES} vertices, edges that do not cross) [m], 8 to {MAX_AREA_CELLS} cells of nav_cell_m "
+            "a side (a larger area: a larger nav_cell_m)"
         )
-        if isinstance(area, str | bytes) or not isinstance(area, tuple | list) or len(area) != 4:
+        if isinstance(area, str | bytes) or not isinstance(area, tuple | list) or not area:
             raise _fail("nav_area_ne_m", area, allowed)
-        values = tuple(_finite("nav_area_ne_m", v) for v in area)
-        sides = (values[2] - values[0], values[3] - values[1])
+        value: FlyingArea
+        if all(isinstance(v, tuple | list) for v in area):
+            if not 3 <= len(area) <= MAX_AREA_VERTICES or any(len(v) != 2 for v in area):
+                raise _fail("nav_area_ne_m", area, allowed)
+            value = tuple((_finite("nav_area_ne_m", v[0]), _finite("nav_area_ne_m", v[1])) for v in area)
+            if polygon_problem(value) is not None:
+                raise _fail("nav_area_ne_m", area, allowed)
+        elif len(area) == 4:
+            n_min, e_min, n_max, e_max = (_finite("nav_area_ne_m", v) for v in area)
+            value = (n_min, e_min, n_max, e_max)
+        else:
+            raise _fail("nav_area_ne_m", area, allowed)
+        bounds = area_bounds(value)
+        sides = (bounds[2] - bounds[0], bounds[3] - bounds[1])
         if not all(8.0 * self.nav_cell_m <= side <= MAX_AREA_CELLS * self.nav_cell_m for side in sides):
             raise _fail("nav_area_ne_m", area, allowed)
-        object.__setattr__(self, "nav_area_ne_m", values)
+        object.__setattr__(self, "nav_area_ne_m", value)
 
     @classmethod
     def paper(cls, **overrides: Any) -> PlannerParams:

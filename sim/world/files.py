@@ -6,7 +6,8 @@ Format (all coordinates local NED north/east metres relative to home = the EKF o
     start_ne_m = [3.0, 3.0]             # suggested start (north, east)
     goal_ne_m = [22.0, 22.0]            # suggested goal
     area_ne_m = [[0.0, 0.0], [25.0, 25.0]]  # the flying area (south-west, north-east corners), as a user would
-                                        # fence it: bapf-nav plans over all of it (PlannerParams.nav_area_ne_m)
+                                        # fence it: bapf-nav plans over all of it (PlannerParams.nav_area_ne_m);
+                                        # three or more pairs are a polygon's vertices (an L-shaped yard)
 
     [[cylinder]]                        # a vertical cylinder standing on the ground (a tree, a pole)
     ne_m = [8.0, 9.5]                   # centre
@@ -46,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from apf_companion.errors import ConfigError
+from apf_companion.planning import FlyingArea
 from sim.world.field import paper_field
 from sim.world.model import World
 
@@ -223,10 +225,16 @@ def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") 
     return world
 
 
-def _area(value: Any) -> tuple[float, float, float, float]:
-    """``area_ne_m = [[north_min, east_min], [north_max, east_max]]``."""
-    if isinstance(value, str) or not isinstance(value, list | tuple) or len(value) != 2:
-        msg = f"world: area_ne_m must be [[north_min, east_min], [north_max, east_max]], got {value!r}"
+def _area(value: Any) -> FlyingArea:
+    """``area_ne_m = [[north_min, east_min], [north_max, east_max]]`` (a rectangle's corners) or ``[[north, east],
+    ...]`` with three or more pairs (a polygon's vertices, ``World`` checks it)."""
+    if isinstance(value, str) or not isinstance(value, list | tuple) or len(value) < 2:
+        msg = (
+            "world: area_ne_m must be [[north_min, east_min], [north_max, east_max]] or [[north, east], ...], "
+            f"got {value!r}"
+        )
         raise ConfigError(msg)
-    low, high = _pair(value[0], "area_ne_m[0]"), _pair(value[1], "area_ne_m[1]")
-    return (*low, *high)
+    pairs = [_pair(v, f"area_ne_m[{i}]") for i, v in enumerate(value)]
+    if len(pairs) > 2:
+        return tuple(pairs)
+    return (*pairs[0], *pairs[1])

@@ -13,12 +13,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning import AreaNE, inside_area
+from apf_companion.planning import FlyingArea, area_text, inside_area, polygon_problem
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -61,7 +62,7 @@ class World:
     name: str = "empty"
     start_ne_m: tuple[float, float] | None = None
     goal_ne_m: tuple[float, float] | None = None
-    area_ne_m: AreaNE | None = None
+    area_ne_m: FlyingArea | None = None
 
     def __post_init__(self) -> None:
         if self.area_ne_m is not None:
@@ -94,11 +95,11 @@ class World:
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
 
-    def _check_in_area(self, area: AreaNE) -> None:
+    def _check_in_area(self, area: FlyingArea) -> None:
         """The start and the goal lie in the flying area (bapf-nav gives up at once on a goal outside it)."""
         for key, point in (("start_ne_m", self.start_ne_m), ("goal_ne_m", self.goal_ne_m)):
             if point is not None and not inside_area(area, point[0], point[1]):
-                msg = f"world: {key} = {[float(v) for v in point]} lies outside area_ne_m = {list(area)}"
+                msg = f"world: {key} = {[float(v) for v in point]} lies outside area_ne_m = {area_text(area)}"
                 raise ConfigError(msg)
 
     # ------------------------------------------------------------------------------------------- builders
@@ -330,17 +331,33 @@ class World:
             "wall_heights_m": [h if math.isfinite(h) else None for h in self.wall_heights_m.tolist()],
             "start_ne_m": list(self.start_ne_m) if self.start_ne_m else None,
             "goal_ne_m": list(self.goal_ne_m) if self.goal_ne_m else None,
-            "area_ne_m": list(self.area_ne_m) if self.area_ne_m else None,
+            "area_ne_m": _area_json(self.area_ne_m),
         }
 
 
-def _area(value: Sequence[float]) -> AreaNE:
-    """A flying area (north_min, east_min, north_max, east_max) [m], checked: finite, min < max."""
+def _area(value: Sequence[Any]) -> FlyingArea:
+    """A flying area [m], checked: a rectangle (north_min, east_min, north_max, east_max), finite, min < max; or a
+    polygon ((north, east), ...) of finite vertices whose edges do not cross."""
+    if value and all(isinstance(v, Sequence) for v in value):
+        polygon = tuple((float(v[0]), float(v[1])) for v in value if len(v) == 2)
+        problem = None if len(polygon) == len(value) and all(map(math.isfinite, sum(polygon, ()))) else "finite pairs"
+        problem = problem or polygon_problem(polygon)
+        if problem is not None:
+            msg = f"world: a polygonal area_ne_m must be {problem} [[north, east], ...]: {value!r}"
+            raise ConfigError(msg)
+        return polygon
     area = tuple(float(v) for v in value)
     if len(area) != 4 or not all(math.isfinite(v) for v in area) or not (area[0] < area[2] and area[1] < area[3]):
         msg = f"world: area_ne_m must be finite [[north_min, east_min], [north_max, east_max]], min < max: {value!r}"
         raise ConfigError(msg)
     return area[0], area[1], area[2], area[3]
+
+
+def _area_json(area: FlyingArea | None) -> list[Any] | None:
+    """The area as JSON: four numbers (a rectangle) or a list of [north, east] pairs (a polygon)."""
+    if area is None:
+        return None
+    return [list(v) if isinstance(v, tuple) else v for v in area]
 
 
 def _wrap_pi(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:

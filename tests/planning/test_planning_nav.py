@@ -25,6 +25,7 @@ from apf_companion.planning import (
     PlannerParams,
     StatefulPlanner,
     get_planner,
+    inside_area,
 )
 from apf_companion.planning.clearance import near_obstacles, segment_clearance_sq
 from apf_companion.planning.navescape import EscapeMaps
@@ -310,6 +311,47 @@ def test_worlds_with_a_flying_area_arrive_from_either_side(name: str, shift_east
     outcome, pos, lowest = _fly_world(name, shift_east_m=shift_east_m * (0.25 if name == "rooms" else 1.0), area=True)
     assert outcome == "arrived", pos
     assert lowest >= PlannerParams().clearance_m - 1e-9
+
+
+#: yard-l's flying area: an L whose notch (north 9-23, east 6-23) lies across the straight line.
+_YARD_L = ((-3.0, -3.0), (23.0, -3.0), (23.0, 6.0), (9.0, 6.0), (9.0, 23.0), (-3.0, 23.0))
+
+
+def _outside_m(polygon: tuple[tuple[float, float], ...], point: np.ndarray) -> float:
+    """How far ``point`` lies outside ``polygon`` (0 inside) [m]: its distance to the nearest edge."""
+    if inside_area(polygon, point[0], point[1]):
+        return 0.0
+    a = np.array(polygon)
+    b = np.roll(a, -1, axis=0)
+    t = np.clip(np.einsum("vd,vd->v", point[:2] - a, b - a) / np.einsum("vd,vd->v", b - a, b - a), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(a + t[:, None] * (b - a) - point[:2], axis=1)))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_concave_area_with_nothing_to_see_is_flown_round_its_notch(dim: int) -> None:
+    """yard-l without its hedge: a property line that no sensor sees. The straight line from start to goal
+    crosses the notch, so it is blocked from the first step (``area.leaves_area``) and the agent follows the
+    area's field round the inner corner, never more than a step (0.4 m) outside; without the area it cuts
+    straight across the notch, 3 m inside it."""
+    start, goal = np.array([20.0, 1.0, 5.0])[:dim], np.array([2.0, 20.0, 5.0])[:dim]
+    none = np.zeros((0, dim))
+    worst = {}
+    for area in (_YARD_L, None):
+        planner = get_planner("bapf-nav", PlannerParams(dim=dim, nav_area_ne_m=area))
+        pos, worst[area is None], path = start, 0.0, 0.0
+        for _ in range(200):
+            if np.linalg.norm(pos[:2] - goal[:2]) <= 0.7:
+                break
+            d = planner.step(pos, goal, none)
+            assert d.next_point_m is not None, d.reason
+            path += float(np.linalg.norm(d.next_point_m - pos))
+            pos = d.next_point_m
+            worst[area is None] = max(worst[area is None], _outside_m(_YARD_L, pos))
+        assert np.linalg.norm(pos[:2] - goal[:2]) <= 0.7
+        if area is not None:  # round the corner at (9, 6): 12.1 m + 15.7 m, straight 26.2 m
+            assert 27.0 <= path <= 29.5, path
+    assert worst[False] <= PlannerParams().step_m, worst
+    assert worst[True] >= 2.5
 
 
 @pytest.mark.parametrize("target", [(30.0, 0.0), (10.0, -12.5), (-3.5, 0.0), (10.0, 12.5)])

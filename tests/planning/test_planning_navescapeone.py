@@ -25,6 +25,20 @@ _PARAMS = {
     "no clearance term": PlannerParams(nav_clearance_gain_m=0.0),
     # Holds every start, target and point of ``_worlds`` (the thickets reach 28 m): a grid of 100 x 120 cells.
     "a flying area": PlannerParams(nav_area_ne_m=(-4.0, -8.0, 26.0, 28.0)),
+    # The same bounds less a slot (north 3-4.5, east 1-28) that the straight line of the wall world crosses: a
+    # line that leaves the polygon starts an escape (``area.leaves_area``), on both paths.
+    "a polygonal area": PlannerParams(
+        nav_area_ne_m=(
+            (-4.0, -8.0),
+            (26.0, -8.0),
+            (26.0, 28.0),
+            (4.5, 28.0),
+            (4.5, 1.0),
+            (3.0, 1.0),
+            (3.0, 28.0),
+            (-4.0, 28.0),
+        )
+    ),
 }
 
 

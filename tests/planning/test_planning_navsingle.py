@@ -5,6 +5,7 @@ state field, bit for bit, from random states in 2D and 3D; non-finite obstacles 
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 import numpy as np
 import pytest
@@ -74,9 +75,18 @@ def _random_state(rng: np.random.Generator, dim: int, target: np.ndarray, patien
     return state
 
 
+#: A cross of two 8 m wide arms, 60 m long, over the scenes' positions (within 3 m of the centre): a concave flying
+#: area whose corners hold targets outside it, and lines that leave it (``area.leaves_area``).
+_CROSS = (
+    (-4.0, -30.0), (4.0, -30.0), (4.0, -4.0), (30.0, -4.0), (30.0, 4.0), (4.0, 4.0),
+    (4.0, 30.0), (-4.0, 30.0), (-4.0, 4.0), (-30.0, 4.0), (-30.0, -4.0), (-4.0, -4.0),
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("area", [None, _CROSS], ids=["no area", "polygon"])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_the_single_agent_start_updates_the_state_as_the_batch_start(dim: int) -> None:
-    planner = BapfNavPlanner(PlannerParams(dim=dim))
+def test_the_single_agent_start_updates_the_state_as_the_batch_start(dim: int, area: Any) -> None:
+    planner = BapfNavPlanner(PlannerParams(dim=dim, nav_area_ne_m=area))
     patience = planner.params.nav_patience_steps
     rng = np.random.default_rng(dim)
     modes = set()

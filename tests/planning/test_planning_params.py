@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import pytest
@@ -80,6 +81,21 @@ BAD: list[tuple[str, dict[str, Any]]] = [
     ("nav_area_ne_m", {"nav_area_ne_m": "0,0,10,10"}),
     ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 76.9, 10.0)}),  # over 256 cells of 0.3 m a side
     ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 100.0, 10.0), "nav_cell_m": 0.39}),
+    ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 10.0))}),  # two pairs: a world file's corners, not here
+    ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 10.0), (10.0, 0.0), (0.0, 12.0))}),  # edges cross
+    ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 0.0), (10.0, 10.0, 1.0))}),  # not a pair
+    ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 0.0), (10.0, float("inf")))}),
+    ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0))}),  # bounds under 8 cells a side
+    ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (100.0, 0.0), (100.0, 10.0))}),  # over 256 cells a side
+    (
+        "nav_area_ne_m",
+        {
+            "nav_area_ne_m": tuple(
+                (10.0 * math.cos(k * math.tau / 65), 10.0 * math.sin(k * math.tau / 65)) for k in range(65)
+            )
+        },
+    ),
+    ("nav_area_ne_m", {"nav_area_ne_m": ()}),
 ]
 
 
@@ -90,6 +106,16 @@ def test_a_flying_area_is_kept_as_a_tuple_of_floats() -> None:
     assert all(type(v) is float for v in p.nav_area_ne_m)
     assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 76.8, 76.8)).nav_area_ne_m is not None  # 256 cells a side
     assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 100.0, 10.0), nav_cell_m=0.4).nav_area_ne_m is not None
+
+
+def test_a_polygonal_area_is_kept_as_a_tuple_of_float_pairs() -> None:
+    """A config file gives ``[[north, east], ...]``: kept in order as pairs of floats, up to 64 vertices."""
+    l_shape = [[0, 0], [20, 0], [20, 8], [8, 8], [8, 20], [0, 20]]
+    p = PlannerParams(nav_area_ne_m=l_shape)  # type: ignore[arg-type]
+    assert p.nav_area_ne_m == ((0.0, 0.0), (20.0, 0.0), (20.0, 8.0), (8.0, 8.0), (8.0, 20.0), (0.0, 20.0))
+    assert all(type(v) is float for pair in p.nav_area_ne_m for v in pair)
+    circle = tuple((10.0 * math.cos(k * math.tau / 64), 10.0 * math.sin(k * math.tau / 64)) for k in range(64))
+    assert PlannerParams(nav_area_ne_m=circle).nav_area_ne_m == circle
 
 
 @pytest.mark.parametrize(("field", "kwargs"), BAD, ids=[f"{f}-{k}" for f, k in BAD])

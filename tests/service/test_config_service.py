@@ -112,6 +112,39 @@ def test_a_configured_goal_outside_the_flying_area_is_a_config_error() -> None:
     assert initial_route(other, build_planner(other)) is not None
 
 
+def test_a_polygonal_flying_area_from_a_config_file() -> None:
+    """``nav_area_ne_m = [[north, east], ...]`` (TOML) is a polygon: the planner keeps it, and a configured goal in
+    its notch (inside its bounds, outside the polygon) is refused with the polygon written as in the file."""
+    text = """
+[planner.params]
+nav_area_ne_m = [[-3.0, -3.0], [23.0, -3.0], [23.0, 6.0], [9.0, 6.0], [9.0, 23.0], [-3.0, 23.0]]
+[goal]
+north_m = 2.0
+east_m = 20.0
+"""
+    config = config_from_mapping(tomllib.loads(text))
+    planner = build_planner(config)
+    assert planner.params.nav_area_ne_m == (
+        (-3.0, -3.0),
+        (23.0, -3.0),
+        (23.0, 6.0),
+        (9.0, 6.0),
+        (9.0, 23.0),
+        (-3.0, 23.0),
+    )
+    assert initial_route(config, planner) is not None
+    notch = config_from_mapping(tomllib.loads(text.replace("north_m = 2.0", "north_m = 15.0")))
+    with pytest.raises(ConfigError, match=r"waypoint 0 .*nav_area_ne_m = \[\[-3.0, -3.0\], \[23.0, -3.0\]"):
+        initial_route(notch, build_planner(notch))
+    for bad in ([[0, 0], [10, "a"], [10, 10]], [[0, 0], [10, [1]], [10, 10]], [[0, 0], 10, [10, 10]]):
+        with pytest.raises(ConfigError, match=r"planner\.params\.nav_area_ne_m.*list of lists of numbers"):
+            config_from_mapping({"planner": {"params": {"nav_area_ne_m": bad}}})
+    with pytest.raises(ConfigError, match=r"nav_area_ne_m.*edges that do not cross"):  # a bow tie
+        build_planner(
+            config_from_mapping({"planner": {"params": {"nav_area_ne_m": [[0, 0], [9, 9], [9, 0], [0, 12]]}}})
+        )
+
+
 def test_load_config_file_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"cannot read config file"):
         load_config(tmp_path / "missing.toml")

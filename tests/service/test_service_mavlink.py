@@ -404,6 +404,10 @@ def test_route_limits() -> None:
     far = Route(waypoints_ned_m=np.array([[10.0, 0.0, -5.0], [41.0, 0.0, -5.0]]), source="t")
     why = route_outside_limits(far, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=area)
     assert why is not None and why.startswith("waypoint 1 ") and "nav_area_ne_m" in why
+    l_shape = ((-10.0, -10.0), (40.0, -10.0), (40.0, 0.0), (20.0, 0.0), (20.0, 10.0), (-10.0, 10.0))  # notch NE
+    notch = Route(waypoints_ned_m=np.array([[10.0, 5.0, -5.0], [30.0, 5.0, -5.0]]), source="t")
+    why = route_outside_limits(notch, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=l_shape)
+    assert why is not None and why.startswith("waypoint 1 ") and "[[-10.0, -10.0], [40.0, -10.0]" in why
 
 
 async def test_commands_broadcast_to_system_0_are_answered() -> None:

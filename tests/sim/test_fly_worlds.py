@@ -68,6 +68,16 @@ def test_a_world_s_flying_area_reaches_the_service_s_planner(tmp_path: Path, wor
     assert ("nav_area_ne_m" in text) == (want is not None)
 
 
+def test_a_world_s_polygonal_area_reaches_the_service_s_planner(tmp_path: Path) -> None:
+    """yard-l's flying area is a polygon: written into the service's config as TOML pairs, read back the same."""
+    args = build_parser().parse_args(["fly", "--world", "yard-l"])
+    start, goal, area = _start_goal(args)
+    assert area is not None and len(area) == 6
+    opt = FlyOptions(planner=args.planner, world="yard-l", start_ne_m=start, goal_ne_m=goal, area_ne_m=area)
+    planner = build_planner(config_from_mapping(tomllib.loads(_service_toml(opt, 14550, tmp_path / "c.tlog"))))
+    assert planner.params.nav_area_ne_m == area
+
+
 @pytest.mark.slow
 def test_fly_world_from_a_negative_start(tmp_path: Path) -> None:
     out = tmp_path / "out"

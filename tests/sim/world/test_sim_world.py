@@ -11,6 +11,8 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from apf_companion.errors import ConfigError
+from apf_companion.planning import inside_area
+from apf_companion.planning.area import is_polygon
 from sim.world import (
     EXAMPLES_DIR,
     PAPER_START_NE_M,
@@ -135,6 +137,20 @@ def test_invalid_worlds_raise() -> None:
         world_from_mapping({"area_ne_m": [[0, 0], [10, 10]], "start_ne_m": [1, 1], "goal_ne_m": [12, 1]})
 
 
+def test_world_file_polygon_area() -> None:
+    """Three or more pairs are a polygon's vertices (``area_ne_m``): kept in order, checked (no crossing edges, an
+    area, finite), and the start and goal must lie in it, the concave notch being outside."""
+    l_shape = [[0, 0], [20, 0], [20, 8], [8, 8], [8, 20], [0, 20]]
+    w = world_from_mapping({"area_ne_m": l_shape, "start_ne_m": [18, 2], "goal_ne_m": [2, 18]})
+    assert w.area_ne_m == tuple((float(n), float(e)) for n, e in l_shape)
+    assert w.describe()["area_ne_m"] == [[float(n), float(e)] for n, e in l_shape]
+    with pytest.raises(ConfigError, match=r"goal_ne_m = \[15.0, 15.0\] lies outside area_ne_m = \[\[0.0, 0.0\]"):
+        world_from_mapping({"area_ne_m": l_shape, "start_ne_m": [18, 2], "goal_ne_m": [15, 15]})
+    for bad in ([[0, 0], [5, 5], [5, 0], [0, 5]], [[0, 0], [5, 0], [10, 0]], [[0, 0], [5, 0], [5, math.nan]]):
+        with pytest.raises(ConfigError, match="area_ne_m"):
+            world_from_mapping({"area_ne_m": bad})
+
+
 def test_examples_load_and_start_is_clear() -> None:
     names = sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
     assert names == [
@@ -148,6 +164,7 @@ def test_examples_load_and_start_is_clear() -> None:
         "u-trap-goal",
         "wall",
         "wall-gap",
+        "yard-l",
     ]
     for name in names:
         w = load_world(name)
@@ -157,8 +174,10 @@ def test_examples_load_and_start_is_clear() -> None:
         assert w.clearance_m(w.goal_ne_m) > 1.0
         if w.area_ne_m is not None:  # a flying area holds the start and the goal
             for n, e in (w.start_ne_m, w.goal_ne_m):
-                assert w.area_ne_m[0] < n < w.area_ne_m[2] and w.area_ne_m[1] < e < w.area_ne_m[3]
-    assert {n for n in names if load_world(n).area_ne_m is not None} == {"rooms", "wall-gap"}  # the closed arenas
+                assert inside_area(w.area_ne_m, n, e)
+    # the closed arenas, and the L-shaped yard (a polygon)
+    assert {n for n in names if load_world(n).area_ne_m is not None} == {"rooms", "wall-gap", "yard-l"}
+    assert is_polygon(load_world("yard-l").area_ne_m or (0.0, 0.0, 1.0, 1.0))
 
 
 def test_world_file_format(tmp_path: Path) -> None:

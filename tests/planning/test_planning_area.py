@@ -1,0 +1,99 @@
+"""The flying area's geometry (``planning.area``): a rectangle and the same rectangle as a polygon hold the same
+points, edges included; a concave polygon's notch is outside; a line leaves a polygon where it crosses an edge or
+ends outside; polygons that cross themselves or have no area are refused."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from apf_companion.planning import area_bounds, area_text, inside_area, polygon_problem
+from apf_companion.planning.area import leaves_area
+
+#: An L: 20 m x 20 m less its north-east 12 m x 12 m (north 8-20, east 8-20 is outside).
+L_SHAPE = ((0.0, 0.0), (20.0, 0.0), (20.0, 8.0), (8.0, 8.0), (8.0, 20.0), (0.0, 20.0))
+
+_coord = st.integers(-40, 40).map(lambda k: k * 0.25)  # on the rectangles' lattice: edge points are common
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    n0=_coord,
+    e0=_coord,
+    dn=st.integers(1, 40).map(lambda k: k * 0.25),
+    de=st.integers(1, 40).map(lambda k: k * 0.25),
+    points=st.lists(st.tuples(_coord, _coord), min_size=1, max_size=30),
+    clockwise=st.booleans(),
+)
+def test_a_rectangle_as_a_polygon_holds_the_same_points(
+    n0: float, e0: float, dn: float, de: float, points: list[tuple[float, float]], clockwise: bool
+) -> None:
+    rect = (n0, e0, n0 + dn, e0 + de)
+    corners = [(n0, e0), (n0 + dn, e0), (n0 + dn, e0 + de), (n0, e0 + de)]
+    polygon = tuple(reversed(corners) if clockwise else corners)
+    pts = np.array([*points, (math.nan, e0), (n0, math.inf)])
+    assert inside_area(rect, pts[:, 0], pts[:, 1]).tolist() == inside_area(polygon, pts[:, 0], pts[:, 1]).tolist()
+    assert area_bounds(polygon) == rect
+    # Convex: a line from inside leaves exactly when it ends outside (the polygon's crossing test agrees); the
+    # rectangle's form is not tested at all (bapf-nav gives up on a target outside it).
+    start_in = inside_area(rect, pts[:, 0], pts[:, 1])
+    end_in = start_in[::-1]
+    assert leaves_area(polygon, pts, pts[::-1]).tolist() == (start_in & ~end_in).tolist()
+    assert not leaves_area(rect, pts, pts[::-1]).any()
+
+
+def test_an_l_shaped_area_leaves_out_its_notch_and_holds_its_edges() -> None:
+    north = np.array([1.0, 15.0, 15.0, 4.0, 8.0, 8.0, 14.0, 20.0, 20.1, -0.1, math.nan])
+    east = np.array([1.0, 4.0, 15.0, 15.0, 14.0, 8.0, 8.0, 5.0, 5.0, 3.0, 1.0])
+    assert inside_area(L_SHAPE, north, east).tolist() == [
+        True, True, False, True,  # the arms hold their points; the notch is outside
+        True, True, True, True,  # on an inner edge, the inner corner, the other inner edge, the outer edge
+        False, False, False,  # just beyond the outer edges; not a number
+    ]  # fmt: skip
+    # A grid of cell centres (broadcast): the notch's share of the bounds, 144 of 400 m^2.
+    centres = np.arange(0.25, 20.0, 0.5)
+    inside = inside_area(L_SHAPE, centres[:, None], centres[None, :])
+    assert inside.shape == (40, 40) and int((~inside).sum()) == 24 * 24
+    assert area_bounds(L_SHAPE) == (0.0, 0.0, 20.0, 20.0)
+    assert area_text(L_SHAPE).startswith("[[0.0, 0.0], [20.0, 0.0], [20.0, 8.0]")
+    assert area_text((0.0, -1.5, 3.0, 4.0)) == "[0.0, -1.5, 3.0, 4.0]"
+
+
+def test_a_line_leaves_a_concave_area_across_its_notch() -> None:
+    starts = np.array([[16.0, 2.0], [16.0, 2.0], [2.0, 16.0], [16.0, 2.0], [16.0, 2.0], [15.0, 15.0], [4.0, 4.0]])
+    ends = np.array([[2.0, 16.0], [2.0, 2.0], [2.0, 2.0], [25.0, 2.0], [8.0, 8.0], [2.0, 2.0], [4.0, 4.0]])
+    assert leaves_area(L_SHAPE, starts, ends).tolist() == [
+        True,  # across the notch, both ends inside
+        False,
+        False,  # within an arm
+        True,  # out across the outer edge
+        False,  # to the inner corner (on the edge: inside)
+        False,  # a start outside: bapf-nav does not hold an agent outside by its line
+        False,  # no line at all
+    ]
+    along_edge = leaves_area(L_SHAPE, np.array([[8.0, 12.0]]), np.array([[8.0, 19.0]]))
+    assert not along_edge.any()  # along the inner edge: inside all the way
+    assert leaves_area(L_SHAPE, np.zeros((0, 2)), np.zeros((0, 2))).shape == (0,)
+
+
+@pytest.mark.parametrize(
+    ("vertices", "problem"),
+    [
+        (((0.0, 0.0), (5.0, 0.0)), "at least 3 vertices"),
+        (((0.0, 0.0), (5.0, 0.0), (10.0, 0.0)), "with an area"),
+        (((0.0, 0.0), (5.0, 5.0), (5.0, 0.0), (0.0, 5.0)), "with an area"),  # a symmetric bow tie: no net area
+        (((0.0, 0.0), (6.0, 5.0), (6.0, 0.0), (0.0, 3.0)), "do not cross"),  # a bow tie with net area
+        (((0.0, 0.0), (5.0, 0.0), (5.0, math.nan)), "with an area"),
+    ],
+)
+def test_polygons_that_cross_themselves_or_have_no_area_are_refused(
+    vertices: tuple[tuple[float, float], ...], problem: str
+) -> None:
+    why = polygon_problem(vertices)
+    assert why is not None and problem in why
+    assert polygon_problem(L_SHAPE) is None
+    assert polygon_problem(tuple(reversed(L_SHAPE))) is None
