@@ -195,6 +195,9 @@ class PlannerConfig:
         random_walk_budget: Consecutive cycles without a greedy move (random walk or local minimum) after
             which the service gives up: STUCK.
         progress_timeout_s: No new best distance to the goal (by 0.1 m) for this long -> STUCK [s].
+        fence_area: bapf-nav with no flying area in params (nav_area_ne_m): read the autopilot's fence at
+            start, and plan over its inclusion zone (one polygon or circle) once it is read (docs/planner.md,
+            "The autopilot's fence").
         params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
             safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner. Values are
             numbers, strings, booleans, or lists of numbers or of number pairs (bapf-nav's flying area,
@@ -207,7 +210,8 @@ class PlannerConfig:
     seed: int = 0
     random_walk_budget: int = 100
     progress_timeout_s: float = 60.0
-    params: Mapping[str, float | int | bool | str] = field(default_factory=dict)
+    fence_area: bool = True
+    params: Mapping[str, float | int | bool | str | list[float] | list[list[float]]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.name not in _PLANNER_NAMES:

@@ -39,6 +39,7 @@ __all__ = [
     "Route",
     "load_route",
     "local_goal_from_reposition",
+    "ne_from_global",
     "parse_goal_text",
     "route_outside_limits",
 ]
@@ -203,6 +204,14 @@ class GlobalReference:
     pos_ned_m: tuple[float, float, float]
 
 
+def ne_from_global(reference: GlobalReference, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+    """A latitude/longitude [deg] as local NED (north, east) [m]: flat earth around the reference (the areas flown
+    are tens of metres across, where the error is millimetres)."""
+    dn = math.radians(lat_deg - reference.lat_deg) * EARTH_RADIUS_M
+    de = math.radians(lon_deg - reference.lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(reference.lat_deg))
+    return reference.pos_ned_m[0] + dn, reference.pos_ned_m[1] + de
+
+
 class RepositionError(ProtocolError):
     """A DO_REPOSITION that cannot be turned into a goal; ``result`` is the MAV_RESULT to answer with."""
 
@@ -236,10 +245,7 @@ def local_goal_from_reposition(
         lat_deg, lon_deg = x * 1e-7, y * 1e-7
         if not (-90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 180.0):
             raise RepositionError(mavlink.MAV_RESULT_DENIED, f"latitude/longitude out of range: {lat_deg}, {lon_deg}")
-        dn = math.radians(lat_deg - reference.lat_deg) * EARTH_RADIUS_M
-        de = math.radians(lon_deg - reference.lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(reference.lat_deg))
-        north_m = reference.pos_ned_m[0] + dn
-        east_m = reference.pos_ned_m[1] + de
+        north_m, east_m = ne_from_global(reference, lat_deg, lon_deg)
         if z_keep:
             down_m = None
         else:

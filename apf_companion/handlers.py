@@ -39,6 +39,10 @@ from apf_companion.links.messages import (
     GlobalPositionInt,
     Heartbeat,
     LocalPositionNed,
+    MissionAck,
+    MissionCount,
+    MissionItemInt,
+    MissionRecord,
     ObstacleDistance,
     ObstacleDistance3d,
     Odometry,
@@ -120,6 +124,8 @@ class AutopilotHandlers:
             a cycle, and the stream's gaps measure the link's loss).
         route_at_start: Flown once the autopilot is first heard.
         on_param: Handles a PARAM_* addressed to us (apf_companion.params.ParamServer.handle); None = ignored.
+        on_mission: Takes the autopilot's MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK (the fence download,
+            apf_companion.fencereader.FenceReader.on_record); None = ignored.
     """
 
     def __init__(
@@ -134,6 +140,7 @@ class AutopilotHandlers:
         on_pose: Callable[[int], None],
         route_at_start: Route | None,
         on_param: Callable[[ParamRecord], None] | None = None,
+        on_mission: Callable[[MissionRecord], None] | None = None,
     ) -> None:
         self.params = params
         self.perception = perception
@@ -144,6 +151,7 @@ class AutopilotHandlers:
         self._on_pose = on_pose
         self._route_at_start = route_at_start
         self._on_param = on_param
+        self._mission_sink = on_mission
         self.heard = False
         self.heartbeats = 0  # autopilot HEARTBEATs heard (the takeover weighs its evidence by them)
         self.custom_mode: int | None = None
@@ -270,14 +278,22 @@ class AutopilotHandlers:
         alt, rel = rec.alt * MM, rec.relative_alt * MM
         if not all(math.isfinite(v) for v in (lat, lon, alt, rel)) or (rec.lat == 0 and rec.lon == 0):
             return
-        p = pose.pos_ned_m
+        # The local position at the message's own time (the pose history, by the autopilot's boot time), not the
+        # latest pose: a vehicle at 5 m/s moves 0.5 m in the 100 ms between the two streams, and every global goal
+        # and fence vertex placed with this pair would move with it.
+        then = self.perception.history.at(self.perception.scan_time(rec.time_boot_ms, now_s))
+        p = pose.pos_ned_m if then is None else then.pos_ned_m
         self.global_ref = GlobalReference(
-            lat_deg=lat, lon_deg=lon, alt_amsl_m=alt, alt_rel_m=rel, pos_ned_m=(p[0], p[1], p[2])
+            lat_deg=lat, lon_deg=lon, alt_amsl_m=alt, alt_rel_m=rel, pos_ned_m=(float(p[0]), float(p[1]), float(p[2]))
         )
 
     def _on_ekf_status(self, rec: EkfStatusReport, now_s: float) -> None:
         self.ekf_flags = rec.flags
         self.navigator.ekf_ready = self.ekf_ready  # why there is no pose yet (HOLDING reason)
+
+    def _on_mission(self, rec: MissionRecord, now_s: float) -> None:
+        if self._mission_sink is not None:
+            self._mission_sink(rec)
 
     def _on_command_ack(self, rec: CommandAck, now_s: float) -> None:
         if rec.target_component in (0, self.params.component_id):
@@ -387,5 +403,8 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     CommandAck: AutopilotHandlers._on_command_ack,
     PositionTargetLocalNed: AutopilotHandlers._on_position_target_local,
     PositionTargetGlobalInt: AutopilotHandlers._on_position_target_global,
+    MissionCount: AutopilotHandlers._on_mission,
+    MissionItemInt: AutopilotHandlers._on_mission,
+    MissionAck: AutopilotHandlers._on_mission,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

@@ -127,8 +127,10 @@ class Observers:
         self._tap: PlanTap | None = None
 
     def tap(self, planner: Planner) -> PlannerLike:
-        """The planner the navigator calls: ``planner`` behind a ``PlanTap``."""
-        self._tap = PlanTap(planner)
+        """The planner the navigator calls: ``planner`` behind a ``PlanTap`` (the newest one is observed)."""
+        old, self._tap = self._tap, PlanTap(planner)
+        if old is not None:  # a planner swapped at run time (PARAM_SET, the fence): the step count goes on
+            self._tap.seq = old.seq
         return self._tap
 
     def add(self, observers: Sequence[CycleObserver]) -> None:

@@ -146,6 +146,17 @@ class Outbox:
     def ack(self, command: int, result: int, target_system: int, target_component: int) -> None:
         self._send(lambda mav: mav.command_ack_encode(command, result, 0, 0, target_system, target_component))
 
+    def mission_request(self, mission_type: int, seq: int | None) -> None:
+        """MISSION_REQUEST_LIST (``seq`` None) or MISSION_REQUEST_INT of item ``seq``, of ``mission_type``."""
+        if seq is None:
+            self._send(lambda mav: mav.mission_request_list_encode(*self.target, mission_type=mission_type))
+        else:
+            self._send(lambda mav: mav.mission_request_int_encode(*self.target, seq, mission_type=mission_type))
+
+    def mission_ack(self, result: int, mission_type: int) -> None:
+        """MISSION_ACK: the end of a download (MAV_MISSION_ACCEPTED) of ``mission_type``."""
+        self._send(lambda mav: mav.mission_ack_encode(*self.target, result, mission_type=mission_type))
+
     def setpoint(self, sp: Setpoint) -> bool:
         """Send ``sp``; False when it could not be sent (unsendable, a send error, or silent)."""
         if not float32_ok((*sp.pos_ned_m, *sp.vel_ned_m_s)):

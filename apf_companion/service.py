@@ -14,7 +14,9 @@ new pose arrives, at most ``rate_hz``, and on a timer one period after the last 
 is noticed within one cycle), ``apf.status`` (HEARTBEAT at 1 Hz, NAMED_VALUE_FLOAT and the zenoh status at their
 rates), ``apf.takeover`` (steps the takeover controller), ``apf.params`` (the paced PARAM_VALUE list of
 apf_companion.params), ``apf.forward`` (OBSTACLE_DISTANCE to the autopilot, when ``[sensors]
-forward_obstacle_distance``) and ``apf.zenoh`` (scans and goals from zenoh, when enabled).
+forward_obstacle_distance``), ``apf.zenoh`` (scans and goals from zenoh, when enabled) and ``apf.fence`` (the
+autopilot's fence as bapf-nav's flying area, once at start, apf_companion.fencereader; when ``planner.fence_area``
+and the config gives no area).
 
 Clock: ``ServiceClock`` is monotonic and scaled by ``cycle.time_scale`` (vehicle seconds per wall second), so a
 simulated vehicle running N times faster than real time keeps every limit's meaning in vehicle seconds.
@@ -34,6 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
 from apf_companion.autopilot import Autopilot
 from apf_companion.builders import (
     build_navigator,
@@ -51,20 +55,23 @@ from apf_companion.builders import (
 )
 from apf_companion.config import ServiceConfig, ZenohSection
 from apf_companion.errors import ApfCompanionError, ConfigError, ProtocolError
+from apf_companion.fence import FenceArea, FenceOutcome
+from apf_companion.fencereader import STEP_S, FenceReader, FenceReaderParams
 from apf_companion.flightend import FlightEnd, Outcome
 from apf_companion.forwarder import ObstacleForwarder
-from apf_companion.goal import Route, route_outside_limits
+from apf_companion.goal import GlobalReference, Route, route_outside_limits
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.heap import GcPauses
 from apf_companion.linkquality import LinkMeter
 from apf_companion.links import MavlinkLink, TimestampKeeper
 from apf_companion.links.endpoint import connection_hint, parse_endpoint
-from apf_companion.links.messages import DECODERS, decode, source
+from apf_companion.links.messages import DECODERS, Source, decode, source
 from apf_companion.navigator import CycleOutput, Navigator, State, reconfigure
 from apf_companion.observe import CycleObserver, Observers
 from apf_companion.outbox import Outbox
 from apf_companion.params import ParamServer
 from apf_companion.perception import PerceptionFrontEnd, decode_goal_json
+from apf_companion.planning import BapfNavPlanner
 from apf_companion.reporter import FaultLog, ServiceCounters, StatusReporter
 from apf_companion.sdnotify import SystemdNotifier, Watchdog
 from apf_companion.setpoint import Setpoint, SetpointKind
@@ -261,6 +268,7 @@ class CompanionService:
             on_pose=self._pose_arrived,
             route_at_start=route if route is not None else initial_route(config, self.planner),
             on_param=lambda rec: self.params.handle(rec),
+            on_mission=lambda rec: None if self.fence is None else self.fence.on_record(rec),
         )
         self.reporter = StatusReporter(
             reporter_params(config),
@@ -276,6 +284,7 @@ class CompanionService:
         self.forwarder, self.takeover = self._drivers(config)
         self.notifier, self.watchdog = notifier, (Watchdog(notifier) if notifier is not None else None)
         self.params = _param_server(self)
+        self.fence = _fence_reader(self)  # bapf-nav without an area: the autopilot's fence as its area
         self._stop = asyncio.Event()
         self.trigger = CycleTrigger(self.clock, config.cycle.rate_hz)
         self.flight = FlightEnd()
@@ -613,6 +622,8 @@ def _optional_tasks(svc: CompanionService) -> list[tuple[str, Coroutine[Any, Any
         out.append(("apf.zenoh", ZenohInputs(svc.zenoh, svc.config.zenoh, svc).run()))
     if svc.signing_keeper is not None:
         out.append(("apf.signing", svc.signing_keeper.run(lambda err: svc.faults.caught("signing", err))))
+    if svc.fence is not None:
+        out.append(("apf.fence", svc._periodic("fence", svc.fence.due, STEP_S)))
     return out
 
 
@@ -646,10 +657,63 @@ def _param_server(svc: CompanionService) -> ParamServer:
     service at once. Input handling and cycles share one event loop, so that is between two cycles."""
 
     def apply(config: ServiceConfig, planner: Any) -> None:
-        svc.config, svc.planner = config, planner
-        reconfigure(svc.navigator, navigator_params(config, planner), planner)
+        _put_in_service(svc, config, planner)
 
     return ParamServer(svc.config, svc.planner, outbox=svc.outbox, apply=apply, statustext=svc.reporter.statustext)
+
+
+def _put_in_service(svc: CompanionService, config: ServiceConfig, planner: Any) -> None:
+    """A changed config and its planner (a PARAM_SET, the fence's area) into service between two cycles; the
+    navigator calls the planner through the observers' tap, as at start (the recording sees its decisions)."""
+    svc.config, svc.planner = config, planner
+    reconfigure(svc.navigator, navigator_params(config, planner), svc.observers.tap(planner))
+
+
+def _fence_reader(svc: CompanionService) -> FenceReader | None:
+    """The fence download when ``planner.fence_area`` asks for it: bapf-nav, no area in the config, a link."""
+    config = svc.config
+    wanted = config.planner.fence_area and isinstance(svc.planner, BapfNavPlanner)
+    if not wanted or flying_area(svc.planner) is not None or svc.outbox.silent:
+        return None
+    lc = config.link
+    params = FenceReaderParams(
+        our_system=lc.autopilot_sysid,
+        our_component=lc.component_id,
+        autopilot=Source(lc.autopilot_sysid, lc.autopilot_compid),
+    )
+
+    def where() -> tuple[GlobalReference, tuple[float, float]] | None:
+        ref, pose = svc.handlers.global_ref, svc.navigator.pose
+        if ref is None or pose is None:
+            return None
+        return ref, (float(pose.pos_ned_m[0]), float(pose.pos_ned_m[1]))
+
+    return FenceReader(params, outbox=svc.outbox, reference=where, on_area=lambda area: _use_fence(svc, area))
+
+
+def _use_fence(svc: CompanionService, area: FenceArea) -> None:
+    """The fence's inclusion zone becomes bapf-nav's flying area, as a PARAM_SET would change a parameter (between
+    cycles: the goal is kept, the next cycle plans over the area). A fence that is not used is logged and said
+    in a STATUSTEXT (the ground station's user set it up); no fence at all is only logged."""
+    if area.outcome is FenceOutcome.USED and area.polygon_ne_m is not None:
+        pc = svc.config.planner
+        params = {**pc.params, "nav_area_ne_m": [list(v) for v in area.polygon_ne_m]}
+        config = dataclasses.replace(svc.config, planner=dataclasses.replace(pc, params=params))
+        try:
+            planner = build_planner(config)
+        except ConfigError as err:  # e.g. wider than 256 cells of nav_cell_m
+            area = FenceArea(FenceOutcome.NOT_USED, str(err))
+        else:
+            svc.params.config = config
+            _put_in_service(svc, config, planner)
+            log.info("fence.area", extra={"note": area.note, "area_ne_m": params["nav_area_ne_m"]})
+            svc.reporter.statustext(mavlink.MAV_SEVERITY_INFO, f"fence area: {area.note}")
+            return
+    if area.outcome is FenceOutcome.NO_FENCE:
+        log.info("fence.none", extra={"note": area.note})
+        return
+    log.warning("fence.not_used", extra={"outcome": area.outcome.value, "reason": area.note})
+    svc.reporter.statustext(mavlink.MAV_SEVERITY_NOTICE, f"fence not used: {area.note}")
 
 
 def _warn_no_heartbeat(svc: CompanionService) -> None:

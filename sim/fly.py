@@ -90,6 +90,9 @@ class FlyOptions:
     goal_ne_m: tuple[float, float] = PAPER_GOAL
     #: The world file's flying area (a rectangle or a polygon, local NED) [m]: bapf-nav's nav_area_ne_m.
     area_ne_m: FlyingArea | None = None
+    #: The vehicle serves ``area_ne_m`` as its fence and the service reads it (``planner.fence_area``), instead of
+    #: finding it in its config.
+    fence: bool = False
     alt_m: float = 5.0
     speedup: float = 5.0
     rate_hz: float = 10.0
@@ -218,7 +221,7 @@ down_m = {-opt.alt_m}
 
 def _area_toml(opt: FlyOptions) -> str:
     """bapf-nav plans over the world's flying area when the world file gives one (the other planners have none)."""
-    if opt.area_ne_m is None or opt.planner != "bapf-nav":
+    if opt.area_ne_m is None or opt.planner != "bapf-nav" or opt.fence:
         return ""
     return f"""
 [planner.params]
@@ -283,7 +286,7 @@ def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
     if opt.signing_key is not None:
         argv += ["--signing-key", str(opt.signing_key.resolve())]
     if opt.world is not None:
-        argv += ["--world", opt.world]
+        argv += ["--world", opt.world, *(["--fence"] if opt.fence and opt.area_ne_m is not None else [])]
     else:
         argv += ["--paper-field", f"{opt.preset}:{opt.obstacles}", "--field-seed", str(opt.seed)]
     return argv
@@ -717,6 +720,12 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="fly without the world file's flying area (area_ne_m): bapf-nav's grid then moves with the vehicle",
     )
+    p.add_argument(
+        "--fence",
+        action="store_true",
+        help="the vehicle serves the world file's flying area as its fence, and the service reads it from there "
+        "(planner.fence_area) instead of from its config",
+    )
     # "--start -12.0,0.0": argparse takes a word starting with "-" for an option unless it looks like a negative
     # number, and its pattern (argparse._ActionsContainer) has no comma; widen it to N,E pairs for this parser.
     p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d*\.?\d*,-?\d*\.?\d*$")
@@ -816,6 +825,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         start_ne_m=start,
         goal_ne_m=goal,
         area_ne_m=area,
+        fence=args.fence,
         alt_m=args.alt,
         speedup=args.speedup,
         rate_hz=args.rate,

@@ -27,6 +27,10 @@ __all__ = [
     "GlobalPositionInt",
     "Heartbeat",
     "LocalPositionNed",
+    "MissionAck",
+    "MissionCount",
+    "MissionItemInt",
+    "MissionRecord",
     "ObstacleDistance",
     "ObstacleDistance3d",
     "Odometry",
@@ -203,6 +207,43 @@ class ParamSet:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class MissionCount:
+    """The mission protocol's item count (the service reads the fence: mission_type MAV_MISSION_TYPE_FENCE)."""
+
+    src: Source
+    target_system: int
+    target_component: int
+    count: int
+    mission_type: int  # MAV_MISSION_TYPE
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MissionItemInt:
+    """One mission item; for a fence item x/y are latitude/longitude [1e-7 deg] and param1 a vertex count or a
+    radius [m] (MAV_CMD_NAV_FENCE_*)."""
+
+    src: Source
+    target_system: int
+    target_component: int
+    seq: int
+    frame: int  # MAV_FRAME
+    command: int  # MAV_CMD
+    param1: float
+    x: int
+    y: int
+    mission_type: int  # MAV_MISSION_TYPE
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MissionAck:
+    src: Source
+    target_system: int
+    target_component: int
+    type: int  # MAV_MISSION_RESULT
+    mission_type: int  # MAV_MISSION_TYPE
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class PositionTargetLocalNed:
     """The autopilot's current guided target (its echo of SET_POSITION_TARGET_*, or a GCS's "fly here")."""
 
@@ -244,7 +285,14 @@ Record = (
     | ParamSet
     | PositionTargetLocalNed
     | PositionTargetGlobalInt
+    | MissionCount
+    | MissionItemInt
+    | MissionAck
 )
+
+
+#: The mission protocol's answers the service reads (the fence download).
+MissionRecord = MissionCount | MissionItemInt | MissionAck
 
 
 def _src(msg: Any) -> Source:
@@ -438,6 +486,41 @@ def _position_target_global_int(msg: Any) -> PositionTargetGlobalInt:
     )
 
 
+def _mission_count(msg: Any) -> MissionCount:
+    return MissionCount(
+        src=_src(msg),
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        count=int(msg.count),
+        mission_type=int(getattr(msg, "mission_type", 0)),  # a MAVLink 2 extension: 0 (MISSION) when absent
+    )
+
+
+def _mission_item_int(msg: Any) -> MissionItemInt:
+    return MissionItemInt(
+        src=_src(msg),
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        seq=int(msg.seq),
+        frame=int(msg.frame),
+        command=int(msg.command),
+        param1=float(msg.param1),
+        x=int(msg.x),
+        y=int(msg.y),
+        mission_type=int(getattr(msg, "mission_type", 0)),
+    )
+
+
+def _mission_ack(msg: Any) -> MissionAck:
+    return MissionAck(
+        src=_src(msg),
+        target_system=int(msg.target_system),
+        target_component=int(msg.target_component),
+        type=int(msg.type),
+        mission_type=int(getattr(msg, "mission_type", 0)),
+    )
+
+
 DECODERS: dict[str, Callable[[Any], Record]] = {
     "HEARTBEAT": _heartbeat,
     "LOCAL_POSITION_NED": _local_position_ned,
@@ -456,6 +539,9 @@ DECODERS: dict[str, Callable[[Any], Record]] = {
     "PARAM_SET": _param_set,
     "POSITION_TARGET_LOCAL_NED": _position_target_local_ned,
     "POSITION_TARGET_GLOBAL_INT": _position_target_global_int,
+    "MISSION_COUNT": _mission_count,
+    "MISSION_ITEM_INT": _mission_item_int,
+    "MISSION_ACK": _mission_ack,
 }
 """Message type name -> decoder, for every message the service consumes."""
 

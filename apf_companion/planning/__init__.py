@@ -22,6 +22,7 @@ from apf_companion.planning.area import (
     area_bounds,
     area_text,
     inside_area,
+    is_polygon,
     polygon_problem,
 )
 from apf_companion.planning.bapf import BapfPlanner
@@ -93,6 +94,7 @@ __all__ = [
     "branch_obstacle_potential",
     "get_planner",
     "inside_area",
+    "is_polygon",
     "log_sum_exp",
     "moves_downhill",
     "obstacle_potential",

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from apf_companion.errors import ApfCompanionError
+from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.links import load_signing_key
+from apf_companion.planning import FlyingArea
 from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SENSOR_COMPID, SensorOnlyConfig, SensorSimulator
@@ -42,6 +43,11 @@ def _startup_args(v: argparse.ArgumentParser) -> None:
         "--fast-start",
         action="store_true",
         help="EKF origin at boot (ArduPilot otherwise has no position for SIM_EKF_ORIGIN_S = 20 s, as on SITL)",
+    )
+    v.add_argument(
+        "--fence",
+        action="store_true",
+        help="serve the world file's flying area (area_ne_m) as the autopilot's fence: one inclusion polygon",
     )
     v.add_argument(
         "--unasked-streams",
@@ -180,6 +186,17 @@ def _world(args: argparse.Namespace) -> World:
     return World.empty()
 
 
+def _fence(args: argparse.Namespace) -> FlyingArea | None:
+    """--fence: the world file's flying area (an error when it has none: a fence was asked for)."""
+    if not args.fence:
+        return None
+    area = _world(args).area_ne_m
+    if area is None:
+        msg = "--fence: the world has no flying area (area_ne_m) to serve as the fence"
+        raise ConfigError(msg)
+    return area
+
+
 def _sensor_cfg(args: argparse.Namespace, links: tuple[int, ...] | None = None) -> RangeSensorConfig:
     kinds = frozenset() if args.sensor_msg == "none" else frozenset(k.strip() for k in args.sensor_msg.split(","))
     return RangeSensorConfig(
@@ -245,6 +262,7 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         fast_start=args.fast_start,
         unasked_streams=True if args.unasked_streams else None,
         signing_key=None if args.signing_key is None else load_signing_key(args.signing_key),
+        fence=_fence(args),
     )
     stop = asyncio.Event()
     _install_signals(stop)

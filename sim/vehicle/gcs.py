@@ -12,6 +12,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.vehicle.commands import UNSUPPORTED_CMD_LONG_ONLY, Command, handle_command
+from sim.vehicle.fence import FENCE_HANDLERS
 from sim.vehicle.geo import GLOBAL_FRAMES, down_from_alt, latlon_to_ne
 from sim.vehicle.guided import decode_setpoint
 from sim.vehicle.param_protocol import PARAM_HANDLERS
@@ -143,11 +144,6 @@ def _on_request_data_stream(v: VehicleEngine, msg: Any, link: int) -> None:
     v.telemetry.set_data_stream(link, int(msg.req_stream_id), rate_hz, v.t_s)
 
 
-def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
-    mission_type = getattr(msg, "mission_type", 0)
-    v.emit(link, v.mav.mission_count_encode(msg.get_srcSystem(), msg.get_srcComponent(), 0, mission_type=mission_type))
-
-
 HANDLERS: dict[int, MessageHandler] = {
     mavlink.MAVLINK_MSG_ID_COMMAND_LONG: _for_us(_on_command_long),
     mavlink.MAVLINK_MSG_ID_COMMAND_INT: _for_us(_on_command_int),
@@ -155,7 +151,7 @@ HANDLERS: dict[int, MessageHandler] = {
     mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED: _for_us(_on_set_position_target_local_ned),
     mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT: _for_us(_on_set_position_target_global_int),
     **{msg_id: _for_us(fn) for msg_id, fn in PARAM_HANDLERS.items()},
-    mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: _for_us(_on_mission_request_list),
+    **{msg_id: _for_us(fn) for msg_id, fn in FENCE_HANDLERS.items()},  # the fence; no mission, no rally points
     mavlink.MAVLINK_MSG_ID_REQUEST_DATA_STREAM: _for_us(_on_request_data_stream),
     mavlink.MAVLINK_MSG_ID_TIMESYNC: _on_timesync,
     mavlink.MAVLINK_MSG_ID_OBSTACLE_DISTANCE: _on_obstacle_distance,

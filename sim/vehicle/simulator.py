@@ -34,6 +34,7 @@ from typing import Any
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkError
 from apf_companion.links import MavlinkLink, SigningParams, accept_unsigned_only, signing_timestamp
+from apf_companion.planning import FlyingArea
 from sim.vehicle.config import AUTO_DYNAMICS, Dynamics, EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
 from sim.vehicle.engine import VehicleEngine
 from sim.vehicle.sensor import RangeSensorConfig, Scan
@@ -102,6 +103,8 @@ class SimConfig:
             with no position, no arming in GUIDED; see sim/vehicle/startup.py). For tests that do not test startup.
         unasked_streams: stream telemetry without being asked (the old behaviour); None = the profile's habit
             (ArduPilot: HEARTBEAT only until SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM; PX4: its default streams).
+        fence: the autopilot's fence, served over the mission protocol as one inclusion polygon (sim.vehicle.fence);
+            None: no fence (count 0).
         signing_key: MAVLink 2 signing key (32 bytes, ``apf_companion.links.load_signing_key``): every link signs
             its frames (link id = link index, timestamp from the wall clock, as ArduPilot with a GPS fix) and
             drops frames not signed with it, except the profile's ``UNSIGNED_ACCEPTED``; None = signing off.
@@ -125,6 +128,7 @@ class SimConfig:
     fast_start: bool = False
     unasked_streams: bool | None = None
     signing_key: bytes | None = None
+    fence: FlyingArea | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "links", tuple(self.links))
@@ -168,6 +172,7 @@ class SimConfig:
             rates_hz=dict(self.rates_hz),
             fast_start=self.fast_start,
             unasked_streams=self.unasked_streams,
+            fence=self.fence,
         )
 
 

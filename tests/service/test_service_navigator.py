@@ -13,9 +13,10 @@ from apf_companion.builders import build_navigator
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.navigator import Navigator, State
-from apf_companion.observe import PlanTap
+from apf_companion.observe import Observers, PlanTap
 from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, Pose
-from apf_companion.planning import GiveUp
+from apf_companion.planning import GiveUp, PlannerParams, get_planner
+from apf_companion.reporter import FaultLog, ServiceCounters
 from apf_companion.service import build_planner
 from apf_companion.setpoint import SetpointKind
 from apf_companion.status import STATUSTEXT_MAX, statustext_for
@@ -373,3 +374,19 @@ def test_stuck_says_why_bapf_nav_gave_up(centre_ne_m: tuple[float, float], cause
 def test_every_give_up_cause_fits_one_statustext() -> None:
     for cause in GiveUp:
         assert len(f"APF {State.STUCK.value}: planner gave up: {cause.text}") <= STATUSTEXT_MAX
+
+
+def test_a_planner_swapped_at_run_time_is_observed_and_its_steps_counted_on() -> None:
+    """A PARAM_SET or the fence's area puts a new planner in service: the observers tap the new one (the
+    recording shows its decisions, not the old tap's last), and the plan sequence number goes on."""
+    observers = Observers(FaultLog(ServiceCounters()))
+    first = observers.tap(get_planner("bapf-nav", PlannerParams()))
+    assert isinstance(first, PlanTap)
+    for _ in range(3):
+        first.step(np.zeros(2), np.array([10.0, 0.0]), np.zeros((0, 2)), np.random.default_rng(0))
+    second = observers.tap(get_planner("bapf-nav", PlannerParams(rho_l_m=0.6)))
+    assert isinstance(second, PlanTap) and second is not first and second.seq == 3
+    assert second.plan() is None  # nothing stepped on the new planner yet
+    second.step(np.zeros(2), np.array([10.0, 0.0]), np.zeros((0, 2)), np.random.default_rng(0))
+    plan = second.plan()
+    assert plan is not None and plan.seq == 4

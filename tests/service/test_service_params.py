@@ -17,6 +17,7 @@ from apf_companion.config import config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
+from apf_companion.observe import PlanTap
 from apf_companion.params import PARAMS, config_with
 from apf_companion.planning.params import PlannerParams
 from apf_companion.service import CompanionService
@@ -105,7 +106,8 @@ async def test_set_valid_value_is_used_by_the_running_planner() -> None:
         msg = await set_param(gcs, "APF_CRUISE_SPD", 0.3)
         assert msg.param_value == pytest.approx(0.3)
         assert svc.navigator.params.cruise_speed_m_s == pytest.approx(0.3)
-        assert svc.navigator.planner is svc.params.planner
+        tap = svc.navigator.planner  # behind the observers' tap, as at start: the recording sees the new planner
+        assert isinstance(tap, PlanTap) and tap.planner is svc.params.planner
         n_before = len(ap.setpoints())
 
         def speeds() -> list[float]:

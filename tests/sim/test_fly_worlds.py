@@ -78,6 +78,24 @@ def test_a_world_s_polygonal_area_reaches_the_service_s_planner(tmp_path: Path) 
     assert planner.params.nav_area_ne_m == area
 
 
+def test_fly_fence_serves_the_area_from_the_vehicle_instead_of_the_config(tmp_path: Path) -> None:
+    """``apf-sim fly --world yard-l --fence``: the vehicle gets ``--fence`` (it serves the area as its fence) and
+    the service's config has no area, so the service reads it from the vehicle (``planner.fence_area``)."""
+    args = build_parser().parse_args(["fly", "--world", "yard-l", "--fence"])
+    start, goal, area = _start_goal(args)
+    opt = FlyOptions(world="yard-l", start_ne_m=start, goal_ne_m=goal, area_ne_m=area, fence=args.fence)
+    assert "--fence" in _sim_argv(opt, 14550, 14551)
+    config = config_from_mapping(tomllib.loads(_service_toml(opt, 14550, tmp_path / "c.tlog")))
+    assert config.planner.fence_area and build_planner(config).params.nav_area_ne_m is None
+    plain = FlyOptions(world="yard-l", start_ne_m=start, goal_ne_m=goal, area_ne_m=area)
+    assert "--fence" not in _sim_argv(plain, 14550, 14551)
+    proc = subprocess.run(
+        [sys.executable, "-m", "sim.cli", "vehicle", "--world", "slit", "--fence", "--duration", "0.1"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert proc.returncode != 0 and "--fence: the world has no flying area" in proc.stderr
+
+
 @pytest.mark.slow
 def test_fly_world_from_a_negative_start(tmp_path: Path) -> None:
     out = tmp_path / "out"

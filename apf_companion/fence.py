@@ -1,0 +1,244 @@
+"""The autopilot's geofence as bapf-nav's flying area: its download (the MAVLink mission protocol for
+MAV_MISSION_TYPE_FENCE, a state machine on an injected clock) and its items as a polygon in local NED.
+
+A fence is a list of mission items (common.xml, MAV_CMD_NAV_FENCE_*): polygon vertices of inclusion or exclusion
+zones (``param1`` = the polygon's vertex count, on each vertex), circles (``param1`` = radius) and a return
+point; ``x``/``y`` are latitude/longitude in 1e-7 degrees. ArduPilot keeps the vehicle inside every inclusion
+zone (their intersection, unless FENCE_OPTIONS asks for the union) and outside every exclusion zone
+(``libraries/AC_Fence/AC_PolyFence_loader.cpp``, ``breached``); PX4 takes the same items.
+
+The flying area is one polygon without holes (``planning.area``), so a fence becomes one when it has exactly one
+inclusion zone: that polygon, or a circle's inscribed 32-gon (inside the circle: never wider than the fence).
+Exclusion zones are left to the autopilot, which still enforces them, and said so. Anything else (no inclusion
+zone, two or more, a malformed polygon, the vehicle outside the zone) leaves the planner without a fence area,
+with the reason. The download is driven by ``due`` (what to send now) and the ``on_*`` answers; each request is
+repeated after ``timeout_s``, at most ``retries`` times, then the download fails with its reason.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from apf_companion.goal import GlobalReference, ne_from_global
+from apf_companion.planning import PolygonNE, inside_area, polygon_problem
+
+__all__ = ["FenceArea", "FenceDownload", "FenceItem", "FenceOutcome", "FenceSend", "FenceStage", "fence_area"]
+
+#: Vertices of the polygon that stands for an inclusion circle (inscribed: inside the circle).
+CIRCLE_VERTICES = 32
+#: Fence items the download accepts, at most (ArduPilot keeps about 84 on a Pixhawk, more on an SD card).
+MAX_FENCE_ITEMS = 512
+
+_VERTEX_IN = mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION
+_VERTEX_OUT = mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION
+_CIRCLE_IN = mavlink.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION
+_CIRCLE_OUT = mavlink.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION
+_RETURN = mavlink.MAV_CMD_NAV_FENCE_RETURN_POINT
+_DEG_E7 = 1e-7
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FenceItem:
+    """One fence item (MISSION_ITEM_INT with mission_type FENCE): its command, param1 (vertex count or radius
+    [m]) and position (latitude, longitude in 1e-7 degrees)."""
+
+    seq: int
+    command: int  # MAV_CMD_NAV_FENCE_*
+    param1: float
+    x: int  # latitude [1e-7 deg]
+    y: int  # longitude [1e-7 deg]
+
+
+class FenceStage(enum.Enum):
+    """Where a fence download is."""
+
+    IDLE = "idle"
+    COUNT = "count"  # MISSION_REQUEST_LIST sent, waiting for MISSION_COUNT
+    ITEMS = "items"  # MISSION_REQUEST_INT sent, waiting for that MISSION_ITEM_INT
+    DONE = "done"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True, slots=True)
+class FenceSend:
+    """What the download sends now: the list request (``seq`` None), one item's request, or the closing ack."""
+
+    seq: int | None = None
+    ack: bool = False
+
+
+class FenceDownload:
+    """The fence download's state (module docstring); ``timeout_s`` [s] between repeats, ``retries`` repeats."""
+
+    def __init__(self, timeout_s: float = 1.0, retries: int = 5) -> None:
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.stage = FenceStage.IDLE
+        #: Why the download failed ("" unless FAILED).
+        self.reason = ""
+        self.items: list[FenceItem] = []
+        #: Answers that were not the one awaited (a repeated item, a stray count): counted, dropped.
+        self.unexpected = 0
+        self._count = 0
+        self._sent_at = -math.inf
+        self._tries = 0
+        self._ack_due = False
+
+    def start(self) -> None:
+        """Begin (again): ask for the count at the next ``due``."""
+        self.stage, self.reason, self.items = FenceStage.COUNT, "", []
+        self._sent_at, self._tries, self._ack_due = -math.inf, 0, False
+
+    def due(self, now_s: float) -> FenceSend | None:
+        """What to send at ``now_s``, if anything: a request when its answer is overdue (or not yet asked)."""
+        if self._ack_due:
+            self._ack_due = False
+            return FenceSend(ack=True)
+        if self.stage not in (FenceStage.COUNT, FenceStage.ITEMS) or now_s - self._sent_at < self.timeout_s:
+            return None
+        if self._tries > self.retries:
+            what = "MISSION_COUNT" if self.stage is FenceStage.COUNT else f"fence item {len(self.items)}"
+            self._fail(f"no {what} after {self.retries + 1} requests")
+            return None
+        self._tries += 1
+        self._sent_at = now_s
+        return FenceSend(seq=None if self.stage is FenceStage.COUNT else len(self.items))
+
+    def on_count(self, count: int) -> None:
+        """MISSION_COUNT (fence) from the autopilot."""
+        if self.stage is not FenceStage.COUNT:
+            self.unexpected += 1
+            return
+        if not 0 <= count <= MAX_FENCE_ITEMS:
+            self._fail(f"the fence has {count} items (at most {MAX_FENCE_ITEMS} are read)")
+            return
+        self._count = count
+        self.stage = FenceStage.ITEMS if count else FenceStage.DONE
+        self._sent_at, self._tries = -math.inf, 0
+
+    def on_item(self, item: FenceItem) -> None:
+        """MISSION_ITEM_INT (fence): the awaited one is kept, any other counted and dropped."""
+        if self.stage is not FenceStage.ITEMS or item.seq != len(self.items):
+            self.unexpected += 1
+            return
+        self.items.append(item)
+        self._sent_at, self._tries = -math.inf, 0
+        if len(self.items) == self._count:
+            self.stage, self._ack_due = FenceStage.DONE, True
+
+    def on_ack(self, result: int) -> None:
+        """MISSION_ACK (fence) during the download: the autopilot refuses (no fence support, busy)."""
+        if self.stage in (FenceStage.COUNT, FenceStage.ITEMS) and result != mavlink.MAV_MISSION_ACCEPTED:
+            self._fail(f"the autopilot answered MISSION_ACK {_enum_name('MAV_MISSION_RESULT', result)}")
+
+    def _fail(self, reason: str) -> None:
+        self.stage, self.reason = FenceStage.FAILED, reason
+
+
+class FenceOutcome(enum.Enum):
+    """What became of the autopilot's fence."""
+
+    USED = "used"  # its inclusion zone is the flying area
+    NO_FENCE = "no fence"  # the autopilot has none (count 0)
+    NOT_USED = "not used"  # it has one that is no single inclusion zone around the vehicle
+    FAILED = "failed"  # the download did not finish
+
+
+@dataclass(frozen=True, slots=True)
+class FenceArea:
+    """A fence read as a flying area: the polygon (local NED north/east [m]) when USED, and what was done."""
+
+    outcome: FenceOutcome
+    note: str
+    polygon_ne_m: PolygonNE | None = None
+
+
+def fence_area(items: Sequence[FenceItem], reference: GlobalReference, vehicle_ne_m: tuple[float, float]) -> FenceArea:
+    """The flying area of a downloaded fence (module docstring). ``reference`` places latitude/longitude in local
+    NED; the vehicle at ``vehicle_ne_m`` must lie in the zone (a fence stored for another field is not used)."""
+    if not items:
+        return FenceArea(FenceOutcome.NO_FENCE, "the autopilot has no fence")
+    zones = _zones(items)
+    if isinstance(zones, str):
+        return _not_used(zones)
+    inclusions = [z for z in zones if z.inclusion]
+    excluded = len(zones) - len(inclusions)
+    if not inclusions:
+        return _not_used("no inclusion zone" + (f" ({excluded} exclusion zones)" if excluded else ""))
+    if len(inclusions) > 1:
+        return _not_used(f"{len(inclusions)} inclusion zones: their intersection is not used")
+    polygon = inclusions[0].polygon(reference)
+    problem = polygon_problem(polygon)
+    if problem is not None:
+        return _not_used(f"the inclusion zone is not {problem}")
+    if not inside_area(polygon, *vehicle_ne_m):
+        return _not_used("the vehicle is outside the inclusion zone")
+    note = f"inclusion {inclusions[0].kind} of {len(polygon)} vertices"
+    if excluded:
+        note += f"; {excluded} exclusion zones are left to the autopilot"
+    return FenceArea(FenceOutcome.USED, note, polygon)
+
+
+def _not_used(reason: str) -> FenceArea:
+    return FenceArea(FenceOutcome.NOT_USED, reason)
+
+
+@dataclass(frozen=True, slots=True)
+class _Zone:
+    """One fence zone: its items (a polygon's vertices, or one circle)."""
+
+    inclusion: bool
+    circle: bool
+    items: tuple[FenceItem, ...]
+
+    @property
+    def kind(self) -> str:
+        return "circle" if self.circle else "polygon"
+
+    def polygon(self, reference: GlobalReference) -> PolygonNE:
+        """The zone in local NED [m]: its vertices, or the circle's inscribed polygon."""
+        if not self.circle:
+            return tuple(ne_from_global(reference, it.x * _DEG_E7, it.y * _DEG_E7) for it in self.items)
+        centre = self.items[0]
+        north, east = ne_from_global(reference, centre.x * _DEG_E7, centre.y * _DEG_E7)
+        radius = float(centre.param1)
+        turns = [k * math.tau / CIRCLE_VERTICES for k in range(CIRCLE_VERTICES)]
+        return tuple((north + radius * math.cos(a), east + radius * math.sin(a)) for a in turns)
+
+
+def _zones(items: Sequence[FenceItem]) -> list[_Zone] | str:
+    """The items grouped into zones, or why they cannot be (the item and what is wrong with it)."""
+    zones: list[_Zone] = []
+    i = 0
+    while i < len(items):
+        it = items[i]
+        if not (abs(it.x) <= 900_000_000 and abs(it.y) <= 1_800_000_000):
+            return f"fence item {i}: latitude/longitude out of range"
+        if it.command == _RETURN:
+            i += 1
+        elif it.command in (_CIRCLE_IN, _CIRCLE_OUT):
+            if not (math.isfinite(it.param1) and it.param1 > 0.0):
+                return f"fence item {i}: circle radius {it.param1!r}"
+            zones.append(_Zone(it.command == _CIRCLE_IN, True, (it,)))
+            i += 1
+        elif it.command in (_VERTEX_IN, _VERTEX_OUT):
+            count = int(it.param1) if math.isfinite(it.param1) else 0
+            group = tuple(items[i : i + count])
+            if count < 3 or len(group) < count or any(g.command != it.command for g in group):
+                return f"fence item {i}: a polygon of {it.param1!r} vertices that its items do not make"
+            zones.append(_Zone(it.command == _VERTEX_IN, False, group))
+            i += count
+        else:
+            return f"fence item {i}: command {it.command} is no fence item"
+    return zones
+
+
+def _enum_name(enum_name: str, value: int) -> str:
+    """A MAVLink enum value's name from pymavlink's dialect (the number when unknown)."""
+    entry = mavlink.enums.get(enum_name, {}).get(value)
+    return entry.name if entry is not None else str(value)

@@ -1,0 +1,211 @@
+"""The autopilot's fence as bapf-nav's flying area, without sockets: the download's state machine on an injected
+clock (repeats, give-up, stray and refused answers), the items read as one polygon (polygons, circles, exclusion
+zones, malformed fences), and the reader's filter (answers to someone else, other mission types)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from apf_companion.fence import (
+    CIRCLE_VERTICES,
+    FenceArea,
+    FenceDownload,
+    FenceItem,
+    FenceOutcome,
+    FenceSend,
+    FenceStage,
+    fence_area,
+)
+from apf_companion.fencereader import FenceReader, FenceReaderParams
+from apf_companion.goal import EARTH_RADIUS_M, GlobalReference
+from apf_companion.links.messages import MissionAck, MissionCount, MissionItemInt, Source
+from apf_companion.outbox import Outbox
+from apf_companion.planning import inside_area
+
+VERTEX_IN = mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION
+VERTEX_OUT = mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION
+CIRCLE_IN = mavlink.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION
+CIRCLE_OUT = mavlink.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION
+RETURN = mavlink.MAV_CMD_NAV_FENCE_RETURN_POINT
+FENCE = mavlink.MAV_MISSION_TYPE_FENCE
+
+#: The vehicle at (10, 5, -5) local NED, at Canberra's SITL home.
+REF = GlobalReference(
+    lat_deg=-35.363262, lon_deg=149.165237, alt_amsl_m=589.0, alt_rel_m=5.0, pos_ned_m=(10.0, 5.0, -5.0)
+)
+L_SHAPE = ((-3.0, -3.0), (23.0, -3.0), (23.0, 6.0), (9.0, 6.0), (9.0, 23.0), (-3.0, 23.0))
+
+
+def _latlon_e7(north: float, east: float) -> tuple[int, int]:
+    """Local NED -> latitude/longitude [1e-7 deg] around ``REF`` (the inverse of ``goal.ne_from_global``)."""
+    dn, de = north - REF.pos_ned_m[0], east - REF.pos_ned_m[1]
+    lat = REF.lat_deg + math.degrees(dn / EARTH_RADIUS_M)
+    lon = REF.lon_deg + math.degrees(de / (EARTH_RADIUS_M * math.cos(math.radians(REF.lat_deg))))
+    return round(lat * 1e7), round(lon * 1e7)
+
+
+def _polygon(vertices: tuple[tuple[float, float], ...], command: int = VERTEX_IN, first: int = 0) -> list[FenceItem]:
+    return [
+        FenceItem(seq=first + i, command=command, param1=float(len(vertices)), x=x, y=y)
+        for i, (x, y) in enumerate(_latlon_e7(n, e) for n, e in vertices)
+    ]
+
+
+def _circle(north: float, east: float, radius_m: float, command: int, seq: int = 0) -> FenceItem:
+    x, y = _latlon_e7(north, east)
+    return FenceItem(seq=seq, command=command, param1=radius_m, x=x, y=y)
+
+
+def test_one_inclusion_polygon_is_the_area_to_a_centimetre() -> None:
+    items = [FenceItem(seq=0, command=RETURN, param1=0.0, x=_latlon_e7(0, 0)[0], y=_latlon_e7(0, 0)[1])]
+    items += _polygon(L_SHAPE, first=1)
+    area = fence_area(items, REF, (10.0, 5.0))
+    assert area.outcome is FenceOutcome.USED and area.note == "inclusion polygon of 6 vertices"
+    assert area.polygon_ne_m is not None and len(area.polygon_ne_m) == 6
+    for (n, e), (n0, e0) in zip(area.polygon_ne_m, L_SHAPE, strict=True):
+        assert abs(n - n0) < 0.01 and abs(e - e0) < 0.01  # 1e-7 deg is 1.1 cm
+
+
+def test_an_inclusion_circle_becomes_its_inscribed_polygon_and_exclusions_are_left_to_the_autopilot() -> None:
+    items = [_circle(10.0, 5.0, 20.0, CIRCLE_IN), _circle(15.0, 5.0, 2.0, CIRCLE_OUT, seq=1)]
+    items += _polygon(((0.0, 10.0), (2.0, 10.0), (2.0, 12.0)), VERTEX_OUT, first=2)
+    area = fence_area(items, REF, (10.0, 5.0))
+    assert area.outcome is FenceOutcome.USED
+    assert area.note == "inclusion circle of 32 vertices; 2 exclusion zones are left to the autopilot"
+    assert area.polygon_ne_m is not None and len(area.polygon_ne_m) == CIRCLE_VERTICES
+    radii = [math.hypot(n - 10.0, e - 5.0) for n, e in area.polygon_ne_m]
+    assert all(abs(r - 20.0) < 0.02 for r in radii)  # vertices on the circle: the polygon lies inside it
+    assert not inside_area(area.polygon_ne_m, 10.0 + 19.9, 5.0 + 0.5 * 20.0 * math.tau / CIRCLE_VERTICES)
+
+
+@pytest.mark.parametrize(
+    ("items", "outcome", "note"),
+    [
+        ([], FenceOutcome.NO_FENCE, "the autopilot has no fence"),
+        (_polygon(((0.0, 0.0), (5.0, 0.0), (5.0, 5.0)), VERTEX_OUT), FenceOutcome.NOT_USED, "no inclusion zone (1 "),
+        (
+            [_circle(10.0, 5.0, 30.0, CIRCLE_IN), *_polygon(L_SHAPE, first=1)],
+            FenceOutcome.NOT_USED,
+            "2 inclusion zones",
+        ),
+        (_polygon(((40.0, 40.0), (60.0, 40.0), (60.0, 60.0))), FenceOutcome.NOT_USED, "the vehicle is outside"),
+        (_polygon(L_SHAPE)[:4], FenceOutcome.NOT_USED, "fence item 0: a polygon of 6.0 vertices"),  # cut short
+        (
+            [FenceItem(seq=i, command=VERTEX_IN, param1=math.nan, x=0, y=0) for i in range(3)],
+            FenceOutcome.NOT_USED,
+            "fence item 0: a polygon of nan",
+        ),
+        ([_circle(10.0, 5.0, -1.0, CIRCLE_IN)], FenceOutcome.NOT_USED, "fence item 0: circle radius -1.0"),
+        ([FenceItem(seq=0, command=16, param1=0.0, x=0, y=0)], FenceOutcome.NOT_USED, "command 16 is no fence item"),
+        (
+            [FenceItem(seq=0, command=CIRCLE_IN, param1=5.0, x=2_000_000_000, y=0)],
+            FenceOutcome.NOT_USED,
+            "out of range",
+        ),
+        (_polygon(((0.0, 0.0), (20.0, 20.0), (20.0, 0.0), (0.0, 25.0))), FenceOutcome.NOT_USED, "edges do not cross"),
+    ],
+    ids=[
+        "none",
+        "only-exclusion",
+        "two-inclusions",
+        "elsewhere",
+        "short",
+        "nan-count",
+        "radius",
+        "command",
+        "lat",
+        "bow",
+    ],
+)
+def test_fences_that_are_no_single_zone_around_the_vehicle_are_not_used(
+    items: list[FenceItem], outcome: FenceOutcome, note: str
+) -> None:
+    area = fence_area(items, REF, (10.0, 5.0))
+    assert area.outcome is outcome and area.polygon_ne_m is None
+    assert note in area.note
+
+
+def test_the_download_asks_repeats_and_acks() -> None:
+    d = FenceDownload(timeout_s=1.0, retries=2)
+    assert d.due(0.0) is None  # not started
+    d.start()
+    assert d.due(0.0) == FenceSend(seq=None)  # MISSION_REQUEST_LIST
+    assert d.due(0.5) is None  # within the timeout
+    assert d.due(1.0) == FenceSend(seq=None)  # repeated
+    d.on_count(3)
+    assert d.stage is FenceStage.ITEMS
+    assert d.due(1.1) == FenceSend(seq=0)  # at once, not after the timeout
+    items = _polygon(((0.0, 0.0), (5.0, 0.0), (5.0, 5.0)))
+    d.on_item(items[1])  # out of order: dropped and counted
+    assert d.unexpected == 1 and d.items == []
+    d.on_item(items[0])
+    assert d.due(1.2) == FenceSend(seq=1)
+    d.on_item(items[1])
+    d.on_item(items[1])  # a repeat (the request was repeated): dropped
+    assert d.unexpected == 2
+    assert d.due(1.3) == FenceSend(seq=2)
+    d.on_item(items[2])
+    assert _stage(d) is FenceStage.DONE and d.items == items
+    assert d.due(1.4) == FenceSend(ack=True)  # the closing MISSION_ACK, once
+    assert d.due(9.0) is None
+    d.on_count(3)  # a late count: counted, nothing restarts
+    assert d.unexpected == 3 and _stage(d) is FenceStage.DONE
+
+
+def test_the_download_gives_up_after_its_retries_and_on_a_refusal() -> None:
+    d = FenceDownload(timeout_s=1.0, retries=2)
+    d.start()
+    sends = [d.due(float(t)) for t in range(5)]
+    assert sends[:3] == [FenceSend(seq=None)] * 3 and sends[3:] == [None, None]
+    assert d.stage is FenceStage.FAILED and d.reason == "no MISSION_COUNT after 3 requests"
+    d.start()
+    assert d.due(10.0) == FenceSend(seq=None)
+    d.on_count(2)
+    d.on_ack(mavlink.MAV_MISSION_DENIED)  # a ground station is uploading
+    assert d.stage is FenceStage.FAILED and d.reason == "the autopilot answered MISSION_ACK MAV_MISSION_DENIED"
+    d.start()
+    d.on_count(100_000)
+    assert d.stage is FenceStage.FAILED and "100000 items" in d.reason
+    d.start()
+    d.on_count(0)
+    assert _stage(d) is FenceStage.DONE and d.due(20.0) is None  # nothing to ack
+
+
+def test_the_reader_takes_only_fence_answers_addressed_to_it() -> None:
+    results: list[FenceArea] = []
+    outbox = Outbox(None, dry_run=False, target_system=1, target_component=1, now_s=lambda: 0.0)
+    reader = FenceReader(
+        FenceReaderParams(our_system=1, our_component=191, autopilot=Source(1, 1)),
+        outbox=outbox,
+        reference=lambda: (REF, (10.0, 5.0)),
+        on_area=results.append,
+    )
+    ap = Source(1, 1)
+    assert reader.due(0.0) == pytest.approx(0.1)
+    assert reader.download.stage is FenceStage.COUNT
+    reader.on_record(MissionCount(src=ap, target_system=255, target_component=190, count=6, mission_type=FENCE))
+    reader.on_record(MissionCount(src=ap, target_system=1, target_component=191, count=6, mission_type=0))
+    assert reader.ignored == 2 and reader.download.stage is FenceStage.COUNT  # a GCS's download; a mission
+    reader.on_record(MissionCount(src=ap, target_system=1, target_component=191, count=6, mission_type=FENCE))
+    for item in _polygon(L_SHAPE):
+        reader.due(0.2)
+        reader.on_record(
+            MissionItemInt(
+                src=ap, target_system=1, target_component=191, seq=item.seq, frame=mavlink.MAV_FRAME_GLOBAL,
+                command=item.command, param1=item.param1, x=item.x, y=item.y, mission_type=FENCE,
+            )
+        )  # fmt: skip
+    reader.due(0.3)  # the closing ack
+    assert results == []
+    reader.due(0.4)
+    assert len(results) == 1 and results[0].outcome is FenceOutcome.USED and reader.result is results[0]
+    reader.on_record(MissionAck(src=ap, target_system=1, target_component=191, type=0, mission_type=FENCE))
+    assert reader.ignored == 3 and reader.due(0.5) > 1000.0  # finished: once
+
+
+def _stage(d: FenceDownload) -> FenceStage:
+    """The stage as the download has it now (mypy narrows ``d.stage`` across the calls that change it)."""
+    return d.stage

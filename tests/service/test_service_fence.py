@@ -1,0 +1,97 @@
+"""The autopilot's fence read over real loopback MAVLink from the bundled simulator, which serves a world file's
+flying area as its fence (mission protocol, mission_type FENCE): bapf-nav then plans over it and flies the walled
+world through it; without a fence, or with an area in the config, nothing changes."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from apf_companion.config import ServiceConfig, config_from_mapping
+from apf_companion.fence import FenceOutcome
+from apf_companion.goal import Route
+from apf_companion.navigator import State
+from apf_companion.planning import FlyingArea
+from apf_companion.service import CompanionService
+from sim.vehicle import SimConfig, Simulator, SpawnConfig
+from sim.world import load_world
+from tests.conftest import HANG_S, SimulatorClock, until
+from tests.service.test_service_flight import SPEEDUP, _as_mapping, running, service_config, wait_state
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+YARD = load_world("yard-l")
+
+
+def _config(**planner: Any) -> ServiceConfig:
+    """test_service_flight's config with bapf-nav, its ``[planner]`` table updated with ``planner``."""
+    base = _as_mapping(service_config(planner="bapf-nav"))
+    base["planner"] |= planner
+    return config_from_mapping(base)
+
+
+@contextlib.asynccontextmanager
+async def yard_flight(
+    fence: FlyingArea | None, route: Route | None = None
+) -> AsyncIterator[tuple[CompanionService, Simulator]]:
+    """The service (bapf-nav) and the simulator flying yard-l from its start, the simulator serving ``fence``."""
+    svc = await CompanionService.open(_config(), route=route, clock=SimulatorClock(SPEEDUP))
+    assert svc.link is not None and svc.link.local_address is not None
+    sim = await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{svc.link.local_address[1]}"],
+            world=YARD,
+            speedup=SPEEDUP,
+            seed=3,
+            spawn=SpawnConfig(pos_ne_m=YARD.start_ne_m, airborne=True, alt_m=5.0),
+            fence=fence,
+        )
+    )
+    async with running(svc, sim):
+        yield svc, sim
+
+
+async def test_the_fence_becomes_the_flying_area_and_the_yard_is_flown_round_its_corner() -> None:
+    """yard-l's L, served as the autopilot's fence: read within seconds of the first global position, to a
+    centimetre; said once in a STATUSTEXT; the goal in the other arm is reached round the inner corner."""
+    assert YARD.goal_ne_m is not None and YARD.area_ne_m is not None
+    route = Route.point(*YARD.goal_ne_m, -5.0, source="test")
+    async with yard_flight(YARD.area_ne_m, route=route) as (svc, sim):
+        assert svc.fence is not None
+        await until(lambda: svc.fence is not None and svc.fence.result is not None, HANG_S, "the fence read")
+        result = svc.fence.result
+        assert result is not None and result.outcome is FenceOutcome.USED, result
+        area = svc.planner.params.nav_area_ne_m
+        assert area is not None and len(area) == 6
+        want: list[tuple[float, float]] = [(float(v[0]), float(v[1])) for v in YARD.area_ne_m]  # type: ignore[index]
+        for got, (n0, e0) in zip(area, want, strict=True):
+            assert isinstance(got, tuple) and abs(got[0] - n0) < 0.02 and abs(got[1] - e0) < 0.02
+        assert svc.params.config.planner.params["nav_area_ne_m"] == [list(v) for v in area]  # PARAM_SET keeps it
+        assert await wait_state(svc, {State.ARRIVED, State.STUCK}, 240.0) is State.ARRIVED, svc.result()
+        res = sim.result()
+        assert not res["collided"] and res["min_clearance_m"] >= 0.35
+        assert svc.fence.download.unexpected == 0
+
+
+async def test_no_fence_leaves_the_planner_as_configured() -> None:
+    async with yard_flight(None) as (svc, _):
+        assert svc.fence is not None
+        await until(lambda: svc.fence is not None and svc.fence.result is not None, HANG_S, "the fence read")
+        assert svc.fence.result is not None and svc.fence.result.outcome is FenceOutcome.NO_FENCE
+        assert svc.planner.params.nav_area_ne_m is None
+
+
+@pytest.mark.parametrize(
+    "planner",
+    [{"params": {"nav_area_ne_m": [-3.0, -3.0, 23.0, 23.0]}}, {"fence_area": False}],
+    ids=["area-in-config", "fence-off"],
+)
+async def test_an_area_in_the_config_or_fence_area_off_reads_no_fence(planner: dict[str, Any]) -> None:
+    svc = await CompanionService.open(_config(**planner))
+    try:
+        assert svc.fence is None
+    finally:
+        await svc.aclose()
