@@ -30,7 +30,7 @@ from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionParams, PoseLimits
-from apf_companion.planning import BapfNavPlanner, FlyingArea, PlannerName, PlannerParams, get_planner
+from apf_companion.planning import BapfNavPlanner, FlyingArea, KeepOuts, PlannerName, PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
 
@@ -250,7 +250,7 @@ def initial_route(config: ServiceConfig, planner: object) -> Route | None:
 
     Raises:
         ConfigError: the route file is invalid, or a waypoint lies outside bapf-nav's flying area
-            (``planner.params.nav_area_ne_m``), where the planner would give up at once.
+            (``planner.params.nav_area_ne_m``) or in a keep-out zone, where the planner would give up at once.
     """
     g = config.goal
     route = None
@@ -260,8 +260,10 @@ def initial_route(config: ServiceConfig, planner: object) -> Route | None:
         route = Route.point(g.north_m, g.east_m, g.down_m, source="config")
     if route is not None:
         # A configured waypoint outside the flying area is a config error, not a STUCK after take-off.
-        area = flying_area(planner)
-        why = route_outside_limits(route, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=area)
+        area, keepouts = flying_area(planner), keepout_zones(planner)
+        why = route_outside_limits(
+            route, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=area, keepouts_ne_m=keepouts
+        )
         if why is not None:
             raise ConfigError(f"goal: {why}: bapf-nav would give up at once")
     return route
@@ -271,6 +273,11 @@ def flying_area(planner: object) -> FlyingArea | None:
     """The flying area bapf-nav plans over (its validated ``params.nav_area_ne_m``), or None: no area, or another
     planner (they do not use one)."""
     return planner.params.nav_area_ne_m if isinstance(planner, BapfNavPlanner) else None
+
+
+def keepout_zones(planner: object) -> KeepOuts:
+    """bapf-nav's keep-out zones (``params.nav_keepout_ne_m``); none for the other planners."""
+    return planner.params.nav_keepout_ne_m if isinstance(planner, BapfNavPlanner) else ()
 
 
 @dataclass(frozen=True, slots=True)

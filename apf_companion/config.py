@@ -200,8 +200,8 @@ class PlannerConfig:
             "The autopilot's fence").
         params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
             safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner. Values are
-            numbers, strings, booleans, or lists of numbers or of number pairs (bapf-nav's flying area,
-            nav_area_ne_m: a rectangle or a polygon).
+            numbers, strings, booleans, or lists of numbers or of such lists (bapf-nav's flying area,
+            nav_area_ne_m: a rectangle or a polygon; its keep-out zones, nav_keepout_ne_m: a list of polygons).
     """
 
     name: str = str(DEFAULT_PLANNER)
@@ -211,7 +211,9 @@ class PlannerConfig:
     random_walk_budget: int = 100
     progress_timeout_s: float = 60.0
     fence_area: bool = True
-    params: Mapping[str, float | int | bool | str | list[float] | list[list[float]]] = field(default_factory=dict)
+    params: Mapping[str, float | int | bool | str | list[float] | list[list[float]] | list[list[list[float]]]] = field(
+        default_factory=dict
+    )
 
     def __post_init__(self) -> None:
         if self.name not in _PLANNER_NAMES:
@@ -652,22 +654,21 @@ def _coerce(key: str, value: Any, annotation: str) -> Any:
         if not isinstance(value, dict):
             raise _fail(key, "a table", value)
         for sub_key, sub_value in value.items():
-            # A list of numbers, or of lists of numbers, is a vector parameter (planner.params.nav_area_ne_m: a
-            # rectangle or a polygon's vertices); the planner checks its shape.
-            vector = isinstance(sub_value, list) and (
-                _numbers(sub_value) or all(isinstance(v, list) and _numbers(v) for v in sub_value)
-            )
-            if isinstance(sub_value, dict) or (isinstance(sub_value, list) and not vector):
-                allowed = "a number, string, boolean, list of numbers or list of lists of numbers"
+            # Nested lists of numbers are vector parameters (planner.params.nav_area_ne_m: a rectangle or a polygon's
+            # vertices; nav_keepout_ne_m: polygons); the planner checks their shape.
+            if isinstance(sub_value, dict) or (isinstance(sub_value, list) and not _numbers(sub_value, depth=3)):
+                allowed = "a number, string, boolean, or a list of numbers (or of such lists, three deep at most)"
                 raise _fail(f"{key}.{sub_key}", allowed, sub_value)
         return dict(value)
     msg = f"internal: no coercion for {key} ({annotation})"
     raise AssertionError(msg)
 
 
-def _numbers(values: list[Any]) -> bool:
-    """Whether every item of ``values`` is a number (a bool is not)."""
-    return all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+def _numbers(values: list[Any], depth: int) -> bool:
+    """Whether ``values`` is a list of numbers (a bool is not), or of such lists, at most ``depth`` lists deep."""
+    if all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return True
+    return depth > 1 and all(isinstance(v, list) and _numbers(v, depth - 1) for v in values)
 
 
 def _own_error(prefix: str, err: ConfigError) -> bool:

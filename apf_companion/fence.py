@@ -7,11 +7,12 @@ point; ``x``/``y`` are latitude/longitude in 1e-7 degrees. ArduPilot keeps the v
 zone (their intersection, unless FENCE_OPTIONS asks for the union) and outside every exclusion zone
 (``libraries/AC_Fence/AC_PolyFence_loader.cpp``, ``breached``); PX4 takes the same items.
 
-The flying area is one polygon without holes (``planning.area``), so a fence becomes one when it has exactly one
-inclusion zone: that polygon, or a circle's inscribed 32-gon (inside the circle: never wider than the fence).
-Exclusion zones are left to the autopilot, which still enforces them, and said so. Anything else (no inclusion
-zone, two or more, a malformed polygon, the vehicle outside the zone) leaves the planner without a fence area,
-with the reason. The download is driven by ``due`` (what to send now) and the ``on_*`` answers; each request is
+The flying area is one polygon (``planning.area``), so its inclusion zone, if the fence has one, becomes that
+polygon, or a circle's inscribed 32-gon (inside the circle: never wider than the fence). Every exclusion zone
+becomes a keep-out zone (``nav_keepout_ne_m``): its polygon, or a circle's circumscribed 32-gon (around the
+circle: never narrower than the fence). Anything else (two or more inclusion zones, whose intersection is not
+computed; a malformed polygon; the vehicle outside the inclusion zone) leaves the planner as configured, with the
+reason. The download is driven by ``due`` (what to send now) and the ``on_*`` answers; each request is
 repeated after ``timeout_s``, at most ``retries`` times, then the download fails with its reason.
 """
 
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.goal import GlobalReference, ne_from_global
-from apf_companion.planning import PolygonNE, inside_area, polygon_problem
+from apf_companion.planning import KeepOuts, PolygonNE, inside_area, polygon_problem
 
 __all__ = ["FenceArea", "FenceDownload", "FenceItem", "FenceOutcome", "FenceSend", "FenceStage", "fence_area"]
 
@@ -156,6 +157,7 @@ class FenceArea:
     outcome: FenceOutcome
     note: str
     polygon_ne_m: PolygonNE | None = None
+    keepouts_ne_m: KeepOuts = ()
 
 
 def fence_area(items: Sequence[FenceItem], reference: GlobalReference, vehicle_ne_m: tuple[float, float]) -> FenceArea:
@@ -167,11 +169,16 @@ def fence_area(items: Sequence[FenceItem], reference: GlobalReference, vehicle_n
     if isinstance(zones, str):
         return _not_used(zones)
     inclusions = [z for z in zones if z.inclusion]
-    excluded = len(zones) - len(inclusions)
-    if not inclusions:
-        return _not_used("no inclusion zone" + (f" ({excluded} exclusion zones)" if excluded else ""))
+    exclusions = [z.polygon(reference) for z in zones if not z.inclusion]
+    problems = [p for p in map(polygon_problem, exclusions) if p is not None]
+    if problems:
+        return _not_used(f"an exclusion zone is not {problems[0]}")
     if len(inclusions) > 1:
         return _not_used(f"{len(inclusions)} inclusion zones: their intersection is not used")
+    plural = "s" if len(exclusions) != 1 else ""
+    said = f"{len(exclusions)} exclusion zone{plural} as keep-out zone{plural}"
+    if not inclusions:
+        return FenceArea(FenceOutcome.USED, said, None, tuple(exclusions))
     polygon = inclusions[0].polygon(reference)
     problem = polygon_problem(polygon)
     if problem is not None:
@@ -179,9 +186,7 @@ def fence_area(items: Sequence[FenceItem], reference: GlobalReference, vehicle_n
     if not inside_area(polygon, *vehicle_ne_m):
         return _not_used("the vehicle is outside the inclusion zone")
     note = f"inclusion {inclusions[0].kind} of {len(polygon)} vertices"
-    if excluded:
-        note += f"; {excluded} exclusion zones are left to the autopilot"
-    return FenceArea(FenceOutcome.USED, note, polygon)
+    return FenceArea(FenceOutcome.USED, f"{note}; {said}" if exclusions else note, polygon, tuple(exclusions))
 
 
 def _not_used(reason: str) -> FenceArea:
@@ -201,12 +206,13 @@ class _Zone:
         return "circle" if self.circle else "polygon"
 
     def polygon(self, reference: GlobalReference) -> PolygonNE:
-        """The zone in local NED [m]: its vertices, or the circle's inscribed polygon."""
+        """The zone in local NED [m]: its vertices, or a circle's 32-gon, inscribed for an inclusion zone and
+        circumscribed for an exclusion zone (the polygon never lets the vehicle where the fence would not)."""
         if not self.circle:
             return tuple(ne_from_global(reference, it.x * _DEG_E7, it.y * _DEG_E7) for it in self.items)
         centre = self.items[0]
         north, east = ne_from_global(reference, centre.x * _DEG_E7, centre.y * _DEG_E7)
-        radius = float(centre.param1)
+        radius = float(centre.param1) / (1.0 if self.inclusion else math.cos(math.pi / CIRCLE_VERTICES))
         turns = [k * math.tau / CIRCLE_VERTICES for k in range(CIRCLE_VERTICES)]
         return tuple((north + radius * math.cos(a), east + radius * math.sin(a)) for a in turns)
 

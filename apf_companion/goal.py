@@ -30,7 +30,7 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError, ProtocolError
-from apf_companion.planning.area import FlyingArea, area_text, inside_area
+from apf_companion.planning.area import FlyingArea, KeepOuts, area_text, in_keepout, inside_area
 
 __all__ = [
     "EARTH_RADIUS_M",
@@ -268,12 +268,13 @@ def route_outside_limits(
     max_altitude_m: float,
     max_distance_m: float,
     area_ne_m: FlyingArea | None = None,
+    keepouts_ne_m: KeepOuts = (),
 ) -> str | None:
     """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home), or
     horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet),
-    or outside the planner's flying area ``area_ne_m`` (a rectangle or polygon, ``planning.area``; bapf-nav would
-    give up at once). 0 / None = no limit. A mistyped or hostile goal (the fuzz sent DO_REPOSITION z = -8576 m) is
-    refused, not flown."""
+    or outside the planner's flying area ``area_ne_m`` (a rectangle or polygon, ``planning.area``) or in one of its
+    keep-out zones ``keepouts_ne_m`` (bapf-nav would give up at once). 0 / None = no limit. A mistyped or hostile
+    goal (the fuzz sent DO_REPOSITION z = -8576 m) is refused, not flown."""
     wp = route.waypoints_ned_m
     if area_ne_m is not None:
         out = ~inside_area(area_ne_m, wp[:, 0], wp[:, 1])
@@ -282,6 +283,14 @@ def route_outside_limits(
             return (
                 f"waypoint {i} (north {wp[i, 0]:g} m, east {wp[i, 1]:g} m) lies outside the flying area "
                 f"planner.params.nav_area_ne_m = {area_text(area_ne_m)}"
+            )
+    for k, zone in enumerate(keepouts_ne_m):
+        inside = np.flatnonzero(in_keepout((zone,), wp[:, 0], wp[:, 1]))
+        if inside.size:
+            i = int(inside[0])
+            return (
+                f"waypoint {i} (north {wp[i, 0]:g} m, east {wp[i, 1]:g} m) lies in keep-out zone {k} "
+                f"(planner.params.nav_keepout_ne_m)"
             )
     if max_altitude_m > 0.0:
         up = -wp[:, 2]

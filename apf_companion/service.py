@@ -47,6 +47,7 @@ from apf_companion.builders import (
     forwarder_params,
     handler_params,
     initial_route,
+    keepout_zones,
     navigator_params,
     perception_params,
     reporter_params,
@@ -284,7 +285,7 @@ class CompanionService:
         self.forwarder, self.takeover = self._drivers(config)
         self.notifier, self.watchdog = notifier, (Watchdog(notifier) if notifier is not None else None)
         self.params = _param_server(self)
-        self.fence = _fence_reader(self)  # bapf-nav without an area: the autopilot's fence as its area
+        self.fence = _fence_reader(self)  # bapf-nav without zones: the autopilot's fence as its area and keep-outs
         self._stop = asyncio.Event()
         self.trigger = CycleTrigger(self.clock, config.cycle.rate_hz)
         self.flight = FlightEnd()
@@ -409,6 +410,7 @@ class CompanionService:
             max_altitude_m=gc.max_altitude_m,
             max_distance_m=gc.max_distance_m,
             area_ne_m=flying_area(self.planner),  # bapf-nav's: goals outside it are refused
+            keepouts_ne_m=keepout_zones(self.planner),
         )
         if why is not None:
             self.counters.bad_goals += 1
@@ -670,10 +672,12 @@ def _put_in_service(svc: CompanionService, config: ServiceConfig, planner: Any) 
 
 
 def _fence_reader(svc: CompanionService) -> FenceReader | None:
-    """The fence download when ``planner.fence_area`` asks for it: bapf-nav, no area in the config, a link."""
+    """The fence download when ``planner.fence_area`` asks for it: bapf-nav, no area and no keep-out zones in the
+    config (the config's own zones win), a link."""
     config = svc.config
     wanted = config.planner.fence_area and isinstance(svc.planner, BapfNavPlanner)
-    if not wanted or flying_area(svc.planner) is not None or svc.outbox.silent:
+    configured = flying_area(svc.planner) is not None or bool(keepout_zones(svc.planner))
+    if not wanted or configured or svc.outbox.silent:
         return None
     lc = config.link
     params = FenceReaderParams(
@@ -695,9 +699,13 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
     """The fence's inclusion zone becomes bapf-nav's flying area, as a PARAM_SET would change a parameter (between
     cycles: the goal is kept, the next cycle plans over the area). A fence that is not used is logged and said
     in a STATUSTEXT (the ground station's user set it up); no fence at all is only logged."""
-    if area.outcome is FenceOutcome.USED and area.polygon_ne_m is not None:
+    if area.outcome is FenceOutcome.USED:
         pc = svc.config.planner
-        params = {**pc.params, "nav_area_ne_m": [list(v) for v in area.polygon_ne_m]}
+        params = dict(pc.params)
+        if area.polygon_ne_m is not None:
+            params["nav_area_ne_m"] = [list(v) for v in area.polygon_ne_m]
+        if area.keepouts_ne_m:
+            params["nav_keepout_ne_m"] = [[list(v) for v in zone] for zone in area.keepouts_ne_m]
         config = dataclasses.replace(svc.config, planner=dataclasses.replace(pc, params=params))
         try:
             planner = build_planner(config)
@@ -706,7 +714,8 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
         else:
             svc.params.config = config
             _put_in_service(svc, config, planner)
-            log.info("fence.area", extra={"note": area.note, "area_ne_m": params["nav_area_ne_m"]})
+            zones: dict[str, object] = {k: params[k] for k in ("nav_area_ne_m", "nav_keepout_ne_m") if k in params}
+            log.info("fence.area", extra={"note": area.note, **zones})
             svc.reporter.statustext(mavlink.MAV_SEVERITY_INFO, f"fence area: {area.note}")
             return
     if area.outcome is FenceOutcome.NO_FENCE:

@@ -59,7 +59,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink, load_signing_key
-from apf_companion.planning import FlyingArea, area_text
+from apf_companion.planning import FlyingArea, KeepOuts, area_text
 from sim.linkfaults import LinkFaults, LinkProxy
 
 if TYPE_CHECKING:
@@ -90,8 +90,10 @@ class FlyOptions:
     goal_ne_m: tuple[float, float] = PAPER_GOAL
     #: The world file's flying area (a rectangle or a polygon, local NED) [m]: bapf-nav's nav_area_ne_m.
     area_ne_m: FlyingArea | None = None
-    #: The vehicle serves ``area_ne_m`` as its fence and the service reads it (``planner.fence_area``), instead of
-    #: finding it in its config.
+    #: The world file's keep-out zones (polygons, local NED) [m]: bapf-nav's nav_keepout_ne_m.
+    keepouts_ne_m: KeepOuts = ()
+    #: The vehicle serves ``area_ne_m`` and the keep-out zones as its fence, and the service reads them
+    #: (``planner.fence_area``) instead of finding them in its config.
     fence: bool = False
     alt_m: float = 5.0
     speedup: float = 5.0
@@ -220,14 +222,20 @@ down_m = {-opt.alt_m}
 
 
 def _area_toml(opt: FlyOptions) -> str:
-    """bapf-nav plans over the world's flying area when the world file gives one (the other planners have none)."""
-    if opt.area_ne_m is None or opt.planner != "bapf-nav" or opt.fence:
+    """bapf-nav plans over the world's flying area and keep-out zones when the world file gives them (the other
+    planners have none); with ``--fence`` the service reads them from the vehicle instead."""
+    if (opt.area_ne_m is None and not opt.keepouts_ne_m) or opt.planner != "bapf-nav" or opt.fence:
         return ""
-    return f"""
-[planner.params]
-# the world file's flying area [m]: (north_min, east_min, north_max, east_max) or polygon vertices (north, east)
-nav_area_ne_m = {area_text(opt.area_ne_m)}
-"""
+    lines = ["", "[planner.params]"]
+    if opt.area_ne_m is not None:
+        lines += [
+            "# the world file's flying area [m]: (north_min, east_min, north_max, east_max) or polygon vertices",
+            f"nav_area_ne_m = {area_text(opt.area_ne_m)}",
+        ]
+    if opt.keepouts_ne_m:
+        zones = ", ".join(area_text(zone) for zone in opt.keepouts_ne_m)
+        lines += ["# the world file's keep-out zones [m]", f"nav_keepout_ne_m = [{zones}]"]
+    return "\n".join(lines) + "\n"
 
 
 def _visualisation_toml(opt: FlyOptions) -> str:
@@ -286,7 +294,8 @@ def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
     if opt.signing_key is not None:
         argv += ["--signing-key", str(opt.signing_key.resolve())]
     if opt.world is not None:
-        argv += ["--world", opt.world, *(["--fence"] if opt.fence and opt.area_ne_m is not None else [])]
+        zones = opt.area_ne_m is not None or bool(opt.keepouts_ne_m)
+        argv += ["--world", opt.world, *(["--fence"] if opt.fence and zones else [])]
     else:
         argv += ["--paper-field", f"{opt.preset}:{opt.obstacles}", "--field-seed", str(opt.seed)]
     return argv
@@ -806,6 +815,15 @@ def _start_goal(
     return (args.start or start), (args.goal or goal), area
 
 
+def _keepouts(args: argparse.Namespace) -> KeepOuts:
+    """The world file's keep-out zones unless --no-area."""
+    if args.world is None or args.no_area:
+        return ()
+    from sim.world import load_world
+
+    return load_world(args.world).keepouts_ne_m
+
+
 def _cmd_fly(args: argparse.Namespace) -> int:
     try:
         start, goal, area = _start_goal(args)
@@ -825,6 +843,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         start_ne_m=start,
         goal_ne_m=goal,
         area_ne_m=area,
+        keepouts_ne_m=_keepouts(args),
         fence=args.fence,
         alt_m=args.alt,
         speedup=args.speedup,

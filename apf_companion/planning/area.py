@@ -2,7 +2,9 @@
 
 Two forms, both in local NED [m]: a rectangle (north_min, east_min, north_max, east_max), and a polygon, a tuple of
 (north, east) vertices in order (either direction), for a yard that is not a rectangle (an L-shaped field, a
-plot between buildings). A polygon may be concave; it may not cross itself (``polygon_problem``).
+plot between buildings). A polygon may be concave; it may not cross itself (``polygon_problem``). Keep-out zones
+(``PlannerParams.nav_keepout_ne_m``, a fence's exclusion zones) are polygons the vehicle must not enter, inside an
+area or without one: ``in_keepout``, ``meets_keepout``.
 
 One rule for every user of the area: the escape grid's blocked cells and its goal (``navfield``), bapf-nav's give-up
 on a target outside it (``bapfnav``), its line of sight (``leaves_area``: a straight line that leaves a concave
@@ -21,12 +23,16 @@ import numpy.typing as npt
 __all__ = [
     "AreaNE",
     "FlyingArea",
+    "KeepOuts",
     "PolygonNE",
     "area_bounds",
     "area_text",
+    "in_keepout",
     "inside_area",
     "is_polygon",
     "leaves_area",
+    "meets_keepout",
+    "near_edges",
     "polygon_problem",
 ]
 
@@ -36,6 +42,8 @@ AreaNE = tuple[float, float, float, float]
 PolygonNE = tuple[tuple[float, float], ...]
 #: A rectangle or a polygon.
 FlyingArea = AreaNE | PolygonNE
+#: Keep-out zones: polygons in local NED [m].
+KeepOuts = tuple[PolygonNE, ...]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -72,11 +80,13 @@ def inside_area(area: FlyingArea, north_m: npt.ArrayLike, east_m: npt.ArrayLike)
     return inside
 
 
-def leaves_area(area: FlyingArea, start_ne_m: FloatArray, end_ne_m: FloatArray) -> BoolArray:
-    """(A,) whether the straight line from each start (A, 2) inside the area to its end (A, 2) leaves the area: the
-    end lies outside, or the line crosses an edge. A rectangle is convex: a line between two of its points stays in
-    it (and bapf-nav gives up at once on a target outside it), so only a polygon is tested. A start outside, or a
-    line that only touches a vertex or runs along an edge, does not leave."""
+def leaves_area(area: FlyingArea, start_ne_m: FloatArray, end_ne_m: FloatArray, margin_m: float) -> BoolArray:
+    """(A,) whether the straight line from each start (A, 2) inside the area to its end (A, 2) leaves the area or
+    passes within ``margin_m`` of one of its reflex (inner) corners: the end lies outside, the line crosses an
+    edge, or grazes the corner a concave area turns round. A rectangle is convex: a line between two of its points
+    stays in it and has no inner corner to graze (and bapf-nav gives up at once on a target outside it), so only a
+    polygon is tested. A start outside, or a line that only touches a vertex or runs along an edge, does not
+    leave."""
     if not is_polygon(area) or start_ne_m.shape[0] == 0:
         return np.zeros(start_ne_m.shape[0], dtype=bool)
     v = np.array(area, dtype=np.float64)
@@ -84,10 +94,77 @@ def leaves_area(area: FlyingArea, start_ne_m: FloatArray, end_ne_m: FloatArray) 
     end_in = _inside_polygon(v, end_ne_m[:, 0], end_ne_m[:, 1])
     a, b = v[None, :, :], np.roll(v, -1, axis=0)[None, :, :]  # (1, V, 2) each edge's ends
     p, q = start_ne_m[:, None, :], end_ne_m[:, None, :]  # (A, 1, 2)
+    corners = _reflex_vertices(v)[None, :, :]  # (1, R, 2)
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite lines compare False
         crosses = (_side(p, q, a) * _side(p, q, b) < 0.0) & (_side(a, b, p) * _side(a, b, q) < 0.0)
-    out: BoolArray = start_in & (~end_in | np.logical_or.reduce(crosses, axis=1))
+        grazes = _dist2_to_segment(corners, p, q) < margin_m * margin_m
+    out: BoolArray = start_in & (~end_in | np.logical_or.reduce(crosses, axis=1) | np.logical_or.reduce(grazes, axis=1))
     return out
+
+
+def _reflex_vertices(v: FloatArray) -> FloatArray:
+    """(R, 2) the vertices of polygon ``v`` (V, 2) where its inside turns by more than 180 degrees."""
+    before, after = np.roll(v, 1, axis=0), np.roll(v, -1, axis=0)
+    turn = _side(before, v, after)  # > 0: a left turn
+    orientation = float(np.sum(v[:, 0] * after[:, 1] - after[:, 0] * v[:, 1]))  # > 0: the vertices turn left
+    reflex: FloatArray = v[turn * orientation < 0.0]
+    return reflex
+
+
+def in_keepout(keepouts: KeepOuts, north_m: npt.ArrayLike, east_m: npt.ArrayLike) -> BoolArray:
+    """Whether each point (broadcast) lies in a keep-out zone, its edge included (a non-finite point does not)."""
+    north, east = np.broadcast_arrays(np.asarray(north_m, dtype=np.float64), np.asarray(east_m, dtype=np.float64))
+    out = np.zeros(north.shape, dtype=bool)
+    for zone in keepouts:
+        out |= _inside_polygon(np.array(zone, dtype=np.float64), north, east)
+    return out
+
+
+def meets_keepout(keepouts: KeepOuts, start_ne_m: FloatArray, end_ne_m: FloatArray, margin_m: float) -> BoolArray:
+    """(A,) whether the straight line from each start (A, 2) to its end (A, 2) comes within ``margin_m`` of a
+    keep-out zone: either end lies in one, the line crosses one of its edges, or passes closer than the margin."""
+    out = np.zeros(start_ne_m.shape[0], dtype=bool)
+    if not keepouts or out.size == 0:
+        return out
+    out |= in_keepout(keepouts, start_ne_m[:, 0], start_ne_m[:, 1])
+    out |= in_keepout(keepouts, end_ne_m[:, 0], end_ne_m[:, 1])
+    p, q = start_ne_m[:, None, :], end_ne_m[:, None, :]  # (A, 1, 2)
+    m2 = margin_m * margin_m
+    for zone in keepouts:
+        v = np.array(zone, dtype=np.float64)
+        a, b = v[None, :, :], np.roll(v, -1, axis=0)[None, :, :]
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite lines compare False
+            crosses = (_side(p, q, a) * _side(p, q, b) < 0.0) & (_side(a, b, p) * _side(a, b, q) < 0.0)
+            # Segments that do not cross are closest at an end of one of them.
+            near = np.minimum(
+                np.minimum(_dist2_to_segment(a, p, q), _dist2_to_segment(b, p, q)),
+                np.minimum(_dist2_to_segment(p, a, b), _dist2_to_segment(q, a, b)),
+            )
+        out |= np.logical_or.reduce(crosses | (near < m2), axis=1)
+    return out
+
+
+def near_edges(polygon: PolygonNE, north_m: npt.ArrayLike, east_m: npt.ArrayLike, margin_m: float) -> BoolArray:
+    """Whether each point (broadcast) lies closer than ``margin_m`` to an edge of ``polygon``."""
+    north, east = np.broadcast_arrays(np.asarray(north_m, dtype=np.float64), np.asarray(east_m, dtype=np.float64))
+    pts = np.stack([north, east], axis=-1)
+    out = np.zeros(north.shape, dtype=bool)
+    m2 = margin_m * margin_m
+    v = np.array(polygon, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points compare False
+        for a, b in zip(v, np.roll(v, -1, axis=0), strict=True):
+            out |= _dist2_to_segment(pts, a, b) < m2
+    return out
+
+
+def _dist2_to_segment(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """Squared distance from each point p to the segment a-b (broadcast over leading axes; last axis (north, east))."""
+    ab = b - a
+    length2 = np.maximum(np.einsum("...d,...d->...", ab, ab), 1e-300)
+    t = np.clip(np.einsum("...d,...d->...", p - a, ab) / length2, 0.0, 1.0)
+    off = p - a - t[..., None] * ab
+    d2: FloatArray = np.einsum("...d,...d->...", off, off)
+    return d2
 
 
 def polygon_problem(vertices: PolygonNE) -> str | None:

@@ -46,7 +46,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.area import inside_area
+from apf_companion.planning.area import in_keepout, inside_area
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps, own_cell_blocked
 from apf_companion.planning.navescapeone import EscapeStep
@@ -187,15 +187,23 @@ class BapfNavPlanner(StatefulPlanner):
         return decision
 
     def _restart(self, rows: npt.NDArray[np.intp], targets_m: FloatArray, state: NavState) -> None:
-        """A new target for ``rows``: forget the old one; with a flying area (``nav_area_ne_m``) a target outside
-        it has no way, so the agent gives up at once instead of flying out of the area."""
+        """A new target for ``rows``: forget the old one; a target outside the flying area (``nav_area_ne_m``) or in
+        a keep-out zone has no way, so the agent gives up at once instead of flying out of the area."""
         state.restart(rows, targets_m)
-        area = self.params.nav_area_ne_m
+        outside = self.outside_area(targets_m[:, 0], targets_m[:, 1])
+        state.mode[rows[outside]] = _GAVE_UP
+        state.gave_up[rows[outside]] = GiveUp.OUTSIDE_AREA
+
+    def outside_area(self, north_m: npt.ArrayLike, east_m: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        """Whether each finite point lies outside the flying area (``nav_area_ne_m``) or in a keep-out zone
+        (``nav_keepout_ne_m``): a target there has no way (the service refuses such goals)."""
+        north, east = np.asarray(north_m, dtype=np.float64), np.asarray(east_m, dtype=np.float64)
+        area, keepouts = self.params.nav_area_ne_m, self.params.nav_keepout_ne_m
+        out = in_keepout(keepouts, north, east)
         if area is not None:
-            inside = inside_area(area, targets_m[:, 0], targets_m[:, 1])
-            outside = ~inside & np.isfinite(targets_m[:, :2]).all(axis=1)
-            state.mode[rows[outside]] = _GAVE_UP
-            state.gave_up[rows[outside]] = GiveUp.OUTSIDE_AREA
+            out |= ~inside_area(area, north, east)
+        finite: npt.NDArray[np.bool_] = np.isfinite(north) & np.isfinite(east)
+        return out & finite
 
     def _decide(
         self,

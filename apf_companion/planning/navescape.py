@@ -37,7 +37,10 @@ class EscapeMaps:
 
     def __init__(self, params: PlannerParams, offsets_m: FloatArray, clearance_m: float) -> None:
         self.params = params
-        self.grid = NavGrid(params.nav_cell_m, params.nav_grid_m, params.nav_area_ne_m)
+        # The zones' edges are kept at C, as obstacles are (``navzones``).
+        self.grid = NavGrid(
+            params.nav_cell_m, params.nav_grid_m, params.nav_area_ne_m, params.nav_keepout_ne_m, clearance_m
+        )
         self.clearance_m = clearance_m
         self._offsets = offsets_m
         self._pad_m = 2.0 * params.step_m + clearance_m + 1.0

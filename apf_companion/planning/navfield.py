@@ -32,7 +32,8 @@ import numpy.typing as npt
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from apf_companion.planning.area import FlyingArea, area_bounds, inside_area
+from apf_companion.planning.area import FlyingArea, KeepOuts, area_bounds
+from apf_companion.planning.navzones import ZoneCells
 
 __all__ = ["NavGrid"]
 
@@ -63,7 +64,14 @@ class NavGrid:
     checks per field (about 15 % of a field): a grid computes one field at a time (not thread-safe).
     """
 
-    def __init__(self, cell_m: float, side_m: float, area_ne_m: FlyingArea | None = None) -> None:
+    def __init__(
+        self,
+        cell_m: float,
+        side_m: float,
+        area_ne_m: FlyingArea | None = None,
+        keepouts_ne_m: KeepOuts = (),
+        zone_margin_m: float = 0.0,
+    ) -> None:
         self.cell_m = float(cell_m)
         #: The flying area (a rectangle or a polygon, ``area``) [m] the grid covers (its bounds), or None: a grid of
         #: side ``side_m`` that moves with the agent and whose edge cells are exits.
@@ -79,7 +87,9 @@ class NavGrid:
             self.fixed_origin_m = np.floor(low / self.cell_m) * self.cell_m
             self.n = max(math.ceil(float(x) / self.cell_m - 1e-9) for x in high - self.fixed_origin_m)
         self.size = self.n * self.n
-        self._outside = self._outside_cells()
+        #: The cells the area and the keep-out zones (``nav_keepout_ne_m``) close, with a band of
+        #: ``zone_margin_m`` along their edges (``navzones``).
+        self.zones = ZoneCells(area_ne_m, keepouts_ne_m, zone_margin_m, self.cell_m, self.n)
         edge = np.zeros((self.n, self.n), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
         #: The boundary cells (the exits into unknown space) and their centres (E, 2) from the grid's corner [m].
@@ -228,10 +238,10 @@ class NavGrid:
         goal_slots[:] = self.size  # unused: the source's own node, at inf
         goal_values = self._weights[ne : ne + _GOAL_SLOTS]
         goal_values[:] = np.inf
-        if self.area_ne_m is not None and self._outside is not None:
-            if not inside_area(self.area_ne_m, goal_xy_m[0], goal_xy_m[1]):
-                return False  # no way to a goal outside the flying area
-            blocked |= self._outside  # before the goal's cell is freed below: it stays reachable
+        if self.zones.active:
+            if self.zones.goal_closed(goal_xy_m):
+                return False  # no way to a goal outside the flying area or in a keep-out zone
+            self.zones.close(origin_m, blocked, (gi, gj))  # before the goal's cell is freed below: it stays reachable
         detour = 0.0
         if 0 <= gi < n and 0 <= gj < n:
             blocked[gi * n + gj] = False  # the goal itself is always reachable in the grid
@@ -250,14 +260,6 @@ class NavGrid:
         if not self.exits:
             edge_values[:] = np.inf
         return bool(np.isfinite(self._weights[ne:-1]).any())
-
-    def _outside_cells(self) -> BoolArray | None:
-        """(n^2,) the cells whose centre lies outside the flying area (None: no area)."""
-        if self.area_ne_m is None or self.fixed_origin_m is None:
-            return None
-        centres = self.fixed_origin_m[:, None] + (np.arange(self.n) + 0.5)[None, :] * self.cell_m  # (2, n)
-        out: BoolArray = ~inside_area(self.area_ne_m, centres[0][:, None], centres[1][None, :]).ravel()
-        return out
 
     def flat_cell(self, origin_m: FloatArray, point_xy_m: FloatArray) -> int:
         """The cell (flat index) of one point in one grid, -1 off the grid."""

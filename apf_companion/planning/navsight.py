@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.area import is_polygon, leaves_area
+from apf_companion.planning.area import is_polygon, leaves_area, meets_keepout
 from apf_companion.planning.clearance import compact_rows
 from apf_companion.planning.params import PlannerParams
 
@@ -63,13 +63,17 @@ class LineOfSight:
         one of the first ``_SIGHT_FIRST`` such points along the whole line is part of a surface: two other known
         points lie within ``_SURFACE_M`` of it (its neighbours on a wall or trunk sampled every 0.2 m), which
         starts the escape before a concave wall traps the agent. All off when ``nav_sight_m`` is 0. A line that
-        leaves a polygonal flying area is blocked too, whatever ``nav_sight_m`` (``area.leaves_area``).
+        leaves a polygonal flying area or passes within C of its inner corners, or comes within C of a keep-out
+        zone, is blocked too, whatever ``nav_sight_m`` (``area.leaves_area``, ``area.meets_keepout``).
         """
         out = self._points_block(active, positions_m, targets_m, obstacles_m, obstacle_mask)
-        area = self.params.nav_area_ne_m
-        if area is not None and is_polygon(area):
+        area, keepouts = self.params.nav_area_ne_m, self.params.nav_keepout_ne_m
+        if (area is not None and is_polygon(area)) or keepouts:
             rows = np.flatnonzero(active)
-            out[rows] |= leaves_area(area, positions_m[rows, :2], targets_m[rows, :2])
+            start, end = positions_m[rows, :2], targets_m[rows, :2]
+            if area is not None:
+                out[rows] |= leaves_area(area, start, end, self.clearance_m)
+            out[rows] |= meets_keepout(keepouts, start, end, self.clearance_m)
         return out
 
     def _points_block(

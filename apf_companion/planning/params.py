@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning.area import FlyingArea, area_bounds, polygon_problem
+from apf_companion.planning.area import FlyingArea, KeepOuts, PolygonNE, area_bounds, polygon_problem
 
 __all__ = ["AbapfRule", "AbapfSearch", "PlannerParams", "Preset", "RandomWalkRule"]
 
@@ -66,8 +66,10 @@ class RandomWalkRule(enum.Enum):
 #: cell, in the service's cycle: 256 x 256 cells took 22.6 ms on the 2-core development VM (384 x 384: 54 ms, more
 #: than a 20 Hz cycle), so a larger area must take larger cells (docs/planner.md, "A flying area").
 MAX_AREA_CELLS = 256
-#: Vertices of a polygonal flying area, at most: the line-of-sight test crosses every edge each step.
+#: Vertices of a polygonal flying area or keep-out zone, at most: the line-of-sight test crosses every edge each step.
 MAX_AREA_VERTICES = 64
+#: Keep-out zones, at most (``nav_keepout_ne_m``): each costs a point-in-polygon pass per field of a moving grid.
+MAX_KEEPOUTS = 16
 
 
 def _fail(name: str, value: object, allowed: str) -> ConfigError:
@@ -144,6 +146,10 @@ class PlannerParams:
         polygon starts an escape, as an obstacle on it does (``area.leaves_area``). The bounds are at least 8
         and at most ``MAX_AREA_CELLS`` = 256 cells of ``nav_cell_m`` a side (76.8 m at 0.3 m cells): a field is
         a search over every cell, in the service's cycle.
+    nav_keepout_ne_m : bapf-nav: keep-out zones, polygons ((north, east), ...) in local NED [m] the vehicle must not
+        enter (a fence's exclusion zones), with or without a flying area; at most ``MAX_KEEPOUTS`` = 16 of 3 to 64
+        vertices. Their cells are blocked in every field, a target in one gives up at once, and a straight line
+        that meets one blocks the line of sight (``area.meets_keepout``).
     br_lookahead_m : bendyruler: probe length OA_BR_LOOKAHEAD [m], > 0.
     br_margin_max_m : bendyruler: clearance OA_MARGIN_MAX that makes a direction "sufficiently open" [m], > 0.
     br_cont_ratio : bendyruler: OA_BR_CONT_RATIO, >= 1.
@@ -186,6 +192,7 @@ class PlannerParams:
     nav_seen_m: float = 4.0
     nav_patience_steps: int = 300
     nav_area_ne_m: FlyingArea | None = None
+    nav_keepout_ne_m: KeepOuts = ()
     br_lookahead_m: float = 1.2
     br_margin_max_m: float = 0.6
     br_cont_ratio: float = 1.5
@@ -264,6 +271,7 @@ class PlannerParams:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise _fail(name, value, "an int >= 1")
         self._check_area()
+        self._check_keepouts()
 
     def _check_area(self) -> None:
         """``nav_area_ne_m``: None, a rectangle (four finite numbers, min < max) or a polygon (3 to
@@ -296,6 +304,32 @@ class PlannerParams:
         if not all(8.0 * self.nav_cell_m <= side <= MAX_AREA_CELLS * self.nav_cell_m for side in sides):
             raise _fail("nav_area_ne_m", area, allowed)
         object.__setattr__(self, "nav_area_ne_m", value)
+
+    def _check_keepouts(self) -> None:
+        """``nav_keepout_ne_m``: up to ``MAX_KEEPOUTS`` polygons of 3 to ``MAX_AREA_VERTICES`` finite [north, east]
+        pairs whose edges do not cross; kept as a tuple of tuples of pairs (a config file gives lists)."""
+        zones: Any = self.nav_keepout_ne_m
+        allowed = (
+            f"[[[north, east], ...], ...]: up to {MAX_KEEPOUTS} polygons of 3 to {MAX_AREA_VERTICES} vertices [m] "
+            "whose edges do not cross"
+        )
+        if isinstance(zones, str | bytes) or not isinstance(zones, tuple | list) or len(zones) > MAX_KEEPOUTS:
+            raise _fail("nav_keepout_ne_m", zones, allowed)
+        kept: list[PolygonNE] = []
+        for zone in zones:
+            if (
+                isinstance(zone, str | bytes)
+                or not isinstance(zone, tuple | list)
+                or not 3 <= len(zone) <= MAX_AREA_VERTICES
+            ):
+                raise _fail("nav_keepout_ne_m", zones, allowed)
+            if not all(isinstance(v, tuple | list) and len(v) == 2 for v in zone):
+                raise _fail("nav_keepout_ne_m", zones, allowed)
+            polygon = tuple((_finite("nav_keepout_ne_m", v[0]), _finite("nav_keepout_ne_m", v[1])) for v in zone)
+            if polygon_problem(polygon) is not None:
+                raise _fail("nav_keepout_ne_m", zones, allowed)
+            kept.append(polygon)
+        object.__setattr__(self, "nav_keepout_ne_m", tuple(kept))
 
     @classmethod
     def paper(cls, **overrides: Any) -> PlannerParams:

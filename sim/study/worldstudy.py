@@ -93,8 +93,9 @@ def load_case(
 
 
 def without_area(case: WorldCase) -> WorldCase:
-    """The case without its world file's flying area (``--no-area``): bapf-nav's grid then moves with the agent."""
-    return dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None))
+    """The case without its world file's flying area and keep-out zones (``--no-area``): bapf-nav's grid then moves
+    with the agent."""
+    return dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None, keepouts_ne_m=()))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -117,12 +118,14 @@ class WorldChunkResult:
 
 
 def world_config(config: StudyConfig, world: World) -> StudyConfig:
-    """The study's rules with the world's start and goal (2D), and its flying area, if it has one, as bapf-nav's
-    ``nav_area_ne_m`` (the other planners do not read it)."""
+    """The study's rules with the world's start and goal (2D), and its flying area and keep-out zones, if it has
+    them, as bapf-nav's ``nav_area_ne_m`` and ``nav_keepout_ne_m`` (the other planners do not read them)."""
     assert world.start_ne_m is not None and world.goal_ne_m is not None
     params = config.planner_params
     if world.area_ne_m is not None:
         params = dataclasses.replace(params, nav_area_ne_m=world.area_ne_m)
+    if world.keepouts_ne_m:
+        params = dataclasses.replace(params, nav_keepout_ne_m=world.keepouts_ne_m)
     return dataclasses.replace(
         config, start_m=tuple(world.start_ne_m), target_m=tuple(world.goal_ne_m), planner_params=params
     )

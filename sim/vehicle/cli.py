@@ -16,7 +16,7 @@ import numpy as np
 
 from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.links import load_signing_key
-from apf_companion.planning import FlyingArea
+from apf_companion.planning import FlyingArea, KeepOuts
 from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SENSOR_COMPID, SensorOnlyConfig, SensorSimulator
@@ -47,7 +47,8 @@ def _startup_args(v: argparse.ArgumentParser) -> None:
     v.add_argument(
         "--fence",
         action="store_true",
-        help="serve the world file's flying area (area_ne_m) as the autopilot's fence: one inclusion polygon",
+        help="serve the world file's flying area (area_ne_m) as the autopilot's fence, one inclusion polygon, "
+        "and its keep-out zones as exclusion polygons",
     )
     v.add_argument(
         "--unasked-streams",
@@ -186,15 +187,16 @@ def _world(args: argparse.Namespace) -> World:
     return World.empty()
 
 
-def _fence(args: argparse.Namespace) -> FlyingArea | None:
-    """--fence: the world file's flying area (an error when it has none: a fence was asked for)."""
+def _fence(args: argparse.Namespace) -> tuple[FlyingArea | None, KeepOuts]:
+    """--fence: the world file's flying area and keep-out zones (an error when it has neither: a fence was asked
+    for)."""
     if not args.fence:
-        return None
-    area = _world(args).area_ne_m
-    if area is None:
-        msg = "--fence: the world has no flying area (area_ne_m) to serve as the fence"
+        return None, ()
+    world = _world(args)
+    if world.area_ne_m is None and not world.keepouts_ne_m:
+        msg = "--fence: the world has no flying area (area_ne_m) and no keep-out zone to serve as the fence"
         raise ConfigError(msg)
-    return area
+    return world.area_ne_m, world.keepouts_ne_m
 
 
 def _sensor_cfg(args: argparse.Namespace, links: tuple[int, ...] | None = None) -> RangeSensorConfig:
@@ -262,7 +264,8 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         fast_start=args.fast_start,
         unasked_streams=True if args.unasked_streams else None,
         signing_key=None if args.signing_key is None else load_signing_key(args.signing_key),
-        fence=_fence(args),
+        fence=_fence(args)[0],
+        fence_keepouts=_fence(args)[1],
     )
     stop = asyncio.Event()
     _install_signals(stop)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ConfigError
-from apf_companion.planning import FlyingArea
+from apf_companion.planning import FlyingArea, KeepOuts
 from sim.vehicle.sensor import RangeSensorConfig
 from sim.world.model import FloatArray, World
 
@@ -98,7 +98,8 @@ class EngineConfig:
     trajectory_rate_hz: float = 10.0
     dynamics: Dynamics = Dynamics.SIMPLE
     fast_start: bool = False  # the EKF origin is set at boot (skips the profile's SIM_EKF_ORIGIN_S wait)
-    fence: FlyingArea | None = None  # served as the fence's one inclusion polygon (sim.vehicle.fence); None: no fence
+    fence: FlyingArea | None = None  # served as the fence's one inclusion polygon (sim.vehicle.fence); None: none
+    fence_keepouts: KeepOuts = ()  # served as the fence's exclusion polygons
     unasked_streams: bool | None = None  # stream DEFAULT_RATES_HZ unasked; None = the profile's habit
 
     def __post_init__(self) -> None:

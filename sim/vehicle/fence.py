@@ -7,7 +7,9 @@ no answer.
 
 The fence is the world file's flying area (``EngineConfig.fence``), as one inclusion polygon: every vertex a
 MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION item with ``param1`` = the vertex count, latitude/longitude in 1e-7
-degrees around home (``AC_PolyFence_loader`` stores and sends exactly this). A rectangle is its four corners.
+degrees around home (``AC_PolyFence_loader`` stores and sends exactly this); a rectangle is its four corners.
+Then its keep-out zones (``EngineConfig.fence_keepouts``), each an exclusion polygon
+(MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION).
 Other mission types have no items here (count 0), as before.
 """
 
@@ -17,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.planning import FlyingArea, area_bounds, is_polygon
+from apf_companion.planning import FlyingArea, KeepOuts, area_bounds, is_polygon
 from sim.vehicle.geo import ne_to_latlon
 
 if TYPE_CHECKING:
@@ -29,23 +31,28 @@ __all__ = ["FENCE_HANDLERS", "fence_items"]
 _FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 
 
-def fence_items(area: FlyingArea, home: HomeConfig) -> list[tuple[int, int, int]]:
-    """(command, latitude, longitude [1e-7 deg]) of each fence item of ``area``: its polygon's vertices."""
-    if is_polygon(area):
-        vertices = [(float(n), float(e)) for n, e in area]  # type: ignore[misc]
-    else:
-        n0, e0, n1, e1 = area_bounds(area)
-        vertices = [(n0, e0), (n1, e0), (n1, e1), (n0, e1)]
+def fence_items(area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -> list[tuple[int, int, int, int]]:
+    """(command, vertex count, latitude, longitude [1e-7 deg]) of each fence item: the area as one inclusion
+    polygon, then each keep-out zone as an exclusion polygon."""
+    zones: list[tuple[int, list[tuple[float, float]]]] = []
+    if area is not None:
+        if is_polygon(area):
+            vertices = [(float(n), float(e)) for n, e in area]  # type: ignore[misc]
+        else:
+            n0, e0, n1, e1 = area_bounds(area)
+            vertices = [(n0, e0), (n1, e0), (n1, e1), (n0, e1)]
+        zones.append((mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, vertices))
+    zones += [(mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION, list(zone)) for zone in keepouts]
     out = []
-    for n, e in vertices:
-        lat, lon = ne_to_latlon(home, n, e)
-        out.append((mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, round(lat * 1e7), round(lon * 1e7)))
+    for command, vertices in zones:
+        for n, e in vertices:
+            lat, lon = ne_to_latlon(home, n, e)
+            out.append((command, len(vertices), round(lat * 1e7), round(lon * 1e7)))
     return out
 
 
-def _items(v: VehicleEngine) -> list[tuple[int, int, int]]:
-    fence = v.cfg.fence
-    return [] if fence is None else fence_items(fence, v.cfg.home)
+def _items(v: VehicleEngine) -> list[tuple[int, int, int, int]]:
+    return fence_items(v.cfg.fence, v.cfg.fence_keepouts, v.cfg.home)
 
 
 def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
@@ -61,11 +68,11 @@ def _on_mission_request_int(v: VehicleEngine, msg: Any, link: int) -> None:
     if not 0 <= msg.seq < len(items):
         v.emit(link, v.mav.mission_ack_encode(*src, mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type))
         return
-    command, lat, lon = items[msg.seq]
+    command, count, lat, lon = items[msg.seq]
     v.emit(
         link,
         v.mav.mission_item_int_encode(
-            *src, msg.seq, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, float(len(items)), 0.0, 0.0, 0.0, lat, lon, 0.0,
+            *src, msg.seq, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, float(count), 0.0, 0.0, 0.0, lat, lon, 0.0,
             mission_type,
         ),
     )  # fmt: skip

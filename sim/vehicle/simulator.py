@@ -34,7 +34,7 @@ from typing import Any
 from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkError
 from apf_companion.links import MavlinkLink, SigningParams, accept_unsigned_only, signing_timestamp
-from apf_companion.planning import FlyingArea
+from apf_companion.planning import FlyingArea, KeepOuts
 from sim.vehicle.config import AUTO_DYNAMICS, Dynamics, EngineConfig, HomeConfig, SpawnConfig, VehicleSnapshot
 from sim.vehicle.engine import VehicleEngine
 from sim.vehicle.sensor import RangeSensorConfig, Scan
@@ -104,7 +104,7 @@ class SimConfig:
         unasked_streams: stream telemetry without being asked (the old behaviour); None = the profile's habit
             (ArduPilot: HEARTBEAT only until SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM; PX4: its default streams).
         fence: the autopilot's fence, served over the mission protocol as one inclusion polygon (sim.vehicle.fence);
-            None: no fence (count 0).
+            None: no inclusion zone. fence_keepouts: its exclusion polygons. Neither: no fence (count 0).
         signing_key: MAVLink 2 signing key (32 bytes, ``apf_companion.links.load_signing_key``): every link signs
             its frames (link id = link index, timestamp from the wall clock, as ArduPilot with a GPS fix) and
             drops frames not signed with it, except the profile's ``UNSIGNED_ACCEPTED``; None = signing off.
@@ -129,6 +129,7 @@ class SimConfig:
     unasked_streams: bool | None = None
     signing_key: bytes | None = None
     fence: FlyingArea | None = None
+    fence_keepouts: KeepOuts = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "links", tuple(self.links))
@@ -173,6 +174,7 @@ class SimConfig:
             fast_start=self.fast_start,
             unasked_streams=self.unasked_streams,
             fence=self.fence,
+            fence_keepouts=self.fence_keepouts,
         )
 
 

@@ -26,6 +26,9 @@ Format (all coordinates local NED north/east metres relative to home = the EKF o
     thickness_m = 0.0
     height_m = 5.0
 
+    [[keepout]]                         # a keep-out zone (a fence's exclusion zone): no obstacle, nothing marks it;
+    points_ne_m = [[2, 12], [4, 12], [4, 14]]  # bapf-nav does not enter it (PlannerParams.nav_keepout_ne_m)
+
     [random_field]                      # optionally add the paper's random points (sim/world/field.py)
     preset = "reference"                # or "paper"
     obstacles = 40                      # or "low" / "mid" / "high"
@@ -64,12 +67,14 @@ _TOP_KEYS = {
     "cylinder",
     "wall",
     "polygon",
+    "keepout",
     "random_field",
 }
 _KEYS = {
     "cylinder": {"ne_m", "radius_m", "height_m"},
     "wall": {"from_ne_m", "to_ne_m", "thickness_m", "height_m"},
     "polygon": {"points_ne_m", "closed", "thickness_m", "height_m"},
+    "keepout": {"points_ne_m"},
     "random_field": {"preset", "obstacles", "seed", "radius_m"},
 }
 
@@ -220,6 +225,10 @@ def world_from_mapping(data: Mapping[str, Any], *, default_name: str = "world") 
     )
     if "area_ne_m" in data:
         world = dataclasses.replace(world, area_ne_m=_area(data["area_ne_m"]))
+    if "keepout" in data:
+        zones = [_check_keys(raw, "keepout", i).get("points_ne_m", []) for i, raw in enumerate(data["keepout"])]
+        keepouts = tuple(tuple(_pair(p, f"keepout[{i}].points_ne_m") for p in z) for i, z in enumerate(zones))
+        world = dataclasses.replace(world, keepouts_ne_m=keepouts)
     if "random_field" in data:
         world = _with_random_field(world, data["random_field"], str(name))
     return world

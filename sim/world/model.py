@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning import FlyingArea, area_text, inside_area, polygon_problem
+from apf_companion.planning import FlyingArea, KeepOuts, PolygonNE, area_text, in_keepout, inside_area, polygon_problem
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -51,6 +51,8 @@ class World:
         start_ne_m / goal_ne_m: optional suggested start and goal (the paper's (3, 3) and (22, 22)).
         area_ne_m: optional flying area (north_min, east_min, north_max, east_max) [m], the bounds a user would
             fence: given to bapf-nav as ``nav_area_ne_m`` by the study and ``apf-sim fly``.
+        keepouts_ne_m: keep-out zones (polygons) [m], a fence's exclusion zones: bapf-nav's ``nav_keepout_ne_m``.
+            No obstacle: nothing marks them, and the study's optimum does not know them.
     """
 
     circles_ne_m: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
@@ -63,11 +65,17 @@ class World:
     start_ne_m: tuple[float, float] | None = None
     goal_ne_m: tuple[float, float] | None = None
     area_ne_m: FlyingArea | None = None
+    keepouts_ne_m: KeepOuts = ()
 
     def __post_init__(self) -> None:
         if self.area_ne_m is not None:
             object.__setattr__(self, "area_ne_m", _area(self.area_ne_m))
             self._check_in_area(self.area_ne_m)
+        object.__setattr__(self, "keepouts_ne_m", tuple(_keepout(z) for z in self.keepouts_ne_m))
+        for key, point in (("start_ne_m", self.start_ne_m), ("goal_ne_m", self.goal_ne_m)):
+            if point is not None and in_keepout(self.keepouts_ne_m, point[0], point[1]):
+                msg = f"world: {key} = {[float(v) for v in point]} lies in a keep-out zone"
+                raise ConfigError(msg)
         circles = _as_array(self.circles_ne_m, (2,), "circles_ne_m")
         n = circles.shape[0]
         radii = np.broadcast_to(np.asarray(self.circle_radii_m, dtype=np.float64), (n,)).copy()
@@ -147,6 +155,7 @@ class World:
             start_ne_m=self.start_ne_m or other.start_ne_m,
             goal_ne_m=self.goal_ne_m or other.goal_ne_m,
             area_ne_m=self.area_ne_m or other.area_ne_m,
+            keepouts_ne_m=self.keepouts_ne_m + other.keepouts_ne_m,
         )
 
     @staticmethod
@@ -332,6 +341,7 @@ class World:
             "start_ne_m": list(self.start_ne_m) if self.start_ne_m else None,
             "goal_ne_m": list(self.goal_ne_m) if self.goal_ne_m else None,
             "area_ne_m": _area_json(self.area_ne_m),
+            "keepouts_ne_m": [[list(v) for v in zone] for zone in self.keepouts_ne_m],
         }
 
 
@@ -351,6 +361,17 @@ def _area(value: Sequence[Any]) -> FlyingArea:
         msg = f"world: area_ne_m must be finite [[north_min, east_min], [north_max, east_max]], min < max: {value!r}"
         raise ConfigError(msg)
     return area[0], area[1], area[2], area[3]
+
+
+def _keepout(value: Sequence[Any]) -> PolygonNE:
+    """A keep-out zone: a polygon of finite (north, east) vertices whose edges do not cross [m]."""
+    polygon = tuple((float(v[0]), float(v[1])) for v in value if len(v) == 2)
+    finite = len(polygon) == len(value) and all(map(math.isfinite, sum(polygon, ())))
+    problem = polygon_problem(polygon) if finite else "finite pairs"
+    if problem is not None:
+        msg = f"world: a keep-out zone must be {problem} [[north, east], ...]: {value!r}"
+        raise ConfigError(msg)
+    return polygon
 
 
 def _area_json(area: FlyingArea | None) -> list[Any] | None:

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from apf_companion.planning import area_bounds, area_text, inside_area, polygon_problem
-from apf_companion.planning.area import leaves_area
+from apf_companion.planning.area import KeepOuts, in_keepout, leaves_area, meets_keepout, near_edges
 
 #: An L: 20 m x 20 m less its north-east 12 m x 12 m (north 8-20, east 8-20 is outside).
 L_SHAPE = ((0.0, 0.0), (20.0, 0.0), (20.0, 8.0), (8.0, 8.0), (8.0, 20.0), (0.0, 20.0))
@@ -42,8 +42,8 @@ def test_a_rectangle_as_a_polygon_holds_the_same_points(
     # rectangle's form is not tested at all (bapf-nav gives up on a target outside it).
     start_in = inside_area(rect, pts[:, 0], pts[:, 1])
     end_in = start_in[::-1]
-    assert leaves_area(polygon, pts, pts[::-1]).tolist() == (start_in & ~end_in).tolist()
-    assert not leaves_area(rect, pts, pts[::-1]).any()
+    assert leaves_area(polygon, pts, pts[::-1], 0.6).tolist() == (start_in & ~end_in).tolist()  # no inner corner
+    assert not leaves_area(rect, pts, pts[::-1], 0.6).any()
 
 
 def test_an_l_shaped_area_leaves_out_its_notch_and_holds_its_edges() -> None:
@@ -66,7 +66,7 @@ def test_an_l_shaped_area_leaves_out_its_notch_and_holds_its_edges() -> None:
 def test_a_line_leaves_a_concave_area_across_its_notch() -> None:
     starts = np.array([[16.0, 2.0], [16.0, 2.0], [2.0, 16.0], [16.0, 2.0], [16.0, 2.0], [15.0, 15.0], [4.0, 4.0]])
     ends = np.array([[2.0, 16.0], [2.0, 2.0], [2.0, 2.0], [25.0, 2.0], [8.0, 8.0], [2.0, 2.0], [4.0, 4.0]])
-    assert leaves_area(L_SHAPE, starts, ends).tolist() == [
+    assert leaves_area(L_SHAPE, starts, ends, 0.0).tolist() == [
         True,  # across the notch, both ends inside
         False,
         False,  # within an arm
@@ -75,9 +75,13 @@ def test_a_line_leaves_a_concave_area_across_its_notch() -> None:
         False,  # a start outside: bapf-nav does not hold an agent outside by its line
         False,  # no line at all
     ]
-    along_edge = leaves_area(L_SHAPE, np.array([[8.0, 12.0]]), np.array([[8.0, 19.0]]))
+    along_edge = leaves_area(L_SHAPE, np.array([[8.0, 12.0]]), np.array([[8.0, 19.0]]), 0.0)
     assert not along_edge.any()  # along the inner edge: inside all the way
-    assert leaves_area(L_SHAPE, np.zeros((0, 2)), np.zeros((0, 2))).shape == (0,)
+    assert leaves_area(L_SHAPE, np.zeros((0, 2)), np.zeros((0, 2)), 0.6).shape == (0,)
+    # Past the inner corner (8, 8) at 0.4 m: inside all the way, but within a margin of 0.6 m of the corner.
+    graze = (np.array([[16.0, 7.6]]), np.array([[7.6, 7.6]]))
+    assert not leaves_area(L_SHAPE, *graze, 0.0).any() and leaves_area(L_SHAPE, *graze, 0.6).all()
+    assert not leaves_area(L_SHAPE, *graze, 0.3).any()
 
 
 @pytest.mark.parametrize(
@@ -97,3 +101,25 @@ def test_polygons_that_cross_themselves_or_have_no_area_are_refused(
     assert why is not None and problem in why
     assert polygon_problem(L_SHAPE) is None
     assert polygon_problem(tuple(reversed(L_SHAPE))) is None
+
+
+def test_keep_out_zones_are_met_by_lines_that_cross_end_in_or_pass_within_the_margin() -> None:
+    square: KeepOuts = (((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0)),)
+    assert in_keepout(square, [10.0, 13.0, 14.0, math.nan], [0.0, 3.0, 0.0, 0.0]).tolist() == [True, True, False, False]
+    assert not in_keepout((), [10.0], [0.0]).any()
+    starts = np.array([[0.0, 0.0], [0.0, 3.5], [0.0, 3.7], [10.0, 0.0], [0.0, 0.0], [20.0, 20.0]])
+    ends = np.array([[20.0, 0.0], [20.0, 3.5], [20.0, 3.7], [20.0, 20.0], [10.0, 1.0], [30.0, 30.0]])
+    assert meets_keepout(square, starts, ends, 0.6).tolist() == [
+        True,  # across
+        True,  # along it, 0.5 m off: within the margin
+        False,  # 0.7 m off
+        True,  # from inside
+        True,  # into it
+        False,  # far away
+    ]
+    assert meets_keepout(square, starts[1:2], ends[1:2], 0.4).tolist() == [False]
+    assert not meets_keepout((), starts, ends, 0.6).any()
+    north = np.array([7.0, 6.5, 6.3, 10.0, 10.0])
+    assert near_edges(square[0], north, np.array([0.0, 0.0, 0.0, 0.0, 2.5]), 0.6).tolist() == [
+        True, True, False, False, True,
+    ]  # fmt: skip

@@ -6,6 +6,7 @@ import dataclasses
 import heapq
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -319,8 +320,11 @@ _YARD_L = ((-3.0, -3.0), (23.0, -3.0), (23.0, 6.0), (9.0, 6.0), (9.0, 23.0), (-3
 
 def _outside_m(polygon: tuple[tuple[float, float], ...], point: np.ndarray) -> float:
     """How far ``point`` lies outside ``polygon`` (0 inside) [m]: its distance to the nearest edge."""
-    if inside_area(polygon, point[0], point[1]):
-        return 0.0
+    return 0.0 if inside_area(polygon, point[0], point[1]) else _edge_distance_m(polygon, point)
+
+
+def _edge_distance_m(polygon: tuple[tuple[float, float], ...], point: np.ndarray) -> float:
+    """The distance from ``point`` (north, east, ...) to the nearest edge of ``polygon`` [m]."""
     a = np.array(polygon)
     b = np.roll(a, -1, axis=0)
     t = np.clip(np.einsum("vd,vd->v", point[:2] - a, b - a) / np.einsum("vd,vd->v", b - a, b - a), 0.0, 1.0)
@@ -331,11 +335,12 @@ def _outside_m(polygon: tuple[tuple[float, float], ...], point: np.ndarray) -> f
 def test_a_concave_area_with_nothing_to_see_is_flown_round_its_notch(dim: int) -> None:
     """yard-l without its hedge: a property line that no sensor sees. The straight line from start to goal
     crosses the notch, so it is blocked from the first step (``area.leaves_area``) and the agent follows the
-    area's field round the inner corner, never more than a step (0.4 m) outside; without the area it cuts
-    straight across the notch, 3 m inside it."""
+    area's field round the inner corner, inside the polygon and never nearer its edges than C less a cell
+    (``navzones``, ``leaves_area``'s margin round the inner corner); without the area it cuts straight across the
+    notch, 3 m inside it."""
     start, goal = np.array([20.0, 1.0, 5.0])[:dim], np.array([2.0, 20.0, 5.0])[:dim]
     none = np.zeros((0, dim))
-    worst = {}
+    worst, nearest = {}, math.inf
     for area in (_YARD_L, None):
         planner = get_planner("bapf-nav", PlannerParams(dim=dim, nav_area_ne_m=area))
         pos, worst[area is None], path = start, 0.0, 0.0
@@ -347,11 +352,49 @@ def test_a_concave_area_with_nothing_to_see_is_flown_round_its_notch(dim: int) -
             path += float(np.linalg.norm(d.next_point_m - pos))
             pos = d.next_point_m
             worst[area is None] = max(worst[area is None], _outside_m(_YARD_L, pos))
+            if area is not None:
+                nearest = min(nearest, _edge_distance_m(_YARD_L, pos))
         assert np.linalg.norm(pos[:2] - goal[:2]) <= 0.7
         if area is not None:  # round the corner at (9, 6): 12.1 m + 15.7 m, straight 26.2 m
             assert 27.0 <= path <= 29.5, path
-    assert worst[False] <= PlannerParams().step_m, worst
+    assert worst[False] == 0.0, worst  # inside all the way: the area's edges are kept at C, less a cell
+    assert nearest >= PlannerParams().clearance_m - PlannerParams().nav_cell_m
     assert worst[True] >= 2.5
+
+
+#: A 6 m x 6 m keep-out square across the straight line from (0, 0) to (20, 0), with nothing in it to see.
+_SQUARE = ((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0))
+
+
+@pytest.mark.parametrize("area", [None, (-5.0, -12.0, 25.0, 12.0)], ids=["moving-grid", "over-an-area"])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_keep_out_zone_with_nothing_to_see_is_flown_round(dim: int, area: Any) -> None:
+    """A keep-out zone (a fence's exclusion zone) across the straight line, with no obstacle in it: the line
+    meets the zone from the first step (``area.meets_keepout``), and the agent goes round on the field, whose
+    cells in the zone and within C of its edges are blocked, never nearer than C less a cell; without the zone it
+    flies straight through.
+    A target in the zone gives up at once."""
+    start, goal = np.zeros(dim), np.array([20.0, 0.0, 0.0])[:dim]
+    none = np.zeros((0, dim))
+    deepest = {}
+    for keepouts in ((_SQUARE,), ()):
+        planner = get_planner("bapf-nav", PlannerParams(dim=dim, nav_area_ne_m=area, nav_keepout_ne_m=keepouts))
+        pos, depth = start, -math.inf
+        for _ in range(200):
+            if np.linalg.norm(pos[:2] - goal[:2]) <= 0.7:
+                break
+            d = planner.step(pos, goal, none)
+            assert d.next_point_m is not None, d.reason
+            pos = d.next_point_m
+            n, e = float(pos[0]), float(pos[1])
+            depth = max(depth, min(n - 7.0, 13.0 - n, e + 3.0, 3.0 - e))  # > 0: inside, by this much
+        assert np.linalg.norm(pos[:2] - goal[:2]) <= 0.7
+        deepest[bool(keepouts)] = depth
+    assert deepest[True] <= -(PlannerParams().clearance_m - PlannerParams().nav_cell_m)  # kept at C, less a cell
+    assert deepest[False] >= 2.5  # through the middle (3 m in on the straight line)
+    zoned = get_planner("bapf-nav", PlannerParams(dim=dim, nav_area_ne_m=area, nav_keepout_ne_m=(_SQUARE,)))
+    assert zoned.step(start, np.array([10.0, 0.0, 0.0])[:dim], none).reason is DecisionReason.GAVE_UP
+    assert isinstance(zoned, BapfNavPlanner) and zoned.give_up_cause() is GiveUp.OUTSIDE_AREA
 
 
 @pytest.mark.parametrize("target", [(30.0, 0.0), (10.0, -12.5), (-3.5, 0.0), (10.0, 12.5)])

@@ -27,6 +27,11 @@ _PARAMS = {
     "a flying area": PlannerParams(nav_area_ne_m=(-4.0, -8.0, 26.0, 28.0)),
     # The same bounds less a slot (north 3-4.5, east 1-28) that the straight line of the wall world crosses: a
     # line that leaves the polygon starts an escape (``area.leaves_area``), on both paths.
+    # Two keep-out zones across the worlds' lines (a moving grid: their cells per corner): one on the first
+    # metres of the straight line from (0, 0), one in the thickets.
+    "keep-out zones": PlannerParams(
+        nav_keepout_ne_m=(((1.0, 0.5), (2.5, 0.5), (2.5, 3.5), (1.0, 3.5)), ((14.0, 14.0), (17.0, 15.0), (15.0, 18.0)))
+    ),
     "a polygonal area": PlannerParams(
         nav_area_ne_m=(
             (-4.0, -8.0),

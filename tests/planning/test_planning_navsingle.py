@@ -83,10 +83,16 @@ _CROSS = (
 )  # fmt: skip
 
 
-@pytest.mark.parametrize("area", [None, _CROSS], ids=["no area", "polygon"])
+#: Keep-out zones among the scenes' lines: a square on the first axis, a triangle on the diagonal.
+_KEEPOUTS = (((2.0, -1.0), (4.0, -1.0), (4.0, 1.0), (2.0, 1.0)), ((6.0, 5.0), (9.0, 6.0), (6.0, 9.0)))
+
+
+@pytest.mark.parametrize(
+    ("area", "keepouts"), [(None, ()), (_CROSS, ()), (None, _KEEPOUTS)], ids=["no area", "polygon", "keep-outs"]
+)
 @pytest.mark.parametrize("dim", [2, 3])
-def test_the_single_agent_start_updates_the_state_as_the_batch_start(dim: int, area: Any) -> None:
-    planner = BapfNavPlanner(PlannerParams(dim=dim, nav_area_ne_m=area))
+def test_the_single_agent_start_updates_the_state_as_the_batch_start(dim: int, area: Any, keepouts: Any) -> None:
+    planner = BapfNavPlanner(PlannerParams(dim=dim, nav_area_ne_m=area, nav_keepout_ne_m=keepouts))
     patience = planner.params.nav_patience_steps
     rng = np.random.default_rng(dim)
     modes = set()

@@ -96,6 +96,12 @@ BAD: list[tuple[str, dict[str, Any]]] = [
         },
     ),
     ("nav_area_ne_m", {"nav_area_ne_m": ()}),
+    ("nav_keepout_ne_m", {"nav_keepout_ne_m": (((0.0, 0.0), (1.0, 0.0)),)}),  # two vertices
+    ("nav_keepout_ne_m", {"nav_keepout_ne_m": (((0.0, 0.0), (5.0, 5.0), (5.0, 0.0), (0.0, 6.0)),)}),  # edges cross
+    ("nav_keepout_ne_m", {"nav_keepout_ne_m": ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0))}),  # a polygon, not a list of them
+    ("nav_keepout_ne_m", {"nav_keepout_ne_m": (((0.0, 0.0), (1.0, 0.0), (1.0, math.nan)),)}),
+    ("nav_keepout_ne_m", {"nav_keepout_ne_m": "0,0,1,0,1,1"}),
+    ("nav_keepout_ne_m", {"nav_keepout_ne_m": tuple(((k, 0.0), (k + 1.0, 0.0), (k, 1.0)) for k in range(17))}),
 ]
 
 
@@ -106,6 +112,19 @@ def test_a_flying_area_is_kept_as_a_tuple_of_floats() -> None:
     assert all(type(v) is float for v in p.nav_area_ne_m)
     assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 76.8, 76.8)).nav_area_ne_m is not None  # 256 cells a side
     assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 100.0, 10.0), nav_cell_m=0.4).nav_area_ne_m is not None
+
+
+def test_keep_out_zones_are_kept_as_tuples_of_float_pairs() -> None:
+    """A config file gives ``[[[north, east], ...], ...]``: up to 16 polygons, kept in order as pairs of floats."""
+    assert PlannerParams().nav_keepout_ne_m == ()
+    p = PlannerParams(nav_keepout_ne_m=[[[0, 0], [2, 0], [2, 2]], [[5, 5], [6, 5], [6, 6], [5, 6]]])  # type: ignore[arg-type]
+    assert p.nav_keepout_ne_m == (
+        ((0.0, 0.0), (2.0, 0.0), (2.0, 2.0)),
+        ((5.0, 5.0), (6.0, 5.0), (6.0, 6.0), (5.0, 6.0)),
+    )
+    assert all(type(v) is float for zone in p.nav_keepout_ne_m for pair in zone for v in pair)
+    sixteen = tuple(((k, 0.0), (k + 1.0, 0.0), (k, 1.0)) for k in range(16))
+    assert len(PlannerParams(nav_keepout_ne_m=sixteen).nav_keepout_ne_m) == 16
 
 
 def test_a_polygonal_area_is_kept_as_a_tuple_of_float_pairs() -> None:

@@ -137,12 +137,37 @@ east_m = 20.0
     with pytest.raises(ConfigError, match=r"waypoint 0 .*nav_area_ne_m = \[\[-3.0, -3.0\], \[23.0, -3.0\]"):
         initial_route(notch, build_planner(notch))
     for bad in ([[0, 0], [10, "a"], [10, 10]], [[0, 0], [10, [1]], [10, 10]], [[0, 0], 10, [10, 10]]):
-        with pytest.raises(ConfigError, match=r"planner\.params\.nav_area_ne_m.*list of lists of numbers"):
+        with pytest.raises(ConfigError, match=r"planner\.params\.nav_area_ne_m.*list of numbers \(or of such lists"):
             config_from_mapping({"planner": {"params": {"nav_area_ne_m": bad}}})
     with pytest.raises(ConfigError, match=r"nav_area_ne_m.*edges that do not cross"):  # a bow tie
         build_planner(
             config_from_mapping({"planner": {"params": {"nav_area_ne_m": [[0, 0], [9, 9], [9, 0], [0, 12]]}}})
         )
+
+
+def test_keep_out_zones_from_a_config_file() -> None:
+    """``nav_keepout_ne_m = [[[north, east], ...], ...]`` (TOML, three lists deep): the planner keeps them, a goal in
+    one is refused at load, and the service reads no fence (the config's zones win)."""
+    text = """
+[planner.params]
+nav_keepout_ne_m = [[[7.0, -3.0], [13.0, -3.0], [13.0, 3.0], [7.0, 3.0]], [[20.0, 5.0], [22.0, 5.0], [21.0, 7.0]]]
+[goal]
+north_m = 20.0
+east_m = 0.0
+"""
+    config = config_from_mapping(tomllib.loads(text))
+    planner = build_planner(config)
+    assert len(planner.params.nav_keepout_ne_m) == 2 and planner.params.nav_keepout_ne_m[1][2] == (21.0, 7.0)
+    assert initial_route(config, planner) is not None
+    inside = config_from_mapping(tomllib.loads(text.replace("north_m = 20.0", "north_m = 10.0")))
+    with pytest.raises(
+        ConfigError, match=r"waypoint 0 .*lies in keep-out zone 0 \(planner\.params\.nav_keepout_ne_m\)"
+    ):
+        initial_route(inside, build_planner(inside))
+    with pytest.raises(ConfigError, match=r"planner\.params\.nav_keepout_ne_m.*list of numbers \(or of such lists"):
+        config_from_mapping({"planner": {"params": {"nav_keepout_ne_m": [[[[0, 0]]]]}}})  # four deep
+    with pytest.raises(ConfigError, match=r"nav_keepout_ne_m.*up to 16 polygons"):
+        build_planner(config_from_mapping({"planner": {"params": {"nav_keepout_ne_m": [[[0, 0], [1, 1]]]}}}))
 
 
 def test_load_config_file_errors(tmp_path: Path) -> None:

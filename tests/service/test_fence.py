@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -23,7 +24,7 @@ from apf_companion.fencereader import FenceReader, FenceReaderParams
 from apf_companion.goal import EARTH_RADIUS_M, GlobalReference
 from apf_companion.links.messages import MissionAck, MissionCount, MissionItemInt, Source
 from apf_companion.outbox import Outbox
-from apf_companion.planning import inside_area
+from apf_companion.planning import in_keepout, inside_area
 
 VERTEX_IN = mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION
 VERTEX_OUT = mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION
@@ -69,23 +70,45 @@ def test_one_inclusion_polygon_is_the_area_to_a_centimetre() -> None:
         assert abs(n - n0) < 0.01 and abs(e - e0) < 0.01  # 1e-7 deg is 1.1 cm
 
 
-def test_an_inclusion_circle_becomes_its_inscribed_polygon_and_exclusions_are_left_to_the_autopilot() -> None:
+def test_circles_become_polygons_that_never_let_the_vehicle_where_the_fence_would_not() -> None:
+    """An inclusion circle: its inscribed 32-gon (inside the circle). An exclusion circle: its circumscribed 32-gon
+    (around the circle). Exclusion polygons are kept as they are. All exclusion zones become keep-out zones."""
     items = [_circle(10.0, 5.0, 20.0, CIRCLE_IN), _circle(15.0, 5.0, 2.0, CIRCLE_OUT, seq=1)]
     items += _polygon(((0.0, 10.0), (2.0, 10.0), (2.0, 12.0)), VERTEX_OUT, first=2)
     area = fence_area(items, REF, (10.0, 5.0))
     assert area.outcome is FenceOutcome.USED
-    assert area.note == "inclusion circle of 32 vertices; 2 exclusion zones are left to the autopilot"
+    assert area.note == "inclusion circle of 32 vertices; 2 exclusion zones as keep-out zones"
     assert area.polygon_ne_m is not None and len(area.polygon_ne_m) == CIRCLE_VERTICES
     radii = [math.hypot(n - 10.0, e - 5.0) for n, e in area.polygon_ne_m]
     assert all(abs(r - 20.0) < 0.02 for r in radii)  # vertices on the circle: the polygon lies inside it
     assert not inside_area(area.polygon_ne_m, 10.0 + 19.9, 5.0 + 0.5 * 20.0 * math.tau / CIRCLE_VERTICES)
+    circle, triangle = area.keepouts_ne_m
+    outer = 2.0 / math.cos(math.pi / CIRCLE_VERTICES)
+    assert all(abs(math.hypot(n - 15.0, e - 5.0) - outer) < 0.02 for n, e in circle)
+    turns = np.arange(50) / 50 * math.tau
+    ring_n, ring_e = 15.0 + 1.98 * np.cos(turns), 5.0 + 1.98 * np.sin(turns)  # 2 cm in: the 1e-7 deg rounding
+    assert in_keepout((circle,), ring_n, ring_e).all()  # the whole circle is kept out
+    assert all(
+        abs(n - n0) < 0.01 and abs(e - e0) < 0.01
+        for (n, e), (n0, e0) in zip(triangle, ((0, 10), (2, 10), (2, 12)), strict=True)
+    )
+
+
+def test_a_fence_of_exclusion_zones_only_gives_keep_out_zones_and_no_area() -> None:
+    area = fence_area(_polygon(((0.0, 0.0), (5.0, 0.0), (5.0, 5.0)), VERTEX_OUT), REF, (10.0, 5.0))
+    assert area.outcome is FenceOutcome.USED and area.note == "1 exclusion zone as keep-out zone"
+    assert area.polygon_ne_m is None and len(area.keepouts_ne_m) == 1
 
 
 @pytest.mark.parametrize(
     ("items", "outcome", "note"),
     [
         ([], FenceOutcome.NO_FENCE, "the autopilot has no fence"),
-        (_polygon(((0.0, 0.0), (5.0, 0.0), (5.0, 5.0)), VERTEX_OUT), FenceOutcome.NOT_USED, "no inclusion zone (1 "),
+        (
+            [*_polygon(L_SHAPE), *_polygon(((0.0, 0.0), (5.0, 5.0), (5.0, 0.0), (0.0, 5.0)), VERTEX_OUT, first=6)],
+            FenceOutcome.NOT_USED,
+            "an exclusion zone is not a polygon with an area",
+        ),
         (
             [_circle(10.0, 5.0, 30.0, CIRCLE_IN), *_polygon(L_SHAPE, first=1)],
             FenceOutcome.NOT_USED,

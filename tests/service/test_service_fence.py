@@ -8,13 +8,14 @@ import contextlib
 from collections.abc import AsyncIterator
 from typing import Any
 
+import numpy as np
 import pytest
 
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.fence import FenceOutcome
 from apf_companion.goal import Route
 from apf_companion.navigator import State
-from apf_companion.planning import FlyingArea
+from apf_companion.planning import FlyingArea, KeepOuts
 from apf_companion.service import CompanionService
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.world import load_world
@@ -35,7 +36,7 @@ def _config(**planner: Any) -> ServiceConfig:
 
 @contextlib.asynccontextmanager
 async def yard_flight(
-    fence: FlyingArea | None, route: Route | None = None
+    fence: FlyingArea | None, route: Route | None = None, keepouts: KeepOuts = ()
 ) -> AsyncIterator[tuple[CompanionService, Simulator]]:
     """The service (bapf-nav) and the simulator flying yard-l from its start, the simulator serving ``fence``."""
     svc = await CompanionService.open(_config(), route=route, clock=SimulatorClock(SPEEDUP))
@@ -48,6 +49,7 @@ async def yard_flight(
             seed=3,
             spawn=SpawnConfig(pos_ne_m=YARD.start_ne_m, airborne=True, alt_m=5.0),
             fence=fence,
+            fence_keepouts=keepouts,
         )
     )
     async with running(svc, sim):
@@ -74,6 +76,30 @@ async def test_the_fence_becomes_the_flying_area_and_the_yard_is_flown_round_its
         res = sim.result()
         assert not res["collided"] and res["min_clearance_m"] >= 0.35
         assert svc.fence.download.unexpected == 0
+
+
+#: A flower bed in yard-l's south-east arm, across the straight way from the inner corner to the goal: an exclusion
+#: zone of the fence, with nothing in it to see.
+BED = ((3.0, 11.5), (6.5, 11.5), (6.5, 14.5), (3.0, 14.5))
+
+
+async def test_exclusion_zones_become_keep_out_zones_the_flight_goes_round() -> None:
+    """yard-l's fence with an exclusion zone: the service plans over the L and keeps out of the bed, which nothing
+    marks; the flight arrives and never enters it."""
+    assert YARD.goal_ne_m is not None and YARD.area_ne_m is not None
+    route = Route.point(*YARD.goal_ne_m, -5.0, source="test")
+    async with yard_flight(YARD.area_ne_m, route=route, keepouts=(BED,)) as (svc, sim):
+        await until(lambda: svc.fence is not None and svc.fence.result is not None, HANG_S, "the fence read")
+        assert svc.fence is not None and svc.fence.result is not None
+        assert svc.fence.result.note == "inclusion polygon of 6 vertices; 1 exclusion zone as keep-out zone"
+        (bed,) = svc.planner.params.nav_keepout_ne_m
+        assert all(abs(n - n0) < 0.02 and abs(e - e0) < 0.02 for (n, e), (n0, e0) in zip(bed, BED, strict=True))
+        assert await wait_state(svc, {State.ARRIVED, State.STUCK}, 240.0) is State.ARRIVED, svc.result()
+        track = np.array(sim.engine.trajectory_ned_m)[:, :2]
+    inside_by = np.minimum.reduce([track[:, 0] - 3.0, 6.5 - track[:, 0], track[:, 1] - 11.5, 14.5 - track[:, 1]])
+    # Never in the bed: the plan keeps its edges at C = 0.6 m less a cell, the flown track 0.27-0.4 m (tracking).
+    assert inside_by.max() <= -0.1
+    assert (track[:, 1] > 15.0).any()  # and it got past the bed
 
 
 async def test_no_fence_leaves_the_planner_as_configured() -> None:

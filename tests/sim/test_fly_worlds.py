@@ -78,6 +78,14 @@ def test_a_world_s_polygonal_area_reaches_the_service_s_planner(tmp_path: Path) 
     assert planner.params.nav_area_ne_m == area
 
 
+def test_a_world_s_keep_out_zones_reach_the_service_s_planner(tmp_path: Path) -> None:
+    """Keep-out zones in the world file go into the service's config as ``nav_keepout_ne_m`` (TOML three deep)."""
+    zones = (((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0)), ((20.0, 5.0), (22.0, 5.0), (21.0, 7.0)))
+    opt = FlyOptions(world="wall-gap", start_ne_m=(0.0, 0.0), goal_ne_m=(20.0, 0.0), keepouts_ne_m=zones)
+    planner = build_planner(config_from_mapping(tomllib.loads(_service_toml(opt, 14550, tmp_path / "c.tlog"))))
+    assert planner.params.nav_keepout_ne_m == zones and planner.params.nav_area_ne_m is None
+
+
 def test_fly_fence_serves_the_area_from_the_vehicle_instead_of_the_config(tmp_path: Path) -> None:
     """``apf-sim fly --world yard-l --fence``: the vehicle gets ``--fence`` (it serves the area as its fence) and
     the service's config has no area, so the service reads it from the vehicle (``planner.fence_area``)."""

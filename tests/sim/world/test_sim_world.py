@@ -151,6 +151,24 @@ def test_world_file_polygon_area() -> None:
             world_from_mapping({"area_ne_m": bad})
 
 
+def test_world_file_keep_out_zones() -> None:
+    """``[[keepout]]`` tables: polygons kept in order, checked, and no start or goal in one."""
+    data = {
+        "keepout": [{"points_ne_m": [[7, -3], [13, -3], [13, 3], [7, 3]]}],
+        "start_ne_m": [0, 0],
+        "goal_ne_m": [20, 0],
+    }
+    w = world_from_mapping(data)
+    assert w.keepouts_ne_m == (((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0)),)
+    assert w.describe()["keepouts_ne_m"] == [[[7.0, -3.0], [13.0, -3.0], [13.0, 3.0], [7.0, 3.0]]]
+    assert w.n_obstacles == 0  # no obstacle: nothing marks it
+    with pytest.raises(ConfigError, match=r"goal_ne_m = \[10.0, 0.0\] lies in a keep-out zone"):
+        world_from_mapping({**data, "goal_ne_m": [10, 0]})
+    for bad in ([{"points_ne_m": [[0, 0], [1, 1]]}], [{"points_ne_m": [[0, 0], [1, 1], [1, 0]], "height_m": 3}]):
+        with pytest.raises(ConfigError, match="keep"):
+            world_from_mapping({"keepout": bad})
+
+
 def test_examples_load_and_start_is_clear() -> None:
     names = sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
     assert names == [
