@@ -14,6 +14,7 @@ import numpy as np
 from apf_companion.adopt import AdoptParams
 from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
+from apf_companion.fence import FenceArea
 from apf_companion.forwarder import ForwarderParams
 from apf_companion.goal import Route, load_route, route_outside_limits
 from apf_companion.handlers import COMMAND_MESSAGES, HandlerParams
@@ -39,9 +40,12 @@ __all__ = [
     "build_navigator",
     "build_outbox",
     "build_planner",
+    "config_with_fence",
+    "flying_area",
     "forwarder_params",
     "handler_params",
     "initial_route",
+    "keepout_zones",
     "navigator_params",
     "perception_params",
     "reporter_params",
@@ -273,6 +277,17 @@ def flying_area(planner: object) -> FlyingArea | None:
     """The flying area bapf-nav plans over (its validated ``params.nav_area_ne_m``), or None: no area, or another
     planner (they do not use one)."""
     return planner.params.nav_area_ne_m if isinstance(planner, BapfNavPlanner) else None
+
+
+def config_with_fence(config: ServiceConfig, area: FenceArea) -> ServiceConfig:
+    """``config`` with the fence's zones as bapf-nav's ``nav_area_ne_m`` and ``nav_keepout_ne_m`` (as a config
+    file would give them: lists), for ``build_planner`` to check."""
+    params = dict(config.planner.params)
+    if area.polygon_ne_m is not None:
+        params["nav_area_ne_m"] = [list(v) for v in area.polygon_ne_m]
+    if area.keepouts_ne_m:
+        params["nav_keepout_ne_m"] = [[list(v) for v in zone] for zone in area.keepouts_ne_m]
+    return dataclasses.replace(config, planner=dataclasses.replace(config.planner, params=params))
 
 
 def keepout_zones(planner: object) -> KeepOuts:

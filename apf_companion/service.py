@@ -43,6 +43,7 @@ from apf_companion.builders import (
     build_navigator,
     build_outbox,
     build_planner,
+    config_with_fence,
     flying_area,
     forwarder_params,
     handler_params,
@@ -696,17 +697,11 @@ def _fence_reader(svc: CompanionService) -> FenceReader | None:
 
 
 def _use_fence(svc: CompanionService, area: FenceArea) -> None:
-    """The fence's inclusion zone becomes bapf-nav's flying area, as a PARAM_SET would change a parameter (between
-    cycles: the goal is kept, the next cycle plans over the area). A fence that is not used is logged and said
-    in a STATUSTEXT (the ground station's user set it up); no fence at all is only logged."""
+    """The fence's zones become bapf-nav's flying area and keep-out zones, as a PARAM_SET would change a parameter
+    (between cycles: the goal is kept, the next cycle plans over them). A fence that is not used is logged and
+    said in a STATUSTEXT (the ground station's user set it up); no fence at all is only logged."""
     if area.outcome is FenceOutcome.USED:
-        pc = svc.config.planner
-        params = dict(pc.params)
-        if area.polygon_ne_m is not None:
-            params["nav_area_ne_m"] = [list(v) for v in area.polygon_ne_m]
-        if area.keepouts_ne_m:
-            params["nav_keepout_ne_m"] = [[list(v) for v in zone] for zone in area.keepouts_ne_m]
-        config = dataclasses.replace(svc.config, planner=dataclasses.replace(pc, params=params))
+        config = config_with_fence(svc.config, area)
         try:
             planner = build_planner(config)
         except ConfigError as err:  # e.g. wider than 256 cells of nav_cell_m
@@ -714,7 +709,7 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
         else:
             svc.params.config = config
             _put_in_service(svc, config, planner)
-            zones: dict[str, object] = {k: params[k] for k in ("nav_area_ne_m", "nav_keepout_ne_m") if k in params}
+            zones = {k: v for k, v in config.planner.params.items() if k in ("nav_area_ne_m", "nav_keepout_ne_m")}
             log.info("fence.area", extra={"note": area.note, **zones})
             svc.reporter.statustext(mavlink.MAV_SEVERITY_INFO, f"fence area: {area.note}")
             return
