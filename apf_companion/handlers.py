@@ -157,6 +157,8 @@ class AutopilotHandlers:
         self.custom_mode: int | None = None
         self.base_mode = 0
         self.global_ref: GlobalReference | None = None
+        #: A GLOBAL_POSITION_INT waiting for the pose of its time: (time_boot_ms, lat, lon [deg], alt, rel [m]).
+        self._pending_global: tuple[int, float, float, float, float] | None = None
         self.streams = StreamKeeper(
             wanted_streams(params.profile, params.telemetry_rate_hz, targets=params.adopt.enabled)
         )
@@ -262,6 +264,7 @@ class AutopilotHandlers:
         self.navigator.recovery.pose_confirmed = self.perception.gate.confirmed
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose(rec.time_boot_ms)
+        self._place_global(now_s)
 
     def _on_odometry(self, rec: Odometry, now_s: float) -> None:
         self.perception.gate.note_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate
@@ -271,21 +274,37 @@ class AutopilotHandlers:
         self.perception.on_attitude(rec.yaw, time_boot_ms=rec.time_boot_ms, yaw_rate_rad_s=rate)
 
     def _on_global_position(self, rec: GlobalPositionInt, now_s: float) -> None:
-        pose = self.navigator.pose
-        if pose is None:
+        if self.navigator.pose is None:
             return
         lat, lon = rec.lat * DEG_E7, rec.lon * DEG_E7
         alt, rel = rec.alt * MM, rec.relative_alt * MM
         if not all(math.isfinite(v) for v in (lat, lon, alt, rel)) or (rec.lat == 0 and rec.lon == 0):
             return
-        # The local position at the message's own time (the pose history, by the autopilot's boot time), not the
-        # latest pose: a vehicle at 5 m/s moves 0.5 m in the 100 ms between the two streams, and every global goal
-        # and fence vertex placed with this pair would move with it.
-        then = self.perception.history.at(self.perception.scan_time(rec.time_boot_ms, now_s))
-        p = pose.pos_ned_m if then is None else then.pos_ned_m
+        self._pending_global = (rec.time_boot_ms, lat, lon, alt, rel)
+        self._place_global(now_s)
+
+    def _place_global(self, now_s: float) -> None:
+        """The global reference from the latest GLOBAL_POSITION_INT and the local position at its own time (the
+        pose history, by the autopilot's boot time), not the latest pose: a vehicle at 5 m/s moves 0.5 m in the
+        100 ms between the two streams, and every global goal and fence vertex placed with this pair would move
+        with it. When the pose of its time has not arrived yet (the two streams of one instant in either order),
+        it waits for that pose (``_on_local_position``)."""
+        if self._pending_global is None:
+            return
+        boot_ms, lat, lon, alt, rel = self._pending_global
+        latest = self.perception.history.latest()
+        t = self.perception.scan_time(boot_ms, now_s)
+        if latest is not None and t <= latest.t_s:
+            p = (self.perception.history.at(t) or latest).pos_ned_m
+        else:  # not in the history (yet, or at all: no heading for the poses); the navigator's pose once it is as new
+            pose = self.navigator.pose
+            if pose is None or pose.t_s < t:
+                return
+            p = pose.pos_ned_m
         self.global_ref = GlobalReference(
             lat_deg=lat, lon_deg=lon, alt_amsl_m=alt, alt_rel_m=rel, pos_ned_m=(float(p[0]), float(p[1]), float(p[2]))
         )
+        self._pending_global = None
 
     def _on_ekf_status(self, rec: EkfStatusReport, now_s: float) -> None:
         self.ekf_flags = rec.flags

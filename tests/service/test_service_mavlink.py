@@ -467,6 +467,27 @@ async def test_global_reposition_is_placed_about_the_vehicle() -> None:
             await gcs.aclose()
 
 
+async def test_the_global_reference_pairs_a_global_position_with_the_pose_of_its_time() -> None:
+    """GLOBAL_POSITION_INT and LOCAL_POSITION_NED of one instant may arrive in either order: the reference waits
+    for the pose of the global position's own time, not the latest one (one stream period apart is 0.5 m at
+    5 m/s; the fence test saw a vertex 2 cm off under load)."""
+    async with rig() as (svc, ap):
+        await within(svc.clock.now, lambda: svc.navigator.pose is not None, 5.0, "pose")
+        ap.send_pose = False  # from here the test sends the poses, with the attitude they need
+        mav = ap.link.mav
+        await ap.ticks_pass(2)
+        t = ap.boot_ms() + 20
+        ap.link.send(mav.global_position_int_encode(t, 470_000_000, 80_000_000, 500_000, 5_000, 0, 0, 0, 0))
+        await ap.ticks_pass(4)
+        assert svc.handlers.global_ref is None  # its pose has not arrived
+        ap.link.send(mav.attitude_encode(t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+        ap.link.send(mav.local_position_ned_encode(t, 0.06, 0.03, -5.0, 0.0, 0.0, 0.0))
+        await within(svc.clock.now, lambda: svc.handlers.global_ref is not None, 2.0, "global reference")
+        ref = svc.handlers.global_ref
+        assert ref is not None and ref.pos_ned_m == pytest.approx((0.06, 0.03, -5.0))
+        assert ref.lat_deg == pytest.approx(47.0)
+
+
 async def test_dry_run_sends_nothing() -> None:
     cfg = dataclasses.replace(fast_config(), dry_run=True)
     route = Route.point(3.0, 0.0, -5.0, source="test")
