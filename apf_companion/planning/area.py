@@ -26,6 +26,7 @@ __all__ = [
     "KeepOuts",
     "PolygonNE",
     "area_bounds",
+    "area_polygon",
     "area_text",
     "in_keepout",
     "inside_area",
@@ -33,6 +34,7 @@ __all__ = [
     "leaves_area",
     "meets_keepout",
     "near_edges",
+    "outside_zones",
     "polygon_problem",
 ]
 
@@ -61,6 +63,14 @@ def area_bounds(area: FlyingArea) -> AreaNE:
     v = np.array(area, dtype=np.float64)
     low, high = v.min(axis=0), v.max(axis=0)
     return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+
+
+def area_polygon(area: FlyingArea) -> PolygonNE:
+    """The area as a polygon: a rectangle's four corners (counter-clockwise from south-west), a polygon as it is."""
+    if is_polygon(area):
+        return area  # type: ignore[return-value]
+    n0, e0, n1, e1 = area_bounds(area)
+    return ((n0, e0), (n1, e0), (n1, e1), (n0, e1))
 
 
 def area_text(area: FlyingArea) -> str:
@@ -96,7 +106,7 @@ def leaves_area(area: FlyingArea, start_ne_m: FloatArray, end_ne_m: FloatArray, 
     p, q = start_ne_m[:, None, :], end_ne_m[:, None, :]  # (A, 1, 2)
     corners = _reflex_vertices(v)[None, :, :]  # (1, R, 2)
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite lines compare False
-        crosses = (_side(p, q, a) * _side(p, q, b) < 0.0) & (_side(a, b, p) * _side(a, b, q) < 0.0)
+        crosses = _crosses(p, q, a, b)
         grazes = _dist2_to_segment(corners, p, q) < margin_m * margin_m
     out: BoolArray = start_in & (~end_in | np.logical_or.reduce(crosses, axis=1) | np.logical_or.reduce(grazes, axis=1))
     return out
@@ -109,6 +119,17 @@ def _reflex_vertices(v: FloatArray) -> FloatArray:
     orientation = float(np.sum(v[:, 0] * after[:, 1] - after[:, 0] * v[:, 1]))  # > 0: the vertices turn left
     reflex: FloatArray = v[turn * orientation < 0.0]
     return reflex
+
+
+def outside_zones(
+    area: FlyingArea | None, keepouts: KeepOuts, north_m: npt.ArrayLike, east_m: npt.ArrayLike
+) -> BoolArray:
+    """Whether each point (broadcast) lies outside the area (when there is one) or in a keep-out zone: where a
+    target has no way and a goal is refused. A non-finite point is outside an area and in no keep-out zone."""
+    out = in_keepout(keepouts, north_m, east_m)
+    if area is not None:
+        out |= ~inside_area(area, north_m, east_m)
+    return out
 
 
 def in_keepout(keepouts: KeepOuts, north_m: npt.ArrayLike, east_m: npt.ArrayLike) -> BoolArray:
@@ -134,7 +155,7 @@ def meets_keepout(keepouts: KeepOuts, start_ne_m: FloatArray, end_ne_m: FloatArr
         v = np.array(zone, dtype=np.float64)
         a, b = v[None, :, :], np.roll(v, -1, axis=0)[None, :, :]
         with np.errstate(invalid="ignore", over="ignore"):  # non-finite lines compare False
-            crosses = (_side(p, q, a) * _side(p, q, b) < 0.0) & (_side(a, b, p) * _side(a, b, q) < 0.0)
+            crosses = _crosses(p, q, a, b)
             # Segments that do not cross are closest at an end of one of them.
             near = np.minimum(
                 np.minimum(_dist2_to_segment(a, p, q), _dist2_to_segment(b, p, q)),
@@ -178,10 +199,16 @@ def polygon_problem(vertices: PolygonNE) -> str | None:
         return "a polygon with an area"
     a, b = v[:, None, :], w[:, None, :]  # (V, 1, 2) against (1, V, 2)
     c, d = v[None, :, :], w[None, :, :]
-    crosses = (_side(a, b, c) * _side(a, b, d) < 0.0) & (_side(c, d, a) * _side(c, d, b) < 0.0)
-    if crosses.any():
+    if _crosses(a, b, c, d).any():
         return "a polygon whose edges do not cross"
     return None
+
+
+def _crosses(p: FloatArray, q: FloatArray, a: FloatArray, b: FloatArray) -> BoolArray:
+    """Whether segment p-q properly crosses segment a-b (each strictly on both sides of the other: a touch at a
+    vertex or a run along a line does not count); broadcast."""
+    crosses: BoolArray = (_side(p, q, a) * _side(p, q, b) < 0.0) & (_side(a, b, p) * _side(a, b, q) < 0.0)
+    return crosses
 
 
 def _side(a: FloatArray, b: FloatArray, p: FloatArray) -> FloatArray:

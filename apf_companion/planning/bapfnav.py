@@ -46,7 +46,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.area import in_keepout, inside_area
+from apf_companion.planning.area import outside_zones
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
 from apf_companion.planning.navescape import EscapeMaps, own_cell_blocked
 from apf_companion.planning.navescapeone import EscapeStep
@@ -198,10 +198,7 @@ class BapfNavPlanner(StatefulPlanner):
         """Whether each finite point lies outside the flying area (``nav_area_ne_m``) or in a keep-out zone
         (``nav_keepout_ne_m``): a target there has no way (the service refuses such goals)."""
         north, east = np.asarray(north_m, dtype=np.float64), np.asarray(east_m, dtype=np.float64)
-        area, keepouts = self.params.nav_area_ne_m, self.params.nav_keepout_ne_m
-        out = in_keepout(keepouts, north, east)
-        if area is not None:
-            out |= ~inside_area(area, north, east)
+        out = outside_zones(self.params.nav_area_ne_m, self.params.nav_keepout_ne_m, north, east)
         finite: npt.NDArray[np.bool_] = np.isfinite(north) & np.isfinite(east)
         return out & finite
 

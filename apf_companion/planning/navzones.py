@@ -15,16 +15,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.area import (
-    FlyingArea,
-    KeepOuts,
-    PolygonNE,
-    area_bounds,
-    in_keepout,
-    inside_area,
-    is_polygon,
-    near_edges,
-)
+from apf_companion.planning.area import FlyingArea, KeepOuts, area_polygon, near_edges, outside_zones
 
 __all__ = ["ZoneCells"]
 
@@ -60,46 +51,34 @@ class ZoneCells:
 
     def goal_closed(self, goal_xy_m: FloatArray) -> bool:
         """Whether a goal lies outside the area or in a keep-out zone: no way to it."""
-        north, east = float(goal_xy_m[0]), float(goal_xy_m[1])
-        outside = self.area_ne_m is not None and not bool(inside_area(self.area_ne_m, north, east))
-        return outside or bool(in_keepout(self.keepouts_ne_m, north, east))
+        return bool(outside_zones(self.area_ne_m, self.keepouts_ne_m, float(goal_xy_m[0]), float(goal_xy_m[1])))
 
     def close(self, origin_m: FloatArray, blocked: BoolArray, goal_cell: tuple[int, int]) -> None:
         """Close the zones' cells in one field's ``blocked`` (n^2,), in place; the band gives way around
         ``goal_cell`` (row, column; may lie off the grid)."""
-        hard, band = self._cells(origin_m)
+        hard, closed = self._cells(origin_m)
         n = self.n
         i = goal_cell[0] + self._goal_di
         j = goal_cell[1] + self._goal_dj
         on = (i >= 0) & (i < n) & (j >= 0) & (j < n)
         near = i[on] * n + j[on]
         kept = blocked[near] | hard[near]  # the goal's neighbourhood: obstacles and hard cells only
-        blocked |= hard
-        blocked |= band
+        blocked |= closed
         blocked[near] = kept
 
     def _cells(self, origin_m: FloatArray) -> tuple[BoolArray, BoolArray]:
-        """(hard, band), each (n^2,), of the grid at ``origin_m``; the latest corner's are kept."""
+        """(hard, closed), each (n^2,), of the grid at ``origin_m``: the cells outside the area or in a keep-out
+        zone, and those with the band along the edges; the latest corner's are kept."""
         key = (float(origin_m[0]), float(origin_m[1]))
         if self._memo is not None and self._memo[0] == key:
             return self._memo[1], self._memo[2]
         centres = origin_m[:, None] + (np.arange(self.n) + 0.5)[None, :] * self.cell_m  # (2, n)
         north, east = centres[0][:, None], centres[1][None, :]
-        hard = in_keepout(self.keepouts_ne_m, north, east)
-        band = np.zeros_like(hard)
-        for zone in self.keepouts_ne_m:
-            band |= near_edges(zone, north, east, self.margin_m)
-        area = self.area_ne_m
-        if area is not None:
-            hard = hard | ~inside_area(area, north, east)
-            polygon: PolygonNE = area if is_polygon(area) else _corners(area)  # type: ignore[assignment]
-            band |= near_edges(polygon, north, east, self.margin_m)
-        out = (hard.ravel(), (band & ~hard).ravel())
+        hard = outside_zones(self.area_ne_m, self.keepouts_ne_m, north, east)
+        zones = self.keepouts_ne_m if self.area_ne_m is None else (area_polygon(self.area_ne_m), *self.keepouts_ne_m)
+        closed = hard.copy()
+        for zone in zones:
+            closed |= near_edges(zone, north, east, self.margin_m)
+        out = (hard.ravel(), closed.ravel())
         self._memo = (key, *out)
         return out
-
-
-def _corners(area: FlyingArea) -> tuple[tuple[float, float], ...]:
-    """A rectangle (north_min, east_min, north_max, east_max) as its four corners."""
-    n0, e0, n1, e1 = area_bounds(area)
-    return ((n0, e0), (n1, e0), (n1, e1), (n0, e1))

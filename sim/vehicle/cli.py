@@ -187,12 +187,10 @@ def _world(args: argparse.Namespace) -> World:
     return World.empty()
 
 
-def _fence(args: argparse.Namespace) -> tuple[FlyingArea | None, KeepOuts]:
-    """--fence: the world file's flying area and keep-out zones (an error when it has neither: a fence was asked
-    for)."""
+def _fence(args: argparse.Namespace, world: World) -> tuple[FlyingArea | None, KeepOuts]:
+    """--fence: the world's flying area and keep-out zones (an error when it has neither: a fence was asked for)."""
     if not args.fence:
         return None, ()
-    world = _world(args)
     if world.area_ne_m is None and not world.keepouts_ne_m:
         msg = "--fence: the world has no flying area (area_ne_m) and no keep-out zone to serve as the fence"
         raise ConfigError(msg)
@@ -244,11 +242,13 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
     home = HomeConfig()
     if args.home is not None:
         home = HomeConfig(lat_deg=args.home[0], lon_deg=args.home[1], alt_amsl_m=args.home[2])
+    world = _world(args)
+    fence, fence_keepouts = _fence(args, world)
     cfg = SimConfig(
         links=args.link or ["udpout:127.0.0.1:14550"],
         profile=args.profile,
         dynamics=args.dynamics,
-        world=_world(args),
+        world=world,
         speedup=math.inf if math.isinf(args.speedup) else args.speedup,
         seed=args.seed,
         spawn=SpawnConfig(
@@ -264,8 +264,8 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         fast_start=args.fast_start,
         unasked_streams=True if args.unasked_streams else None,
         signing_key=None if args.signing_key is None else load_signing_key(args.signing_key),
-        fence=_fence(args)[0],
-        fence_keepouts=_fence(args)[1],
+        fence=fence,
+        fence_keepouts=fence_keepouts,
     )
     stop = asyncio.Event()
     _install_signals(stop)

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.planning import FlyingArea, KeepOuts, area_bounds, is_polygon
+from apf_companion.planning import FlyingArea, KeepOuts, area_polygon
 from sim.vehicle.geo import ne_to_latlon
 
 if TYPE_CHECKING:
@@ -36,12 +36,7 @@ def fence_items(area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -
     polygon, then each keep-out zone as an exclusion polygon."""
     zones: list[tuple[int, list[tuple[float, float]]]] = []
     if area is not None:
-        if is_polygon(area):
-            vertices = [(float(n), float(e)) for n, e in area]  # type: ignore[misc]
-        else:
-            n0, e0, n1, e1 = area_bounds(area)
-            vertices = [(n0, e0), (n1, e0), (n1, e1), (n0, e1)]
-        zones.append((mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, vertices))
+        zones.append((mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, list(area_polygon(area))))
     zones += [(mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION, list(zone)) for zone in keepouts]
     out = []
     for command, vertices in zones:

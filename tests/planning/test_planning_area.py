@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from apf_companion.planning import area_bounds, area_text, inside_area, polygon_problem
-from apf_companion.planning.area import KeepOuts, in_keepout, leaves_area, meets_keepout, near_edges
+from apf_companion.planning import area_bounds, area_polygon, area_text, inside_area, polygon_problem
+from apf_companion.planning.area import KeepOuts, in_keepout, leaves_area, meets_keepout, near_edges, outside_zones
 
 #: An L: 20 m x 20 m less its north-east 12 m x 12 m (north 8-20, east 8-20 is outside).
 L_SHAPE = ((0.0, 0.0), (20.0, 0.0), (20.0, 8.0), (8.0, 8.0), (8.0, 20.0), (0.0, 20.0))
@@ -38,6 +38,7 @@ def test_a_rectangle_as_a_polygon_holds_the_same_points(
     pts = np.array([*points, (math.nan, e0), (n0, math.inf)])
     assert inside_area(rect, pts[:, 0], pts[:, 1]).tolist() == inside_area(polygon, pts[:, 0], pts[:, 1]).tolist()
     assert area_bounds(polygon) == rect
+    assert area_polygon(rect) == tuple(corners) and area_polygon(polygon) == polygon
     # Convex: a line from inside leaves exactly when it ends outside (the polygon's crossing test agrees); the
     # rectangle's form is not tested at all (bapf-nav gives up on a target outside it).
     start_in = inside_area(rect, pts[:, 0], pts[:, 1])
@@ -107,6 +108,10 @@ def test_keep_out_zones_are_met_by_lines_that_cross_end_in_or_pass_within_the_ma
     square: KeepOuts = (((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0)),)
     assert in_keepout(square, [10.0, 13.0, 14.0, math.nan], [0.0, 3.0, 0.0, 0.0]).tolist() == [True, True, False, False]
     assert not in_keepout((), [10.0], [0.0]).any()
+    # Where a target has no way: outside the area or in a keep-out zone (a non-finite point is outside the area).
+    at_n, at_e = [10.0, 1.0, 30.0, math.nan], [0.0, 0.0, 0.0, 0.0]
+    assert outside_zones(None, square, at_n, at_e).tolist() == [True, False, False, False]
+    assert outside_zones((-5.0, -5.0, 25.0, 5.0), square, at_n, at_e).tolist() == [True, False, True, True]
     starts = np.array([[0.0, 0.0], [0.0, 3.5], [0.0, 3.7], [10.0, 0.0], [0.0, 0.0], [20.0, 20.0]])
     ends = np.array([[20.0, 0.0], [20.0, 3.5], [20.0, 3.7], [20.0, 20.0], [10.0, 1.0], [30.0, 30.0]])
     assert meets_keepout(square, starts, ends, 0.6).tolist() == [
