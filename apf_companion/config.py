@@ -195,9 +195,9 @@ class PlannerConfig:
         random_walk_budget: Consecutive cycles without a greedy move (random walk or local minimum) after
             which the service gives up: STUCK.
         progress_timeout_s: No new best distance to the goal (by 0.1 m) for this long -> STUCK [s].
-        fence_area: bapf-nav with no flying area in params (nav_area_ne_m): read the autopilot's fence at
-            start, and plan over its inclusion zone (one polygon or circle) once it is read (docs/planner.md,
-            "The autopilot's fence").
+        fence_area: bapf-nav with no flying area and no keep-out zone in params (nav_area_ne_m,
+            nav_keepout_ne_m): read the autopilot's fence at start, and plan over its inclusion zone (one polygon
+            or circle) and round its exclusion zones once it is read (docs/service.md, "The autopilot's fence").
         params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
             safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner. Values are
             numbers, strings, booleans, or lists of numbers or of such lists (bapf-nav's flying area,
