@@ -281,8 +281,9 @@ def flying_area(planner: object) -> FlyingArea | None:
 
 def config_with_fence(config: ServiceConfig, area: FenceArea) -> ServiceConfig:
     """``config`` with the fence's zones as bapf-nav's ``nav_area_ne_m`` and ``nav_keepout_ne_m`` (as a config
-    file would give them: lists), for ``build_planner`` to check."""
-    params = dict(config.planner.params)
+    file would give them: lists), for ``build_planner`` to check. They replace the zones of an earlier fence; a
+    fence without zones (none, or not used) leaves neither."""
+    params = {k: v for k, v in config.planner.params.items() if k not in ("nav_area_ne_m", "nav_keepout_ne_m")}
     if area.polygon_ne_m is not None:
         params["nav_area_ne_m"] = [list(v) for v in area.polygon_ne_m]
     if area.keepouts_ne_m:

@@ -198,6 +198,8 @@ class PlannerConfig:
         fence_area: bapf-nav with no flying area and no keep-out zone in params (nav_area_ne_m,
             nav_keepout_ne_m): read the autopilot's fence at start, and plan over its inclusion zone (one polygon
             or circle) and round its exclusion zones once it is read (docs/service.md, "The autopilot's fence").
+        fence_poll_s: With ``fence_area``: read the fence again this long after each read, so a fence changed
+            on the ground station in flight is planned over [s]; 0 = read once at start.
         params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
             safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner. Values are
             numbers, strings, booleans, or lists of numbers or of such lists (bapf-nav's flying area,
@@ -211,6 +213,7 @@ class PlannerConfig:
     random_walk_budget: int = 100
     progress_timeout_s: float = 60.0
     fence_area: bool = True
+    fence_poll_s: float = 5.0
     params: Mapping[str, float | int | bool | str | list[float] | list[list[float]] | list[list[list[float]]]] = field(
         default_factory=dict
     )
@@ -227,6 +230,8 @@ class PlannerConfig:
         if not isinstance(self.random_walk_budget, int) or not 1 <= self.random_walk_budget <= 100_000:
             raise _fail("planner.random_walk_budget", "an integer in [1, 100000]", self.random_walk_budget)
         _check_range("planner.progress_timeout_s", self.progress_timeout_s, 1.0, 3600.0)
+        if self.fence_poll_s != 0.0:
+            _check_range("planner.fence_poll_s", self.fence_poll_s, 1.0, 3600.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -95,6 +95,10 @@ class FenceDownload:
         self.stage, self.reason, self.items = FenceStage.COUNT, "", []
         self._sent_at, self._tries, self._ack_due = -math.inf, 0, False
 
+    def rest(self) -> None:
+        """Its end has been taken: IDLE until the next ``start`` (the items are kept)."""
+        self.stage, self._ack_due = FenceStage.IDLE, False
+
     def due(self, now_s: float) -> FenceSend | None:
         """What to send at ``now_s``, if anything: a request when its answer is overdue (or not yet asked)."""
         if self._ack_due:

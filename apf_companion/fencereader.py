@@ -1,15 +1,24 @@
-"""Reads the autopilot's fence once, for bapf-nav's flying area (``apf_companion.fence`` has the protocol's state
-and the geometry; this drives it with what the other parts know).
+"""Reads the autopilot's fence for bapf-nav's flying area, at start and again every ``poll_s`` in flight
+(``apf_companion.fence`` has the protocol's state and the geometry; this drives it with what the other parts know).
 
-The download starts when the autopilot has been heard and the global reference (GLOBAL_POSITION_INT beside a
-local pose) can place latitude/longitude in local NED. The autopilot's answers (MISSION_COUNT, MISSION_ITEM_INT,
+The first download starts when the autopilot has been heard and the global reference (GLOBAL_POSITION_INT beside
+a local pose) can place latitude/longitude in local NED. The autopilot's answers (MISSION_COUNT, MISSION_ITEM_INT,
 MISSION_ACK) count only when addressed to us and of mission type FENCE: a ground station downloading its own
-fence on the same link does not feed ours. When the download ends, ``on_area`` gets the result once: the area,
-or None and why. ``due`` is stepped by the service's ``apf.fence`` task on the service clock.
+fence on the same link does not feed ours.
+
+Why poll: a ground station that uploads a new fence tells only itself (the closing MISSION_ACK goes to the
+uploader), and the plan-change ids of MAVLink's MISSION_CURRENT (``fence_id``) are not in pymavlink's dialect
+(2.4.50) nor sent by every autopilot. So the fence is read again every ``poll_s``; a fence of 10 vertices costs
+23 small messages, about 1 kB. ``on_area`` gets a result when it differs from the last one: the first read
+(whatever it gave), then a fence whose items changed (compared item by item, in 1e-7 degrees, so the global
+reference's centimetre jitter moves nothing). A later read that fails (a ground station uploading answers DENIED)
+keeps what is in service and is counted; the next read comes ``poll_s`` later. ``due`` is stepped by the service's
+``apf.fence`` task on the service clock.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,24 +34,26 @@ __all__ = ["FenceReader", "FenceReaderParams"]
 _FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 #: How often the reader is stepped while it downloads [s] (a request's repeat comes after ``timeout_s``).
 STEP_S = 0.1
-#: The step after the reader has finished [s]: it has nothing more to do.
+#: The step after the reader has finished [s] (``poll_s`` = 0: read once): it has nothing more to do.
 IDLE_S = 3600.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class FenceReaderParams:
-    """Our ids (the answers' target), the autopilot's, and the download's patience: ``timeout_s`` [s] between
-    repeats of a request, ``retries`` repeats."""
+    """Our ids (the answers' target), the autopilot's, the download's patience (``timeout_s`` [s] between repeats
+    of a request, ``retries`` repeats) and ``poll_s`` [s] from the end of one read to the start of the next
+    (0: read once)."""
 
     our_system: int
     our_component: int
     autopilot: Source
     timeout_s: float = 1.0
     retries: int = 5
+    poll_s: float = 5.0
 
 
 class FenceReader:
-    """The fence download of one service run (module docstring)."""
+    """The fence downloads of one service run (module docstring)."""
 
     def __init__(
         self,
@@ -55,18 +66,26 @@ class FenceReader:
         """``reference()``: the global reference and the vehicle's (north, east) [m] now, or None if not known."""
         self.params = params
         self.download = FenceDownload(params.timeout_s, params.retries)
+        #: The last result given to ``on_area`` (None before the first read has ended).
         self.result: FenceArea | None = None
-        #: Mission answers that were not for us or not about the fence: dropped.
+        #: Downloads that ended: read whole, and failed.
+        self.reads = 0
+        self.failures = 0
+        #: Reads whose fence differed from the one before (the first read not counted).
+        self.changes = 0
+        #: Mission answers that were not for us, not about the fence, or came with no download running: dropped.
         self.ignored = 0
         self._outbox = outbox
         self._reference = reference
         self._on_area = on_area
+        self._items: tuple[FenceItem, ...] | None = None  # of the last read that ended whole
+        self._next_read_s = -math.inf
 
     def on_record(self, rec: MissionRecord) -> None:
-        """An answer from the autopilot: to the download when addressed to us and about the fence."""
+        """An answer from the autopilot: to the download when addressed to us, about the fence, and one runs."""
         p = self.params
         ours = rec.target_system == p.our_system and rec.target_component == p.our_component
-        if not ours or rec.mission_type != _FENCE or self.result is not None:
+        if not ours or rec.mission_type != _FENCE or self.download.stage not in _RUNNING:
             self.ignored += 1
         elif isinstance(rec, MissionCount):
             self.download.on_count(rec.count)
@@ -76,11 +95,15 @@ class FenceReader:
             self.download.on_ack(rec.type)
 
     def due(self, now_s: float) -> float:
-        """Start, send what is due, finish; the time of the next step."""
-        if self.result is not None:
-            return now_s + IDLE_S
+        """Start a read when one is due, send what is due, finish; the time of the next step."""
         d = self.download
-        if d.stage is FenceStage.IDLE and self._reference() is not None:
+        if d.stage is FenceStage.IDLE:
+            if self.result is not None and self.params.poll_s <= 0.0:
+                return now_s + IDLE_S
+            if now_s < self._next_read_s:
+                return min(self._next_read_s, now_s + IDLE_S)
+            if self._reference() is None:
+                return now_s + STEP_S
             d.start()
         send = d.due(now_s)
         if send is not None and send.ack:
@@ -88,18 +111,37 @@ class FenceReader:
         elif send is not None:
             self._outbox.mission_request(_FENCE, send.seq)
         if d.stage is FenceStage.DONE and send is None:  # after the closing ack went out
-            self._finish()
+            self._ended(now_s, whole=True)
         elif d.stage is FenceStage.FAILED:
-            self._finish_with(FenceArea(FenceOutcome.FAILED, f"download failed: {d.reason}"))
+            self._ended(now_s, whole=False)
         return now_s + STEP_S
 
-    def _finish(self) -> None:
+    def _ended(self, now_s: float, *, whole: bool) -> None:
+        """A download ended: the next is due ``poll_s`` later; its result goes out when it is news."""
+        self._next_read_s = now_s + self.params.poll_s
+        reason = self.download.reason
+        self.download.rest()
+        if not whole:
+            self.failures += 1
+            if self.result is None:  # the first read: say that there is no fence to plan over (yet)
+                self._tell(FenceArea(FenceOutcome.FAILED, f"download failed: {reason}"))
+            return
+        self.reads += 1
+        items = tuple(self.download.items)
+        if items == self._items:
+            return
         where = self._reference()
-        if where is None:  # the reference went away (a reboot) between start and end: not placed
-            self._finish_with(FenceArea(FenceOutcome.NOT_USED, "no global reference to place the fence"))
-        else:
-            self._finish_with(fence_area(self.download.items, *where))
+        if where is None:  # the reference went away (a reboot) between start and end: placed at the next read
+            if self.result is None:
+                self._tell(FenceArea(FenceOutcome.NOT_USED, "no global reference to place the fence"))
+            return
+        self.changes += self._items is not None
+        self._items = items
+        self._tell(fence_area(items, *where))
 
-    def _finish_with(self, result: FenceArea) -> None:
+    def _tell(self, result: FenceArea) -> None:
         self.result = result
         self._on_area(result)
+
+
+_RUNNING = (FenceStage.COUNT, FenceStage.ITEMS)

@@ -15,8 +15,8 @@ is noticed within one cycle), ``apf.status`` (HEARTBEAT at 1 Hz, NAMED_VALUE_FLO
 rates), ``apf.takeover`` (steps the takeover controller), ``apf.params`` (the paced PARAM_VALUE list of
 apf_companion.params), ``apf.forward`` (OBSTACLE_DISTANCE to the autopilot, when ``[sensors]
 forward_obstacle_distance``), ``apf.zenoh`` (scans and goals from zenoh, when enabled) and ``apf.fence`` (the
-autopilot's fence as bapf-nav's flying area, once at start, apf_companion.fencereader; when ``planner.fence_area``
-and the config gives no area).
+autopilot's fence as bapf-nav's flying area, read at start and every ``planner.fence_poll_s``,
+apf_companion.fencereader; when ``planner.fence_area`` and the config gives no area).
 
 Clock: ``ServiceClock`` is monotonic and scaled by ``cycle.time_scale`` (vehicle seconds per wall second), so a
 simulated vehicle running N times faster than real time keeps every limit's meaning in vehicle seconds.
@@ -685,6 +685,7 @@ def _fence_reader(svc: CompanionService) -> FenceReader | None:
         our_system=lc.autopilot_sysid,
         our_component=lc.component_id,
         autopilot=Source(lc.autopilot_sysid, lc.autopilot_compid),
+        poll_s=config.planner.fence_poll_s,
     )
 
     def where() -> tuple[GlobalReference, tuple[float, float]] | None:
@@ -698,26 +699,39 @@ def _fence_reader(svc: CompanionService) -> FenceReader | None:
 
 def _use_fence(svc: CompanionService, area: FenceArea) -> None:
     """The fence's zones become bapf-nav's flying area and keep-out zones, as a PARAM_SET would change a parameter
-    (between cycles: the goal is kept, the next cycle plans over them). A fence that is not used is logged and
-    said in a STATUSTEXT (the ground station's user set it up); no fence at all is only logged."""
+    (between cycles: the goal is kept, the next cycle plans over them). Called at the first read and whenever the
+    fence changed: a new fence replaces the old one's zones; a fence removed, or one that is not used, takes them
+    out of service (the autopilot no longer enforces the old one). A fence that is not used is logged and said in
+    a STATUSTEXT (the ground station's user set it up); no fence at the first read is only logged."""
+    in_service = flying_area(svc.planner) is not None or bool(keepout_zones(svc.planner))
     if area.outcome is FenceOutcome.USED:
-        config = config_with_fence(svc.config, area)
         try:
-            planner = build_planner(config)
+            _put_fence_in_service(svc, area)
         except ConfigError as err:  # e.g. wider than 256 cells of nav_cell_m
             area = FenceArea(FenceOutcome.NOT_USED, str(err))
         else:
-            svc.params.config = config
-            _put_in_service(svc, config, planner)
-            zones = {k: v for k, v in config.planner.params.items() if k in ("nav_area_ne_m", "nav_keepout_ne_m")}
+            zones = {k: v for k, v in svc.config.planner.params.items() if k in ("nav_area_ne_m", "nav_keepout_ne_m")}
             log.info("fence.area", extra={"note": area.note, **zones})
             svc.reporter.statustext(mavlink.MAV_SEVERITY_INFO, f"fence area: {area.note}")
             return
+    if in_service:
+        _put_fence_in_service(svc, area)  # no zones: cannot fail
     if area.outcome is FenceOutcome.NO_FENCE:
-        log.info("fence.none", extra={"note": area.note})
+        log.info("fence.none", extra={"note": area.note, "removed": in_service})
+        if in_service:
+            svc.reporter.statustext(mavlink.MAV_SEVERITY_NOTICE, "fence removed: planning without a flying area")
         return
     log.warning("fence.not_used", extra={"outcome": area.outcome.value, "reason": area.note})
     svc.reporter.statustext(mavlink.MAV_SEVERITY_NOTICE, f"fence not used: {area.note}")
+
+
+def _put_fence_in_service(svc: CompanionService, area: FenceArea) -> None:
+    """The config with the fence's zones (none: the config as it was without a fence) and its planner into
+    service; a later PARAM_SET starts from it. ConfigError when the planner refuses the zones."""
+    config = config_with_fence(svc.config, area)
+    planner = build_planner(config)
+    svc.params.config = config
+    _put_in_service(svc, config, planner)
 
 
 def _warn_no_heartbeat(svc: CompanionService) -> None:

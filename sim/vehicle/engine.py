@@ -26,6 +26,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError
 from apf_companion.outbox import statustext_chunks
+from apf_companion.planning import FlyingArea, KeepOuts
 from sim.vehicle.config import (
     DEFAULT_RATES_HZ,
     Dynamics,
@@ -113,6 +114,8 @@ class VehicleEngine:
         self.guided = GuidedState()
         self.boot = BootState()
         self.own_id_drops = 0  # messages from our own sysid/compid, dropped (ArduPilot profile)
+        #: The fence served (sim.vehicle.fence): its inclusion polygon and exclusion polygons.
+        self.fence_zones: tuple[FlyingArea | None, KeepOuts] = (cfg.fence, cfg.fence_keepouts)
         self.proximity = Proximity.at_boot(self.params)
         self._next_noise_t = 0.0
         self._noise_vel = np.zeros(2)
@@ -239,6 +242,10 @@ class VehicleEngine:
     @property
     def time_boot_ms(self) -> int:
         return int(self.boot_s * 1000.0) & 0xFFFFFFFF
+
+    def set_fence(self, area: FlyingArea | None, keepouts: KeepOuts = ()) -> None:
+        """A new fence, as a ground station's upload leaves it; the next fence request is answered from it."""
+        self.fence_zones = (area, keepouts)
 
     def reboot(self) -> None:
         """MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN was accepted (and ACKed): restart the autopilot (sim/vehicle/reboot.py)."""

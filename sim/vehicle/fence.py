@@ -10,7 +10,9 @@ MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION item with ``param1`` = the vertex cou
 degrees around home (``AC_PolyFence_loader`` stores and sends exactly this); a rectangle is its four corners.
 Then its keep-out zones (``EngineConfig.fence_keepouts``), each an exclusion polygon
 (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION).
-Other mission types have no items here (count 0), as before.
+The fence can change while the vehicle flies (``VehicleEngine.set_fence``: what a ground station's upload
+would leave), and every request is answered from the fence as it is then. Other mission types have no items here
+(count 0), as before.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ def fence_items(area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -
 
 
 def _items(v: VehicleEngine) -> list[tuple[int, int, int, int]]:
-    return fence_items(v.cfg.fence, v.cfg.fence_keepouts, v.cfg.home)
+    return fence_items(*v.fence_zones, v.cfg.home)
 
 
 def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:

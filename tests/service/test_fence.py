@@ -226,7 +226,87 @@ def test_the_reader_takes_only_fence_answers_addressed_to_it() -> None:
     reader.due(0.4)
     assert len(results) == 1 and results[0].outcome is FenceOutcome.USED and reader.result is results[0]
     reader.on_record(MissionAck(src=ap, target_system=1, target_component=191, type=0, mission_type=FENCE))
-    assert reader.ignored == 3 and reader.due(0.5) > 1000.0  # finished: once
+    assert reader.ignored == 3 and reader.due(0.5) == pytest.approx(5.4)  # the next read: poll_s after the end
+
+
+AP = Source(1, 1)
+
+
+def _reader(poll_s: float, results: list[FenceArea]) -> FenceReader:
+    outbox = Outbox(None, dry_run=False, target_system=1, target_component=1, now_s=lambda: 0.0)
+    return FenceReader(
+        FenceReaderParams(our_system=1, our_component=191, autopilot=AP, poll_s=poll_s),
+        outbox=outbox,
+        reference=lambda: (REF, (10.0, 5.0)),
+        on_area=results.append,
+    )
+
+
+def _answer(reader: FenceReader, items: list[FenceItem] | None, t: float) -> float:
+    """One download from ``t`` [s], each request answered at once with ``items`` (None: refused, DENIED, as while
+    a ground station uploads); the time after it has ended."""
+    reader.due(t)
+    assert reader.download.stage is FenceStage.COUNT
+    if items is None:
+        reader.on_record(MissionAck(src=AP, target_system=1, target_component=191, type=DENIED, mission_type=FENCE))
+    else:
+        count = len(items)
+        reader.on_record(MissionCount(src=AP, target_system=1, target_component=191, count=count, mission_type=FENCE))
+    for item in items or []:
+        t += 0.1
+        reader.due(t)
+        reader.on_record(
+            MissionItemInt(
+                src=AP, target_system=1, target_component=191, seq=item.seq, frame=mavlink.MAV_FRAME_GLOBAL,
+                command=item.command, param1=item.param1, x=item.x, y=item.y, mission_type=FENCE,
+            )
+        )  # fmt: skip
+    for _ in range(2):  # the closing ack, then the end
+        t += 0.1
+        reader.due(t)
+    assert _stage(reader.download) is FenceStage.IDLE
+    return t
+
+
+DENIED = mavlink.MAV_MISSION_DENIED
+SQUARE = ((0.0, 0.0), (20.0, 0.0), (20.0, 20.0), (0.0, 20.0))
+
+
+def test_the_fence_is_read_again_every_poll_s_and_only_a_change_is_told() -> None:
+    """A fence changed on the ground station in flight: read again poll_s after each read; the same items tell
+    nothing, new items are told, a refused read keeps what was told, a fence removed is told."""
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    t = _answer(reader, _polygon(L_SHAPE), 0.0)
+    assert [r.outcome for r in results] == [FenceOutcome.USED] and reader.result is results[0]
+    assert reader.due(t + 1.0) == pytest.approx(t + 5.0)  # nothing before the next read: no request
+    assert reader.download.stage is FenceStage.IDLE
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0)
+    assert len(results) == 1 and (reader.reads, reader.changes) == (2, 0)  # the same fence: nothing told
+    t = _answer(reader, _polygon(SQUARE), t + 5.0)
+    assert len(results) == 2 and reader.changes == 1
+    assert results[1].polygon_ne_m is not None and len(results[1].polygon_ne_m) == 4
+    t = _answer(reader, None, t + 5.0)  # a ground station uploading: DENIED
+    assert len(results) == 2 and reader.failures == 1 and reader.result is results[1]  # kept
+    t = _answer(reader, [], t + 5.0)
+    assert results[-1].outcome is FenceOutcome.NO_FENCE and reader.changes == 2
+    stray = MissionCount(src=AP, target_system=1, target_component=191, count=4, mission_type=FENCE)
+    reader.on_record(stray)  # no download running: dropped
+    assert reader.ignored == 1
+
+
+def test_a_first_read_that_fails_is_told_and_read_again_and_poll_s_0_reads_once() -> None:
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    t = _answer(reader, None, 0.0)
+    assert [r.outcome for r in results] == [FenceOutcome.FAILED]
+    assert results[0].note == "download failed: the autopilot answered MISSION_ACK MAV_MISSION_DENIED"
+    _answer(reader, _polygon(L_SHAPE), t + 5.0)
+    assert results[-1].outcome is FenceOutcome.USED and reader.changes == 0  # the first whole read
+    once: list[FenceArea] = []
+    reader = _reader(0.0, once)
+    t = _answer(reader, _polygon(L_SHAPE), 0.0)
+    assert reader.due(t + 100.0) > t + 1000.0 and len(once) == 1  # read once
 
 
 def _stage(d: FenceDownload) -> FenceStage:

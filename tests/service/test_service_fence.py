@@ -5,6 +5,7 @@ world through it; without a fence, or with an area in the config, nothing change
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -36,10 +37,11 @@ def _config(**planner: Any) -> ServiceConfig:
 
 @contextlib.asynccontextmanager
 async def yard_flight(
-    fence: FlyingArea | None, route: Route | None = None, keepouts: KeepOuts = ()
+    fence: FlyingArea | None, route: Route | None = None, keepouts: KeepOuts = (), **planner: Any
 ) -> AsyncIterator[tuple[CompanionService, Simulator]]:
-    """The service (bapf-nav) and the simulator flying yard-l from its start, the simulator serving ``fence``."""
-    svc = await CompanionService.open(_config(), route=route, clock=SimulatorClock(SPEEDUP))
+    """The service (bapf-nav, its ``[planner]`` updated with ``planner``) and the simulator flying yard-l from its
+    start, the simulator serving ``fence``."""
+    svc = await CompanionService.open(_config(**planner), route=route, clock=SimulatorClock(SPEEDUP))
     assert svc.link is not None and svc.link.local_address is not None
     sim = await Simulator.start(
         SimConfig(
@@ -100,6 +102,41 @@ async def test_exclusion_zones_become_keep_out_zones_the_flight_goes_round() -> 
     # Never in the bed: the plan keeps its edges at C = 0.6 m less a cell, the flown track 0.27-0.4 m (tracking).
     assert inside_by.max() <= -0.1
     assert (track[:, 1] > 15.0).any()  # and it got past the bed
+
+
+async def test_a_fence_changed_in_flight_is_planned_over_and_a_removed_one_taken_out(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The ground station uploads a smaller fence while the vehicle hovers, then clears it: each is read again
+    within ``fence_poll_s`` and put into service (a later PARAM_SET starts from it); the cleared one leaves no area."""
+    caplog.set_level(logging.INFO, logger="apf_companion")
+    async with yard_flight(YARD.area_ne_m, fence_poll_s=1.0) as (svc, sim):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.result is not None, HANG_S, "the fence read")
+        assert len(_area(svc)) == 6
+        assert YARD.start_ne_m is not None
+        n, e = YARD.start_ne_m
+        box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
+        sim.engine.set_fence(box)
+        await until(lambda: len(_area(svc)) == 4, HANG_S, "the new fence in service")
+        got = np.array(_area(svc))
+        assert np.abs(got - np.array(box)).max() < 0.02
+        assert svc.params.config.planner.params["nav_area_ne_m"] == [list(v) for v in _area(svc)]
+        sim.engine.set_fence(None)
+        await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "the cleared fence taken out")
+        assert "nav_area_ne_m" not in svc.params.config.planner.params
+        assert fence.changes == 2 and fence.failures == 0 and fence.reads >= 3
+        assert fence.download.unexpected == 0
+    said = [r for r in caplog.records if r.getMessage().startswith("fence.")]
+    events = [(r.getMessage(), getattr(r, "removed", None)) for r in said]
+    assert events == [("fence.area", None), ("fence.area", None), ("fence.none", True)]
+
+
+def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:
+    area = svc.planner.params.nav_area_ne_m
+    assert isinstance(area, tuple)
+    return area
 
 
 async def test_no_fence_leaves_the_planner_as_configured() -> None:
