@@ -5,15 +5,18 @@ A fence is a list of mission items (common.xml, MAV_CMD_NAV_FENCE_*): polygon ve
 zones (``param1`` = the polygon's vertex count, on each vertex), circles (``param1`` = radius) and a return
 point; ``x``/``y`` are latitude/longitude in 1e-7 degrees. ArduPilot keeps the vehicle inside every inclusion
 zone (their intersection, unless FENCE_OPTIONS asks for the union) and outside every exclusion zone
-(``libraries/AC_Fence/AC_PolyFence_loader.cpp``, ``breached``); PX4 takes the same items.
+(``libraries/AC_Fence/AC_PolyFence_loader.cpp``, ``breached``); PX4 takes the same items and keeps the vehicle
+inside every inclusion zone too (``src/modules/navigator/geofence.cpp``).
 
 The flying area is one polygon (``planning.area``), so its inclusion zone, if the fence has one, becomes that
-polygon, or a circle's inscribed 32-gon (inside the circle: never wider than the fence). Every exclusion zone
-becomes a keep-out zone (``nav_keepout_ne_m``): its polygon, or a circle's circumscribed 32-gon (around the
-circle: never narrower than the fence). Anything else (two or more inclusion zones, whose intersection is not
-computed; a malformed polygon; the vehicle outside the inclusion zone) leaves the planner as configured, with the
-reason. The download is driven by ``due`` (what to send now) and the ``on_*`` answers; each request is
-repeated after ``timeout_s``, at most ``retries`` times, then the download fails with its reason.
+polygon, or a circle's inscribed 32-gon (inside the circle: never wider than the fence). Two or more inclusion
+zones become the piece of their intersection that holds the vehicle (``apf_companion.fenceclip``). Every exclusion
+zone becomes a keep-out zone (``nav_keepout_ne_m``): its polygon, or a circle's circumscribed 32-gon (around the
+circle: never narrower than the fence). Anything else (a malformed polygon; inclusion zones that do not overlap;
+the vehicle outside them) leaves the planner as configured, with the reason.
+
+The download is driven by ``due`` (what to send now) and the ``on_*`` answers; each request is repeated after
+``timeout_s``, at most ``retries`` times, then the download fails with its reason.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.fenceclip import inclusion_intersection
 from apf_companion.goal import GlobalReference, ne_from_global
 from apf_companion.planning import KeepOuts, PolygonNE, inside_area, polygon_problem
 
@@ -177,20 +181,34 @@ def fence_area(items: Sequence[FenceItem], reference: GlobalReference, vehicle_n
     problems = [p for p in map(polygon_problem, exclusions) if p is not None]
     if problems:
         return _not_used(f"an exclusion zone is not {problems[0]}")
-    if len(inclusions) > 1:
-        return _not_used(f"{len(inclusions)} inclusion zones: their intersection is not used")
     plural = "s" if len(exclusions) != 1 else ""
     said = f"{len(exclusions)} exclusion zone{plural} as keep-out zone{plural}"
     if not inclusions:
         return FenceArea(FenceOutcome.USED, said, None, tuple(exclusions))
-    polygon = inclusions[0].polygon(reference)
-    problem = polygon_problem(polygon)
-    if problem is not None:
-        return _not_used(f"the inclusion zone is not {problem}")
-    if not inside_area(polygon, *vehicle_ne_m):
-        return _not_used("the vehicle is outside the inclusion zone")
-    note = f"inclusion {inclusions[0].kind} of {len(polygon)} vertices"
+    area = _inclusion_area(inclusions, reference, vehicle_ne_m)
+    if isinstance(area, str):
+        return _not_used(area)
+    polygon, note = area
     return FenceArea(FenceOutcome.USED, f"{note}; {said}" if exclusions else note, polygon, tuple(exclusions))
+
+
+def _inclusion_area(
+    inclusions: Sequence[_Zone], reference: GlobalReference, vehicle_ne_m: tuple[float, float]
+) -> tuple[PolygonNE, str] | str:
+    """The flying area of the inclusion zones and what it is, or why there is none: one zone's polygon, or the
+    piece of several zones' intersection that holds the vehicle."""
+    polygons = [z.polygon(reference) for z in inclusions]
+    problems = [p for p in map(polygon_problem, polygons) if p is not None]
+    if problems:
+        return f"an inclusion zone is not {problems[0]}"
+    if len(polygons) > 1:
+        clipped = inclusion_intersection(polygons, vehicle_ne_m)
+        if isinstance(clipped, str):
+            return clipped
+        return clipped, f"intersection of {len(polygons)} inclusion zones, {len(clipped)} vertices"
+    if not inside_area(polygons[0], *vehicle_ne_m):
+        return "the vehicle is outside the inclusion zone"
+    return polygons[0], f"inclusion {inclusions[0].kind} of {len(polygons[0])} vertices"
 
 
 def _not_used(reason: str) -> FenceArea:

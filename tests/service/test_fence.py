@@ -37,6 +37,8 @@ FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 REF = GlobalReference(
     lat_deg=-35.363262, lon_deg=149.165237, alt_amsl_m=589.0, alt_rel_m=5.0, pos_ned_m=(10.0, 5.0, -5.0)
 )
+#: A rectangle from 2 m north of the vehicle: it overlaps a 5 m circle round the vehicle, not the vehicle.
+NORTH_OF_VEHICLE = ((12.0, -9.0), (30.0, -9.0), (30.0, 19.0), (12.0, 19.0))
 L_SHAPE = ((-3.0, -3.0), (23.0, -3.0), (23.0, 6.0), (9.0, 6.0), (9.0, 23.0), (-3.0, 23.0))
 
 
@@ -110,9 +112,14 @@ def test_a_fence_of_exclusion_zones_only_gives_keep_out_zones_and_no_area() -> N
             "an exclusion zone is not a polygon with an area",
         ),
         (
-            [_circle(10.0, 5.0, 30.0, CIRCLE_IN), *_polygon(L_SHAPE, first=1)],
+            [_circle(10.0, 5.0, 5.0, CIRCLE_IN), _circle(40.0, 5.0, 5.0, CIRCLE_IN, seq=1)],
             FenceOutcome.NOT_USED,
-            "2 inclusion zones",
+            "the inclusion zones do not overlap",
+        ),
+        (
+            [_circle(10.0, 5.0, 5.0, CIRCLE_IN), *_polygon(NORTH_OF_VEHICLE, first=1)],
+            FenceOutcome.NOT_USED,
+            "the vehicle is outside the inclusion zones' intersection",
         ),
         (_polygon(((40.0, 40.0), (60.0, 40.0), (60.0, 60.0))), FenceOutcome.NOT_USED, "the vehicle is outside"),
         (_polygon(L_SHAPE)[:4], FenceOutcome.NOT_USED, "fence item 0: a polygon of 6.0 vertices"),  # cut short
@@ -133,7 +140,8 @@ def test_a_fence_of_exclusion_zones_only_gives_keep_out_zones_and_no_area() -> N
     ids=[
         "none",
         "only-exclusion",
-        "two-inclusions",
+        "apart",
+        "beside",
         "elsewhere",
         "short",
         "nan-count",
@@ -149,6 +157,68 @@ def test_fences_that_are_no_single_zone_around_the_vehicle_are_not_used(
     area = fence_area(items, REF, (10.0, 5.0))
     assert area.outcome is outcome and area.polygon_ne_m is None
     assert note in area.note
+
+
+def _inside_all(zones: list[tuple[tuple[float, float], ...]], north: np.ndarray, east: np.ndarray) -> np.ndarray:
+    inside: np.ndarray = np.logical_and.reduce([inside_area(z, north, east) for z in zones])
+    return inside
+
+
+def _far_from_edges(zones: list[tuple[tuple[float, float], ...]], pts: np.ndarray, d: float) -> np.ndarray:
+    """Points farther than ``d`` from every edge of ``zones`` (where float rounding cannot flip a side)."""
+    far = np.ones(len(pts), dtype=bool)
+    for zone in zones:
+        v = np.array(zone)
+        a, b = v, np.roll(v, -1, axis=0)
+        ab = b - a
+        t = np.clip(((pts[:, None, :] - a) * ab).sum(-1) / (ab * ab).sum(-1), 0.0, 1.0)
+        dist = np.linalg.norm(pts[:, None, :] - (a + t[..., None] * ab), axis=-1).min(axis=1)
+        far &= dist > d
+    return far
+
+
+def test_several_inclusion_zones_become_their_intersection_round_the_vehicle() -> None:
+    """The L and a 12 m circle round the vehicle: the area is exactly where both are (sampled away from the
+    edges), said as an intersection; a triangle that cuts the L's two arms apart gives the piece with the
+    vehicle."""
+    items = [_circle(10.0, 5.0, 12.0, CIRCLE_IN), *_polygon(L_SHAPE, first=1)]
+    area = fence_area(items, REF, (10.0, 5.0))
+    assert area.outcome is FenceOutcome.USED and area.polygon_ne_m is not None
+    assert area.note.startswith("intersection of 2 inclusion zones, ")
+    zones = [fence_area(part, REF, (10.0, 5.0)).polygon_ne_m for part in (items[:1], items[1:])]
+    assert zones[0] is not None and zones[1] is not None
+    pts = np.random.default_rng(4).uniform(-5.0, 25.0, size=(20_000, 2))
+    pts = pts[_far_from_edges([*zones, area.polygon_ne_m], pts, 0.01)]  # type: ignore[list-item]
+    got = inside_area(area.polygon_ne_m, pts[:, 0], pts[:, 1])
+    np.testing.assert_array_equal(got, _inside_all(zones, pts[:, 0], pts[:, 1]))  # type: ignore[arg-type]
+    assert got.sum() > 3000  # a real area was sampled
+    triangle = ((20.0, 2.0), (2.0, 20.0), (30.0, 30.0))
+    apart = fence_area([*_polygon(L_SHAPE), *_polygon(triangle, first=6)], REF, (19.0, 4.0))
+    assert apart.outcome is FenceOutcome.USED and apart.polygon_ne_m is not None
+    piece = np.array(apart.polygon_ne_m)
+    assert piece[:, 1].max() <= 6.0 + 1e-6 and piece[:, 0].min() >= 16.0 - 1e-6  # the south-west arm's piece only
+
+
+def _regular(n: int, radius_m: float, turn: float) -> tuple[tuple[float, float], ...]:
+    """A regular ``n``-gon about the vehicle (10, 5), turned by ``turn`` of a step."""
+    angles = [(k + turn) * math.tau / n for k in range(n)]
+    return tuple((10.0 + radius_m * math.cos(a), 5.0 + radius_m * math.sin(a)) for a in angles)
+
+
+def test_an_intersection_of_too_many_vertices_is_fitted_inside_it() -> None:
+    """Two 60-gons about the vehicle, one turned by half a step: their intersection has 120 vertices, so the area
+    is shrunk and simplified to at most 64, stays inside both zones and round the vehicle, and loses little."""
+    zones = [_regular(60, 10.0, 0.0), _regular(60, 10.0, 0.5)]
+    area = fence_area([*_polygon(zones[0]), *_polygon(zones[1], first=60)], REF, (10.0, 5.0))
+    assert area.outcome is FenceOutcome.USED and area.polygon_ne_m is not None
+    assert area.note.startswith("intersection of 2 inclusion zones, ") and 3 <= len(area.polygon_ne_m) <= 64
+    placed = [fence_area(_polygon(z), REF, (10.0, 5.0)).polygon_ne_m for z in zones]
+    pts = np.random.default_rng(5).uniform(-1.0, 21.0, size=(40_000, 2))
+    both = _inside_all(placed, pts[:, 0], pts[:, 1])  # type: ignore[arg-type]
+    got = inside_area(area.polygon_ne_m, pts[:, 0], pts[:, 1])
+    assert not (got & ~both).any() and got.sum() >= 0.97 * both.sum()
+    v = np.array(area.polygon_ne_m)
+    assert _far_from_edges(placed, v, 0.01).all() and _inside_all(placed, v[:, 0], v[:, 1]).all()  # type: ignore[arg-type]
 
 
 def test_the_download_asks_repeats_and_acks() -> None:

@@ -1,0 +1,74 @@
+"""The intersection of a fence's inclusion zones, as one polygon for bapf-nav's flying area (local NED [m]).
+
+ArduPilot keeps the vehicle inside every inclusion zone (``libraries/AC_Fence/AC_PolyFence_loader.cpp``,
+``breached``: outside any one of them is a breach), unless FENCE_OPTIONS bit 1 asks for their union; PX4 keeps it
+inside every one too (``src/modules/navigator/geofence.cpp``, ``isInsidePolygonOrCircle`` ANDs every zone). The
+intersection is the area both allow. Under the union option it is a part of the allowed area, so planning over it
+never lets the vehicle where the fence would not (it may refuse goals the union allows).
+
+Clipping concave polygons against each other is a job for a geometry engine (collinear edges, touching vertices,
+results in several pieces): shapely (GEOS) does it. Of several pieces, the one that holds the vehicle is the area:
+the others cannot be reached without leaving it. A piece of more than ``MAX_AREA_VERTICES`` vertices (two circles'
+32-gons clip to up to 64 and more) is shrunk by ``t`` and then simplified by ``t`` (Douglas-Peucker moves the
+boundary by at most ``t``), so the result stays inside the intersection; ``t`` grows from 5 cm until it fits.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import shapely
+from shapely.geometry import Point, Polygon
+
+from apf_companion.planning import PolygonNE
+from apf_companion.planning.params import MAX_AREA_VERTICES
+
+__all__ = ["inclusion_intersection"]
+
+#: Shrink-and-simplify tolerances tried, in turn, for a piece with too many vertices [m].
+SIMPLIFY_STEPS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
+
+
+def inclusion_intersection(zones: Sequence[PolygonNE], vehicle_ne_m: tuple[float, float]) -> PolygonNE | str:
+    """The piece of the zones' intersection that holds the vehicle, as a polygon of at most ``MAX_AREA_VERTICES``
+    vertices inside it; or why there is none. The zones are valid simple polygons (``polygon_problem``)."""
+    common = shapely.intersection_all([Polygon(zone) for zone in zones])
+    pieces = [g for g in getattr(common, "geoms", [common]) if isinstance(g, Polygon) and g.area > 0.0]
+    if not pieces:
+        return "the inclusion zones do not overlap"
+    vehicle = Point(vehicle_ne_m)
+    holding = [p for p in pieces if p.covers(vehicle)]
+    if not holding:
+        return "the vehicle is outside the inclusion zones' intersection"
+    piece = holding[0]
+    if piece.interiors:  # cannot happen for simple zones (their intersection has no holes); not planned over
+        return "the inclusion zones' intersection has a hole"
+    fitted = _fit(piece, vehicle)
+    if fitted is None:
+        return f"the inclusion zones' intersection needs more than {MAX_AREA_VERTICES} vertices"
+    return fitted
+
+
+def _fit(piece: Polygon, vehicle: Point) -> PolygonNE | None:
+    """``piece``'s vertices, or those of a polygon inside it with at most ``MAX_AREA_VERTICES`` (module docstring)."""
+    if _vertex_count(piece) <= MAX_AREA_VERTICES:
+        return _vertices(piece)
+    for t in SIMPLIFY_STEPS_M:
+        smaller = piece.buffer(-t, join_style="mitre").simplify(t, preserve_topology=True)
+        if (
+            isinstance(smaller, Polygon)
+            and not smaller.is_empty
+            and _vertex_count(smaller) <= MAX_AREA_VERTICES
+            and piece.covers(smaller)
+            and smaller.covers(vehicle)
+        ):
+            return _vertices(smaller)
+    return None
+
+
+def _vertex_count(polygon: Polygon) -> int:
+    return len(polygon.exterior.coords) - 1  # the ring repeats its first vertex
+
+
+def _vertices(polygon: Polygon) -> PolygonNE:
+    return tuple((float(n), float(e)) for n, e in polygon.exterior.coords[:-1])
