@@ -6,6 +6,8 @@ as home. Cylinders stand on the ground and reach up to ``height_m`` above it (``
 height; polygons are stored as their closed chain of wall segments.
 
 All queries are vectorised over obstacles (and over sectors for the range windows); no per-obstacle Python loops.
+What a range sensor sees (``window_ranges_m``, ``ray_cast_m``) is computed in ``sensing.py``; the World's
+methods of those names call it.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
 from apf_companion.planning import FlyingArea, KeepOuts, PolygonNE, area_text, in_keepout, inside_area, polygon_problem
+from sim.world import sensing
+from sim.world.sensing import closest_point_on_segments
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -223,7 +227,7 @@ class World:
             unit = np.where(dist_c[:, None] > 0, rel / dist_c[:, None], 0.0)
         pts_c = self.circles_ne_m - unit * self.circle_radii_m[:, None]
         d_c = np.where(self.circle_heights_m >= alt_m, np.maximum(dist_c - self.circle_radii_m, 0.0), np.inf)
-        foot = _closest_point_on_segments(p, self.walls_ne_m)
+        foot = closest_point_on_segments(p, self.walls_ne_m)
         rel_w = foot - p
         dist_w = np.hypot(rel_w[:, 0], rel_w[:, 1])
         half = 0.5 * self.wall_thickness_m
@@ -253,80 +257,14 @@ class World:
             (S,) the minimum distance over every ray in each window to any obstacle surface [m]; inf if none.
             A sensor inside an obstacle reads 0 in every window.
         """
-        p = np.asarray(pos_ne_m, dtype=np.float64).reshape(2)
-        c = np.asarray(centres_rad, dtype=np.float64).reshape(-1)
-        out = np.full(c.shape, np.inf)
-        if self.n_circles:
-            out = np.minimum(out, self._circle_windows(p, c, half_width_rad, alt_m))
-        if self.n_walls:
-            out = np.minimum(out, self._wall_windows(p, c, half_width_rad, alt_m))
-        return out
-
-    def _circle_windows(self, p: FloatArray, c: FloatArray, h: float, alt_m: float) -> FloatArray:
-        rel = self.circles_ne_m - p
-        d = np.hypot(rel[:, 0], rel[:, 1])
-        r = self.circle_radii_m
-        visible = self.circle_heights_m >= alt_m
-        beta = np.arctan2(rel[:, 1], rel[:, 0])  # bearing clockwise from north
-        phi = _wrap_pi(beta[None, :] - c[:, None])  # (S, N)
-        delta = np.maximum(np.abs(phi) - h, 0.0)  # angle from the window to the centre bearing
-        with np.errstate(invalid="ignore", divide="ignore"):
-            alpha = np.arcsin(np.clip(np.where(d > 0, r / d, 1.0), 0.0, 1.0))
-            perp = d[None, :] * np.sin(delta)
-            chord = np.sqrt(np.maximum(r[None, :] ** 2 - perp**2, 0.0))
-            rng = d[None, :] * np.cos(delta) - chord
-        hit = (delta <= alpha[None, :]) & visible[None, :]
-        rng = np.where(hit, np.maximum(rng, 0.0), np.inf)
-        inside = (d <= r) & visible
-        rng = np.where(inside[None, :], 0.0, rng)
-        return np.asarray(rng.min(axis=1), dtype=np.float64)
-
-    def _wall_windows(self, p: FloatArray, c: FloatArray, h: float, alt_m: float) -> FloatArray:
-        # The points of a segment seen inside a convex angular window form one sub-segment; the distance to
-        # the sensor is convex along it, so its minimum is at the perpendicular foot (if seen) or at an end of
-        # the sub-segment: a segment end point (if seen) or a crossing with a window edge ray.
-        a = self.walls_ne_m[:, 0, :] - p  # (M, 2)
-        b = self.walls_ne_m[:, 1, :] - p
-        visible = self.wall_heights_m >= alt_m
-        half = 0.5 * self.wall_thickness_m
-        cand = np.full((c.size, a.shape[0]), np.inf)
-
-        def seen(pt: FloatArray) -> npt.NDArray[np.bool_]:
-            bearing = np.arctan2(pt[:, 1], pt[:, 0])
-            return np.abs(_wrap_pi(bearing[None, :] - c[:, None])) <= h  # (S, M)
-
-        for pt in (a, b, _closest_point_on_segments(np.zeros(2), self.walls_ne_m) - p):
-            dist = np.hypot(pt[:, 0], pt[:, 1])
-            cand = np.minimum(cand, np.where(seen(pt), dist[None, :], np.inf))
-        for edge in (c - h, c + h):
-            cand = np.minimum(cand, _ray_segment_range(edge, a, b))
-        cand = np.where(visible[None, :], np.maximum(cand - half[None, :], 0.0), np.inf)
-        return np.asarray(cand.min(axis=1), dtype=np.float64)
+        return sensing.window_ranges_m(self, pos_ne_m, centres_rad, half_width_rad, alt_m=alt_m)
 
     def ray_cast_m(self, pos_ne_m: npt.ArrayLike, bearings_rad: npt.ArrayLike, *, alt_m: float = 0.0) -> FloatArray:
         """Range along single rays (bearing clockwise from north) to the first obstacle surface [m]; inf if none.
 
         Walls are hit at their centre line (thickness ignored here); circles at their surface.
         """
-        p = np.asarray(pos_ne_m, dtype=np.float64).reshape(2)
-        th = np.asarray(bearings_rad, dtype=np.float64).reshape(-1)
-        out = np.full(th.shape, np.inf)
-        if self.n_circles:
-            rel = self.circles_ne_m - p
-            u = np.stack([np.cos(th), np.sin(th)], axis=1)  # (S, 2)
-            proj = u @ rel.T  # (S, N)
-            d2 = np.sum(rel**2, axis=1)
-            disc = proj**2 - (d2 - self.circle_radii_m**2)[None, :]
-            with np.errstate(invalid="ignore"):
-                t = proj - np.sqrt(disc)
-            ok = (disc >= 0) & (proj + np.sqrt(np.maximum(disc, 0)) >= 0) & (self.circle_heights_m >= alt_m)[None, :]
-            out = np.minimum(out, np.where(ok, np.maximum(t, 0.0), np.inf).min(axis=1))
-        if self.n_walls:
-            a = self.walls_ne_m[:, 0, :] - p
-            b = self.walls_ne_m[:, 1, :] - p
-            rng = np.where((self.wall_heights_m >= alt_m)[None, :], _ray_segment_range(th, a, b), np.inf)
-            out = np.minimum(out, rng.min(axis=1))
-        return out
+        return sensing.ray_cast_m(self, pos_ne_m, bearings_rad, alt_m=alt_m)
 
     def describe(self) -> dict[str, object]:
         """A JSON-ready description (for results and plots)."""
@@ -381,33 +319,6 @@ def _area_json(area: FlyingArea | None) -> list[Any] | None:
     return [list(v) if isinstance(v, tuple) else v for v in area]
 
 
-def _wrap_pi(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    return np.asarray((a + np.pi) % (2 * np.pi) - np.pi, dtype=np.float64)
-
-
-def _closest_point_on_segments(p: FloatArray, segs: FloatArray) -> FloatArray:
-    a = segs[:, 0, :]
-    ab = segs[:, 1, :] - a
-    denom = np.sum(ab**2, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(denom > 0, np.sum((p - a) * ab, axis=1) / denom, 0.0)
-    t = np.clip(t, 0.0, 1.0)
-    return np.asarray(a + t[:, None] * ab, dtype=np.float64)
-
-
 def _point_segment_distance(p: FloatArray, segs: FloatArray) -> FloatArray:
-    foot = _closest_point_on_segments(p, segs)
+    foot = closest_point_on_segments(p, segs)
     return np.asarray(np.hypot(foot[:, 0] - p[0], foot[:, 1] - p[1]), dtype=np.float64)
-
-
-def _ray_segment_range(bearings_rad: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """(S, M) distance along rays from the origin to segments a->b (relative coordinates); inf on a miss."""
-    u = np.stack([np.cos(bearings_rad), np.sin(bearings_rad)], axis=1)  # (S, 2)
-    e = b - a  # (M, 2)
-    # Solve t*u = a + s*e  ->  t*u - s*e = a (2x2 per pair) by Cramer's rule.
-    det = -u[:, 0:1] * e[None, :, 1] + u[:, 1:2] * e[None, :, 0]  # (S, M)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = (-a[None, :, 0] * e[None, :, 1] + a[None, :, 1] * e[None, :, 0]) / det
-        s = (u[:, 0:1] * a[None, :, 1] - u[:, 1:2] * a[None, :, 0]) / det
-    ok = (np.abs(det) > 1e-12) & (t >= 0) & (s >= 0) & (s <= 1)
-    return np.asarray(np.where(ok, t, np.inf), dtype=np.float64)
