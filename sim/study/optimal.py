@@ -14,6 +14,10 @@ Method (2D, north/east metres):
    segments stay clear (the path only shortens), once more after adding a vertex in every segment, and a last
    string pulling. The start and goal join the grid at their nearest free nodes.
 
+A world's flying area and keep-out zones (a user's fence) bound the way too: their edges are added as walls of no
+thickness (``_with_zone_walls``), so the path keeps ``clearance_m`` from them as from any wall and never leaves the
+area or enters a zone.
+
 The result is a feasible path (every bundled world's path keeps the clearance on every segment: tested; only a
 start or goal that itself lies closer, or a grid edge no refinement replaced, may not): an upper bound on the
 true optimum, tight up to how well a few straight bends
@@ -33,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.planning import area_polygon
 from sim.world.geometry import clearance_many_m, segment_clearance_m
 from sim.world.model import FloatArray, World
 
@@ -92,6 +97,7 @@ def optimal_path(
     """
     start = _endpoint(start_ne_m, world.start_ne_m, "start")
     goal = _endpoint(goal_ne_m, world.goal_ne_m, "goal")
+    world = _with_zone_walls(world)
     if not (math.isfinite(clearance_m) and clearance_m >= 0 and math.isfinite(resolution_m) and resolution_m > 0):
         msg = f"optimal_path: need clearance >= 0 and resolution > 0, got {clearance_m!r}, {resolution_m!r}"
         raise ValueError(msg)
@@ -151,6 +157,16 @@ def optimal_path_points(
     pts = np.asarray(points_ne_m, dtype=np.float64).reshape(-1, 2)
     world = World.from_obstacles(pts, 0.0, name="field")
     return optimal_path(world, start_ne_m, goal_ne_m, clearance_m=clearance_m, resolution_m=resolution_m)
+
+
+def _with_zone_walls(world: World) -> World:
+    """``world`` with the edges of its flying area and keep-out zones as walls of no thickness (module docstring)."""
+    zones = [*([] if world.area_ne_m is None else [area_polygon(world.area_ne_m)]), *world.keepouts_ne_m]
+    if not zones:
+        return world
+    segs = np.concatenate([World.polygon_segments(zone) for zone in zones])
+    edges = World(walls_ne_m=segs, wall_thickness_m=np.zeros(len(segs)), wall_heights_m=np.full(len(segs), np.inf))
+    return world.merged(edges, name=world.name)
 
 
 def _endpoint(given: Sequence[float] | None, default: tuple[float, float] | None, what: str) -> FloatArray:

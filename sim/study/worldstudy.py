@@ -65,7 +65,10 @@ class WorldCase:
     samples_ne_m: np.ndarray
     """(K, 2) the surface samples the planners see [m]."""
     optimum_m: float
-    """Full-knowledge grid optimum start -> goal at the optimum's clearance [m] (inf: none)."""
+    """Full-knowledge grid optimum start -> goal at the optimum's clearance [m] (inf: none), inside the world's
+    flying area and outside its keep-out zones."""
+    optimum_clearance_m: float = DEFAULT_CLEARANCE_M
+    optimum_resolution_m: float = DEFAULT_RESOLUTION_M
 
 
 def load_case(
@@ -89,13 +92,19 @@ def load_case(
         world=world,
         samples_ne_m=surface_samples_ne_m(world, spacing_m),
         optimum_m=opt.length_m,
+        optimum_clearance_m=optimum_clearance_m,
+        optimum_resolution_m=optimum_resolution_m,
     )
 
 
 def without_area(case: WorldCase) -> WorldCase:
     """The case without its world file's flying area and keep-out zones (``--no-area``): bapf-nav's grid then moves
-    with the agent."""
-    return dataclasses.replace(case, world=dataclasses.replace(case.world, area_ne_m=None, keepouts_ne_m=()))
+    with the agent, and the optimum may leave the area too."""
+    if case.world.area_ne_m is None and not case.world.keepouts_ne_m:
+        return case
+    world = dataclasses.replace(case.world, area_ne_m=None, keepouts_ne_m=())
+    opt = optimal_path(world, clearance_m=case.optimum_clearance_m, resolution_m=case.optimum_resolution_m)
+    return dataclasses.replace(case, world=world, optimum_m=opt.length_m)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
+from apf_companion.planning.area import leaves_area
 from sim.study.optimal import optimal_path, optimal_path_points
 from sim.world import World, load_world
 from sim.world.files import EXAMPLES_DIR
@@ -102,3 +104,33 @@ def test_surface_samples_lie_on_the_true_surfaces() -> None:
         nearest = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
         np.fill_diagonal(nearest, np.inf)
         assert nearest.min(axis=1).max() <= 0.2 + 1e-9
+
+
+#: A 6 m square keep-out zone across the straight line (0, 0) -> (20, 0), nothing in it to see.
+SQUARE = ((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0))
+
+
+def test_the_optimum_goes_round_keep_out_zones_and_stays_in_the_flying_area() -> None:
+    """Zones bound the optimum as walls of no thickness: round the square at the clearance (tangent - arc of
+    0.35 m round its corner - edge - arc - tangent, within 0.1 %); in an L-shaped area the optimum turns round the
+    inner corner instead of cutting across the neighbour's plot; --no-area's case drops the zones."""
+    from sim.study.worldstudy import WorldCase, without_area
+
+    world = World(start_ne_m=(0.0, 0.0), goal_ne_m=(20.0, 0.0), keepouts_ne_m=(SQUARE,))
+    o = optimal_path(world, clearance_m=0.35)
+    d, r = math.hypot(7.0, 3.0), 0.35
+    arc = math.atan2(3.0, 7.0) + math.asin(r / d)  # from the tangent's heading to the edge's
+    exact = 2.0 * (math.sqrt(d * d - r * r) + r * arc) + 6.0
+    assert exact - 1e-6 <= o.length_m <= 1.001 * exact
+    walls = World(walls_ne_m=World.polygon_segments(SQUARE), wall_thickness_m=np.zeros(4), wall_heights_m=np.ones(4))
+    assert segment_clearance_m(walls, o.path_ne_m[:-1], o.path_ne_m[1:]).min() >= 0.35 - 1e-9
+    case = WorldCase(label="sq", world=world, samples_ne_m=np.zeros((0, 2)), optimum_m=o.length_m)
+    assert without_area(case).optimum_m == pytest.approx(20.0)
+    ell = ((-3.0, -3.0), (23.0, -3.0), (23.0, 6.0), (9.0, 6.0), (9.0, 23.0), (-3.0, 23.0))
+    yard = World(start_ne_m=(20.0, 1.0), goal_ne_m=(2.0, 20.0), area_ne_m=ell)
+    inner = np.array([9.0, 6.0])
+    by_corner = float(np.hypot(*(inner - (20.0, 1.0))) + np.hypot(*(inner - (2.0, 20.0))))
+    o = optimal_path(yard)
+    assert by_corner < o.length_m < 1.01 * by_corner  # a bend 0.35 m inside the corner, not an arc
+    assert not leaves_area(ell, o.path_ne_m[:-1], o.path_ne_m[1:], 0.0).any()
+    assert optimal_path(dataclasses.replace(yard, area_ne_m=None)).length_m == pytest.approx(math.hypot(18.0, 19.0))
