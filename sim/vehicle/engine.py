@@ -45,6 +45,7 @@ from sim.vehicle.dynamics import (
     step_dynamics,
     wrap_pi,
 )
+from sim.vehicle.fence import FenceStore, fence_items
 from sim.vehicle.flight_modes import choose_target
 from sim.vehicle.gcs import COMPID, SYSID, handle_message
 from sim.vehicle.guided import GuidedState
@@ -114,8 +115,8 @@ class VehicleEngine:
         self.guided = GuidedState()
         self.boot = BootState()
         self.own_id_drops = 0  # messages from our own sysid/compid, dropped (ArduPilot profile)
-        #: The fence served (sim.vehicle.fence): its inclusion polygon and exclusion polygons.
-        self.fence_zones: tuple[FlyingArea | None, KeepOuts] = (cfg.fence, cfg.fence_keepouts)
+        #: The fence held, served and uploaded over the mission protocol (sim.vehicle.fence).
+        self.fence = FenceStore(fence_items(cfg.fence, cfg.fence_keepouts, cfg.home))
         self.proximity = Proximity.at_boot(self.params)
         self._next_noise_t = 0.0
         self._noise_vel = np.zeros(2)
@@ -244,8 +245,9 @@ class VehicleEngine:
         return int(self.boot_s * 1000.0) & 0xFFFFFFFF
 
     def set_fence(self, area: FlyingArea | None, keepouts: KeepOuts = ()) -> None:
-        """A new fence, as a ground station's upload leaves it; the next fence request is answered from it."""
-        self.fence_zones = (area, keepouts)
+        """A new fence (``area`` as one inclusion polygon, ``keepouts`` as exclusion polygons), as a ground
+        station's upload would leave it; the next fence request is answered from it."""
+        self.fence.items = fence_items(area, keepouts, self.cfg.home)
 
     def reboot(self) -> None:
         """MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN was accepted (and ACKed): restart the autopilot (sim/vehicle/reboot.py)."""

@@ -1,26 +1,38 @@
-"""The simulated autopilot's fence, served over the mission protocol (mission_type FENCE) as ArduPilot does
-(``libraries/GCS_MAVLink/MissionItemProtocol.cpp``, ``handle_mission_request_list`` / ``handle_mission_request_int``):
-MISSION_REQUEST_LIST is answered with MISSION_COUNT to the requester, MISSION_REQUEST_INT with that
-MISSION_ITEM_INT, or with MISSION_ACK and the item's error (a sequence number past the end:
-MAV_MISSION_INVALID_SEQUENCE, ``MissionItemProtocol_Fence::get_item``); the requester's closing MISSION_ACK needs
-no answer.
+"""The simulated autopilot's fence over the mission protocol (mission_type FENCE), served and uploaded as ArduPilot
+does it (``libraries/GCS_MAVLink/MissionItemProtocol.cpp``).
 
-The fence is the world file's flying area (``EngineConfig.fence``), as one inclusion polygon: every vertex a
-MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION item with ``param1`` = the vertex count, latitude/longitude in 1e-7
-degrees around home (``AC_PolyFence_loader`` stores and sends exactly this); a rectangle is its four corners.
-Then its keep-out zones (``EngineConfig.fence_keepouts``), each an exclusion polygon
-(MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION).
-The fence can change while the vehicle flies (``VehicleEngine.set_fence``: what a ground station's upload
-would leave), and every request is answered from the fence as it is then. Other mission types have no items here
-(count 0), as before.
+Download (``handle_mission_request_list`` / ``handle_mission_request_int``): MISSION_REQUEST_LIST is answered
+with MISSION_COUNT to the requester, MISSION_REQUEST_INT with that MISSION_ITEM_INT, or with MISSION_ACK and
+the item's error (a sequence number past the end: MAV_MISSION_INVALID_SEQUENCE,
+``MissionItemProtocol_Fence::get_item``); the requester's closing MISSION_ACK needs no answer.
+
+Upload (``handle_mission_count``, ``handle_mission_item``, ``transfer_is_complete``): MISSION_COUNT starts it
+(count 0 clears the fence at once); the vehicle asks for each item in turn (MISSION_REQUEST on the ArduPilot
+profile, as ``queued_request_send`` does; MISSION_REQUEST_INT on PX4's) and, after the last, keeps the new fence
+and sends MISSION_ACK ACCEPTED. While one ground station uploads, another's MISSION_COUNT and every download
+request get MISSION_ACK DENIED (``cancel_upload``, "someone is uploading a mission; reject fetching of points").
+An item out of turn gets INVALID_SEQUENCE; one from another system DENIED; a command that is no fence item
+UNSUPPORTED, which ends the upload. An upload without an item for 8 s (``upload_timeout_ms``) is cancelled
+(MISSION_ACK OPERATION_CANCELLED to the uploader), here when the next fence message arrives. Not modelled:
+re-requesting an item after 1 s (loopback loses nothing) and checking the new fence's geometry.
+
+The fence at start is the world file's flying area (``EngineConfig.fence``), as one inclusion polygon: every
+vertex a MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION item with ``param1`` = the vertex count, latitude/longitude
+in 1e-7 degrees around home (``AC_PolyFence_loader`` stores and sends exactly this); a rectangle is its four
+corners. Then its keep-out zones (``EngineConfig.fence_keepouts``), each an exclusion polygon
+(MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION). An upload replaces it with the items as sent (circles too), and a
+test may replace it directly (``VehicleEngine.set_fence``). Other mission types have no items here (count 0) and
+take no uploads (UNSUPPORTED).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.autopilot import Autopilot
 from apf_companion.planning import FlyingArea, KeepOuts, area_polygon
 from sim.vehicle.geo import ne_to_latlon
 
@@ -28,54 +40,162 @@ if TYPE_CHECKING:
     from sim.vehicle.config import HomeConfig
     from sim.vehicle.engine import VehicleEngine
 
-__all__ = ["FENCE_HANDLERS", "fence_items"]
+__all__ = ["FENCE_HANDLERS", "FenceItemRaw", "FenceStore", "FenceUpload", "fence_items"]
 
 _FENCE = mavlink.MAV_MISSION_TYPE_FENCE
+#: ``MissionItemProtocol::upload_timeout_ms``: an upload without an item for this long is cancelled [s].
+UPLOAD_TIMEOUT_S = 8.0
+#: Fence items an upload may bring, at most (``MissionItemProtocol_Fence::max_items`` on a board with storage).
+MAX_ITEMS = 256
+_FENCE_COMMANDS = frozenset(
+    {
+        mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+        mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION,
+        mavlink.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
+        mavlink.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
+        mavlink.MAV_CMD_NAV_FENCE_RETURN_POINT,
+    }
+)
+
+#: One stored fence item: command, param1 (vertex count or radius [m]), latitude, longitude [1e-7 deg].
+FenceItemRaw = tuple[int, float, int, int]
 
 
-def fence_items(area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -> list[tuple[int, int, int, int]]:
-    """(command, vertex count, latitude, longitude [1e-7 deg]) of each fence item: the area as one inclusion
-    polygon, then each keep-out zone as an exclusion polygon."""
+@dataclass(slots=True)
+class FenceUpload:
+    """An upload in progress: who sends it (system, component), on which link, how many items, those received."""
+
+    src: tuple[int, int]
+    link: int
+    count: int
+    last_rx_s: float
+    items: list[FenceItemRaw] = field(default_factory=list)
+
+
+@dataclass(slots=True)
+class FenceStore:
+    """The fence the vehicle holds and the upload in progress, if any; ``uploads`` counts completed uploads."""
+
+    items: list[FenceItemRaw]
+    upload: FenceUpload | None = None
+    uploads: int = 0
+
+
+def fence_items(area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -> list[FenceItemRaw]:
+    """The fence items of ``area`` (one inclusion polygon) and ``keepouts`` (one exclusion polygon each)."""
     zones: list[tuple[int, list[tuple[float, float]]]] = []
     if area is not None:
         zones.append((mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, list(area_polygon(area))))
     zones += [(mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION, list(zone)) for zone in keepouts]
-    out = []
+    out: list[FenceItemRaw] = []
     for command, vertices in zones:
         for n, e in vertices:
             lat, lon = ne_to_latlon(home, n, e)
-            out.append((command, len(vertices), round(lat * 1e7), round(lon * 1e7)))
+            out.append((command, float(len(vertices)), round(lat * 1e7), round(lon * 1e7)))
     return out
 
 
-def _items(v: VehicleEngine) -> list[tuple[int, int, int, int]]:
-    return fence_items(*v.fence_zones, v.cfg.home)
+def _src(msg: Any) -> tuple[int, int]:
+    return msg.get_srcSystem(), msg.get_srcComponent()
+
+
+def _ack(v: VehicleEngine, link: int, to: tuple[int, int], result: int, mission_type: int = _FENCE) -> None:
+    v.emit(link, v.mav.mission_ack_encode(*to, result, mission_type))
+
+
+def _receiving(v: VehicleEngine) -> FenceUpload | None:
+    """The upload in progress, after cancelling one that has waited ``UPLOAD_TIMEOUT_S`` for an item."""
+    up = v.fence.upload
+    if up is not None and v.t_s - up.last_rx_s > UPLOAD_TIMEOUT_S:
+        _ack(v, up.link, up.src, mavlink.MAV_MISSION_OPERATION_CANCELLED)
+        v.fence.upload = up = None
+    return up
+
+
+def _request(v: VehicleEngine, up: FenceUpload, seq: int) -> None:
+    if v.profile is Autopilot.ARDUPILOT:
+        v.emit(up.link, v.mav.mission_request_encode(*up.src, seq, _FENCE))
+    else:
+        v.emit(up.link, v.mav.mission_request_int_encode(*up.src, seq, _FENCE))
 
 
 def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
     mission_type = getattr(msg, "mission_type", 0)
-    count = len(_items(v)) if mission_type == _FENCE else 0
-    v.emit(link, v.mav.mission_count_encode(msg.get_srcSystem(), msg.get_srcComponent(), count, mission_type))
+    if mission_type == _FENCE and _receiving(v) is not None:
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
+        return
+    count = len(v.fence.items) if mission_type == _FENCE else 0
+    v.emit(link, v.mav.mission_count_encode(*_src(msg), count, mission_type))
 
 
 def _on_mission_request_int(v: VehicleEngine, msg: Any, link: int) -> None:
     mission_type = getattr(msg, "mission_type", 0)
-    items = _items(v) if mission_type == _FENCE else []
-    src = (msg.get_srcSystem(), msg.get_srcComponent())
-    if not 0 <= msg.seq < len(items):
-        v.emit(link, v.mav.mission_ack_encode(*src, mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type))
+    if mission_type == _FENCE and _receiving(v) is not None:
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
         return
-    command, count, lat, lon = items[msg.seq]
+    items = v.fence.items if mission_type == _FENCE else []
+    if not 0 <= msg.seq < len(items):
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type)
+        return
+    command, param1, lat, lon = items[msg.seq]
     v.emit(
         link,
         v.mav.mission_item_int_encode(
-            *src, msg.seq, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, float(count), 0.0, 0.0, 0.0, lat, lon, 0.0,
+            *_src(msg), msg.seq, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, param1, 0.0, 0.0, 0.0, lat, lon, 0.0,
             mission_type,
         ),
     )  # fmt: skip
 
 
+def _on_mission_count(v: VehicleEngine, msg: Any, link: int) -> None:
+    mission_type = getattr(msg, "mission_type", 0)
+    src = _src(msg)
+    if mission_type != _FENCE:
+        _ack(v, link, src, mavlink.MAV_MISSION_UNSUPPORTED, mission_type)  # no mission, no rally points here
+        return
+    up = _receiving(v)
+    if up is not None and up.src != src:
+        _ack(v, link, src, mavlink.MAV_MISSION_DENIED)
+        return
+    if msg.count > MAX_ITEMS:
+        _ack(v, link, src, mavlink.MAV_MISSION_NO_SPACE)
+        return
+    if msg.count == 0:
+        v.fence.items, v.fence.upload = [], None
+        v.fence.uploads += 1
+        _ack(v, link, src, mavlink.MAV_MISSION_ACCEPTED)
+        return
+    v.fence.upload = up = FenceUpload(src=src, link=link, count=int(msg.count), last_rx_s=v.t_s)
+    _request(v, up, 0)
+
+
+def _on_mission_item_int(v: VehicleEngine, msg: Any, link: int) -> None:
+    up = _receiving(v) if getattr(msg, "mission_type", 0) == _FENCE else None
+    if up is None:
+        return
+    if msg.seq != len(up.items):
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_INVALID_SEQUENCE)
+        return
+    if _src(msg) != up.src:
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
+        return
+    if msg.command not in _FENCE_COMMANDS:
+        _ack(v, link, up.src, mavlink.MAV_MISSION_UNSUPPORTED)
+        v.fence.upload = None
+        return
+    up.items.append((int(msg.command), float(msg.param1), int(msg.x), int(msg.y)))
+    up.last_rx_s = v.t_s
+    if len(up.items) < up.count:
+        _request(v, up, len(up.items))
+        return
+    v.fence.items, v.fence.upload = up.items, None
+    v.fence.uploads += 1
+    _ack(v, link, up.src, mavlink.MAV_MISSION_ACCEPTED)
+
+
 FENCE_HANDLERS = {
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: _on_mission_request_list,
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_INT: _on_mission_request_int,
+    mavlink.MAVLINK_MSG_ID_MISSION_COUNT: _on_mission_count,
+    mavlink.MAVLINK_MSG_ID_MISSION_ITEM_INT: _on_mission_item_int,
 }

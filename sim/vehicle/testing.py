@@ -18,6 +18,8 @@ import math
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
 from apf_companion.links import MavlinkLink
 from sim.vehicle.simulator import SimConfig, Simulator
 
@@ -26,7 +28,9 @@ __all__ = [
     "command_int",
     "command_long",
     "drain",
+    "fence_ack",
     "simulator_with_client",
+    "upload_fence",
     "wait_for",
     "wait_sim_time",
 ]
@@ -113,6 +117,43 @@ async def wait_for(sim: Simulator, predicate: Callable[[Simulator], bool], *, ti
 async def wait_sim_time(sim: Simulator, t_s: float, *, timeout_s: float = 10.0) -> None:
     """Wait until the simulated clock reaches ``t_s``."""
     await wait_for(sim, lambda s: s.t_s >= t_s - 1e-9, timeout_s=timeout_s)
+
+
+_FENCE = mavlink.MAV_MISSION_TYPE_FENCE
+
+
+async def upload_fence(
+    gcs: MavlinkLink, items: list[tuple[int, float, int, int]], *, stop_after: int | None = None, timeout: float = 5.0
+) -> Any:
+    """Upload ``items`` (command, param1, latitude, longitude [1e-7 deg]) as the vehicle's fence, as a ground
+    station does: MISSION_COUNT, then each MISSION_ITEM_INT the vehicle asks for (MISSION_REQUEST or
+    MISSION_REQUEST_INT). Returns the vehicle's closing MISSION_ACK; with ``stop_after`` = k it returns None after
+    sending k items, the upload left open. Messages queued before it (the requests of an upload left open) are
+    dropped first."""
+    while gcs.recv_nowait() is not None:
+        pass
+    gcs.send(gcs.mav.mission_count_encode(1, 1, len(items), _FENCE))
+    if stop_after == 0 or not items:
+        return None if stop_after == 0 else await fence_ack(gcs, timeout)
+    sent = 0
+    while True:
+        msg = await gcs.recv_match(type=("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"), timeout=timeout)
+        if msg.get_type() == "MISSION_ACK":
+            return msg
+        command, param1, lat, lon = items[msg.seq]
+        gcs.send(
+            gcs.mav.mission_item_int_encode(
+                1, 1, msg.seq, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, param1, 0.0, 0.0, 0.0, lat, lon, 0.0, _FENCE
+            )
+        )
+        sent += 1
+        if sent == stop_after:
+            return None
+
+
+async def fence_ack(gcs: MavlinkLink, timeout: float = 5.0) -> Any:
+    """The next MISSION_ACK about the fence."""
+    return await gcs.recv_match(type="MISSION_ACK", condition=lambda m: m.mission_type == _FENCE, timeout=timeout)
 
 
 async def drain(link: MavlinkLink) -> list[Any]:

@@ -11,14 +11,18 @@ from typing import Any
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.fence import FenceOutcome
 from apf_companion.goal import Route
+from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
 from apf_companion.planning import FlyingArea, KeepOuts
 from apf_companion.service import CompanionService
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
+from sim.vehicle.fence import fence_items
+from sim.vehicle.testing import upload_fence
 from sim.world import load_world
 from tests.conftest import HANG_S, SimulatorClock, until
 from tests.service.test_service_flight import SPEEDUP, _as_mapping, running, service_config, wait_state
@@ -37,15 +41,19 @@ def _config(**planner: Any) -> ServiceConfig:
 
 @contextlib.asynccontextmanager
 async def yard_flight(
-    fence: FlyingArea | None, route: Route | None = None, keepouts: KeepOuts = (), **planner: Any
+    fence: FlyingArea | None,
+    route: Route | None = None,
+    keepouts: KeepOuts = (),
+    links: tuple[str, ...] = (),
+    **planner: Any,
 ) -> AsyncIterator[tuple[CompanionService, Simulator]]:
     """The service (bapf-nav, its ``[planner]`` updated with ``planner``) and the simulator flying yard-l from its
-    start, the simulator serving ``fence``."""
+    start, the simulator serving ``fence`` (and talking on ``links`` too: a ground station)."""
     svc = await CompanionService.open(_config(**planner), route=route, clock=SimulatorClock(SPEEDUP))
     assert svc.link is not None and svc.link.local_address is not None
     sim = await Simulator.start(
         SimConfig(
-            links=[f"udpout:127.0.0.1:{svc.link.local_address[1]}"],
+            links=[f"udpout:127.0.0.1:{svc.link.local_address[1]}", *links],
             world=YARD,
             speedup=SPEEDUP,
             seed=3,
@@ -131,6 +139,32 @@ async def test_a_fence_changed_in_flight_is_planned_over_and_a_removed_one_taken
     said = [r for r in caplog.records if r.getMessage().startswith("fence.")]
     events = [(r.getMessage(), getattr(r, "removed", None)) for r in said]
     assert events == [("fence.area", None), ("fence.area", None), ("fence.none", True)]
+
+
+async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_is_flown() -> None:
+    """A ground station uploads a new fence over its own link: while its upload is open the service's re-reads
+    are DENIED (counted; the L stays in service), and once it is complete the new fence is in service."""
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    try:
+        assert gcs.local_address is not None
+        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
+        async with yard_flight(YARD.area_ne_m, links=(link,), fence_poll_s=1.0) as (svc, sim):
+            fence = svc.fence
+            assert fence is not None and YARD.start_ne_m is not None
+            await until(lambda: fence.result is not None, HANG_S, "the fence read")
+            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            n, e = YARD.start_ne_m
+            box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
+            items = fence_items(box, (), sim.engine.cfg.home)
+            assert await upload_fence(gcs, items, stop_after=2) is None  # the upload left open
+            await until(lambda: fence.failures >= 2, HANG_S, "re-reads refused while the upload is open")
+            assert len(_area(svc)) == 6 and fence.changes == 0
+            ack = await upload_fence(gcs, items)  # the same ground station starts again and completes it
+            assert ack.type == mavlink.MAV_MISSION_ACCEPTED
+            await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
+            assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02 and fence.changes == 1
+    finally:
+        await gcs.aclose()
 
 
 def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:
