@@ -26,7 +26,6 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError
 from apf_companion.outbox import statustext_chunks
-from apf_companion.planning import FlyingArea, KeepOuts
 from sim.vehicle.config import (
     DEFAULT_RATES_HZ,
     Dynamics,
@@ -45,7 +44,7 @@ from sim.vehicle.dynamics import (
     step_dynamics,
     wrap_pi,
 )
-from sim.vehicle.fence import FenceStore, fence_items
+from sim.vehicle.fence import FenceStore
 from sim.vehicle.flight_modes import choose_target
 from sim.vehicle.gcs import COMPID, SYSID, handle_message
 from sim.vehicle.guided import GuidedState
@@ -116,7 +115,7 @@ class VehicleEngine:
         self.boot = BootState()
         self.own_id_drops = 0  # messages from our own sysid/compid, dropped (ArduPilot profile)
         #: The fence held, served and uploaded over the mission protocol (sim.vehicle.fence).
-        self.fence = FenceStore(fence_items(cfg.fence, cfg.fence_keepouts, cfg.home))
+        self.fence = FenceStore.of_zones(cfg.fence, cfg.fence_keepouts, cfg.home)
         self.proximity = Proximity.at_boot(self.params)
         self._next_noise_t = 0.0
         self._noise_vel = np.zeros(2)
@@ -243,11 +242,6 @@ class VehicleEngine:
     @property
     def time_boot_ms(self) -> int:
         return int(self.boot_s * 1000.0) & 0xFFFFFFFF
-
-    def set_fence(self, area: FlyingArea | None, keepouts: KeepOuts = ()) -> None:
-        """A new fence (``area`` as one inclusion polygon, ``keepouts`` as exclusion polygons), as a ground
-        station's upload would leave it; the next fence request is answered from it."""
-        self.fence.items = fence_items(area, keepouts, self.cfg.home)
 
     def reboot(self) -> None:
         """MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN was accepted (and ACKed): restart the autopilot (sim/vehicle/reboot.py)."""

@@ -21,7 +21,7 @@ vertex a MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION item with ``param1`` = the v
 in 1e-7 degrees around home (``AC_PolyFence_loader`` stores and sends exactly this); a rectangle is its four
 corners. Then its keep-out zones (``EngineConfig.fence_keepouts``), each an exclusion polygon
 (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION). An upload replaces it with the items as sent (circles too), and a
-test may replace it directly (``VehicleEngine.set_fence``). Other mission types have no items here (count 0) and
+test may replace it directly (``FenceStore.set_zones``). Other mission types have no items here (count 0) and
 take no uploads (UNSUPPORTED).
 """
 
@@ -74,11 +74,22 @@ class FenceUpload:
 
 @dataclass(slots=True)
 class FenceStore:
-    """The fence the vehicle holds and the upload in progress, if any; ``uploads`` counts completed uploads."""
+    """The fence the vehicle holds (items about ``home``), the upload in progress, if any, and ``uploads``, the
+    completed uploads."""
 
+    home: HomeConfig
     items: list[FenceItemRaw]
     upload: FenceUpload | None = None
     uploads: int = 0
+
+    @classmethod
+    def of_zones(cls, area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -> FenceStore:
+        return cls(home, fence_items(area, keepouts, home))
+
+    def set_zones(self, area: FlyingArea | None, keepouts: KeepOuts = ()) -> None:
+        """A new fence (``area`` as one inclusion polygon, ``keepouts`` as exclusion polygons), as a ground
+        station's upload would leave it; the next fence request is answered from it."""
+        self.items = fence_items(area, keepouts, self.home)
 
 
 def fence_items(area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -> list[FenceItemRaw]:

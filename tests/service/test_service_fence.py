@@ -126,12 +126,12 @@ async def test_a_fence_changed_in_flight_is_planned_over_and_a_removed_one_taken
         assert YARD.start_ne_m is not None
         n, e = YARD.start_ne_m
         box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
-        sim.engine.set_fence(box)
+        sim.engine.fence.set_zones(box)
         await until(lambda: len(_area(svc)) == 4, HANG_S, "the new fence in service")
         got = np.array(_area(svc))
         assert np.abs(got - np.array(box)).max() < 0.02
         assert svc.params.config.planner.params["nav_area_ne_m"] == [list(v) for v in _area(svc)]
-        sim.engine.set_fence(None)
+        sim.engine.fence.set_zones(None)
         await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "the cleared fence taken out")
         assert "nav_area_ne_m" not in svc.params.config.planner.params
         assert fence.changes == 2 and fence.failures == 0 and fence.reads >= 3
