@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import socket
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,7 +26,8 @@ from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.fence import fence_items
 from sim.vehicle.testing import upload_fence
 from sim.world import load_world
-from tests.conftest import HANG_S, SimulatorClock, until
+from tests.conftest import HANG_S, SimulatorClock, free_port, until
+from tests.service.mavproxy import mavproxy_path, mavproxy_session
 from tests.service.test_service_flight import SPEEDUP, _as_mapping, running, service_config, wait_state
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
@@ -165,6 +168,33 @@ async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_i
             assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02 and fence.changes == 1
     finally:
         await gcs.aclose()
+
+
+@pytest.mark.skipif(mavproxy_path() is None, reason="MAVProxy not installed (pip install --no-deps MAVProxy)")
+async def test_a_fence_loaded_in_mavproxy_is_planned_over(tmp_path: Path) -> None:
+    """MAVProxy, a real ground station on its own link to the simulated autopilot, uploads a fence file
+    (``fence load``, MAVProxy's mission-protocol fence module): the service reads it at its next poll."""
+    mavproxy = mavproxy_path()
+    assert mavproxy is not None and YARD.start_ne_m is not None
+    port = free_port(socket.SOCK_DGRAM)
+    async with yard_flight(YARD.area_ne_m, links=(f"udpout:127.0.0.1:{port}",), fence_poll_s=1.0) as (svc, sim):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.result is not None, HANG_S, "the fence read")
+        n, e = YARD.start_ne_m
+        box = ((n - 4.0, e - 4.0), (n + 4.0, e - 4.0), (n + 4.0, e + 4.0), (n - 4.0, e + 4.0))
+        lines = ["QGC WPL 110"] + [
+            f"{i}\t0\t{mavlink.MAV_FRAME_GLOBAL}\t{cmd}\t{p1}\t0\t0\t0\t{lat * 1e-7:.7f}\t{lon * 1e-7:.7f}\t0\t1"
+            for i, (cmd, p1, lat, lon) in enumerate(fence_items(box, (), sim.engine.cfg.home))
+        ]
+        (tmp_path / "box.txt").write_text("\n".join(lines) + "\n")
+        async with mavproxy_session(mavproxy, f"udpin:127.0.0.1:{port}", "1", tmp_path) as gcs:
+            await gcs.read_until("Detected vehicle 1:1")
+            gcs.type_in(f"fence load {tmp_path / 'box.txt'}")
+            await gcs.read_until("Loaded 4 ")
+            await until(lambda: len(_area(svc)) == 4, HANG_S, "MAVProxy's fence in service")
+        assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02
+        assert sim.engine.fence.uploads == 1 and fence.changes == 1
 
 
 def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:

@@ -3,10 +3,7 @@ UDP while the service flies the scripted autopilot; refused values are echoed ba
 
 from __future__ import annotations
 
-import asyncio
 import math
-import shutil
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +20,7 @@ from apf_companion.planning.params import PlannerParams
 from apf_companion.service import CompanionService
 from apf_companion.setpoint import SetpointKind
 from tests.conftest import HANG_S, until, within
+from tests.service.mavproxy import mavproxy_path, mavproxy_session
 from tests.service.test_service_mavlink import fast_config, gcs_for, rig
 
 pytestmark = pytest.mark.timeout(60)
@@ -168,59 +166,22 @@ def test_config_with_validates_like_the_toml_file() -> None:
             config_with(cfg, planner, by_name[name], bad)
 
 
-def _mavproxy() -> str | None:
-    """mavproxy.py beside this interpreter (installed --no-deps in the venv), else on PATH."""
-    beside = Path(sys.executable).parent / "mavproxy.py"
-    return str(beside) if beside.is_file() else shutil.which("mavproxy.py")
-
-
-@pytest.mark.skipif(_mavproxy() is None, reason="MAVProxy not installed (pip install --no-deps MAVProxy)")
+@pytest.mark.skipif(mavproxy_path() is None, reason="MAVProxy not installed (pip install --no-deps MAVProxy)")
 async def test_mavproxy_param_module_fetches_and_sets(tmp_path: Path) -> None:
     """MAVProxy's own param module, typed at its prompt: fetch the list, set a value, have one refused."""
-    mavproxy = _mavproxy()
+    mavproxy = mavproxy_path()
     assert mavproxy is not None
     async with rig(route=Route.point(30.0, 0.0, -5.0, source="test")) as (svc, _ap):
         assert svc.link is not None and svc.link.local_address is not None
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-u", mavproxy, f"--master=udpout:127.0.0.1:{svc.link.local_address[1]}",
-            "--target-system=1", "--target-component=191", f"--state-basedir={tmp_path}",
-            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
-            cwd=tmp_path,
-        )  # fmt: skip
-        assert proc.stdin is not None and proc.stdout is not None
-        lines: list[str] = []
-
-        async def read_until(needle: str) -> None:
-            assert proc.stdout is not None
-            while not any(needle in line for line in lines):
-                line = (await proc.stdout.readline()).decode(errors="replace")
-                if not line:
-                    raise AssertionError(f"MAVProxy exited; output: {lines}")
-                lines.append(line.rstrip())
-
-        def type_in(command: str) -> None:
-            assert proc.stdin is not None
-            proc.stdin.write(command.encode() + b"\n")
-
-        try:
-            async with asyncio.timeout(HANG_S * 2):  # MAVProxy starts slowly on a loaded machine
-                await read_until("Detected vehicle 1:191")
-                type_in("set param_ftp false")  # no MAVLink FTP here: the plain PARAM_REQUEST_LIST
-                type_in("param fetch")
-                await read_until(f"Received {len(PARAMS)} parameters")
-                type_in("param set APF_CRUISE_SPD 0.5")
-                await until(lambda: svc.navigator.params.cruise_speed_m_s == 0.5, HANG_S, "set by MAVProxy")
-                type_in("param set APF_RHO_L 9")
-                await read_until("APF_RHO_L refused")
-        finally:
-            if proc.returncode is None:
-                type_in("exit")  # an interactive MAVProxy waits long on SIGTERM; "exit" ends it at once
-                proc.stdin.close()
-                try:
-                    async with asyncio.timeout(HANG_S):
-                        await proc.wait()
-                except TimeoutError:
-                    proc.kill()
-                    await proc.wait()
+        master = f"udpout:127.0.0.1:{svc.link.local_address[1]}"
+        async with mavproxy_session(mavproxy, master, "191", tmp_path) as gcs:
+            await gcs.read_until("Detected vehicle 1:191")
+            gcs.type_in("set param_ftp false")  # no MAVLink FTP here: the plain PARAM_REQUEST_LIST
+            gcs.type_in("param fetch")
+            await gcs.read_until(f"Received {len(PARAMS)} parameters")
+            gcs.type_in("param set APF_CRUISE_SPD 0.5")
+            await until(lambda: svc.navigator.params.cruise_speed_m_s == 0.5, HANG_S, "set by MAVProxy")
+            gcs.type_in("param set APF_RHO_L 9")
+            await gcs.read_until("APF_RHO_L refused")
         assert svc.params.sets == 1 and svc.params.refused == 1
         assert svc.params.planner.params.rho_l_m == PlannerParams().rho_l_m
