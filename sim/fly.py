@@ -798,35 +798,36 @@ def _link_faults(text: str) -> LinkFaults:
         raise argparse.ArgumentTypeError(str(err)) from err
 
 
-def _start_goal(
-    args: argparse.Namespace,
-) -> tuple[tuple[float, float], tuple[float, float], FlyingArea | None]:
+@dataclasses.dataclass(frozen=True, slots=True)
+class _Route:
+    """Where ``apf-sim fly`` flies: start, goal, and the world file's zones."""
+
+    start_ne_m: tuple[float, float]
+    goal_ne_m: tuple[float, float]
+    area_ne_m: FlyingArea | None
+    keepouts_ne_m: KeepOuts
+
+
+def _route(args: argparse.Namespace) -> _Route:
     """--start/--goal, else the world file's suggested start/goal, else the paper's (3, 3) -> (22, 22); and the
-    world file's flying area unless --no-area."""
+    world file's flying area and keep-out zones unless --no-area (the file read once)."""
     start, goal = PAPER_START, PAPER_GOAL
-    area = None
+    area: FlyingArea | None = None
+    keepouts: KeepOuts = ()
     if args.world is not None:
         from sim.world import load_world
 
         world = load_world(args.world)
         start = world.start_ne_m or start
         goal = world.goal_ne_m or goal
-        area = None if args.no_area else world.area_ne_m
-    return (args.start or start), (args.goal or goal), area
-
-
-def _keepouts(args: argparse.Namespace) -> KeepOuts:
-    """The world file's keep-out zones unless --no-area."""
-    if args.world is None or args.no_area:
-        return ()
-    from sim.world import load_world
-
-    return load_world(args.world).keepouts_ne_m
+        if not args.no_area:
+            area, keepouts = world.area_ne_m, world.keepouts_ne_m
+    return _Route(args.start or start, args.goal or goal, area, keepouts)
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
     try:
-        start, goal, area = _start_goal(args)
+        route = _route(args)
         if args.signing_key is not None:
             load_signing_key(args.signing_key)  # a key file others can read: refused before anything starts
     except ApfCompanionError as err:
@@ -840,10 +841,10 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         preset=args.preset,
         obstacles=args.obstacles,
         world=args.world,
-        start_ne_m=start,
-        goal_ne_m=goal,
-        area_ne_m=area,
-        keepouts_ne_m=_keepouts(args),
+        start_ne_m=route.start_ne_m,
+        goal_ne_m=route.goal_ne_m,
+        area_ne_m=route.area_ne_m,
+        keepouts_ne_m=route.keepouts_ne_m,
         fence=args.fence,
         alt_m=args.alt,
         speedup=args.speedup,

@@ -14,7 +14,7 @@ import pytest
 from apf_companion.builders import build_planner
 from apf_companion.config import config_from_mapping
 from sim.cli import build_parser
-from sim.fly import FlyOptions, _service_toml, _sim_argv, _start_goal
+from sim.fly import FlyOptions, _route, _service_toml, _sim_argv
 from sim.world import EXAMPLES_DIR, load_world
 
 
@@ -34,9 +34,9 @@ def test_negative_start_is_one_word_for_the_vehicle() -> None:
 )
 def test_fly_cli_takes_negative_pairs(words: list[str]) -> None:
     args = build_parser().parse_args(["fly", "--world", "slit", *words])
-    start, goal, area = _start_goal(args)
-    assert start[0] == -12.0 and area is None  # slit has no flying area
-    assert goal == ((4.5, -2.0) if "--goal" in words else (16.0, 0.0))
+    route = _route(args)
+    assert route.start_ne_m[0] == -12.0 and route.area_ne_m is None  # slit has no flying area
+    assert route.goal_ne_m == ((4.5, -2.0) if "--goal" in words else (16.0, 0.0))
 
 
 def test_fly_cli_still_rejects_a_missing_value() -> None:
@@ -48,8 +48,10 @@ def test_fly_cli_still_rejects_a_missing_value() -> None:
 def test_every_bundled_world_gives_fly_its_start_and_goal(name: str) -> None:
     args = build_parser().parse_args(["fly", "--world", name])
     world = load_world(name)
-    assert _start_goal(args) == (world.start_ne_m, world.goal_ne_m, world.area_ne_m)
-    argv = _sim_argv(FlyOptions(world=name, start_ne_m=_start_goal(args)[0]), 1, 2)
+    route = _route(args)
+    assert (route.start_ne_m, route.goal_ne_m, route.area_ne_m) == (world.start_ne_m, world.goal_ne_m, world.area_ne_m)
+    assert route.keepouts_ne_m == world.keepouts_ne_m
+    argv = _sim_argv(FlyOptions(world=name, start_ne_m=route.start_ne_m), 1, 2)
     assert build_parser().parse_args(argv[3:]).start == world.start_ne_m
 
 
@@ -59,7 +61,8 @@ def test_a_world_s_flying_area_reaches_the_service_s_planner(tmp_path: Path, wor
     ``planner.params.nav_area_ne_m``, and the service's planner gets it; ``--no-area`` and the other planners
     (which have no such parameter) fly without it."""
     args = build_parser().parse_args(["fly", "--world", "wall-gap", *words])
-    start, goal, area = _start_goal(args)
+    r = _route(args)
+    start, goal, area = r.start_ne_m, r.goal_ne_m, r.area_ne_m
     opt = FlyOptions(planner=args.planner, world="wall-gap", start_ne_m=start, goal_ne_m=goal, area_ne_m=area)
     text = _service_toml(opt, 14550, tmp_path / "c.tlog")
     planner = build_planner(config_from_mapping(tomllib.loads(text)))
@@ -71,7 +74,8 @@ def test_a_world_s_flying_area_reaches_the_service_s_planner(tmp_path: Path, wor
 def test_a_world_s_polygonal_area_reaches_the_service_s_planner(tmp_path: Path) -> None:
     """yard-l's flying area is a polygon: written into the service's config as TOML pairs, read back the same."""
     args = build_parser().parse_args(["fly", "--world", "yard-l"])
-    start, goal, area = _start_goal(args)
+    r = _route(args)
+    start, goal, area = r.start_ne_m, r.goal_ne_m, r.area_ne_m
     assert area is not None and len(area) == 6
     opt = FlyOptions(planner=args.planner, world="yard-l", start_ne_m=start, goal_ne_m=goal, area_ne_m=area)
     planner = build_planner(config_from_mapping(tomllib.loads(_service_toml(opt, 14550, tmp_path / "c.tlog"))))
@@ -90,7 +94,8 @@ def test_fly_fence_serves_the_area_from_the_vehicle_instead_of_the_config(tmp_pa
     """``apf-sim fly --world yard-l --fence``: the vehicle gets ``--fence`` (it serves the area as its fence) and
     the service's config has no area, so the service reads it from the vehicle (``planner.fence_area``)."""
     args = build_parser().parse_args(["fly", "--world", "yard-l", "--fence"])
-    start, goal, area = _start_goal(args)
+    r = _route(args)
+    start, goal, area = r.start_ne_m, r.goal_ne_m, r.area_ne_m
     opt = FlyOptions(world="yard-l", start_ne_m=start, goal_ne_m=goal, area_ne_m=area, fence=args.fence)
     assert "--fence" in _sim_argv(opt, 14550, 14551)
     config = config_from_mapping(tomllib.loads(_service_toml(opt, 14550, tmp_path / "c.tlog")))
