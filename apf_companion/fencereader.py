@@ -9,7 +9,7 @@ fence on the same link does not feed ours.
 Why poll: a ground station that uploads a new fence tells only itself (the closing MISSION_ACK goes to the
 uploader), and the plan-change ids of MAVLink's MISSION_CURRENT (``fence_id``) are not in pymavlink's dialect
 (2.4.50) nor sent by every autopilot. So the fence is read again every ``poll_s``; a fence of 10 vertices costs
-23 small messages, about 1 kB. ``on_area`` gets a result when it differs from the last one: the first read
+23 small messages, 718 bytes. ``on_area`` gets a result when it differs from the last one: the first read
 (whatever it gave), then a fence whose items changed (compared item by item, in 1e-7 degrees, so the global
 reference's centimetre jitter moves nothing). A later read that fails (a ground station uploading answers DENIED)
 keeps what is in service and is counted; the next read comes ``poll_s`` later. ``due`` is stepped by the service's

@@ -45,7 +45,8 @@ __all__ = ["FENCE_HANDLERS", "FenceItemRaw", "FenceStore", "FenceUpload", "fence
 _FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 #: ``MissionItemProtocol::upload_timeout_ms``: an upload without an item for this long is cancelled [s].
 UPLOAD_TIMEOUT_S = 8.0
-#: Fence items an upload may bring, at most (``MissionItemProtocol_Fence::max_items`` on a board with storage).
+#: Fence items an upload may bring here, at most: this simulator's limit (ArduPilot's follows the board's fence
+#: storage); beyond it MISSION_ACK NO_SPACE, as ``handle_mission_count`` answers.
 MAX_ITEMS = 256
 _FENCE_COMMANDS = frozenset(
     {
