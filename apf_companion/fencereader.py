@@ -81,6 +81,19 @@ class FenceReader:
         self._items: tuple[FenceItem, ...] | None = None  # of the last read that ended whole
         self._next_read_s = -math.inf
 
+    def summary(self) -> dict[str, object]:
+        """The status record's ``fence``: the last result (None before the first read ended) and the counters."""
+        r = self.result
+        return {
+            "outcome": None if r is None else r.outcome.value,
+            "note": None if r is None else r.note,
+            "reads": self.reads,
+            "failures": self.failures,
+            "changes": self.changes,
+            "ignored": self.ignored,
+            "unexpected": self.download.unexpected,
+        }
+
     def on_record(self, rec: MissionRecord) -> None:
         """An answer from the autopilot: to the download when addressed to us, about the fence, and one runs."""
         p = self.params

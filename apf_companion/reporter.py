@@ -11,6 +11,7 @@ import collections
 import dataclasses
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -193,6 +194,8 @@ class StatusReporter:
         self.counters = counters
         self.latency = LatencyWindow()
         self.gc: GcPauses | None = None  # the collector's pauses while the service runs (``CompanionService.run``)
+        #: The fence reader's summary (``FenceReader.summary``), when the service reads the autopilot's fence.
+        self.fence: Callable[[], dict[str, object]] | None = None
         self.reason = "starting"
         nvf_hz = params.named_value_rate_hz
         self._nvf_period_s = 1.0 / nvf_hz if nvf_hz > 0 else math.inf
@@ -292,6 +295,7 @@ class StatusReporter:
             "n_obstacles": len(self.perception),
             "loop_latency_ms": self.latency.summary(),
             "gc": self.gc_summary(),
+            "fence": None if self.fence is None else self.fence(),
             "decision": None if out is None else out.decision,
             "autopilot": {"mode_ok": nav.mode_ok, "armed": self.autopilot.armed, "link_alive": nav.link_alive(now_s)},
             "counters": self.counts() | {f"nav_{k}": v for k, v in nav.counts().items()},

@@ -287,6 +287,7 @@ class CompanionService:
         self.notifier, self.watchdog = notifier, (Watchdog(notifier) if notifier is not None else None)
         self.params = _param_server(self)
         self.fence = _fence_reader(self)  # bapf-nav without zones: the autopilot's fence as its area and keep-outs
+        self.reporter.fence = None if self.fence is None else self.fence.summary
         self._stop = asyncio.Event()
         self.trigger = CycleTrigger(self.clock, config.cycle.rate_hz)
         self.flight = FlightEnd()

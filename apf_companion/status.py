@@ -9,12 +9,17 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
      "distance_to_goal_m": 9.1 | null, "nearest_obstacle_m": 1.7 | null, "n_obstacles": 31,
      "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null,
      "gc": {"collections": 12, "full": 0, "max_pause_ms": 0.3, "frozen": 55906} | null, "decision": "GREEDY" | null,
+     "fence": {"outcome": "used", "note": "inclusion polygon of 6 vertices", "reads": 12, "failures": 0,
+               "changes": 0, "ignored": 0, "unexpected": 0} | null,
      "autopilot": {"mode_ok": true, "armed": true, "link_alive": true}, "counters": {...},
      "rejected": {"APF_RJPOSE": 0, "APF_RJSCAN": 0, "APF_RJLINK": 0, "APF_RJSIGN": 0,
                   "APF_ERRORS": 0}}
 
 ``gc`` is the garbage collector since the run started (apf_companion/heap.py): collections, how many were full,
-the longest pause, and how many startup objects are frozen out of every collection. ``counters`` holds every
+the longest pause, and how many startup objects are frozen out of every collection. ``fence`` is the autopilot's
+fence as read for bapf-nav's flying area (apf_companion/fencereader.py; null when the service does not read it):
+the last read's outcome (used, no fence, not used, failed; null before the first read ended) and why, and the
+reads, failed reads, changes, dropped answers. ``counters`` holds every
 edge, perception, outbox and (``nav_`` prefixed) navigator counter; ``rejected`` the totals also sent as
 NAMED_VALUE_INT (docs/hardening.md).
 """

@@ -5,6 +5,7 @@ world through it; without a fence, or with an area in the config, nothing change
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import socket
 from collections.abc import AsyncIterator
@@ -22,6 +23,7 @@ from apf_companion.links import MavlinkLink
 from apf_companion.navigator import State
 from apf_companion.planning import FlyingArea, KeepOuts
 from apf_companion.service import CompanionService
+from apf_companion.status import encode_status_json
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.fence import fence_items
 from sim.vehicle.testing import upload_fence
@@ -166,6 +168,9 @@ async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_i
             assert ack.type == mavlink.MAV_MISSION_ACCEPTED
             await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
             assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02 and fence.changes == 1
+            status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
+            assert status["outcome"] == "used" and status["note"] == "inclusion polygon of 4 vertices"
+            assert status["changes"] == 1 and status["failures"] >= 2 and status["reads"] >= 2
     finally:
         await gcs.aclose()
 
@@ -209,6 +214,7 @@ async def test_no_fence_leaves_the_planner_as_configured() -> None:
         await until(lambda: svc.fence is not None and svc.fence.result is not None, HANG_S, "the fence read")
         assert svc.fence.result is not None and svc.fence.result.outcome is FenceOutcome.NO_FENCE
         assert svc.planner.params.nav_area_ne_m is None
+        assert svc.reporter.status_dict(svc.clock.now())["fence"]["outcome"] == "no fence"
 
 
 @pytest.mark.parametrize(
@@ -219,6 +225,6 @@ async def test_no_fence_leaves_the_planner_as_configured() -> None:
 async def test_an_area_in_the_config_or_fence_area_off_reads_no_fence(planner: dict[str, Any]) -> None:
     svc = await CompanionService.open(_config(**planner))
     try:
-        assert svc.fence is None
+        assert svc.fence is None and svc.reporter.status_dict(0.0)["fence"] is None
     finally:
         await svc.aclose()
