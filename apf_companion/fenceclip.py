@@ -16,13 +16,12 @@ boundary by at most ``t``), so the result stays inside the intersection; ``t`` g
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+
+import shapely
+from shapely.geometry import Point, Polygon
 
 from apf_companion.planning import PolygonNE
 from apf_companion.planning.params import MAX_AREA_VERTICES
-
-if TYPE_CHECKING:
-    from shapely.geometry import Point, Polygon
 
 __all__ = ["inclusion_intersection"]
 
@@ -33,10 +32,6 @@ SIMPLIFY_STEPS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
 def inclusion_intersection(zones: Sequence[PolygonNE], vehicle_ne_m: tuple[float, float]) -> PolygonNE | str:
     """The piece of the zones' intersection that holds the vehicle, as a polygon of at most ``MAX_AREA_VERTICES``
     vertices inside it; or why there is none. The zones are valid simple polygons (``polygon_problem``)."""
-    # Imported here: 0.1-0.2 s at the service's start for the few fences with two or more inclusion zones.
-    import shapely
-    from shapely.geometry import Point, Polygon
-
     common = shapely.intersection_all([Polygon(zone) for zone in zones])
     pieces = [g for g in getattr(common, "geoms", [common]) if isinstance(g, Polygon) and g.area > 0.0]
     if not pieces:
@@ -58,8 +53,6 @@ def _fit(piece: Polygon, vehicle: Point) -> PolygonNE | None:
     """``piece``'s vertices, or those of a polygon inside it with at most ``MAX_AREA_VERTICES`` (module docstring)."""
     if _vertex_count(piece) <= MAX_AREA_VERTICES:
         return _vertices(piece)
-    from shapely.geometry import Polygon
-
     for t in SIMPLIFY_STEPS_M:
         smaller = piece.buffer(-t, join_style="mitre").simplify(t, preserve_topology=True)
         if (
