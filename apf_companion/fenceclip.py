@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+# Imported with the service (0.1-0.2 s at start), not when a fence first needs it: an import in flight would hold
+# the event loop, and the cycles with it, for as long.
 import shapely
 from shapely.geometry import Point, Polygon
 
