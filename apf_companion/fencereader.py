@@ -11,7 +11,8 @@ uploader), and the plan-change ids of MAVLink's MISSION_CURRENT (``fence_id``) a
 (2.4.50) nor sent by every autopilot. So the fence is read again every ``poll_s``; a fence of 10 vertices costs
 23 small messages, 718 bytes. ``on_area`` gets a result when it differs from the last one: the first read
 (whatever it gave), then a fence whose items changed (compared item by item, in 1e-7 degrees, so the global
-reference's centimetre jitter moves nothing). A later read that fails (a ground station uploading answers DENIED)
+reference's centimetre jitter moves nothing), or the same fence when it was not used and now is (the vehicle, outside
+it at the last read, has flown in). A later read that fails (a ground station uploading answers DENIED)
 keeps what is in service and is counted; the next read comes ``poll_s`` later. ``due`` is stepped by the service's
 ``apf.fence`` task on the service clock.
 """
@@ -141,16 +142,20 @@ class FenceReader:
             return
         self.reads += 1
         items = tuple(self.download.items)
-        if items == self._items:
+        unused = self.result is not None and self.result.outcome is FenceOutcome.NOT_USED
+        if items == self._items and not unused:
             return
         where = self._reference()
         if where is None:  # the reference went away (a reboot) between start and end: placed at the next read
             if self.result is None:
                 self._tell(FenceArea(FenceOutcome.NOT_USED, "no global reference to place the fence"))
             return
+        result = fence_area(items, *where)
+        if items == self._items and result == self.result:  # still not used, for the same reason
+            return
         self.changes += self._items is not None
         self._items = items
-        self._tell(fence_area(items, *where))
+        self._tell(result)
 
     def _tell(self, result: FenceArea) -> None:
         self.result = result

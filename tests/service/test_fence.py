@@ -302,12 +302,14 @@ def test_the_reader_takes_only_fence_answers_addressed_to_it() -> None:
 AP = Source(1, 1)
 
 
-def _reader(poll_s: float, results: list[FenceArea]) -> FenceReader:
+def _reader(poll_s: float, results: list[FenceArea], where: list[tuple[float, float]] | None = None) -> FenceReader:
+    """A reader whose vehicle is at ``where[0]`` (north, east) [m] (default: (10, 5), inside the L)."""
+    at = [(10.0, 5.0)] if where is None else where
     outbox = Outbox(None, dry_run=False, target_system=1, target_component=1, now_s=lambda: 0.0)
     return FenceReader(
         FenceReaderParams(our_system=1, our_component=191, autopilot=AP, poll_s=poll_s),
         outbox=outbox,
-        reference=lambda: (REF, (10.0, 5.0)),
+        reference=lambda: (REF, at[0]),
         on_area=results.append,
     )
 
@@ -363,6 +365,19 @@ def test_the_fence_is_read_again_every_poll_s_and_only_a_change_is_told() -> Non
     stray = MissionCount(src=AP, target_system=1, target_component=191, count=4, mission_type=FENCE)
     reader.on_record(stray)  # no download running: dropped
     assert reader.ignored == 1
+
+
+def test_a_fence_the_vehicle_was_outside_of_is_used_once_it_has_flown_in() -> None:
+    results: list[FenceArea] = []
+    where = [(15.0, 15.0)]  # in the L's notch: outside it
+    reader = _reader(5.0, results, where)
+    t = _answer(reader, _polygon(L_SHAPE), 0.0)
+    assert [r.note for r in results] == ["the vehicle is outside the inclusion zone"]
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0)
+    assert len(results) == 1  # still outside: nothing new to tell
+    where[0] = (10.0, 5.0)
+    _answer(reader, _polygon(L_SHAPE), t + 5.0)
+    assert results[-1].outcome is FenceOutcome.USED and len(results) == 2 and reader.changes == 1
 
 
 def test_a_first_read_that_fails_is_told_and_read_again_and_poll_s_0_reads_once() -> None:
