@@ -7,11 +7,12 @@ the item's error (a sequence number past the end: MAV_MISSION_INVALID_SEQUENCE,
 ``MissionItemProtocol_Fence::get_item``); the requester's closing MISSION_ACK needs no answer.
 
 Upload (``handle_mission_count``, ``handle_mission_item``, ``transfer_is_complete``): MISSION_COUNT starts it
-(count 0 clears the fence at once); the vehicle asks for each item in turn (MISSION_REQUEST on the ArduPilot
-profile, as ``queued_request_send`` does; MISSION_REQUEST_INT on PX4's) and, after the last, keeps the new fence
-and sends MISSION_ACK ACCEPTED. While one ground station uploads, another's MISSION_COUNT and every download
-request get MISSION_ACK DENIED (``cancel_upload``, "someone is uploading a mission; reject fetching of points").
-An item out of turn gets INVALID_SEQUENCE; one from another system DENIED; a command that is no fence item
+(count 0 clears the fence at once, as MISSION_CLEAR_ALL does: ``handle_mission_clear_all``); the vehicle asks
+for each item in turn (MISSION_REQUEST on the ArduPilot profile, as ``queued_request_send`` does;
+MISSION_REQUEST_INT on PX4's) and, after the last, keeps the new fence and sends MISSION_ACK ACCEPTED. While one
+ground station uploads, another's MISSION_COUNT and every download request get MISSION_ACK DENIED
+(``cancel_upload``, "someone is uploading a mission; reject fetching of points"), its MISSION_CLEAR_ALL DENIED
+and ERROR. An item out of turn gets INVALID_SEQUENCE; one from another system DENIED; a command that is no fence item
 UNSUPPORTED, which ends the upload. An upload without an item for 8 s (``upload_timeout_ms``) is cancelled
 (MISSION_ACK OPERATION_CANCELLED to the uploader), here when the next fence message arrives. Not modelled:
 re-requesting an item after 1 s (loopback loses nothing) and checking the new fence's geometry. The PX4 profile
@@ -206,9 +207,27 @@ def _on_mission_item_int(v: VehicleEngine, msg: Any, link: int) -> None:
     _ack(v, link, up.src, mavlink.MAV_MISSION_ACCEPTED)
 
 
+def _on_mission_clear_all(v: VehicleEngine, msg: Any, link: int) -> None:
+    """``handle_mission_clear_all``: another ground station's upload in progress refuses it (DENIED from
+    ``cancel_upload``, then ERROR); else the uploader's own upload is cancelled, the fence cleared, ACCEPTED."""
+    mission_type = getattr(msg, "mission_type", 0)
+    if mission_type != _FENCE:
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_UNSUPPORTED, mission_type)
+        return
+    up = _receiving(v)
+    if up is not None and up.src != _src(msg):
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
+        _ack(v, link, _src(msg), mavlink.MAV_MISSION_ERROR)
+        return
+    v.fence.items, v.fence.upload = [], None
+    v.fence.uploads += 1
+    _ack(v, link, _src(msg), mavlink.MAV_MISSION_ACCEPTED)
+
+
 FENCE_HANDLERS = {
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: _on_mission_request_list,
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_INT: _on_mission_request_int,
     mavlink.MAVLINK_MSG_ID_MISSION_COUNT: _on_mission_count,
     mavlink.MAVLINK_MSG_ID_MISSION_ITEM_INT: _on_mission_item_int,
+    mavlink.MAVLINK_MSG_ID_MISSION_CLEAR_ALL: _on_mission_clear_all,
 }

@@ -178,7 +178,8 @@ async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_i
 @pytest.mark.skipif(mavproxy_path() is None, reason="MAVProxy not installed (pip install --no-deps MAVProxy)")
 async def test_a_fence_loaded_in_mavproxy_is_planned_over(tmp_path: Path) -> None:
     """MAVProxy, a real ground station on its own link to the simulated autopilot, uploads a fence file
-    (``fence load``, MAVProxy's mission-protocol fence module): the service reads it at its next poll."""
+    (``fence load``, MAVProxy's mission-protocol fence module), then clears it (``fence clear``): the service
+    reads each at its next poll."""
     mavproxy = mavproxy_path()
     assert mavproxy is not None and YARD.start_ne_m is not None
     port = free_port(socket.SOCK_DGRAM)
@@ -198,8 +199,10 @@ async def test_a_fence_loaded_in_mavproxy_is_planned_over(tmp_path: Path) -> Non
             gcs.type_in(f"fence load {tmp_path / 'box.txt'}")
             await gcs.read_until("Loaded 4 ")
             await until(lambda: len(_area(svc)) == 4, HANG_S, "MAVProxy's fence in service")
-        assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02
-        assert sim.engine.fence.uploads == 1 and fence.changes == 1
+            assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02
+            gcs.type_in("fence clear")  # MISSION_CLEAR_ALL
+            await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "MAVProxy's clear in service")
+        assert sim.engine.fence.uploads == 2 and fence.changes == 2
 
 
 def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:

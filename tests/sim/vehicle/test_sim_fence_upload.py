@@ -47,6 +47,9 @@ async def test_an_uploaded_fence_is_kept_and_served(profile: str, request_type: 
         assert await _download(gcs) == ITEMS
         assert (await upload_fence(gcs, [])).type == m.MAV_MISSION_ACCEPTED  # count 0 clears it
         assert sim.engine.fence.items == [] and await _download(gcs) == []
+        assert (await upload_fence(gcs, ITEMS)).type == m.MAV_MISSION_ACCEPTED
+        gcs.send(gcs.mav.mission_clear_all_encode(1, 1, FENCE))  # and so does MISSION_CLEAR_ALL
+        assert (await fence_ack(gcs)).type == m.MAV_MISSION_ACCEPTED and sim.engine.fence.items == []
 
 
 async def test_while_one_uploads_others_are_denied_and_a_stalled_upload_is_cancelled() -> None:
@@ -66,6 +69,8 @@ async def test_while_one_uploads_others_are_denied_and_a_stalled_upload_is_cance
             other.send(other.mav.mission_count_encode(1, 1, 1, m.MAV_MISSION_TYPE_MISSION))
             refused = await other.recv_match(type="MISSION_ACK", timeout=5.0)
             assert refused.type == m.MAV_MISSION_UNSUPPORTED  # a mission: this vehicle takes none
+            other.send(other.mav.mission_clear_all_encode(1, 1, FENCE))
+            assert [(await fence_ack(other)).type for _ in range(2)] == [m.MAV_MISSION_DENIED, m.MAV_MISSION_ERROR]
             assert sim.engine.fence.items == []  # nothing kept from the open upload
             await wait_sim_time(sim, sim.t_s + 8.5)
             other.send(other.mav.mission_request_list_encode(1, 1, FENCE))  # the next fence message cancels it
