@@ -34,7 +34,10 @@ SIMPLIFY_STEPS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
 def inclusion_intersection(zones: Sequence[PolygonNE], vehicle_ne_m: tuple[float, float]) -> PolygonNE | str:
     """The piece of the zones' intersection that holds the vehicle, as a polygon of at most ``MAX_AREA_VERTICES``
     vertices inside it; or why there is none. The zones are valid simple polygons (``polygon_problem``)."""
-    common = shapely.intersection_all([Polygon(zone) for zone in zones])
+    try:
+        common = shapely.intersection_all([Polygon(zone) for zone in zones])
+    except shapely.errors.GEOSException as err:  # a zone GEOS cannot take (polygon_problem passed it)
+        return f"the inclusion zones cannot be intersected ({err})"
     pieces = [g for g in getattr(common, "geoms", [common]) if isinstance(g, Polygon) and g.area > 0.0]
     if not pieces:
         return "the inclusion zones do not overlap"

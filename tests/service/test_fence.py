@@ -397,3 +397,18 @@ def test_a_first_read_that_fails_is_told_and_read_again_and_poll_s_0_reads_once(
 def _stage(d: FenceDownload) -> FenceStage:
     """The stage as the download has it now (mypy narrows ``d.stage`` across the calls that change it)."""
     return d.stage
+
+
+def test_a_geos_failure_leaves_the_fence_unused_with_the_reason(monkeypatch: pytest.MonkeyPatch) -> None:
+    """GEOS 3.14's overlay took every degenerate zone tried here (spikes, folds, repeated vertices), so its
+    TopologyException is raised by a stand-in: the fence is then not used, and the reason says why."""
+    import shapely
+
+    def fail(_geoms: object) -> object:
+        raise shapely.errors.GEOSException("TopologyException: side location conflict")
+
+    monkeypatch.setattr(shapely, "intersection_all", fail)
+    items = [_circle(10.0, 5.0, 12.0, CIRCLE_IN), *_polygon(L_SHAPE, first=1)]
+    area = fence_area(items, REF, (10.0, 5.0))
+    assert area.outcome is FenceOutcome.NOT_USED
+    assert area.note == "the inclusion zones cannot be intersected (TopologyException: side location conflict)"
