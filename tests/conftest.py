@@ -76,6 +76,16 @@ async def until(condition: Callable[[], object], timeout_s: float = HANG_S, what
         raise AssertionError(msg) from None
 
 
+async def reap(proc: asyncio.subprocess.Process, hang_s: float = HANG_S) -> None:
+    """Wait for a subprocess told to stop (a signal, "exit" at its prompt) to end; kill it after ``hang_s``."""
+    try:
+        async with asyncio.timeout(hang_s):
+            await proc.wait()
+    except TimeoutError:
+        proc.kill()
+        await proc.wait()
+
+
 async def within(
     now_s: Callable[[], float], condition: Callable[[], object], within_s: float, what: str, hang_s: float = HANG_S
 ) -> None:

@@ -10,7 +10,7 @@ import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 
-from tests.conftest import HANG_S
+from tests.conftest import HANG_S, reap
 
 __all__ = ["MavproxyPrompt", "mavproxy_path", "mavproxy_session"]
 
@@ -60,9 +60,4 @@ async def mavproxy_session(mavproxy: str, master: str, component: str, basedir: 
             prompt.type_in("exit")
             assert proc.stdin is not None
             proc.stdin.close()
-            try:
-                async with asyncio.timeout(HANG_S):
-                    await proc.wait()
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
+            await reap(proc)

@@ -18,7 +18,7 @@ from apf_companion.autopilot import CopterMode
 from apf_companion.links import MavlinkLink
 from sim.vehicle import SimConfig, Simulator, SpawnConfig
 from sim.vehicle.testing import command_long
-from tests.conftest import HANG_S, free_port, wait_for
+from tests.conftest import HANG_S, free_port, reap, wait_for
 
 pytestmark = pytest.mark.interop
 
@@ -115,12 +115,7 @@ async def test_mavproxy_headless_sees_heartbeat_and_mode(tmp_path: Path) -> None
     finally:
         if proc.returncode is None:
             proc.terminate()
-            try:
-                async with asyncio.timeout(HANG_S):
-                    await proc.wait()
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
+            await reap(proc)
         await sim.aclose()
         await ctl.aclose()
     assert (tmp_path / "mav.tlog").stat().st_size > 0  # MAVProxy logged our traffic
