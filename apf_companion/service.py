@@ -712,8 +712,10 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
             area = FenceArea(FenceOutcome.NOT_USED, str(err))
         else:
             zones = {k: v for k, v in svc.config.planner.params.items() if k in ("nav_area_ne_m", "nav_keepout_ne_m")}
-            log.info("fence.area", extra={"note": area.note, **zones})
-            svc.reporter.statustext(mavlink.MAV_SEVERITY_INFO, f"fence area: {area.note}")
+            changed = svc.fence is not None and svc.fence.changes > 0
+            log.info("fence.area", extra={"note": area.note, "changed": changed, **zones})
+            verb = "changed" if changed else "area"
+            svc.reporter.statustext(mavlink.MAV_SEVERITY_INFO, f"fence {verb}: {area.note}")
             return
     if in_service:
         _put_fence_in_service(svc, area)  # no zones: cannot fail

@@ -142,8 +142,8 @@ async def test_a_fence_changed_in_flight_is_planned_over_and_a_removed_one_taken
         assert fence.changes == 2 and fence.failures == 0 and fence.reads >= 3
         assert fence.download.unexpected == 0
     said = [r for r in caplog.records if r.getMessage().startswith("fence.")]
-    events = [(r.getMessage(), getattr(r, "removed", None)) for r in said]
-    assert events == [("fence.area", None), ("fence.area", None), ("fence.none", True)]
+    events = [(r.getMessage(), getattr(r, "changed", None), getattr(r, "removed", None)) for r in said]
+    assert events == [("fence.area", False, None), ("fence.area", True, None), ("fence.none", None, True)]
 
 
 async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_is_flown() -> None:
