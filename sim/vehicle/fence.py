@@ -16,7 +16,10 @@ and ERROR. An item out of turn gets INVALID_SEQUENCE; one from another system DE
 UNSUPPORTED, which ends the upload. An upload without an item for 8 s (``upload_timeout_ms``) is cancelled
 (MISSION_ACK OPERATION_CANCELLED to the uploader), here when the next fence message arrives. Not modelled:
 re-requesting an item after 1 s (loopback loses nothing) and checking the new fence's geometry. The PX4 profile
-follows the same rules (not checked against PX4's ``mavlink_mission.cpp``), asking with MISSION_REQUEST_INT.
+follows the same rules, asking with MISSION_REQUEST_INT. Real PX4 differs (``src/modules/mavlink/mavlink_mission.cpp``,
+one transfer state for every link): during an upload a download request is ignored (no answer) and another
+station's MISSION_COUNT gets MAV_MISSION_ERROR; during a download, a station's MISSION_COUNT gets
+MAV_MISSION_ERROR too. Not modelled.
 
 The fence at start is the world file's flying area (``EngineConfig.fence``), as one inclusion polygon: every
 vertex a MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION item with ``param1`` = the vertex count, latitude/longitude
