@@ -127,8 +127,11 @@ class FenceDownload:
             self._fail(f"the fence has {count} items (at most {MAX_FENCE_ITEMS} are read)")
             return
         self._count = count
-        self.stage = FenceStage.ITEMS if count else FenceStage.DONE
         self._sent_at, self._tries = -math.inf, 0
+        if count == 0:  # an empty fence is acked too: PX4 holds its one transfer state until the ack (or 5 s)
+            self.stage, self._ack_due = FenceStage.DONE, True
+        else:
+            self.stage = FenceStage.ITEMS
 
     def on_item(self, item: FenceItem) -> None:
         """MISSION_ITEM_INT (fence): the awaited one is kept, any other counted and dropped."""
