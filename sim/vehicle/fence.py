@@ -16,10 +16,7 @@ and ERROR. An item out of turn gets INVALID_SEQUENCE; one from another system DE
 UNSUPPORTED, which ends the upload. An upload without an item for 8 s (``upload_timeout_ms``) is cancelled
 (MISSION_ACK OPERATION_CANCELLED to the uploader), here when the next fence message arrives. Not modelled:
 re-requesting an item after 1 s (loopback loses nothing) and checking the new fence's geometry. The PX4 profile
-follows the same rules, asking with MISSION_REQUEST_INT. Real PX4 differs (``src/modules/mavlink/mavlink_mission.cpp``,
-one transfer state for every link): during an upload a download request is ignored (no answer) and another
-station's MISSION_COUNT gets MAV_MISSION_ERROR; during a download, a station's MISSION_COUNT gets
-MAV_MISSION_ERROR too. Not modelled.
+keeps PX4's one transfer state instead (``sim.vehicle.fence_px4``).
 
 The fence at start is the world file's flying area (``EngineConfig.fence``), as one inclusion polygon: every
 vertex a MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION item with ``param1`` = the vertex count, latitude/longitude
@@ -32,6 +29,7 @@ take no uploads (UNSUPPORTED).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +37,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.planning import FlyingArea, KeepOuts, area_polygon
+from sim.vehicle.fence_px4 import PX4_FENCE_HANDLERS, Px4Transfer
 from sim.vehicle.geo import ne_to_latlon
 
 if TYPE_CHECKING:
@@ -85,7 +84,8 @@ class FenceStore:
 
     home: HomeConfig
     items: list[FenceItemRaw]
-    upload: FenceUpload | None = None
+    upload: FenceUpload | None = None  # ArduPilot's upload in progress
+    px4: Px4Transfer = field(default_factory=Px4Transfer)  # PX4's one transfer (sim.vehicle.fence_px4)
     uploads: int = 0
 
     @classmethod
@@ -227,10 +227,26 @@ def _on_mission_clear_all(v: VehicleEngine, msg: Any, link: int) -> None:
     _ack(v, link, _src(msg), mavlink.MAV_MISSION_ACCEPTED)
 
 
-FENCE_HANDLERS = {
+_ARDUPILOT_HANDLERS = {
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: _on_mission_request_list,
     mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_INT: _on_mission_request_int,
     mavlink.MAVLINK_MSG_ID_MISSION_COUNT: _on_mission_count,
     mavlink.MAVLINK_MSG_ID_MISSION_ITEM_INT: _on_mission_item_int,
     mavlink.MAVLINK_MSG_ID_MISSION_CLEAR_ALL: _on_mission_clear_all,
 }
+
+
+def _by_profile(msg_id: int) -> Callable[[VehicleEngine, Any, int], None]:
+    """The handler of ``msg_id`` for the vehicle's profile: PX4's one transfer state (``sim.vehicle.fence_px4``) or
+    ArduPilot's (this module); a profile without one drops the message."""
+    ardupilot, px4 = _ARDUPILOT_HANDLERS.get(msg_id), PX4_FENCE_HANDLERS.get(msg_id)
+
+    def handler(v: VehicleEngine, msg: Any, link: int) -> None:
+        fn = px4 if v.profile is Autopilot.PX4 else ardupilot
+        if fn is not None:
+            fn(v, msg, link)
+
+    return handler
+
+
+FENCE_HANDLERS = {msg_id: _by_profile(msg_id) for msg_id in {*_ARDUPILOT_HANDLERS, *PX4_FENCE_HANDLERS}}

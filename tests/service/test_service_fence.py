@@ -37,9 +37,9 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 YARD = load_world("yard-l")
 
 
-def _config(**planner: Any) -> ServiceConfig:
+def _config(profile: str = "ardupilot", **planner: Any) -> ServiceConfig:
     """test_service_flight's config with bapf-nav, its ``[planner]`` table updated with ``planner``."""
-    base = _as_mapping(service_config(planner="bapf-nav"))
+    base = _as_mapping(service_config(profile=profile, planner="bapf-nav"))
     base["planner"] |= planner
     return config_from_mapping(base)
 
@@ -50,16 +50,18 @@ async def yard_flight(
     route: Route | None = None,
     keepouts: KeepOuts = (),
     links: tuple[str, ...] = (),
+    profile: str = "ardupilot",
     **planner: Any,
 ) -> AsyncIterator[tuple[CompanionService, Simulator]]:
-    """The service (bapf-nav, its ``[planner]`` updated with ``planner``) and the simulator flying yard-l from its
-    start, the simulator serving ``fence`` (and talking on ``links`` too: a ground station)."""
-    svc = await CompanionService.open(_config(**planner), route=route, clock=SimulatorClock(SPEEDUP))
+    """The service (bapf-nav, its ``[planner]`` updated with ``planner``) and the simulator (``profile``) flying
+    yard-l from its start, the simulator serving ``fence`` (and talking on ``links`` too: a ground station)."""
+    svc = await CompanionService.open(_config(profile, **planner), route=route, clock=SimulatorClock(SPEEDUP))
     assert svc.link is not None and svc.link.local_address is not None
     sim = await Simulator.start(
         SimConfig(
             links=[f"udpout:127.0.0.1:{svc.link.local_address[1]}", *links],
             world=YARD,
+            profile=profile,
             speedup=SPEEDUP,
             seed=3,
             spawn=SpawnConfig(pos_ne_m=YARD.start_ne_m, airborne=True, alt_m=5.0),
@@ -203,6 +205,32 @@ async def test_a_fence_loaded_in_mavproxy_is_planned_over(tmp_path: Path) -> Non
             gcs.type_in("fence clear")  # MISSION_CLEAR_ALL
             await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "MAVProxy's clear in service")
         assert sim.engine.fence.uploads == 2 and fence.changes == 2
+
+
+async def test_on_px4_the_services_reads_leave_a_ground_stations_upload_free() -> None:
+    """PX4 keeps one transfer state for every link (mavlink_mission.cpp) and refuses an upload while a download is
+    open. The service reads the (empty) fence every second and acks each read, count 0 included, so a ground
+    station's upload goes through at once or at the next try; without the ack every try was refused."""
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    try:
+        assert gcs.local_address is not None
+        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
+        async with yard_flight(None, links=(link,), profile="px4", fence_poll_s=1.0) as (svc, sim):
+            fence = svc.fence
+            assert fence is not None and YARD.start_ne_m is not None
+            await until(lambda: fence.reads >= 3, HANG_S, "three reads of the empty fence")
+            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            n, e = YARD.start_ne_m
+            box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
+            acks: list[int] = []
+            while len(acks) < 5 and (not acks or acks[-1] != mavlink.MAV_MISSION_ACCEPTED):
+                acks.append((await upload_fence(gcs, fence_items(box, (), sim.engine.cfg.home))).type)
+            # A try that meets one of the service's reads (a few ms of each second) is refused, and is repeated.
+            assert acks[-1] == mavlink.MAV_MISSION_ACCEPTED and len(acks) <= 2, acks
+            await until(lambda: svc.planner.params.nav_area_ne_m is not None, HANG_S, "the uploaded fence in service")
+            assert len(_area(svc)) == 4
+    finally:
+        await gcs.aclose()
 
 
 def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:

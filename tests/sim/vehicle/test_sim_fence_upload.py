@@ -9,7 +9,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from apf_companion.links import MavlinkLink
 from sim.vehicle.fence import FenceItemRaw
-from sim.vehicle.testing import fence_ack, simulator_with_client, upload_fence, wait_sim_time
+from sim.vehicle.testing import drain, fence_ack, simulator_with_client, upload_fence, wait_sim_time
 
 FENCE = m.MAV_MISSION_TYPE_FENCE
 #: A 40 m inclusion circle and a triangular exclusion zone near Canberra's SITL home.
@@ -30,6 +30,7 @@ async def _download(gcs: MavlinkLink) -> list[FenceItemRaw]:
         it = await gcs.recv_match(type="MISSION_ITEM_INT", timeout=5.0)
         assert it.seq == seq
         out.append((it.command, it.param1, it.x, it.y))
+    gcs.send(gcs.mav.mission_ack_encode(1, 1, m.MAV_MISSION_ACCEPTED, FENCE))  # PX4 is busy until this
     return out
 
 
@@ -78,5 +79,32 @@ async def test_while_one_uploads_others_are_denied_and_a_stalled_upload_is_cance
             assert (await other.recv_match(type="MISSION_COUNT", timeout=5.0)).count == 0
             ack = await upload_fence(other, ITEMS[:1])
             assert ack.type == m.MAV_MISSION_ACCEPTED and sim.engine.fence.items == ITEMS[:1]
+    finally:
+        await other.aclose()
+
+
+async def test_px4_keeps_one_transfer_state_for_every_link() -> None:
+    """PX4 (mavlink_mission.cpp): while one station downloads, another's upload is refused (ERROR) until the
+    download is acked; while one uploads, another's download request is ignored with a STATUSTEXT and its upload
+    refused; a transfer left open ends after 5 s."""
+    other = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=254, source_component=191)
+    try:
+        assert other.local_address is not None
+        links = [f"udpout:127.0.0.1:{other.local_address[1]}"]
+        async with simulator_with_client(profile="px4", links=links, speedup=20.0) as (sim, gcs):
+            await other.recv_match(type="HEARTBEAT", timeout=5.0)
+            other.send(other.mav.mission_request_list_encode(1, 1, FENCE))
+            assert (await other.recv_match(type="MISSION_COUNT", timeout=5.0)).count == 0  # a download, not acked
+            assert (await upload_fence(gcs, ITEMS)).type == m.MAV_MISSION_ERROR
+            other.send(other.mav.mission_ack_encode(1, 1, m.MAV_MISSION_ACCEPTED, FENCE))  # the download ends
+            assert await upload_fence(gcs, ITEMS, stop_after=1) is None  # an upload left open
+            other.send(other.mav.mission_request_list_encode(1, 1, FENCE))
+            said = await other.recv_match(type="STATUSTEXT", condition=lambda x: "Mission" in x.text, timeout=5.0)
+            assert said.text == "Mission download request ignored, already active"
+            assert not [x for x in await drain(other) if x.get_type() == "MISSION_COUNT"]
+            assert (await upload_fence(other, ITEMS[:1])).type == m.MAV_MISSION_ERROR
+            await wait_sim_time(sim, sim.t_s + 5.5)  # PX4's protocol timeout: back to idle
+            other.send(other.mav.mission_request_list_encode(1, 1, FENCE))
+            assert (await other.recv_match(type="MISSION_COUNT", timeout=5.0)).count == 0  # the open upload dropped
     finally:
         await other.aclose()
