@@ -35,8 +35,8 @@ __all__ = ["FenceReader", "FenceReaderParams"]
 _FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 #: How often the reader is stepped while it downloads [s] (a request's repeat comes after ``timeout_s``).
 STEP_S = 0.1
-#: The step after the reader has finished [s] (``poll_s`` = 0: read once): it has nothing more to do.
-IDLE_S = 3600.0
+#: The longest step between reads [s]: a PARAM_SET may change ``poll_s`` (0 = read once) at any time.
+IDLE_S = 1.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -65,6 +65,7 @@ class FenceReader:
         on_area: Callable[[FenceArea], None],
     ) -> None:
         """``reference()``: the global reference and the vehicle's (north, east) [m] now, or None if not known."""
+        #: Replaced when a PARAM_SET changes ``planner.fence_poll_s`` (APF_FENCE_POLL); ``due`` follows it at once.
         self.params = params
         self.download = FenceDownload(params.timeout_s, params.retries)
         #: The last result given to ``on_area`` (None before the first read has ended).
@@ -80,7 +81,7 @@ class FenceReader:
         self._reference = reference
         self._on_area = on_area
         self._items: tuple[FenceItem, ...] | None = None  # of the last read that ended whole
-        self._next_read_s = -math.inf
+        self._ended_s = -math.inf  # when the last download ended
 
     def summary(self) -> dict[str, object]:
         """The status record's ``fence``: the last result (None before the first read ended) and the counters."""
@@ -114,8 +115,9 @@ class FenceReader:
         if d.stage is FenceStage.IDLE:
             if self.result is not None and self.params.poll_s <= 0.0:
                 return now_s + IDLE_S
-            if now_s < self._next_read_s:
-                return min(self._next_read_s, now_s + IDLE_S)
+            next_read_s = self._ended_s + self.params.poll_s
+            if now_s < next_read_s:
+                return min(next_read_s, now_s + IDLE_S)
             if self._reference() is None:
                 return now_s + STEP_S
             d.start()
@@ -132,7 +134,7 @@ class FenceReader:
 
     def _ended(self, now_s: float, *, whole: bool) -> None:
         """A download ended: the next is due ``poll_s`` later; its result goes out when it is news."""
-        self._next_read_s = now_s + self.params.poll_s
+        self._ended_s = now_s
         reason = self.download.reason
         self.download.rest()
         if not whole:

@@ -47,7 +47,7 @@ NAME_MAX = 16  # PARAM_*.param_id: char[16], not NUL-terminated when full
 INT32_MAX = 2**31 - 1
 PLANNER_PARAMS = "planner.params."
 LIST_BURST = 5  # PARAM_VALUEs of a list per burst (GCS_Param.cpp queued_param_send: 5 without flow control)
-LIST_PERIOD_S = 0.02  # between bursts [wall s]: 250 PARAM_VALUE/s, a 23-parameter list in about 0.1 s
+LIST_PERIOD_S = 0.02  # between bursts [wall s]: 250 PARAM_VALUE/s, a 24-parameter list in about 0.1 s
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,6 +79,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("APF_NOISE_K", "planner.params.noise_k", REAL32),
     ParamSpec("APF_RW_BUDGET", "planner.random_walk_budget", INT32),
     ParamSpec("APF_PROG_TMO", "planner.progress_timeout_s", REAL32),
+    ParamSpec("APF_FENCE_POLL", "planner.fence_poll_s", REAL32),
     ParamSpec("APF_CRUISE_SPD", "cycle.cruise_speed_m_s", REAL32),
     ParamSpec("APF_ARRIVE_RAD", "cycle.arrival_radius_m", REAL32),
     ParamSpec("APF_REPLAN_RAD", "cycle.replan_radius_m", REAL32),

@@ -671,6 +671,8 @@ def _put_in_service(svc: CompanionService, config: ServiceConfig, planner: Any) 
     navigator calls the planner through the observers' tap, as at start (the recording sees its decisions)."""
     svc.config, svc.planner = config, planner
     reconfigure(svc.navigator, navigator_params(config, planner), svc.observers.tap(planner))
+    if svc.fence is not None:  # APF_FENCE_POLL: the next read is due fence_poll_s after the last one ended
+        svc.fence.params = dataclasses.replace(svc.fence.params, poll_s=config.planner.fence_poll_s)
 
 
 def _fence_reader(svc: CompanionService) -> FenceReader | None:

@@ -4,6 +4,7 @@ zones, malformed fences), and the reader's filter (answers to someone else, othe
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -297,7 +298,8 @@ def test_the_reader_takes_only_fence_answers_addressed_to_it() -> None:
     reader.due(0.4)
     assert len(results) == 1 and results[0].outcome is FenceOutcome.USED and reader.result is results[0]
     reader.on_record(MissionAck(src=ap, target_system=1, target_component=191, type=0, mission_type=FENCE))
-    assert reader.ignored == 3 and reader.due(0.5) == pytest.approx(5.4)  # the next read: poll_s after the end
+    assert reader.ignored == 3 and reader.due(0.5) == pytest.approx(1.5)  # idle: it looks again within 1 s
+    assert reader.due(5.4) == pytest.approx(5.5) and reader.download.stage is FenceStage.COUNT  # poll_s after the end
 
 
 AP = Source(1, 1)
@@ -352,7 +354,7 @@ def test_the_fence_is_read_again_every_poll_s_and_only_a_change_is_told() -> Non
     reader = _reader(5.0, results)
     t = _answer(reader, _polygon(L_SHAPE), 0.0)
     assert [r.outcome for r in results] == [FenceOutcome.USED] and reader.result is results[0]
-    assert reader.due(t + 1.0) == pytest.approx(t + 5.0)  # nothing before the next read: no request
+    assert reader.due(t + 1.0) == pytest.approx(t + 2.0)  # nothing before the next read: no request
     assert reader.download.stage is FenceStage.IDLE
     t = _answer(reader, _polygon(L_SHAPE), t + 5.0)
     assert len(results) == 1 and (reader.reads, reader.changes) == (2, 0)  # the same fence: nothing told
@@ -392,7 +394,11 @@ def test_a_first_read_that_fails_is_told_and_read_again_and_poll_s_0_reads_once(
     once: list[FenceArea] = []
     reader = _reader(0.0, once)
     t = _answer(reader, _polygon(L_SHAPE), 0.0)
-    assert reader.due(t + 100.0) > t + 1000.0 and len(once) == 1  # read once
+    reader.due(t + 100.0)
+    assert reader.download.stage is FenceStage.IDLE and len(once) == 1  # read once
+    reader.params = dataclasses.replace(reader.params, poll_s=5.0)  # APF_FENCE_POLL set to 5: reads again
+    reader.due(t + 101.0)
+    assert _stage(reader.download) is FenceStage.COUNT
 
 
 def _stage(d: FenceDownload) -> FenceStage:

@@ -148,6 +148,18 @@ async def test_refused_value_is_echoed_old_with_a_statustext() -> None:
         assert msg.param_id == "APF_STEP"
 
 
+async def test_apf_fence_poll_sets_how_often_the_running_service_reads_the_fence() -> None:
+    async with rig() as (svc, _ap), gcs_for(svc) as gcs:
+        assert svc.fence is not None and svc.fence.params.poll_s == 5.0  # bapf-nav, no area: the fence is read
+        msg = await set_param(gcs, "APF_FENCE_POLL", 0.0)  # 0: read once
+        assert msg.param_value == 0.0 and svc.fence.params.poll_s == 0.0
+        msg = await set_param(gcs, "APF_FENCE_POLL", 0.5)  # refused: 0, or 1-3600 s
+        assert msg.param_value == 0.0 and svc.fence.params.poll_s == 0.0
+        msg = await set_param(gcs, "APF_FENCE_POLL", 30.0)
+        assert msg.param_value == 30.0 and svc.fence.params.poll_s == 30.0
+        assert svc.params.sets == 2 and svc.params.refused == 1
+
+
 def test_config_with_validates_like_the_toml_file() -> None:
     cfg = config_from_mapping({"planner": {"name": "cr-bapf*"}})
     planner = CompanionService(cfg).planner
