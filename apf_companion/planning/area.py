@@ -36,6 +36,8 @@ __all__ = [
     "near_edges",
     "outside_zones",
     "polygon_problem",
+    "zones_block_line",
+    "zones_bound_lines",
 ]
 
 #: (north_min, east_min, north_max, east_max) in local NED [m].
@@ -162,6 +164,23 @@ def meets_keepout(keepouts: KeepOuts, start_ne_m: FloatArray, end_ne_m: FloatArr
                 np.minimum(_dist2_to_segment(p, a, b), _dist2_to_segment(q, a, b)),
             )
         out |= np.logical_or.reduce(crosses | (near < m2), axis=1)
+    return out
+
+
+def zones_bound_lines(area: FlyingArea | None, keepouts: KeepOuts) -> bool:
+    """Whether ``zones_block_line`` can block a line: the area is a polygon, or there is a keep-out zone."""
+    return (area is not None and is_polygon(area)) or bool(keepouts)
+
+
+def zones_block_line(
+    area: FlyingArea | None, keepouts: KeepOuts, start_ne_m: FloatArray, end_ne_m: FloatArray, margin_m: float
+) -> BoolArray:
+    """(A,) whether the straight line from each start (A, 2) to its end (A, 2) is blocked by the zones: it leaves
+    a polygonal flying area or passes within ``margin_m`` of its inner corners (``leaves_area``), or comes within
+    ``margin_m`` of a keep-out zone (``meets_keepout``). bapf-nav's line of sight, batch and single agent alike."""
+    out = meets_keepout(keepouts, start_ne_m, end_ne_m, margin_m)
+    if area is not None:
+        out |= leaves_area(area, start_ne_m, end_ne_m, margin_m)
     return out
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.area import is_polygon, leaves_area, meets_keepout
+from apf_companion.planning.area import zones_block_line, zones_bound_lines
 from apf_companion.planning.clearance import compact_rows
 from apf_companion.planning.params import PlannerParams
 
@@ -68,12 +68,10 @@ class LineOfSight:
         """
         out = self._points_block(active, positions_m, targets_m, obstacles_m, obstacle_mask)
         area, keepouts = self.params.nav_area_ne_m, self.params.nav_keepout_ne_m
-        if (area is not None and is_polygon(area)) or keepouts:
+        if zones_bound_lines(area, keepouts):
             rows = np.flatnonzero(active)
             start, end = positions_m[rows, :2], targets_m[rows, :2]
-            if area is not None:
-                out[rows] |= leaves_area(area, start, end, self.clearance_m)
-            out[rows] |= meets_keepout(keepouts, start, end, self.clearance_m)
+            out[rows] |= zones_block_line(area, keepouts, start, end, self.clearance_m)
         return out
 
     def _points_block(

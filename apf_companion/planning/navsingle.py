@@ -18,7 +18,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from apf_companion.planning.area import FlyingArea, is_polygon, leaves_area, meets_keepout
+from apf_companion.planning.area import zones_block_line, zones_bound_lines
 from apf_companion.planning.navone import einsum
 from apf_companion.planning.navsight import _AROUND_SLACK_M, _SIGHT_FIRST, _SURFACE_M, LineOfSight
 from apf_companion.planning.navstate import TRAIL, GiveUp, NavMode, NavState
@@ -131,11 +131,10 @@ class SingleStart:
     ) -> None:
         self._batch_sight = batch_sight
         self._sight = sight
-        area = params.nav_area_ne_m
-        #: A polygonal flying area: a line that leaves it is blocked (``LineOfSight.blocked``), else None.
-        self._polygon: FlyingArea | None = area if area is not None and is_polygon(area) else None
-        self._keepouts = params.nav_keepout_ne_m
-        self._margin_m = batch_sight.clearance_m  # keep-out zones are kept at C (``LineOfSight.blocked``)
+        #: The zones that block a line (``area.zones_block_line``, as ``LineOfSight.blocked``), kept at C.
+        self._area, self._keepouts = params.nav_area_ne_m, params.nav_keepout_ne_m
+        self._zones = zones_bound_lines(self._area, self._keepouts)
+        self._margin_m = batch_sight.clearance_m
         self._step_m = params.step_m
         self._patience = params.nav_patience_steps
         self._spacing2 = trail_spacing_m * trail_spacing_m
@@ -174,9 +173,7 @@ class SingleStart:
             if self._sight(rel, obstacles_m, goal_vec, g0):
                 return True
             start, end = position_m[None, :2], target_m[None, :2]
-            if self._polygon is not None and bool(leaves_area(self._polygon, start, end, self._margin_m)[0]):
-                return True
-            return bool(self._keepouts) and bool(meets_keepout(self._keepouts, start, end, self._margin_m)[0])
+            return self._zones and bool(zones_block_line(self._area, self._keepouts, start, end, self._margin_m)[0])
         every = np.ones(1, dtype=bool)
         return bool(self._batch_sight.blocked(every, position_m[None], target_m[None], obstacles_m[None], None)[0])
 
