@@ -39,6 +39,7 @@ from apf_companion.autopilot import Autopilot
 from apf_companion.planning import FlyingArea, KeepOuts, area_polygon
 from sim.vehicle.fence_px4 import PX4_FENCE_HANDLERS, Px4Transfer
 from sim.vehicle.geo import ne_to_latlon
+from sim.vehicle.missionwire import FENCE, MAX_ITEMS, FenceItemRaw, send_ack, send_item, src_of
 
 if TYPE_CHECKING:
     from sim.vehicle.config import HomeConfig
@@ -46,12 +47,8 @@ if TYPE_CHECKING:
 
 __all__ = ["FENCE_HANDLERS", "FenceItemRaw", "FenceStore", "FenceUpload", "fence_items"]
 
-_FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 #: ``MissionItemProtocol::upload_timeout_ms``: an upload without an item for this long is cancelled [s].
 UPLOAD_TIMEOUT_S = 8.0
-#: Fence items an upload may bring here, at most: this simulator's limit (ArduPilot's follows the board's fence
-#: storage); beyond it MISSION_ACK NO_SPACE, as ``handle_mission_count`` answers.
-MAX_ITEMS = 256
 _FENCE_COMMANDS = frozenset(
     {
         mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
@@ -61,9 +58,6 @@ _FENCE_COMMANDS = frozenset(
         mavlink.MAV_CMD_NAV_FENCE_RETURN_POINT,
     }
 )
-
-#: One stored fence item: command, param1 (vertex count or radius [m]), latitude, longitude [1e-7 deg].
-FenceItemRaw = tuple[int, float, int, int]
 
 
 @dataclass(slots=True)
@@ -92,6 +86,11 @@ class FenceStore:
     def of_zones(cls, area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -> FenceStore:
         return cls(home, fence_items(area, keepouts, home))
 
+    def replace_items(self, items: list[FenceItemRaw]) -> None:
+        """A completed upload's items (none: cleared) become the fence held."""
+        self.items = items
+        self.uploads += 1
+
     def set_zones(self, area: FlyingArea | None, keepouts: KeepOuts = ()) -> None:
         """A new fence (``area`` as one inclusion polygon, ``keepouts`` as exclusion polygons), as a ground
         station's upload would leave it; the next fence request is answered from it."""
@@ -112,92 +111,77 @@ def fence_items(area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -
     return out
 
 
-def _src(msg: Any) -> tuple[int, int]:
-    return msg.get_srcSystem(), msg.get_srcComponent()
-
-
-def _ack(v: VehicleEngine, link: int, to: tuple[int, int], result: int, mission_type: int = _FENCE) -> None:
-    v.emit(link, v.mav.mission_ack_encode(*to, result, mission_type))
-
-
 def _receiving(v: VehicleEngine) -> FenceUpload | None:
     """The upload in progress, after cancelling one that has waited ``UPLOAD_TIMEOUT_S`` for an item."""
     up = v.fence.upload
     if up is not None and v.t_s - up.last_rx_s > UPLOAD_TIMEOUT_S:
-        _ack(v, up.link, up.src, mavlink.MAV_MISSION_OPERATION_CANCELLED)
+        send_ack(v, up.link, up.src, mavlink.MAV_MISSION_OPERATION_CANCELLED)
         v.fence.upload = up = None
     return up
 
 
 def _request(v: VehicleEngine, up: FenceUpload, seq: int) -> None:
     if v.profile is Autopilot.ARDUPILOT:
-        v.emit(up.link, v.mav.mission_request_encode(*up.src, seq, _FENCE))
+        v.emit(up.link, v.mav.mission_request_encode(*up.src, seq, FENCE))
     else:
-        v.emit(up.link, v.mav.mission_request_int_encode(*up.src, seq, _FENCE))
+        v.emit(up.link, v.mav.mission_request_int_encode(*up.src, seq, FENCE))
 
 
 def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
     mission_type = getattr(msg, "mission_type", 0)
-    if mission_type == _FENCE and _receiving(v) is not None:
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
+    if mission_type == FENCE and _receiving(v) is not None:
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_DENIED)
         return
-    count = len(v.fence.items) if mission_type == _FENCE else 0
-    v.emit(link, v.mav.mission_count_encode(*_src(msg), count, mission_type))
+    count = len(v.fence.items) if mission_type == FENCE else 0
+    v.emit(link, v.mav.mission_count_encode(*src_of(msg), count, mission_type))
 
 
 def _on_mission_request_int(v: VehicleEngine, msg: Any, link: int) -> None:
     mission_type = getattr(msg, "mission_type", 0)
-    if mission_type == _FENCE and _receiving(v) is not None:
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
+    if mission_type == FENCE and _receiving(v) is not None:
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_DENIED)
         return
-    items = v.fence.items if mission_type == _FENCE else []
-    if not 0 <= msg.seq < len(items):
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type)
+    count = len(v.fence.items) if mission_type == FENCE else 0
+    if not 0 <= msg.seq < count:
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type)
         return
-    command, param1, lat, lon = items[msg.seq]
-    v.emit(
-        link,
-        v.mav.mission_item_int_encode(
-            *_src(msg), msg.seq, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, param1, 0.0, 0.0, 0.0, lat, lon, 0.0,
-            mission_type,
-        ),
-    )  # fmt: skip
+    send_item(v, link, src_of(msg), msg.seq, mission_type)
 
 
 def _on_mission_count(v: VehicleEngine, msg: Any, link: int) -> None:
     mission_type = getattr(msg, "mission_type", 0)
-    src = _src(msg)
-    if mission_type != _FENCE:
-        _ack(v, link, src, mavlink.MAV_MISSION_UNSUPPORTED, mission_type)  # no mission, no rally points here
+    src = src_of(msg)
+    if mission_type != FENCE:
+        send_ack(v, link, src, mavlink.MAV_MISSION_UNSUPPORTED, mission_type)  # no mission, no rally points here
         return
     up = _receiving(v)
     if up is not None and up.src != src:
-        _ack(v, link, src, mavlink.MAV_MISSION_DENIED)
+        send_ack(v, link, src, mavlink.MAV_MISSION_DENIED)
         return
     if msg.count > MAX_ITEMS:
-        _ack(v, link, src, mavlink.MAV_MISSION_NO_SPACE)
+        send_ack(v, link, src, mavlink.MAV_MISSION_NO_SPACE)
         return
     if msg.count == 0:
-        v.fence.items, v.fence.upload = [], None
-        v.fence.uploads += 1
-        _ack(v, link, src, mavlink.MAV_MISSION_ACCEPTED)
+        v.fence.upload = None
+        v.fence.replace_items([])
+        send_ack(v, link, src, mavlink.MAV_MISSION_ACCEPTED)
         return
     v.fence.upload = up = FenceUpload(src=src, link=link, count=int(msg.count), last_rx_s=v.t_s)
     _request(v, up, 0)
 
 
 def _on_mission_item_int(v: VehicleEngine, msg: Any, link: int) -> None:
-    up = _receiving(v) if getattr(msg, "mission_type", 0) == _FENCE else None
+    up = _receiving(v) if getattr(msg, "mission_type", 0) == FENCE else None
     if up is None:
         return
     if msg.seq != len(up.items):
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_INVALID_SEQUENCE)
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_INVALID_SEQUENCE)
         return
-    if _src(msg) != up.src:
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
+    if src_of(msg) != up.src:
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_DENIED)
         return
     if msg.command not in _FENCE_COMMANDS:
-        _ack(v, link, up.src, mavlink.MAV_MISSION_UNSUPPORTED)
+        send_ack(v, link, up.src, mavlink.MAV_MISSION_UNSUPPORTED)
         v.fence.upload = None
         return
     up.items.append((int(msg.command), float(msg.param1), int(msg.x), int(msg.y)))
@@ -205,26 +189,26 @@ def _on_mission_item_int(v: VehicleEngine, msg: Any, link: int) -> None:
     if len(up.items) < up.count:
         _request(v, up, len(up.items))
         return
-    v.fence.items, v.fence.upload = up.items, None
-    v.fence.uploads += 1
-    _ack(v, link, up.src, mavlink.MAV_MISSION_ACCEPTED)
+    v.fence.upload = None
+    v.fence.replace_items(up.items)
+    send_ack(v, link, up.src, mavlink.MAV_MISSION_ACCEPTED)
 
 
 def _on_mission_clear_all(v: VehicleEngine, msg: Any, link: int) -> None:
     """``handle_mission_clear_all``: another ground station's upload in progress refuses it (DENIED from
     ``cancel_upload``, then ERROR); else the uploader's own upload is cancelled, the fence cleared, ACCEPTED."""
     mission_type = getattr(msg, "mission_type", 0)
-    if mission_type != _FENCE:
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_UNSUPPORTED, mission_type)
+    if mission_type != FENCE:
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_UNSUPPORTED, mission_type)
         return
     up = _receiving(v)
-    if up is not None and up.src != _src(msg):
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_DENIED)
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_ERROR)
+    if up is not None and up.src != src_of(msg):
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_DENIED)
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_ERROR)
         return
-    v.fence.items, v.fence.upload = [], None
-    v.fence.uploads += 1
-    _ack(v, link, _src(msg), mavlink.MAV_MISSION_ACCEPTED)
+    v.fence.upload = None
+    v.fence.replace_items([])
+    send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_ACCEPTED)
 
 
 _ARDUPILOT_HANDLERS = {

@@ -32,17 +32,15 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sim.vehicle.missionwire import FENCE, MAX_ITEMS, FenceItemRaw, send_ack, send_item, src_of
+
 if TYPE_CHECKING:
     from sim.vehicle.engine import VehicleEngine
-    from sim.vehicle.fence import FenceItemRaw
 
 __all__ = ["PX4_FENCE_HANDLERS", "Px4Transfer"]
 
-_FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 #: ``MAVLINK_MISSION_PROTOCOL_TIMEOUT_DEFAULT``: a transfer with nothing received for this long ends [s].
 TIMEOUT_S = 5.0
-#: Fence items an upload may bring here (this simulator's limit; beyond it MAV_MISSION_NO_SPACE).
-MAX_ITEMS = 256
 
 
 class Px4State(enum.Enum):
@@ -64,14 +62,6 @@ class Px4Transfer:
     items: list[FenceItemRaw] = field(default_factory=list)
 
 
-def _src(msg: Any) -> tuple[int, int]:
-    return msg.get_srcSystem(), msg.get_srcComponent()
-
-
-def _ack(v: VehicleEngine, link: int, to: tuple[int, int], result: int) -> None:
-    v.emit(link, v.mav.mission_ack_encode(*to, result, _FENCE))
-
-
 def _transfer(v: VehicleEngine) -> Px4Transfer:
     """The transfer, back to IDLE when it has waited ``TIMEOUT_S``."""
     t = v.fence.px4
@@ -85,12 +75,12 @@ def _fence_only(fn: Any) -> Any:
 
     def handler(v: VehicleEngine, msg: Any, link: int) -> None:
         mission_type = getattr(msg, "mission_type", 0)
-        if mission_type == _FENCE:
+        if mission_type == FENCE:
             fn(v, msg, link, _transfer(v))
         elif msg.get_type() in ("MISSION_COUNT", "MISSION_CLEAR_ALL"):
-            v.emit(link, v.mav.mission_ack_encode(*_src(msg), mavlink.MAV_MISSION_UNSUPPORTED, mission_type))
+            send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_UNSUPPORTED, mission_type)
         elif msg.get_type() == "MISSION_REQUEST_LIST":
-            v.emit(link, v.mav.mission_count_encode(*_src(msg), 0, mission_type))
+            v.emit(link, v.mav.mission_count_encode(*src_of(msg), 0, mission_type))
 
     return handler
 
@@ -98,15 +88,15 @@ def _fence_only(fn: Any) -> Any:
 def _request_list(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None:
     if t.state is Px4State.SENDLIST and t.seq == t.count:  # every item sent: done, ack or not
         t.state = Px4State.IDLE
-    if t.state is Px4State.IDLE or (t.state is Px4State.SENDLIST and t.partner == _src(msg)):
-        t.state, t.partner, t.seq, t.count, t.last_rx_s = Px4State.SENDLIST, _src(msg), 0, len(v.fence.items), v.t_s
-        v.emit(link, v.mav.mission_count_encode(*t.partner, t.count, _FENCE))
+    if t.state is Px4State.IDLE or (t.state is Px4State.SENDLIST and t.partner == src_of(msg)):
+        t.state, t.partner, t.seq, t.count, t.last_rx_s = Px4State.SENDLIST, src_of(msg), 0, len(v.fence.items), v.t_s
+        v.emit(link, v.mav.mission_count_encode(*t.partner, t.count, FENCE))
     else:
         v.statustext(mavlink.MAV_SEVERITY_INFO, "Mission download request ignored, already active")
 
 
 def _request_int(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None:
-    if _src(msg) != t.partner:
+    if src_of(msg) != t.partner:
         v.statustext(mavlink.MAV_SEVERITY_CRITICAL, "WPM: REJ. CMD: partner id mismatch")
         return
     if t.state is not Px4State.SENDLIST:
@@ -118,75 +108,67 @@ def _request_int(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None:
         t.seq += 1
     elif msg.seq != t.seq - 1 or msg.seq >= len(v.fence.items):
         t.state = Px4State.IDLE
-        _ack(v, link, t.partner, mavlink.MAV_MISSION_ERROR)
+        send_ack(v, link, t.partner, mavlink.MAV_MISSION_ERROR)
         return
-    command, param1, lat, lon = v.fence.items[msg.seq]
-    v.emit(
-        link,
-        v.mav.mission_item_int_encode(
-            *t.partner, msg.seq, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, param1, 0.0, 0.0, 0.0, lat, lon, 0.0,
-            _FENCE,
-        ),
-    )  # fmt: skip
+    send_item(v, link, t.partner, msg.seq)
 
 
 def _mission_ack(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None:
-    if t.state is Px4State.SENDLIST and _src(msg) == t.partner:
+    if t.state is Px4State.SENDLIST and src_of(msg) == t.partner:
         t.state = Px4State.IDLE
 
 
 def _count(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None:
-    src = _src(msg)
+    src = src_of(msg)
     if t.state is Px4State.GETLIST and src == t.partner and t.seq == 0:  # our request was lost: ask again
         t.last_rx_s = v.t_s
     elif t.state is not Px4State.IDLE:
-        _ack(v, link, src, mavlink.MAV_MISSION_ERROR)  # busy: a download, or another station's upload
+        send_ack(v, link, src, mavlink.MAV_MISSION_ERROR)  # busy: a download, or another station's upload
         return
     elif msg.count > MAX_ITEMS:
-        _ack(v, link, src, mavlink.MAV_MISSION_NO_SPACE)
+        send_ack(v, link, src, mavlink.MAV_MISSION_NO_SPACE)
         return
     elif msg.count == 0:
         t.partner = src
-        v.fence.items = []
-        v.fence.uploads += 1
-        _ack(v, link, src, mavlink.MAV_MISSION_ACCEPTED)
+        v.fence.replace_items([])
+        send_ack(v, link, src, mavlink.MAV_MISSION_ACCEPTED)
         return
     else:
         t.state, t.partner, t.seq, t.count, t.items = Px4State.GETLIST, src, 0, int(msg.count), []
         t.last_rx_s = v.t_s
-    v.emit(link, v.mav.mission_request_int_encode(*t.partner, t.seq, _FENCE))
+    v.emit(link, v.mav.mission_request_int_encode(*t.partner, t.seq, FENCE))
 
 
 def _item_int(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None:
-    if _src(msg) != t.partner:
+    if src_of(msg) != t.partner:
         v.statustext(mavlink.MAV_SEVERITY_CRITICAL, "REJ. MIS ITEM: partner id mismatch")
         return
     if t.state is Px4State.IDLE:  # a repeat of the last item after the end (its ack lost), or none at all
-        _ack(v, link, t.partner, mavlink.MAV_MISSION_ACCEPTED if t.seq == msg.seq + 1 else mavlink.MAV_MISSION_ERROR)
+        send_ack(
+            v, link, t.partner, mavlink.MAV_MISSION_ACCEPTED if t.seq == msg.seq + 1 else mavlink.MAV_MISSION_ERROR
+        )
         return
     if t.state is not Px4State.GETLIST:
-        _ack(v, link, t.partner, mavlink.MAV_MISSION_ERROR)
+        send_ack(v, link, t.partner, mavlink.MAV_MISSION_ERROR)
         return
     if msg.seq != t.seq:
         return
     t.items.append((int(msg.command), float(msg.param1), int(msg.x), int(msg.y)))
     t.seq, t.last_rx_s = t.seq + 1, v.t_s
     if t.seq < t.count:
-        v.emit(link, v.mav.mission_request_int_encode(*t.partner, t.seq, _FENCE))
+        v.emit(link, v.mav.mission_request_int_encode(*t.partner, t.seq, FENCE))
         return
     t.state = Px4State.IDLE
-    v.fence.items = t.items
-    v.fence.uploads += 1
-    _ack(v, link, t.partner, mavlink.MAV_MISSION_ACCEPTED)
+    v.fence.replace_items(t.items)
+    send_ack(v, link, t.partner, mavlink.MAV_MISSION_ACCEPTED)
 
 
 def _clear_all(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None:
     if t.state is not Px4State.IDLE:
-        _ack(v, link, _src(msg), mavlink.MAV_MISSION_ERROR)
+        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_ERROR)
         return
-    v.fence.items = []
-    v.fence.uploads += 1
-    _ack(v, link, _src(msg), mavlink.MAV_MISSION_ACCEPTED)
+    v.fence.replace_items([])
+    send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_ACCEPTED)
 
 
 PX4_FENCE_HANDLERS = {
