@@ -44,6 +44,7 @@ __all__ = [
     "flying_area",
     "forwarder_params",
     "handler_params",
+    "has_zones",
     "initial_route",
     "keepout_zones",
     "navigator_params",
@@ -294,6 +295,11 @@ def config_with_fence(config: ServiceConfig, area: FenceArea) -> ServiceConfig:
 def keepout_zones(planner: object) -> KeepOuts:
     """bapf-nav's keep-out zones (``params.nav_keepout_ne_m``); none for the other planners."""
     return planner.params.nav_keepout_ne_m if isinstance(planner, BapfNavPlanner) else ()
+
+
+def has_zones(planner: object) -> bool:
+    """Whether the planner plans over a flying area or round keep-out zones (bapf-nav's)."""
+    return flying_area(planner) is not None or bool(keepout_zones(planner))
 
 
 @dataclass(frozen=True, slots=True)

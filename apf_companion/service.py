@@ -47,6 +47,7 @@ from apf_companion.builders import (
     flying_area,
     forwarder_params,
     handler_params,
+    has_zones,
     initial_route,
     keepout_zones,
     navigator_params,
@@ -680,8 +681,7 @@ def _fence_reader(svc: CompanionService) -> FenceReader | None:
     config (the config's own zones win), a link."""
     config = svc.config
     wanted = config.planner.fence_area and isinstance(svc.planner, BapfNavPlanner)
-    configured = flying_area(svc.planner) is not None or bool(keepout_zones(svc.planner))
-    if not wanted or configured or svc.outbox.silent:
+    if not wanted or has_zones(svc.planner) or svc.outbox.silent:  # the config's own zones win
         return None
     lc = config.link
     params = FenceReaderParams(
@@ -706,7 +706,7 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
     fence changed: a new fence replaces the old one's zones; a fence removed, or one that is not used, takes them
     out of service (the autopilot no longer enforces the old one). A fence that is not used is logged and said in
     a STATUSTEXT (the ground station's user set it up); no fence at the first read is only logged."""
-    in_service = flying_area(svc.planner) is not None or bool(keepout_zones(svc.planner))
+    in_service = has_zones(svc.planner)
     if area.outcome is FenceOutcome.USED:
         try:
             _put_fence_in_service(svc, area)
