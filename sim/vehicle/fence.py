@@ -127,21 +127,27 @@ def _request(v: VehicleEngine, up: FenceUpload, seq: int) -> None:
         v.emit(up.link, v.mav.mission_request_int_encode(*up.src, seq, FENCE))
 
 
-def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
+def _served_count(v: VehicleEngine, msg: Any, link: int) -> int | None:
+    """The items a download request of ``msg``'s mission type sees (other types have none here), or None when it is
+    refused: an upload is in progress (MISSION_ACK DENIED, ``handle_mission_request_list`` / ``_int``)."""
     mission_type = getattr(msg, "mission_type", 0)
     if mission_type == FENCE and _receiving(v) is not None:
         send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_DENIED)
-        return
-    count = len(v.fence.items) if mission_type == FENCE else 0
-    v.emit(link, v.mav.mission_count_encode(*src_of(msg), count, mission_type))
+        return None
+    return len(v.fence.items) if mission_type == FENCE else 0
+
+
+def _on_mission_request_list(v: VehicleEngine, msg: Any, link: int) -> None:
+    count = _served_count(v, msg, link)
+    if count is not None:
+        v.emit(link, v.mav.mission_count_encode(*src_of(msg), count, getattr(msg, "mission_type", 0)))
 
 
 def _on_mission_request_int(v: VehicleEngine, msg: Any, link: int) -> None:
+    count = _served_count(v, msg, link)
     mission_type = getattr(msg, "mission_type", 0)
-    if mission_type == FENCE and _receiving(v) is not None:
-        send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_DENIED)
+    if count is None:
         return
-    count = len(v.fence.items) if mission_type == FENCE else 0
     if not 0 <= msg.seq < count:
         send_ack(v, link, src_of(msg), mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type)
         return
