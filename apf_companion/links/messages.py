@@ -24,8 +24,10 @@ __all__ = [
     "CommandLong",
     "DistanceSensor",
     "EkfStatusReport",
+    "FenceRecord",
     "GlobalPositionInt",
     "Heartbeat",
+    "HomePosition",
     "LocalPositionNed",
     "MissionAck",
     "MissionCount",
@@ -37,6 +39,7 @@ __all__ = [
     "ParamRequestList",
     "ParamRequestRead",
     "ParamSet",
+    "ParamValue",
     "PositionTargetGlobalInt",
     "PositionTargetLocalNed",
     "Record",
@@ -104,6 +107,16 @@ class GlobalPositionInt:
     lon: int  # [degE7]
     alt: int  # AMSL [mm]
     relative_alt: int  # above home [mm]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class HomePosition:
+    """The autopilot's home (the fence's circle is centred on it)."""
+
+    src: Source
+    latitude: int  # [degE7]
+    longitude: int  # [degE7]
+    altitude: int  # AMSL [mm]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -207,6 +220,16 @@ class ParamSet:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class ParamValue:
+    """One of the autopilot's parameters (the service reads its fence parameters: apf_companion.fencelimits)."""
+
+    src: Source
+    param_id: str
+    param_value: float  # float32 on the wire: ArduPilot casts integers, PX4 sends their bytes (param_type says)
+    param_type: int  # MAV_PARAM_TYPE
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class MissionCount:
     """The mission protocol's item count (the service reads the fence: mission_type MAV_MISSION_TYPE_FENCE)."""
 
@@ -272,6 +295,7 @@ Record = (
     | LocalPositionNed
     | Attitude
     | GlobalPositionInt
+    | HomePosition
     | ObstacleDistance
     | DistanceSensor
     | ObstacleDistance3d
@@ -283,6 +307,7 @@ Record = (
     | ParamRequestList
     | ParamRequestRead
     | ParamSet
+    | ParamValue
     | PositionTargetLocalNed
     | PositionTargetGlobalInt
     | MissionCount
@@ -293,6 +318,8 @@ Record = (
 
 #: The mission protocol's answers the service reads (the fence download).
 MissionRecord = MissionCount | MissionItemInt | MissionAck
+#: What the fence reader takes from the autopilot: the download's answers, its parameters, its home.
+FenceRecord = MissionCount | MissionItemInt | MissionAck | ParamValue | HomePosition
 
 
 def _src(msg: Any) -> Source:
@@ -462,6 +489,21 @@ def _param_set(msg: Any) -> ParamSet:
     )
 
 
+def _param_value(msg: Any) -> ParamValue:
+    return ParamValue(
+        src=_src(msg),
+        param_id=_param_id(msg.param_id),
+        param_value=float(msg.param_value),
+        param_type=int(msg.param_type),
+    )
+
+
+def _home_position(msg: Any) -> HomePosition:
+    return HomePosition(
+        src=_src(msg), latitude=int(msg.latitude), longitude=int(msg.longitude), altitude=int(msg.altitude)
+    )
+
+
 def _position_target_local_ned(msg: Any) -> PositionTargetLocalNed:
     return PositionTargetLocalNed(
         src=_src(msg),
@@ -537,6 +579,8 @@ DECODERS: dict[str, Callable[[Any], Record]] = {
     "PARAM_REQUEST_LIST": _param_request_list,
     "PARAM_REQUEST_READ": _param_request_read,
     "PARAM_SET": _param_set,
+    "PARAM_VALUE": _param_value,
+    "HOME_POSITION": _home_position,
     "POSITION_TARGET_LOCAL_NED": _position_target_local_ned,
     "POSITION_TARGET_GLOBAL_INT": _position_target_global_int,
     "MISSION_COUNT": _mission_count,

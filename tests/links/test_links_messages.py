@@ -19,6 +19,7 @@ from apf_companion.links.messages import (
     EkfStatusReport,
     GlobalPositionInt,
     Heartbeat,
+    HomePosition,
     LocalPositionNed,
     MissionAck,
     MissionCount,
@@ -29,6 +30,7 @@ from apf_companion.links.messages import (
     ParamRequestList,
     ParamRequestRead,
     ParamSet,
+    ParamValue,
     PositionTargetGlobalInt,
     PositionTargetLocalNed,
     Source,
@@ -190,6 +192,18 @@ CASES: list[tuple[str, Any, type[Any], dict[str, Any]]] = [
         lambda m: m.mission_ack_encode(1, 191, mavlink.MAV_MISSION_DENIED, mavlink.MAV_MISSION_TYPE_FENCE),
         MissionAck,
         {"type": mavlink.MAV_MISSION_DENIED, "mission_type": mavlink.MAV_MISSION_TYPE_FENCE},
+    ),
+    (
+        "PARAM_VALUE",
+        lambda m: m.param_value_encode(b"FENCE_MARGIN", 2.5, mavlink.MAV_PARAM_TYPE_REAL32, 900, 12),
+        ParamValue,
+        {"param_id": "FENCE_MARGIN", "param_value": 2.5, "param_type": mavlink.MAV_PARAM_TYPE_REAL32},
+    ),
+    (
+        "HOME_POSITION",
+        lambda m: m.home_position_encode(-353632621, 1491652374, 584000, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0),
+        HomePosition,
+        {"latitude": -353632621, "longitude": 1491652374, "altitude": 584000},
     ),
 ]
 
