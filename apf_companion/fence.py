@@ -21,15 +21,17 @@ The download is driven by ``due`` (what to send now) and the ``on_*`` answers; e
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.fenceclip import inclusion_intersection
-from apf_companion.goal import GlobalReference, ne_from_global
+from apf_companion.fenceclip import grown_keepout, inclusion_intersection
+from apf_companion.fencelimits import FenceLimits
+from apf_companion.goal import FenceBounds, GlobalReference, ne_from_global
 from apf_companion.planning import KeepOuts, PolygonNE, inside_area, polygon_problem
 
 __all__ = ["FenceArea", "FenceDownload", "FenceItem", "FenceOutcome", "FenceSend", "FenceStage", "fence_area"]
@@ -155,63 +157,150 @@ class FenceDownload:
 class FenceOutcome(enum.Enum):
     """What became of the autopilot's fence."""
 
-    USED = "used"  # its inclusion zone is the flying area
-    NO_FENCE = "no fence"  # the autopilot has none (count 0)
-    NOT_USED = "not used"  # it has one that is no single inclusion zone around the vehicle
+    USED = "used"  # its zones (or its ceiling) bound the plan
+    NO_FENCE = "no fence"  # the autopilot has none (count 0, no circle round home, no ceiling)
+    NOT_USED = "not used"  # it has one that is not enforced, or no single inclusion zone around the vehicle
     FAILED = "failed"  # the download did not finish
 
 
 @dataclass(frozen=True, slots=True)
 class FenceArea:
-    """A fence read as a flying area: the polygon (local NED north/east [m]) when USED, and what was done."""
+    """A fence read as a flying area: the polygon (local NED north/east [m]) when USED, the keep-out zones, the
+    bounds for goals (its ceiling, its circle round home: goals beyond them are refused) and what was done.
+    ``provisional``: a part could not be applied yet (no HOME_POSITION for the circle round home, the vehicle
+    within the margin of an edge); the next read tries again although the fence is the same."""
 
     outcome: FenceOutcome
     note: str
     polygon_ne_m: PolygonNE | None = None
     keepouts_ne_m: KeepOuts = ()
+    bounds: FenceBounds = field(default_factory=FenceBounds)
+    provisional: bool = False
 
 
-def fence_area(items: Sequence[FenceItem], reference: GlobalReference, vehicle_ne_m: tuple[float, float]) -> FenceArea:
+def fence_area(
+    items: Sequence[FenceItem],
+    reference: GlobalReference,
+    vehicle_ne_m: tuple[float, float],
+    limits: FenceLimits | None = None,
+    home: tuple[int, int] | None = None,
+    clearance_m: float = 0.0,
+) -> FenceArea:
     """The flying area of a downloaded fence (module docstring). ``reference`` places latitude/longitude in local
-    NED; the vehicle at ``vehicle_ne_m`` must lie in the zone (a fence stored for another field is not used)."""
-    if not items:
-        return FenceArea(FenceOutcome.NO_FENCE, "the autopilot has no fence")
+    NED; the vehicle at ``vehicle_ne_m`` must lie in the zone (a fence stored for another field is not used).
+    ``limits``: what the autopilot enforces (``apf_companion.fencelimits``; None: its parameters were not read,
+    every uploaded zone is used). ``home``: HOME_POSITION's latitude, longitude [1e-7 deg] for the circle round
+    home. ``clearance_m``: the planner's clearance C, which already keeps that much of the fence's margin."""
     zones = _zones(items)
     if isinstance(zones, str):
         return _not_used(zones)
+    if limits is not None and not limits.enforced:  # a fence switched off is none; one uploaded is worth a word
+        return _not_used(limits.note) if items else FenceArea(FenceOutcome.NO_FENCE, limits.note)
+    notes, provisional = [] if limits is None else [limits.note], False
+    if limits is not None and not limits.zones:
+        zones = []
+    inset = 0.0 if limits is None else max(limits.margin_m - clearance_m, 0.0)
+    circle = None
+    if limits is not None and limits.home_radius_m is not None:
+        if home is None:
+            notes.append("no HOME_POSITION yet to place the circle round home")
+            provisional = True
+        else:
+            centre = FenceItem(seq=-1, command=_CIRCLE_IN, param1=limits.home_radius_m, x=home[0], y=home[1])
+            north, east = ne_from_global(reference, home[0] * _DEG_E7, home[1] * _DEG_E7)
+            circle = (north, east, limits.home_radius_m - inset)
+            if any(z.inclusion for z in zones):  # alone it is no area: hundreds of metres across (300 m default)
+                zones.append(_Zone(True, True, (centre,)))
+    ceiling = None if limits is None else limits.ceiling_m
+    if not zones and ceiling is None and circle is None:
+        note = "; ".join(["the autopilot has no fence", *notes])
+        return FenceArea(FenceOutcome.NO_FENCE, note, provisional=provisional)
+    area = _used(zones, reference, vehicle_ne_m, inset, ceiling, notes, provisional)
+    if area.outcome is not FenceOutcome.USED:
+        return area
+    if circle is not None and not any(z.inclusion for z in zones):
+        area = dataclasses.replace(area, note=f"{area.note}; goals within the circle round home")
+    return dataclasses.replace(area, bounds=FenceBounds(ceiling, circle))
+
+
+def _used(
+    zones: list[_Zone],
+    reference: GlobalReference,
+    vehicle_ne_m: tuple[float, float],
+    inset_m: float,
+    ceiling_m: float | None,
+    notes: list[str],
+    provisional: bool,
+) -> FenceArea:
+    """The area of fence zones that are enforced, moved in (keep-outs out) by ``inset_m``, or why it is not used."""
     inclusions = [z for z in zones if z.inclusion]
     exclusions = [z.polygon(reference) for z in zones if not z.inclusion]
     problems = [p for p in map(polygon_problem, exclusions) if p is not None]
     if problems:
         return _not_used(f"an exclusion zone is not {problems[0]}")
     plural = "s" if len(exclusions) != 1 else ""
-    said = f"{len(exclusions)} exclusion zone{plural} as keep-out zone{plural}"
-    if not inclusions:
-        return FenceArea(FenceOutcome.USED, said, None, tuple(exclusions))
-    area = _inclusion_area(inclusions, reference, vehicle_ne_m)
-    if isinstance(area, str):
-        return _not_used(area)
-    polygon, note = area
-    return FenceArea(FenceOutcome.USED, f"{note}; {said}" if exclusions else note, polygon, tuple(exclusions))
+    said = [f"{len(exclusions)} exclusion zone{plural} as keep-out zone{plural}"] if exclusions else []
+    keepouts, kept = _grown(exclusions, inset_m, vehicle_ne_m)
+    if not kept:
+        said.append("an exclusion zone's margin not kept yet (the vehicle is within it)")
+    polygon = None
+    if inclusions:
+        area = _inclusion_area(inclusions, reference, vehicle_ne_m, inset_m)
+        if isinstance(area, str):
+            return _not_used(area)
+        polygon, note, kept_in = area
+        said.insert(0, note)
+        kept = kept and kept_in
+    return FenceArea(
+        FenceOutcome.USED,
+        "; ".join([*said, *notes]),
+        polygon,
+        tuple(keepouts),
+        provisional=provisional or not kept,
+    )
+
+
+def _grown(zones: list[PolygonNE], grow_m: float, vehicle_ne_m: tuple[float, float]) -> tuple[list[PolygonNE], bool]:
+    """The exclusion zones grown by the margin, and whether every one could be: a zone whose grown form holds the
+    vehicle (it is within the margin) or that GEOS cannot grow stays as uploaded."""
+    if grow_m <= 0.0:
+        return zones, True
+    out, kept = [], True
+    for zone in zones:
+        grown = grown_keepout(zone, grow_m)
+        if grown is None or inside_area(grown, *vehicle_ne_m):
+            out.append(zone)
+            kept = False
+        else:
+            out.append(grown)
+    return out, kept
 
 
 def _inclusion_area(
-    inclusions: Sequence[_Zone], reference: GlobalReference, vehicle_ne_m: tuple[float, float]
-) -> tuple[PolygonNE, str] | str:
-    """The flying area of the inclusion zones and what it is, or why there is none: one zone's polygon, or the
-    piece of several zones' intersection that holds the vehicle."""
+    inclusions: Sequence[_Zone], reference: GlobalReference, vehicle_ne_m: tuple[float, float], inset_m: float
+) -> tuple[PolygonNE, str, bool] | str:
+    """The flying area of the inclusion zones, what it is and whether the margin is kept; or why there is none:
+    one zone's polygon, or the piece of several zones' intersection that holds the vehicle, moved in by
+    ``inset_m``. With the vehicle within the margin of an edge, the area without the margin (kept: False)."""
     polygons = [z.polygon(reference) for z in inclusions]
     problems = [p for p in map(polygon_problem, polygons) if p is not None]
     if problems:
         return f"an inclusion zone is not {problems[0]}"
+    what = (
+        f"inclusion {inclusions[0].kind}" if len(polygons) == 1 else f"intersection of {len(polygons)} inclusion zones"
+    )
+    if inset_m > 0.0:
+        moved = inclusion_intersection(polygons, vehicle_ne_m, inset_m)
+        if not isinstance(moved, str):
+            return moved, f"{what}, {inset_m:.2g} m in from its edges, {len(moved)} vertices", True
     if len(polygons) > 1:
         clipped = inclusion_intersection(polygons, vehicle_ne_m)
         if isinstance(clipped, str):
             return clipped
-        return clipped, f"intersection of {len(polygons)} inclusion zones, {len(clipped)} vertices"
+        return clipped, f"{what}, {len(clipped)} vertices", inset_m <= 0.0
     if not inside_area(polygons[0], *vehicle_ne_m):
         return "the vehicle is outside the inclusion zone"
-    return polygons[0], f"inclusion {inclusions[0].kind} of {len(polygons[0])} vertices"
+    return polygons[0], f"{what} of {len(polygons[0])} vertices", inset_m <= 0.0
 
 
 def _not_used(reason: str) -> FenceArea:

@@ -25,17 +25,23 @@ from shapely.geometry import Point, Polygon
 from apf_companion.planning import PolygonNE
 from apf_companion.planning.params import MAX_AREA_VERTICES
 
-__all__ = ["inclusion_intersection"]
+__all__ = ["grown_keepout", "inclusion_intersection"]
 
 #: Shrink-and-simplify tolerances tried, in turn, for a piece with too many vertices [m].
 SIMPLIFY_STEPS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
 
 
-def inclusion_intersection(zones: Sequence[PolygonNE], vehicle_ne_m: tuple[float, float]) -> PolygonNE | str:
-    """The piece of the zones' intersection that holds the vehicle, as a polygon of at most ``MAX_AREA_VERTICES``
-    vertices inside it; or why there is none. The zones are valid simple polygons (``polygon_problem``)."""
+def inclusion_intersection(
+    zones: Sequence[PolygonNE], vehicle_ne_m: tuple[float, float], inset_m: float = 0.0
+) -> PolygonNE | str:
+    """The piece of the zones' intersection, moved in by ``inset_m`` [m] (the fence's margin), that holds the
+    vehicle, as a polygon of at most ``MAX_AREA_VERTICES`` vertices inside it; or why there is none. The zones are
+    valid simple polygons (``polygon_problem``). The inset's mitre joins cut reflex corners deeper than a round
+    offset would: never wider than the margin allows."""
     try:
         common = shapely.intersection_all([Polygon(zone) for zone in zones])
+        if inset_m > 0.0:
+            common = common.buffer(-inset_m, join_style="mitre")
     except shapely.errors.GEOSException as err:  # a zone GEOS cannot take (polygon_problem passed it)
         return f"the inclusion zones cannot be intersected ({err})"
     pieces = [g for g in getattr(common, "geoms", [common]) if isinstance(g, Polygon) and g.area > 0.0]
@@ -52,6 +58,21 @@ def inclusion_intersection(zones: Sequence[PolygonNE], vehicle_ne_m: tuple[float
     if fitted is None:
         return f"the inclusion zones' intersection needs more than {MAX_AREA_VERTICES} vertices"
     return fitted
+
+
+def grown_keepout(zone: PolygonNE, grow_m: float) -> PolygonNE | None:
+    """An exclusion zone grown by ``grow_m`` [m] (the fence's margin) with mitre joins, which cover the round
+    offset; None when GEOS cannot grow it or the result needs more than ``MAX_AREA_VERTICES`` vertices even
+    when grown by a tolerance more and simplified by it (which stays outside the grown zone)."""
+    try:
+        grown = Polygon(zone).buffer(grow_m, join_style="mitre")
+        for t in (0.0, *SIMPLIFY_STEPS_M):
+            fitted = grown if t == 0.0 else Polygon(zone).buffer(grow_m + t, join_style="mitre").simplify(t)
+            if isinstance(fitted, Polygon) and _vertex_count(fitted) <= MAX_AREA_VERTICES and fitted.covers(grown):
+                return _vertices(fitted)
+    except shapely.errors.GEOSException:
+        return None
+    return None
 
 
 def _fit(piece: Polygon, vehicle: Point) -> PolygonNE | None:

@@ -1,5 +1,11 @@
 """Reads the autopilot's fence for bapf-nav's flying area, at start and again every ``poll_s`` in flight
-(``apf_companion.fence`` has the protocol's state and the geometry; this drives it with what the other parts know).
+(``apf_companion.fence`` has the protocol's state and the geometry, ``apf_companion.fencelimits`` the fence
+parameters; this drives them with what the other parts know).
+
+A read asks for the fence parameters first (PARAM_REQUEST_READ of ``FENCE_PARAMS[profile]``: is the fence
+enforced, its margin, circle round home and ceiling) and for HOME_POSITION (MAV_CMD_REQUEST_MESSAGE: the circle's
+centre), then downloads the items. Parameters that cannot be read (an autopilot without them stays silent) leave
+every uploaded zone in use, as before the parameters were read, and the note says so.
 
 The first download starts when the autopilot has been heard and the global reference (GLOBAL_POSITION_INT beside
 a local pose) can place latitude/longitude in local NED. The autopilot's answers (MISSION_COUNT, MISSION_ITEM_INT,
@@ -19,15 +25,18 @@ keeps what is in service and is counted; the next read comes ``poll_s`` later. `
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.autopilot import Autopilot
 from apf_companion.fence import FenceArea, FenceDownload, FenceItem, FenceOutcome, FenceStage, fence_area
-from apf_companion.goal import GlobalReference
-from apf_companion.links.messages import MissionCount, MissionItemInt, MissionRecord, Source
+from apf_companion.fencelimits import FENCE_PARAMS, FenceLimits, ParamRead, ReadStage, fence_limits, param_float
+from apf_companion.goal import FenceBounds, GlobalReference
+from apf_companion.links.messages import FenceRecord, HomePosition, MissionCount, MissionItemInt, ParamValue, Source
 from apf_companion.outbox import Outbox
 
 __all__ = ["FenceReader", "FenceReaderParams"]
@@ -41,13 +50,14 @@ IDLE_S = 1.0
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class FenceReaderParams:
-    """Our ids (the answers' target), the autopilot's, the download's patience (``timeout_s`` [s] between repeats
-    of a request, ``retries`` repeats) and ``poll_s`` [s] from the end of one read to the start of the next
-    (0: read once)."""
+    """Our ids (the answers' target), the autopilot's and its kind (which fence parameters), the read's patience
+    (``timeout_s`` [s] between repeats of a request, ``retries`` repeats) and ``poll_s`` [s] from the end of one
+    read to the start of the next (0: read once)."""
 
     our_system: int
     our_component: int
     autopilot: Source
+    profile: Autopilot = Autopilot.ARDUPILOT
     timeout_s: float = 1.0
     retries: int = 5
     poll_s: float = 5.0
@@ -63,11 +73,18 @@ class FenceReader:
         outbox: Outbox,
         reference: Callable[[], tuple[GlobalReference, tuple[float, float]] | None],
         on_area: Callable[[FenceArea], None],
+        clearance_m: Callable[[], float] = lambda: 0.0,
     ) -> None:
-        """``reference()``: the global reference and the vehicle's (north, east) [m] now, or None if not known."""
+        """``reference()``: the global reference and the vehicle's (north, east) [m] now, or None if not known;
+        ``clearance_m()``: the planner's clearance C [m], which keeps that much of the fence's margin."""
         #: Replaced when a PARAM_SET changes ``planner.fence_poll_s`` (APF_FENCE_POLL); ``due`` follows it at once.
         self.params = params
         self.download = FenceDownload(params.timeout_s, params.retries)
+        self.param_read = ParamRead(FENCE_PARAMS[params.profile], params.timeout_s, params.retries)
+        #: The last parameters read as limits, or why they could not be (None before the first read ended).
+        self.limits: FenceLimits | str | None = None
+        #: HOME_POSITION's latitude, longitude [1e-7 deg] (None until heard).
+        self.home: tuple[int, int] | None = None
         #: The last result given to ``on_area`` (None before the first read has ended).
         self.result: FenceArea | None = None
         #: Downloads that ended: read whole, and failed.
@@ -80,7 +97,8 @@ class FenceReader:
         self._outbox = outbox
         self._reference = reference
         self._on_area = on_area
-        self._items: tuple[FenceItem, ...] | None = None  # of the last read that ended whole
+        self._clearance_m = clearance_m
+        self._inputs: tuple[object, ...] | None = None  # of the last read that ended whole: items, limits, home, C
         self._ended_s = -math.inf  # when the last download ended
 
     def summary(self) -> dict[str, object]:
@@ -94,10 +112,34 @@ class FenceReader:
             "changes": self.changes,
             "ignored": self.ignored,
             "unexpected": self.download.unexpected,
+            "limits": self.limits if self.limits is None or isinstance(self.limits, str) else self.limits.note,
+            "ceiling_m": self.bounds.ceiling_m,
+            "home_circle_ne_m": self.bounds.home_circle,
         }
 
-    def on_record(self, rec: MissionRecord) -> None:
-        """An answer from the autopilot: to the download when addressed to us, about the fence, and one runs."""
+    @property
+    def bounds(self) -> FenceBounds:
+        """The fence's bounds for goals in service (its ceiling, its circle round home)."""
+        r = self.result
+        return FenceBounds() if r is None or r.outcome is not FenceOutcome.USED else r.bounds
+
+    def on_param(self, rec: ParamValue) -> None:
+        """A PARAM_VALUE from the autopilot: a fence parameter while they are read (anyone's answer will do)."""
+        self.param_read.on_value(rec.param_id, param_float(rec.param_value, rec.param_type, self.params.profile))
+
+    def on_home(self, rec: HomePosition) -> None:
+        """HOME_POSITION from the autopilot: the centre of its circle round home."""
+        self.home = (rec.latitude, rec.longitude)
+
+    def on_record(self, rec: FenceRecord) -> None:
+        """A record from the autopilot: a parameter, home, or an answer to the download when addressed to us,
+        about the fence, and one runs."""
+        if isinstance(rec, ParamValue):
+            self.on_param(rec)
+            return
+        if isinstance(rec, HomePosition):
+            self.on_home(rec)
+            return
         p = self.params
         ours = rec.target_system == p.our_system and rec.target_component == p.our_component
         if not ours or rec.mission_type != _FENCE or self.download.stage not in _RUNNING:
@@ -120,6 +162,11 @@ class FenceReader:
                 return min(next_read_s, now_s + IDLE_S)
             if self._reference() is None:
                 return now_s + STEP_S
+            if self.param_read.stage is ReadStage.IDLE:
+                self.param_read.start()
+                self._outbox.command_long(mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_HOME_POSITION))
+            if not self._params_due(now_s):
+                return now_s + STEP_S
             d.start()
         send = d.due(now_s)
         if send is not None and send.ack:
@@ -131,6 +178,20 @@ class FenceReader:
         elif d.stage is FenceStage.FAILED:
             self._ended(now_s, whole=False)
         return now_s + STEP_S
+
+    def _params_due(self, now_s: float) -> bool:
+        """Ask for the fence parameters that are due; True once their read has ended (read whole or not)."""
+        pr = self.param_read
+        for name in pr.due(now_s):
+            self._outbox.param_request_read(name)
+        if pr.stage is ReadStage.RUNNING:
+            return False
+        if pr.stage is ReadStage.DONE:
+            self.limits = fence_limits(self.params.profile, pr.values)
+        else:
+            self.limits = f"fence parameters not read ({pr.reason})"
+        pr.rest()
+        return True
 
     def _ended(self, now_s: float, *, whole: bool) -> None:
         """A download ended: the next is due ``poll_s`` later; its result goes out when it is news."""
@@ -144,19 +205,24 @@ class FenceReader:
             return
         self.reads += 1
         items = tuple(self.download.items)
-        unused = self.result is not None and self.result.outcome is FenceOutcome.NOT_USED
-        if items == self._items and not unused:
+        limits = self.limits if isinstance(self.limits, FenceLimits) else None
+        inputs = (items, limits, self.home, self._clearance_m())
+        r = self.result
+        retry = r is not None and (r.outcome is FenceOutcome.NOT_USED or r.provisional)
+        if inputs == self._inputs and not retry:
             return
         where = self._reference()
         if where is None:  # the reference went away (a reboot) between start and end: placed at the next read
             if self.result is None:
                 self._tell(FenceArea(FenceOutcome.NOT_USED, "no global reference to place the fence"))
             return
-        result = fence_area(items, *where)
-        if items == self._items and result == self.result:  # still not used, for the same reason
+        result = fence_area(items, *where, limits, self.home, inputs[3])
+        if isinstance(self.limits, str) and result.outcome is not FenceOutcome.NO_FENCE:
+            result = dataclasses.replace(result, note=f"{result.note}; {self.limits}: every uploaded zone used")
+        if inputs == self._inputs and result == self.result:  # still not used, or provisional, for the same reason
             return
-        self.changes += self._items is not None
-        self._items = items
+        self.changes += self._inputs is not None
+        self._inputs = inputs
         self._tell(result)
 
     def _tell(self, result: FenceArea) -> None:

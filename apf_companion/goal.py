@@ -261,6 +261,16 @@ def local_goal_from_reposition(
         raise RepositionError(mavlink.MAV_RESULT_DENIED, str(err)) from err
 
 
+@dataclass(frozen=True, slots=True)
+class FenceBounds:
+    """What the autopilot's fence allows a goal besides the planner's zones: its ceiling (the highest goal above
+    home [m], its altitude limit less its margin) and its circle round home (north, east, radius [m] in local NED,
+    the radius less the margin), each None when the fence has none (``apf_companion.fence``)."""
+
+    ceiling_m: float | None = None
+    home_circle: tuple[float, float, float] | None = None
+
+
 def route_outside_limits(
     route: Route,
     pos_ned_m: npt.ArrayLike | None,
@@ -269,8 +279,10 @@ def route_outside_limits(
     max_distance_m: float,
     area_ne_m: FlyingArea | None = None,
     keepouts_ne_m: KeepOuts = (),
+    fence: FenceBounds = FenceBounds(),
 ) -> str | None:
-    """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home), or
+    """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home) or
+    outside the autopilot's fence (``fence``: above its ceiling, outside its circle round home), or
     horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet),
     or outside the planner's flying area ``area_ne_m`` (a rectangle or polygon, ``planning.area``) or in one of its
     keep-out zones ``keepouts_ne_m`` (bapf-nav would give up at once). 0 / None = no limit. A mistyped or hostile
@@ -292,12 +304,21 @@ def route_outside_limits(
                 f"waypoint {i} (north {wp[i, 0]:g} m, east {wp[i, 1]:g} m) lies in keep-out zone {k} "
                 f"(planner.params.nav_keepout_ne_m)"
             )
-    if max_altitude_m > 0.0:
-        up = -wp[:, 2]
-        high = np.flatnonzero(np.isfinite(up) & (up > max_altitude_m))
+    if fence.home_circle is not None:
+        north, east, radius = fence.home_circle
+        far = np.flatnonzero(np.hypot(wp[:, 0] - north, wp[:, 1] - east) > radius)
+        if far.size:
+            i = int(far[0])
+            return f"waypoint {i} lies outside the fence's circle round home (radius less its margin {radius:g} m)"
+    limits = [(max_altitude_m, "goal.max_altitude_m")] if max_altitude_m > 0.0 else []
+    if fence.ceiling_m is not None:
+        limits.append((fence.ceiling_m, "the fence's ceiling less its margin"))
+    up = -wp[:, 2]
+    for limit, name in limits:
+        high = np.flatnonzero(np.isfinite(up) & (up > limit))
         if high.size:
             i = int(high[0])
-            return f"waypoint {i} is {up[i]:.0f} m above home (goal.max_altitude_m = {max_altitude_m:g})"
+            return f"waypoint {i} is {up[i]:.0f} m above home ({name} = {limit:g})"
     if max_distance_m > 0.0 and pos_ned_m is not None:
         pos = np.asarray(pos_ned_m, dtype=np.float64)
         far = np.flatnonzero(np.hypot(wp[:, 0] - pos[0], wp[:, 1] - pos[1]) > max_distance_m)

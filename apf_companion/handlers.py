@@ -36,19 +36,21 @@ from apf_companion.links.messages import (
     CommandLong,
     DistanceSensor,
     EkfStatusReport,
+    FenceRecord,
     GlobalPositionInt,
     Heartbeat,
+    HomePosition,
     LocalPositionNed,
     MissionAck,
     MissionCount,
     MissionItemInt,
-    MissionRecord,
     ObstacleDistance,
     ObstacleDistance3d,
     Odometry,
     ParamRequestList,
     ParamRequestRead,
     ParamSet,
+    ParamValue,
     PositionTargetGlobalInt,
     PositionTargetLocalNed,
     Record,
@@ -124,7 +126,8 @@ class AutopilotHandlers:
             a cycle, and the stream's gaps measure the link's loss).
         route_at_start: Flown once the autopilot is first heard.
         on_param: Handles a PARAM_* addressed to us (apf_companion.params.ParamServer.handle); None = ignored.
-        on_mission: Takes the autopilot's MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK (the fence download,
+        on_fence: Takes the autopilot's MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK, PARAM_VALUE and
+            HOME_POSITION (the fence read,
             apf_companion.fencereader.FenceReader.on_record); None = ignored.
     """
 
@@ -140,7 +143,7 @@ class AutopilotHandlers:
         on_pose: Callable[[int], None],
         route_at_start: Route | None,
         on_param: Callable[[ParamRecord], None] | None = None,
-        on_mission: Callable[[MissionRecord], None] | None = None,
+        on_fence: Callable[[FenceRecord], None] | None = None,
     ) -> None:
         self.params = params
         self.perception = perception
@@ -151,7 +154,7 @@ class AutopilotHandlers:
         self._on_pose = on_pose
         self._route_at_start = route_at_start
         self._on_param = on_param
-        self._mission_sink = on_mission
+        self._fence_sink = on_fence
         self.heard = False
         self.heartbeats = 0  # autopilot HEARTBEATs heard (the takeover weighs its evidence by them)
         self.custom_mode: int | None = None
@@ -310,9 +313,9 @@ class AutopilotHandlers:
         self.ekf_flags = rec.flags
         self.navigator.ekf_ready = self.ekf_ready  # why there is no pose yet (HOLDING reason)
 
-    def _on_mission(self, rec: MissionRecord, now_s: float) -> None:
-        if self._mission_sink is not None:
-            self._mission_sink(rec)
+    def _on_fence(self, rec: FenceRecord, now_s: float) -> None:
+        if self._fence_sink is not None:
+            self._fence_sink(rec)
 
     def _on_command_ack(self, rec: CommandAck, now_s: float) -> None:
         if rec.target_component in (0, self.params.component_id):
@@ -422,8 +425,10 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     CommandAck: AutopilotHandlers._on_command_ack,
     PositionTargetLocalNed: AutopilotHandlers._on_position_target_local,
     PositionTargetGlobalInt: AutopilotHandlers._on_position_target_global,
-    MissionCount: AutopilotHandlers._on_mission,
-    MissionItemInt: AutopilotHandlers._on_mission,
-    MissionAck: AutopilotHandlers._on_mission,
+    MissionCount: AutopilotHandlers._on_fence,
+    MissionItemInt: AutopilotHandlers._on_fence,
+    MissionAck: AutopilotHandlers._on_fence,
+    ParamValue: AutopilotHandlers._on_fence,
+    HomePosition: AutopilotHandlers._on_fence,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

@@ -153,6 +153,10 @@ class Outbox:
         else:
             self._send(lambda mav: mav.mission_request_int_encode(*self.target, seq, mission_type=mission_type))
 
+    def param_request_read(self, name: str) -> None:
+        """PARAM_REQUEST_READ of the autopilot's parameter ``name`` (by name: param_index -1)."""
+        self._send(lambda mav: mav.param_request_read_encode(*self.target, name.encode("ascii"), -1))
+
     def mission_ack(self, result: int, mission_type: int) -> None:
         """MISSION_ACK: the end of a download (MAV_MISSION_ACCEPTED) of ``mission_type``."""
         self._send(lambda mav: mav.mission_ack_encode(*self.target, result, mission_type=mission_type))

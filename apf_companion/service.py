@@ -62,7 +62,7 @@ from apf_companion.fence import FenceArea, FenceOutcome
 from apf_companion.fencereader import STEP_S, FenceReader, FenceReaderParams
 from apf_companion.flightend import FlightEnd, Outcome
 from apf_companion.forwarder import ObstacleForwarder
-from apf_companion.goal import GlobalReference, Route, route_outside_limits
+from apf_companion.goal import FenceBounds, GlobalReference, Route, route_outside_limits
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.heap import GcPauses
 from apf_companion.linkquality import LinkMeter
@@ -271,7 +271,7 @@ class CompanionService:
             on_pose=self._pose_arrived,
             route_at_start=route if route is not None else initial_route(config, self.planner),
             on_param=lambda rec: self.params.handle(rec),
-            on_mission=lambda rec: None if self.fence is None else self.fence.on_record(rec),
+            on_fence=lambda rec: None if self.fence is None else self.fence.on_record(rec),
         )
         self.reporter = StatusReporter(
             reporter_params(config),
@@ -411,6 +411,7 @@ class CompanionService:
             route,
             None if pose is None else pose.pos_ned_m,
             max_altitude_m=gc.max_altitude_m,
+            fence=FenceBounds() if self.fence is None else self.fence.bounds,
             max_distance_m=gc.max_distance_m,
             area_ne_m=flying_area(self.planner),  # bapf-nav's: goals outside it are refused
             keepouts_ne_m=keepout_zones(self.planner),
@@ -688,6 +689,7 @@ def _fence_reader(svc: CompanionService) -> FenceReader | None:
         our_system=lc.autopilot_sysid,
         our_component=lc.component_id,
         autopilot=Source(lc.autopilot_sysid, lc.autopilot_compid),
+        profile=config.autopilot.profile,
         poll_s=config.planner.fence_poll_s,
     )
 
@@ -697,7 +699,12 @@ def _fence_reader(svc: CompanionService) -> FenceReader | None:
             return None
         return ref, (float(pose.pos_ned_m[0]), float(pose.pos_ned_m[1]))
 
-    return FenceReader(params, outbox=svc.outbox, reference=where, on_area=lambda area: _use_fence(svc, area))
+    def clearance_m() -> float:  # bapf-nav's C: it keeps that much of the fence's margin already
+        return svc.planner.params.clearance_m if isinstance(svc.planner, BapfNavPlanner) else 0.0
+
+    return FenceReader(
+        params, outbox=svc.outbox, reference=where, on_area=lambda area: _use_fence(svc, area), clearance_m=clearance_m
+    )
 
 
 def _use_fence(svc: CompanionService, area: FenceArea) -> None:

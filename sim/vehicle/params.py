@@ -135,6 +135,21 @@ _ARDUPILOT = (
     ),
 )
 
+# AC_Fence.cpp (Copter defaults): stored and served, not enforced (no breach action); the service reads them
+_FENCE = (
+    ParamSpec(name="FENCE_ENABLE", default=0.0, lo=0.0, hi=1.0, doc="fence master switch (1 while a fence is served)"),
+    ParamSpec(
+        name="FENCE_TYPE",
+        default=7.0,
+        lo=0.0,
+        hi=15.0,
+        doc="fences: 1 max alt, 2 circle, 4 polygons, 8 min alt",
+    ),
+    ParamSpec(name="FENCE_RADIUS", default=300.0, lo=0.0, hi=10000.0, doc="circle fence radius round home [m]"),
+    ParamSpec(name="FENCE_ALT_MAX", default=100.0, lo=0.0, hi=1000.0, doc="ceiling above home [m]"),
+    ParamSpec(name="FENCE_MARGIN", default=2.0, lo=0.0, hi=10.0, doc="distance planners keep from the fence [m]"),
+)
+
 # SRn_* stream rates [Hz] of the stream groups the simulator builds (GCS_MAVLink_Copter.cpp; default 0: nothing
 # streams unasked). Read at boot (like ArduPilot, which initialises its message intervals from them at startup):
 # ``--param SR0_POSITION=10`` streams LOCAL_POSITION_NED and GLOBAL_POSITION_INT on link 0 from boot.
@@ -176,6 +191,10 @@ _PX4 = (
     ParamSpec(name="MPC_LAND_ALT2", default=5.0, lo=0.0, hi=122.0, doc="land: MPC_LAND_SPEED below [m]"),
     ParamSpec(name="MIS_TAKEOFF_ALT", default=2.5, lo=0.0, hi=80.0, doc="default takeoff altitude [m]"),
     ParamSpec(name="RTL_RETURN_ALT", default=30.0, lo=0.0, hi=150.0, doc="RTL return altitude [m]"),
+    # geofence_params.c: stored and served, not enforced
+    ParamSpec(name="GF_ACTION", default=2.0, lo=0.0, hi=5.0, doc="geofence breach action: 0 none, 1 warn, 2 hold, ..."),
+    ParamSpec(name="GF_MAX_HOR_DIST", default=0.0, lo=0.0, hi=10000.0, doc="max distance from home [m] (0 = off)"),
+    ParamSpec(name="GF_MAX_VER_DIST", default=0.0, lo=0.0, hi=10000.0, doc="max height above home [m] (0 = off)"),
     ParamSpec(
         name="COM_DISARM_PRFLT",
         default=10.0,
@@ -188,7 +207,7 @@ _PX4 = (
 
 def param_specs(profile: Autopilot) -> tuple[ParamSpec, ...]:
     """The parameter list of a profile, in PARAM_VALUE index order."""
-    return (_ARDUPILOT + _STREAM_RATES if profile is Autopilot.ARDUPILOT else _PX4) + _SIM
+    return (_ARDUPILOT + _FENCE + _STREAM_RATES if profile is Autopilot.ARDUPILOT else _PX4) + _SIM
 
 
 class ParamTable:

@@ -104,7 +104,9 @@ class SimConfig:
         unasked_streams: stream telemetry without being asked (the old behaviour); None = the profile's habit
             (ArduPilot: HEARTBEAT only until SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM; PX4: its default streams).
         fence: the autopilot's fence, served over the mission protocol as one inclusion polygon (sim.vehicle.fence);
-            None: no inclusion zone. fence_keepouts: its exclusion polygons. Neither: no fence (count 0).
+            None: no inclusion zone. fence_keepouts: its exclusion polygons. Neither: no fence (count 0). The
+            ArduPilot profile serves FENCE_ENABLE 1 with a fence (unless ``params`` says otherwise); FENCE_* and
+            PX4's GF_* parameters are stored and served, not enforced (a breach does nothing).
         signing_key: MAVLink 2 signing key (32 bytes, ``apf_companion.links.load_signing_key``): every link signs
             its frames (link id = link index, timestamp from the wall clock, as ArduPilot with a GPS fix) and
             drops frames not signed with it, except the profile's ``UNSIGNED_ACCEPTED``; None = signing off.
@@ -157,6 +159,12 @@ class SimConfig:
             msg = f"speedup must be > 0 (inf = as fast as possible), got {self.speedup}"
             raise ConfigError(msg)
 
+    def _params(self) -> dict[str, float]:
+        """The overrides, with ArduPilot's fence switched on when one is served (FENCE_ENABLE, unless given)."""
+        served = self.fence is not None or bool(self.fence_keepouts)
+        on = {"FENCE_ENABLE": 1.0} if served and self.profile is Autopilot.ARDUPILOT else {}
+        return on | dict(self.params)
+
     def engine_config(self) -> EngineConfig:
         assert isinstance(self.profile, Autopilot)
         assert isinstance(self.dynamics, Dynamics)
@@ -165,7 +173,7 @@ class SimConfig:
             dynamics=self.dynamics,
             world=self.world,
             seed=self.seed,
-            params=dict(self.params),
+            params=self._params(),
             sensor=self.sensor,
             spawn=self.spawn,
             home=self.home,

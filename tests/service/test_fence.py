@@ -21,9 +21,10 @@ from apf_companion.fence import (
     FenceStage,
     fence_area,
 )
+from apf_companion.fencelimits import ReadStage
 from apf_companion.fencereader import FenceReader, FenceReaderParams
 from apf_companion.goal import EARTH_RADIUS_M, GlobalReference
-from apf_companion.links.messages import MissionAck, MissionCount, MissionItemInt, Source
+from apf_companion.links.messages import MissionAck, MissionCount, MissionItemInt, ParamValue, Source
 from apf_companion.outbox import Outbox
 from apf_companion.planning import in_keepout, inside_area
 
@@ -280,7 +281,10 @@ def test_the_reader_takes_only_fence_answers_addressed_to_it() -> None:
     )
     ap = Source(1, 1)
     assert reader.due(0.0) == pytest.approx(0.1)
-    assert reader.download.stage is FenceStage.COUNT
+    assert _stage(reader.download) is FenceStage.IDLE  # the fence parameters first
+    _give_params(reader, ENFORCED)
+    reader.due(0.05)
+    assert _stage(reader.download) is FenceStage.COUNT
     reader.on_record(MissionCount(src=ap, target_system=255, target_component=190, count=6, mission_type=FENCE))
     reader.on_record(MissionCount(src=ap, target_system=1, target_component=191, count=6, mission_type=0))
     assert reader.ignored == 2 and reader.download.stage is FenceStage.COUNT  # a GCS's download; a mission
@@ -299,10 +303,22 @@ def test_the_reader_takes_only_fence_answers_addressed_to_it() -> None:
     assert len(results) == 1 and results[0].outcome is FenceOutcome.USED and reader.result is results[0]
     reader.on_record(MissionAck(src=ap, target_system=1, target_component=191, type=0, mission_type=FENCE))
     assert reader.ignored == 3 and reader.due(0.5) == pytest.approx(1.5)  # idle: it looks again within 1 s
-    assert reader.due(5.4) == pytest.approx(5.5) and reader.download.stage is FenceStage.COUNT  # poll_s after the end
+    assert reader.due(5.4) == pytest.approx(5.5)  # poll_s after the end: the parameters asked for again
+    assert reader.param_read.stage is ReadStage.RUNNING and _stage(reader.download) is FenceStage.IDLE
 
 
 AP = Source(1, 1)
+#: ArduPilot's fence parameters with the uploaded zones enforced and nothing else (no margin, circle, ceiling).
+ENFORCED = {"FENCE_ENABLE": 1.0, "FENCE_TYPE": 4.0, "FENCE_RADIUS": 300.0, "FENCE_ALT_MAX": 100.0, "FENCE_MARGIN": 0.0}
+
+
+def _give_params(reader: FenceReader, values: dict[str, float]) -> None:
+    """The autopilot's PARAM_VALUEs of ``values`` (REAL32, as ArduPilot casts them)."""
+    for name, value in values.items():
+        reader.on_record(ParamValue(src=AP, param_id=name, param_value=value, param_type=REAL32))
+
+
+REAL32 = mavlink.MAV_PARAM_TYPE_REAL32
 
 
 def _reader(poll_s: float, results: list[FenceArea], where: list[tuple[float, float]] | None = None) -> FenceReader:
@@ -317,9 +333,15 @@ def _reader(poll_s: float, results: list[FenceArea], where: list[tuple[float, fl
     )
 
 
-def _answer(reader: FenceReader, items: list[FenceItem] | None, t: float) -> float:
-    """One download from ``t`` [s], each request answered at once with ``items`` (None: refused, DENIED, as while
-    a ground station uploads); the time after it has ended."""
+def _answer(
+    reader: FenceReader, items: list[FenceItem] | None, t: float, params: dict[str, float] | None = None
+) -> float:
+    """One read from ``t`` [s]: the fence parameters (``params``, default ``ENFORCED``), then the download, each
+    request answered at once with ``items`` (None: refused, DENIED, as while a ground station uploads); the time
+    after it has ended."""
+    reader.due(t)
+    _give_params(reader, ENFORCED if params is None else params)
+    t += 0.05
     reader.due(t)
     assert reader.download.stage is FenceStage.COUNT
     if items is None:
@@ -398,7 +420,7 @@ def test_a_first_read_that_fails_is_told_and_read_again_and_poll_s_0_reads_once(
     assert reader.download.stage is FenceStage.IDLE and len(once) == 1  # read once
     reader.params = dataclasses.replace(reader.params, poll_s=5.0)  # APF_FENCE_POLL set to 5: reads again
     reader.due(t + 101.0)
-    assert _stage(reader.download) is FenceStage.COUNT
+    assert reader.param_read.stage is ReadStage.RUNNING
 
 
 def _stage(d: FenceDownload) -> FenceStage:

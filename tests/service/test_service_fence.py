@@ -35,6 +35,9 @@ from tests.service.test_service_flight import SPEEDUP, _as_mapping, running, ser
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 YARD = load_world("yard-l")
+#: ArduPilot's fence parameters that leave the uploaded zones as they are: no margin (bapf-nav keeps its own C),
+#: no circle round home; the ceiling (FENCE_TYPE bit 1) stays.
+EXACT = {"FENCE_MARGIN": 0.0, "FENCE_TYPE": 5.0}
 
 
 def _config(profile: str = "ardupilot", **planner: Any) -> ServiceConfig:
@@ -51,10 +54,12 @@ async def yard_flight(
     keepouts: KeepOuts = (),
     links: tuple[str, ...] = (),
     profile: str = "ardupilot",
+    sim_params: dict[str, float] | None = None,
     **planner: Any,
 ) -> AsyncIterator[tuple[CompanionService, Simulator]]:
     """The service (bapf-nav, its ``[planner]`` updated with ``planner``) and the simulator (``profile``) flying
-    yard-l from its start, the simulator serving ``fence`` (and talking on ``links`` too: a ground station)."""
+    yard-l from its start, the simulator serving ``fence`` (and talking on ``links`` too: a ground station) with
+    ``sim_params`` (default ``EXACT``: the served zones are the area to a centimetre)."""
     svc = await CompanionService.open(_config(profile, **planner), route=route, clock=SimulatorClock(SPEEDUP))
     assert svc.link is not None and svc.link.local_address is not None
     sim = await Simulator.start(
@@ -67,6 +72,7 @@ async def yard_flight(
             spawn=SpawnConfig(pos_ne_m=YARD.start_ne_m, airborne=True, alt_m=5.0),
             fence=fence,
             fence_keepouts=keepouts,
+            params=(EXACT if profile == "ardupilot" else {}) if sim_params is None else sim_params,
         )
     )
     async with running(svc, sim):
@@ -108,7 +114,8 @@ async def test_exclusion_zones_become_keep_out_zones_the_flight_goes_round() -> 
     async with yard_flight(YARD.area_ne_m, route=route, keepouts=(BED,)) as (svc, sim):
         await until(lambda: svc.fence is not None and svc.fence.result is not None, HANG_S, "the fence read")
         assert svc.fence is not None and svc.fence.result is not None
-        assert svc.fence.result.note == "inclusion polygon of 6 vertices; 1 exclusion zone as keep-out zone"
+        want = "inclusion polygon of 6 vertices; 1 exclusion zone as keep-out zone; FENCE_MARGIN 0 m, ceiling 100 m"
+        assert svc.fence.result.note == want
         (bed,) = svc.planner.params.nav_keepout_ne_m
         assert all(abs(n - n0) < 0.02 and abs(e - e0) < 0.02 for (n, e), (n0, e0) in zip(bed, BED, strict=True))
         assert await wait_state(svc, {State.ARRIVED, State.STUCK}, 240.0) is State.ARRIVED, svc.result()
@@ -125,7 +132,8 @@ async def test_a_fence_changed_in_flight_is_planned_over_and_a_removed_one_taken
     """The ground station uploads a smaller fence while the vehicle hovers, then clears it: each is read again
     within ``fence_poll_s`` and put into service (a later PARAM_SET starts from it); the cleared one leaves no area."""
     caplog.set_level(logging.INFO, logger="apf_companion")
-    async with yard_flight(YARD.area_ne_m, fence_poll_s=1.0) as (svc, sim):
+    polygons_only = EXACT | {"FENCE_TYPE": 4.0}  # no ceiling: a cleared fence is no fence at all
+    async with yard_flight(YARD.area_ne_m, fence_poll_s=1.0, sim_params=polygons_only) as (svc, sim):
         fence = svc.fence
         assert fence is not None
         await until(lambda: fence.result is not None, HANG_S, "the fence read")
@@ -171,7 +179,8 @@ async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_i
             await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
             assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02 and fence.changes == 1
             status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
-            assert status["outcome"] == "used" and status["note"] == "inclusion polygon of 4 vertices"
+            assert status["outcome"] == "used"
+            assert status["note"] == "inclusion polygon of 4 vertices; FENCE_MARGIN 0 m, ceiling 100 m"
             assert status["changes"] == 1 and status["failures"] >= 2 and status["reads"] >= 2
     finally:
         await gcs.aclose()

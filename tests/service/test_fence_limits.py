@@ -1,0 +1,251 @@
+"""The autopilot's fence parameters, without sockets: what ArduPilot's FENCE_* and PX4's GF_* say is enforced
+(fencelimits), how the fence's zones take them (the margin moves edges, the circle round home, the ceiling), the
+reader's parameter stage (repeats, give-up, fallback) and goals refused beyond the fence's bounds."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from shapely.geometry import Polygon
+
+from apf_companion.autopilot import Autopilot
+from apf_companion.fence import FenceArea, FenceOutcome, fence_area
+from apf_companion.fenceclip import grown_keepout
+from apf_companion.fencelimits import FenceLimits, ParamRead, ReadStage, fence_limits, param_float
+from apf_companion.goal import FenceBounds, Route, route_outside_limits
+from apf_companion.links.messages import HomePosition, MissionCount
+from apf_companion.planning import inside_area
+from tests.service.test_fence import (
+    AP,
+    ENFORCED,
+    FENCE,
+    L_SHAPE,
+    REF,
+    VERTEX_OUT,
+    _answer,
+    _give_params,
+    _latlon_e7,
+    _polygon,
+    _reader,
+)
+
+AP_DEFAULTS = {
+    "FENCE_ENABLE": 1.0,
+    "FENCE_TYPE": 7.0,
+    "FENCE_RADIUS": 300.0,
+    "FENCE_ALT_MAX": 100.0,
+    "FENCE_MARGIN": 2.0,
+}
+
+
+def _limits(profile: Autopilot, values: dict[str, float]) -> FenceLimits:
+    limits = fence_limits(profile, values)
+    assert isinstance(limits, FenceLimits), limits
+    return limits
+
+
+def test_ardupilot_fence_parameters_say_what_is_enforced() -> None:
+    """AC_Fence.cpp: FENCE_ENABLE 0 enforces nothing; FENCE_TYPE's bits pick the ceiling (1), the circle round
+    home (2) and the uploaded zones (4); the ceiling kept is FENCE_ALT_MAX less FENCE_MARGIN."""
+    on = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS)
+    assert on == FenceLimits(True, 2.0, 300.0, 98.0, "FENCE_MARGIN 2 m, circle of 300 m round home, ceiling 100 m")
+    off = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_ENABLE": 0.0})
+    assert not off.enforced and off.note == "FENCE_ENABLE 0: ArduPilot does not enforce its fence"
+    ceiling_only = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 1.0})
+    assert (ceiling_only.zones, ceiling_only.home_radius_m, ceiling_only.ceiling_m) == (False, None, 98.0)
+    assert ceiling_only.enforced and "uploaded zones not enforced" in ceiling_only.note
+    assert _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 0.0}).enforced is False
+    assert fence_limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_MARGIN": math.nan}) == "FENCE_MARGIN is nan"
+    assert fence_limits(Autopilot.ARDUPILOT, {"FENCE_ENABLE": 1.0}) == "FENCE_TYPE is None"
+
+
+def test_px4_geofence_parameters_say_what_is_enforced() -> None:
+    """geofence_params.c: GF_ACTION 0 does nothing on a breach; GF_MAX_HOR_DIST / GF_MAX_VER_DIST 0 are off."""
+    px4 = {"GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 0.0, "GF_MAX_VER_DIST": 0.0}
+    assert _limits(Autopilot.PX4, px4) == FenceLimits(True, 0.0, None, None, "no circle, no ceiling")
+    both = _limits(Autopilot.PX4, px4 | {"GF_MAX_HOR_DIST": 150.0, "GF_MAX_VER_DIST": 60.0})
+    assert (both.home_radius_m, both.ceiling_m, both.margin_m) == (150.0, 60.0, 0.0)
+    assert _limits(Autopilot.PX4, px4 | {"GF_ACTION": 0.0}).enforced is False
+
+
+def test_px4_integer_parameters_arrive_as_their_bytes() -> None:
+    """PX4 puts an INT32's bytes in PARAM_VALUE's float (PARAM_ENCODE_BYTEWISE); ArduPilot casts the value."""
+    (as_float,) = struct.unpack("<f", struct.pack("<i", 3))
+    assert as_float != 3.0 and param_float(as_float, mavlink.MAV_PARAM_TYPE_INT32, Autopilot.PX4) == 3.0
+    (minus,) = struct.unpack("<f", struct.pack("<i", -1))
+    assert param_float(minus, mavlink.MAV_PARAM_TYPE_INT32, Autopilot.PX4) == -1.0
+    assert param_float(3.0, mavlink.MAV_PARAM_TYPE_INT32, Autopilot.ARDUPILOT) == 3.0
+    assert param_float(150.0, mavlink.MAV_PARAM_TYPE_REAL32, Autopilot.PX4) == 150.0
+
+
+def test_the_parameter_read_repeats_the_unanswered_and_gives_up() -> None:
+    read = ParamRead(("A", "B", "C"), timeout_s=1.0, retries=2)
+    assert read.due(0.0) == ()  # not started
+    read.start()
+    assert read.due(0.0) == ("A", "B", "C") and read.due(0.5) == ()
+    read.on_value("B", 1.0)
+    read.on_value("X", 9.0)  # not asked for: not kept
+    assert read.due(1.0) == ("A", "C") and read.values == {"B": 1.0}
+    read.on_value("A", 2.0)
+    read.on_value("C", 3.0)
+    assert read.stage is ReadStage.DONE and read.values == {"A": 2.0, "B": 1.0, "C": 3.0}
+    read.start()
+    for t in (0.0, 1.0, 2.0):
+        assert read.due(t) == ("A", "B", "C")
+    assert read.due(3.0) == () and _stage(read) is ReadStage.FAILED and read.reason == "no A after 3 requests"
+
+
+def _last(results: list[FenceArea]) -> FenceArea:
+    """The last result told (a call, so that mypy does not narrow it across the reads)."""
+    return results[-1]
+
+
+def _stage(read: ParamRead) -> ReadStage:
+    return read.stage
+
+
+def _inset_ok(area: tuple[tuple[float, float], ...], zone: tuple[tuple[float, float], ...], inset_m: float) -> None:
+    """``area`` lies inside ``zone`` moved in by ``inset_m`` and covers most of it (to 2 cm: the zone went through
+    latitude/longitude in 1e-7 degrees)."""
+    exact = Polygon(zone).buffer(-inset_m)  # round joins: the exact inset
+    got = Polygon(area)
+    assert exact.buffer(0.02).covers(got)
+    assert got.area >= 0.97 * exact.area
+
+
+def test_the_margin_moves_the_area_in_by_what_the_planners_clearance_does_not_keep() -> None:
+    """FENCE_MARGIN 2 m with bapf-nav's C = 0.6 m: the L's edges move in by 1.4 m; with C >= the margin, nothing
+    moves. The ceiling and the note follow the parameters."""
+    params = AP_DEFAULTS | {"FENCE_TYPE": 5.0}  # polygons and the ceiling, no circle
+    area = fence_area(_polygon(L_SHAPE), REF, (10.0, 0.0), _limits(Autopilot.ARDUPILOT, params), None, 0.6)
+    assert area.outcome is FenceOutcome.USED and area.polygon_ne_m is not None and not area.provisional
+    _inset_ok(area.polygon_ne_m, L_SHAPE, 1.4)
+    assert area.bounds == FenceBounds(98.0, None)
+    assert area.note == "inclusion polygon, 1.4 m in from its edges, 6 vertices; FENCE_MARGIN 2 m, ceiling 100 m"
+    wide_c = fence_area(_polygon(L_SHAPE), REF, (10.0, 0.0), _limits(Autopilot.ARDUPILOT, params), None, 2.5)
+    assert wide_c.polygon_ne_m is not None
+    assert np.abs(np.array(wide_c.polygon_ne_m) - np.array(L_SHAPE)).max() < 0.01
+
+
+def test_a_vehicle_within_the_margin_gets_the_uninset_area_for_now() -> None:
+    """At (10, -2.5), 0.5 m from the L's west edge: the area without the margin, provisional (read again)."""
+    params = AP_DEFAULTS | {"FENCE_TYPE": 4.0}
+    area = fence_area(_polygon(L_SHAPE), REF, (10.0, -2.5), _limits(Autopilot.ARDUPILOT, params), None, 0.6)
+    assert area.outcome is FenceOutcome.USED and area.provisional
+    assert area.polygon_ne_m is not None and len(area.polygon_ne_m) == 6
+
+
+def test_exclusion_zones_grow_by_the_margin() -> None:
+    bed = ((3.0, 11.5), (6.5, 11.5), (6.5, 14.5), (3.0, 14.5))
+    items = [*_polygon(L_SHAPE), *_polygon(bed, VERTEX_OUT, first=6)]
+    params = AP_DEFAULTS | {"FENCE_TYPE": 4.0}
+    area = fence_area(items, REF, (10.0, 0.0), _limits(Autopilot.ARDUPILOT, params), None, 0.6)
+    (grown,) = area.keepouts_ne_m
+    assert Polygon(grown).covers(Polygon(bed).buffer(1.4 - 0.02))  # the round offset inside the mitred one
+    assert Polygon(bed).buffer(1.4 + 0.02, join_style="mitre").covers(Polygon(grown))
+    beside = fence_area(items, REF, (2.5, 13.0), _limits(Autopilot.ARDUPILOT, params), None, 0.6)
+    assert beside.provisional and np.abs(np.array(beside.keepouts_ne_m[0]) - np.array(bed)).max() < 0.01
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(-20, 20), st.floats(-20, 20)), min_size=3, max_size=12),
+    st.floats(0.05, 5.0),
+)
+def test_a_grown_keep_out_zone_always_covers_the_exact_offset(points: list[tuple[float, float]], grow_m: float) -> None:
+    """Any simple polygon (the convex hull of random points), any margin: never narrower than the round offset."""
+    hull = Polygon(points).convex_hull
+    if not isinstance(hull, Polygon) or hull.area < 0.5:
+        return
+    zone = tuple((float(n), float(e)) for n, e in hull.exterior.coords[:-1])
+    grown = grown_keepout(zone, grow_m)
+    assert grown is not None and len(grown) <= 64
+    assert Polygon(grown).buffer(1e-6).covers(hull.buffer(grow_m, quad_segs=32))
+
+
+def test_the_circle_round_home_bounds_goals_and_clips_an_inclusion_zone() -> None:
+    """FENCE_TYPE 2 alone: no area (300 m across would not fit the grid), goals outside the circle less the
+    inset are refused. With the L as well: the circle (here 12 m, round the vehicle) clips it."""
+    home = _latlon_e7(10.0, 5.0)
+    alone = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 2.0, "FENCE_RADIUS": 40.0})
+    area = fence_area([], REF, (10.0, 5.0), alone, home, 0.6)
+    assert area.outcome is FenceOutcome.USED and area.polygon_ne_m is None
+    assert area.bounds.home_circle is not None
+    north, east, radius = area.bounds.home_circle
+    assert (north, east) == pytest.approx((10.0, 5.0), abs=0.01) and radius == pytest.approx(38.6)
+    assert "goals within the circle round home" in area.note
+    near = Route.point(30.0, 5.0, -5.0, source="test")
+    far = Route.point(50.0, 5.0, -5.0, source="test")
+    assert route_outside_limits(near, None, max_altitude_m=0.0, max_distance_m=0.0, fence=area.bounds) is None
+    why = route_outside_limits(far, None, max_altitude_m=0.0, max_distance_m=0.0, fence=area.bounds)
+    assert why == "waypoint 0 lies outside the fence's circle round home (radius less its margin 38.6 m)"
+    with_l = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 6.0, "FENCE_RADIUS": 12.0})
+    clipped = fence_area(_polygon(L_SHAPE), REF, (5.0, 0.0), with_l, home, 0.6)  # (10, 5) is 1 m from an edge
+    assert clipped.polygon_ne_m is not None and clipped.note.startswith("intersection of 2 inclusion zones, 1.4 m in")
+    assert all(math.hypot(n - 10.0, e - 5.0) <= 12.0 - 1.4 + 1e-6 for n, e in clipped.polygon_ne_m)
+    no_home = fence_area([], REF, (10.0, 5.0), alone, None, 0.6)
+    assert no_home.outcome is FenceOutcome.NO_FENCE and no_home.provisional  # placed once HOME_POSITION comes
+
+
+def test_a_fence_switched_off_is_none_or_not_used() -> None:
+    off = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_ENABLE": 0.0})
+    assert fence_area([], REF, (10.0, 5.0), off).outcome is FenceOutcome.NO_FENCE  # nothing uploaded either
+    uploaded = fence_area(_polygon(L_SHAPE), REF, (10.0, 5.0), off)
+    assert uploaded.outcome is FenceOutcome.NOT_USED and uploaded.note.startswith("FENCE_ENABLE 0")
+
+
+def test_goals_above_the_fences_ceiling_are_refused() -> None:
+    high = Route.point(0.0, 0.0, -99.0, source="test")
+    bounds = FenceBounds(98.0, None)
+    why = route_outside_limits(high, None, max_altitude_m=120.0, max_distance_m=0.0, fence=bounds)
+    assert why == "waypoint 0 is 99 m above home (the fence's ceiling less its margin = 98)"
+    assert route_outside_limits(high, None, max_altitude_m=120.0, max_distance_m=0.0) is None
+
+
+def test_the_reader_reads_the_parameters_each_time_and_falls_back_without_them() -> None:
+    """Parameters read at every poll: switching the fence off takes it out, on again puts it back. An autopilot
+    that does not answer them: every uploaded zone is used, and the note says why."""
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    t = _answer(reader, _polygon(L_SHAPE), 0.0)
+    assert _last(results).outcome is FenceOutcome.USED
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0, ENFORCED | {"FENCE_ENABLE": 0.0})
+    assert _last(results).outcome is FenceOutcome.NOT_USED and reader.changes == 1
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0)
+    assert _last(results).outcome is FenceOutcome.USED and reader.changes == 2
+    assert reader.summary()["limits"] == "FENCE_MARGIN 0 m"
+    silent: list[FenceArea] = []
+    reader = _reader(5.0, silent)
+    t = 0.0
+    reader.due(t)
+    while reader.download.stage.value == "idle" and t < 10.0:  # nobody answers the parameters
+        t += 0.1
+        reader.due(t)
+    assert reader.limits == "fence parameters not read (no FENCE_ENABLE after 6 requests)"
+    reader.on_record(MissionCount(src=AP, target_system=1, target_component=191, count=0, mission_type=FENCE))
+    for _ in range(3):
+        t += 0.1
+        reader.due(t)
+    assert silent[-1].outcome is FenceOutcome.NO_FENCE
+
+
+def test_the_reader_places_the_circle_round_home_once_home_is_heard() -> None:
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    circle = ENFORCED | {"FENCE_TYPE": 6.0, "FENCE_RADIUS": 12.0}
+    t = _answer(reader, _polygon(L_SHAPE), 0.0, circle)
+    assert results[-1].provisional and "no HOME_POSITION yet" in results[-1].note
+    lat, lon = _latlon_e7(10.0, 5.0)
+    reader.on_record(HomePosition(src=AP, latitude=lat, longitude=lon, altitude=584000))
+    _answer(reader, _polygon(L_SHAPE), t + 5.0, circle)
+    last = results[-1]
+    assert not last.provisional and last.polygon_ne_m is not None and last.note.startswith("intersection of 2")
+    assert all(inside_area(last.polygon_ne_m, n, e) for n, e in [(10.0, 5.0), (15.0, 2.0)])
+    _give_params(reader, ENFORCED)  # no read running: nothing happens
+    assert reader.param_read.values == circle

@@ -1,0 +1,86 @@
+"""The autopilot's fence parameters read over real loopback MAVLink from the bundled simulator (PARAM_REQUEST_READ,
+HOME_POSITION): ArduCopter's defaults move the yard's edges in by the margin, clip it to the circle round home and
+refuse goals above the ceiling; a fence switched off in flight is taken out and put back; PX4's circle round home
+refuses goals beyond it."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import pytest
+from shapely.geometry import Polygon
+
+from apf_companion.fence import FenceOutcome
+from apf_companion.goal import Route
+from tests.conftest import HANG_S, until
+from tests.service.test_service_fence import YARD, yard_flight
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+
+async def test_arducopters_default_fence_parameters_shape_the_area_and_the_goals() -> None:
+    """FENCE_TYPE 7, FENCE_MARGIN 2 m, FENCE_RADIUS 300 m, FENCE_ALT_MAX 100 m (the simulator switches the fence
+    on when it serves one): the L moved in by 2 - C = 1.4 m, clipped to the circle round home (far outside it);
+    a goal above 98 m is refused, one outside the circle too; the goal in the yard is taken."""
+    assert YARD.area_ne_m is not None and YARD.goal_ne_m is not None
+    async with yard_flight(YARD.area_ne_m, sim_params={}) as (svc, sim):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.result is not None, HANG_S, "the fence read")
+        result = fence.result
+        assert result is not None and result.outcome is FenceOutcome.USED, result
+        assert result.note.startswith("intersection of 2 inclusion zones, 1.4 m in from its edges")
+        assert result.note.endswith("FENCE_MARGIN 2 m, circle of 300 m round home, ceiling 100 m")
+        area = svc.planner.params.nav_area_ne_m
+        assert isinstance(area, tuple) and len(area) == 6
+        exact = Polygon(YARD.area_ne_m).buffer(-1.4)
+        assert exact.buffer(0.02).covers(Polygon(area)) and Polygon(area).area >= 0.99 * exact.area
+        assert fence.bounds.ceiling_m == 98.0 and fence.bounds.home_circle is not None
+        north, east, radius = fence.bounds.home_circle
+        assert math.hypot(north, east) < 0.05 and radius == pytest.approx(298.6)  # home: the local origin
+        now = svc.clock.now()
+        refused = svc.counters.bad_goals
+        assert not svc.set_route(Route.point(*YARD.goal_ne_m, -99.0, source="test"), now)  # above the ceiling
+        assert not svc.set_route(Route.point(-3.0, 0.0, -5.0, source="test"), now)  # in the margin: outside the area
+        assert svc.counters.bad_goals == refused + 2
+        assert svc.set_route(Route.point(*YARD.goal_ne_m, -5.0, source="test"), now)
+        status = svc.reporter.status_dict(svc.clock.now())["fence"]
+        assert status["limits"] == "FENCE_MARGIN 2 m, circle of 300 m round home, ceiling 100 m"
+        assert status["ceiling_m"] == 98.0
+        assert sim.engine.params["FENCE_ENABLE"] == 1.0
+
+
+async def test_a_fence_switched_off_in_flight_is_taken_out_and_put_back(caplog: pytest.LogCaptureFixture) -> None:
+    """FENCE_ENABLE 0 (a ground station's PARAM_SET, a switch): ArduPilot's planners then plan without a fence,
+    and so does the service at its next read, saying so; switched on again, the fence is back."""
+    assert YARD.area_ne_m is not None
+    caplog.set_level(logging.INFO, logger="apf_companion")
+    async with yard_flight(YARD.area_ne_m, fence_poll_s=1.0) as (svc, sim):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: svc.planner.params.nav_area_ne_m is not None, HANG_S, "the fence in service")
+        sim.engine.params.set("FENCE_ENABLE", 0.0)
+        await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "the fence taken out")
+        result = fence.result
+        assert result is not None and result.outcome is FenceOutcome.NOT_USED
+        assert result.note == "FENCE_ENABLE 0: ArduPilot does not enforce its fence"
+        said = [getattr(r, "reason", None) for r in caplog.records if r.getMessage() == "fence.not_used"]
+        assert said == ["FENCE_ENABLE 0: ArduPilot does not enforce its fence"]  # and the same in a STATUSTEXT
+        sim.engine.params.set("FENCE_ENABLE", 1.0)
+        await until(lambda: svc.planner.params.nav_area_ne_m is not None, HANG_S, "the fence back")
+        assert fence.changes == 2 and fence.failures == 0
+
+
+async def test_px4s_circle_round_home_refuses_goals_beyond_it() -> None:
+    """PX4 with GF_MAX_HOR_DIST 40 m and no uploaded fence: no area to plan over (PX4 has no margin parameter),
+    goals further than 40 m from home refused, nearer ones flown."""
+    async with yard_flight(None, profile="px4", sim_params={"GF_MAX_HOR_DIST": 40.0}) as (svc, _):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.bounds.home_circle is not None, HANG_S, "the circle round home")
+        assert svc.planner.params.nav_area_ne_m is None
+        assert fence.result is not None and fence.result.note.startswith("circle of 40 m round home")
+        now = svc.clock.now()
+        assert not svc.set_route(Route.point(41.0, 0.0, -5.0, source="test"), now)
+        assert svc.set_route(Route.point(39.0, 0.0, -5.0, source="test"), now)
