@@ -95,6 +95,9 @@ class FlyOptions:
     #: The vehicle serves ``area_ne_m`` and the keep-out zones as its fence, and the service reads them
     #: (``planner.fence_area``) instead of finding them in its config.
     fence: bool = False
+    #: ``NAME=VALUE`` parameter overrides for the simulated autopilot (``apf-sim vehicle --param``), e.g. its
+    #: fence's FENCE_MARGIN.
+    vehicle_params: tuple[str, ...] = ()
     alt_m: float = 5.0
     speedup: float = 5.0
     rate_hz: float = 10.0
@@ -291,6 +294,8 @@ def _sim_argv(opt: FlyOptions, port: int, gcs_port: int) -> list[str]:
     ]
     if opt.noise_m > 0:
         argv += ["--param", f"SIM_POS_NOISE={opt.noise_m}"]
+    for item in opt.vehicle_params:
+        argv += ["--param", item]
     if opt.signing_key is not None:
         argv += ["--signing-key", str(opt.signing_key.resolve())]
     if opt.world is not None:
@@ -735,6 +740,14 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
         help="the vehicle serves the world file's flying area as its fence, and the service reads it from there "
         "(planner.fence_area) instead of from its config",
     )
+    p.add_argument(
+        "--vehicle-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a parameter of the simulated autopilot (apf-sim vehicle --param), e.g. FENCE_MARGIN=0.5 (ArduPilot's "
+        "default is 2 m, which closes a gap within 2 m of a fence drawn on the walls); repeatable",
+    )
     # "--start -12.0,0.0": argparse takes a word starting with "-" for an option unless it looks like a negative
     # number, and its pattern (argparse._ActionsContainer) has no comma; widen it to N,E pairs for this parser.
     p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d*\.?\d*,-?\d*\.?\d*$")
@@ -846,6 +859,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         area_ne_m=route.area_ne_m,
         keepouts_ne_m=route.keepouts_ne_m,
         fence=args.fence,
+        vehicle_params=tuple(args.vehicle_param),
         alt_m=args.alt,
         speedup=args.speedup,
         rate_hz=args.rate,

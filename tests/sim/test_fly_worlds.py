@@ -109,6 +109,23 @@ def test_fly_fence_serves_the_area_from_the_vehicle_instead_of_the_config(tmp_pa
     assert proc.returncode != 0 and "--fence: the world has no flying area" in proc.stderr
 
 
+def test_fly_passes_vehicle_parameters_on() -> None:
+    """``--vehicle-param FENCE_MARGIN=0.5`` reaches the simulated autopilot as ``--param``, which checks it."""
+    args = build_parser().parse_args(["fly", "--world", "wall-gap", "--fence", "--vehicle-param", "FENCE_MARGIN=0.5"])
+    r = _route(args)
+    opt = FlyOptions(
+        world="wall-gap", start_ne_m=r.start_ne_m, goal_ne_m=r.goal_ne_m, area_ne_m=r.area_ne_m, fence=True,
+        vehicle_params=tuple(args.vehicle_param),
+    )  # fmt: skip
+    argv = _sim_argv(opt, 14550, 14551)
+    assert argv[argv.index("FENCE_MARGIN=0.5") - 1] == "--param"
+    proc = subprocess.run(
+        [sys.executable, "-m", "sim.cli", "vehicle", "--param", "FENCE_MARGIN=11", "--duration", "0.1"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert proc.returncode != 0 and "FENCE_MARGIN 11 not in [0, 10]" in proc.stderr
+
+
 @pytest.mark.slow
 def test_fly_world_from_a_negative_start(tmp_path: Path) -> None:
     out = tmp_path / "out"
