@@ -206,7 +206,11 @@ class FenceReader:
         self.reads += 1
         items = tuple(self.download.items)
         limits = self.limits if isinstance(self.limits, FenceLimits) else None
-        inputs = (items, limits, self.home, self._clearance_m())
+        clearance = self._clearance_m()
+        # What the result depends on: home only with a circle round it (ArduCopter moves home when it arms), the
+        # margin's inset rather than C (a PARAM_SET of C that leaves the inset at 0 changes nothing).
+        home = self.home if limits is not None and limits.home_radius_m is not None else None
+        inputs = (items, limits, home, 0.0 if limits is None else max(limits.margin_m - clearance, 0.0))
         r = self.result
         retry = r is not None and (r.outcome is FenceOutcome.NOT_USED or r.provisional)
         if inputs == self._inputs and not retry:
@@ -216,8 +220,8 @@ class FenceReader:
             if self.result is None:
                 self._tell(FenceArea(FenceOutcome.NOT_USED, "no global reference to place the fence"))
             return
-        result = fence_area(items, *where, limits, self.home, inputs[3])
-        if isinstance(self.limits, str) and result.outcome is not FenceOutcome.NO_FENCE:
+        result = fence_area(items, *where, limits, home, clearance)
+        if isinstance(self.limits, str) and result.outcome is FenceOutcome.USED:
             result = dataclasses.replace(result, note=f"{result.note}; {self.limits}: every uploaded zone used")
         if inputs == self._inputs and result == self.result:  # still not used, or provisional, for the same reason
             return

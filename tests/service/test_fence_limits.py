@@ -249,3 +249,25 @@ def test_the_reader_places_the_circle_round_home_once_home_is_heard() -> None:
     assert all(inside_area(last.polygon_ne_m, n, e) for n, e in [(10.0, 5.0), (15.0, 2.0)])
     _give_params(reader, ENFORCED)  # no read running: nothing happens
     assert reader.param_read.values == circle
+
+
+def test_home_moving_matters_only_to_a_circle_round_it() -> None:
+    """ArduCopter sets home again when it arms: without a circle round home nothing is told; with one, the
+    circle moves with it."""
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    reader.on_record(HomePosition(src=AP, latitude=1, longitude=2, altitude=0))
+    t = _answer(reader, _polygon(L_SHAPE), 0.0)
+    reader.on_record(HomePosition(src=AP, latitude=3, longitude=4, altitude=0))
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0)
+    assert len(results) == 1 and reader.changes == 0
+    circle = ENFORCED | {"FENCE_TYPE": 6.0, "FENCE_RADIUS": 12.0}
+    reader.on_record(
+        HomePosition(src=AP, latitude=_latlon_e7(10.0, 5.0)[0], longitude=_latlon_e7(10.0, 5.0)[1], altitude=0)
+    )
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0, circle)
+    moved = _latlon_e7(12.0, 5.0)
+    reader.on_record(HomePosition(src=AP, latitude=moved[0], longitude=moved[1], altitude=0))
+    _answer(reader, _polygon(L_SHAPE), t + 5.0, circle)
+    circle_now = _last(results).bounds.home_circle
+    assert reader.changes == 2 and circle_now is not None and circle_now[0] == pytest.approx(12.0, abs=0.02)
