@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.fenceclip import grown_keepout, inclusion_intersection
+from apf_companion.fenceclip import grown_keepout, inclusion_area
 from apf_companion.fencelimits import FenceLimits
 from apf_companion.goal import FenceBounds, GlobalReference, ne_from_global
 from apf_companion.planning import KeepOuts, PolygonNE, inside_area, polygon_problem
@@ -200,7 +200,7 @@ def fence_area(
     if limits is not None and not limits.zones:
         zones = []
     inset = 0.0 if limits is None else max(limits.margin_m - clearance_m, 0.0)
-    circle = None
+    circle, bound = None, None
     if limits is not None and limits.home_radius_m is not None:
         if home is None:
             notes.append("no HOME_POSITION yet to place the circle round home")
@@ -209,30 +209,41 @@ def fence_area(
             centre = FenceItem(seq=-1, command=_CIRCLE_IN, param1=limits.home_radius_m, x=home[0], y=home[1])
             north, east = ne_from_global(reference, home[0] * _DEG_E7, home[1] * _DEG_E7)
             circle = (north, east, limits.home_radius_m - inset)
-            if any(z.inclusion for z in zones):  # alone it is no area: hundreds of metres across (300 m default)
-                zones.append(_Zone(True, True, (centre,)))
+            bound = _Zone(True, True, (centre,)).polygon(reference)
     ceiling = None if limits is None else limits.ceiling_m
     if not zones and ceiling is None and circle is None:
         note = "; ".join(["the autopilot has no fence", *notes])
         return FenceArea(FenceOutcome.NO_FENCE, note, provisional=provisional)
-    area = _used(zones, reference, vehicle_ne_m, inset, ceiling, notes, provisional)
+    union = limits is not None and limits.union
+    area = _used(zones, reference, vehicle_ne_m, _Combine(inset, union, bound), ceiling, notes, provisional)
     if area.outcome is not FenceOutcome.USED:
         return area
-    if circle is not None and not any(z.inclusion for z in zones):
+    if circle is not None and not any(z.inclusion for z in zones):  # alone no area: 600 m across by default
         area = dataclasses.replace(area, note=f"{area.note}; goals within the circle round home")
     return dataclasses.replace(area, bounds=FenceBounds(ceiling, circle))
+
+
+@dataclass(frozen=True, slots=True)
+class _Combine:
+    """How the inclusion zones make the area: moved in by ``inset_m`` [m], their ``union`` (else intersection),
+    clipped to ``bound`` (the circle round home's 32-gon) when there is one."""
+
+    inset_m: float = 0.0
+    union: bool = False
+    bound: PolygonNE | None = None
 
 
 def _used(
     zones: list[_Zone],
     reference: GlobalReference,
     vehicle_ne_m: tuple[float, float],
-    inset_m: float,
+    how: _Combine,
     ceiling_m: float | None,
     notes: list[str],
     provisional: bool,
 ) -> FenceArea:
-    """The area of fence zones that are enforced, moved in (keep-outs out) by ``inset_m``, or why it is not used."""
+    """The area of fence zones that are enforced, moved in (keep-outs out) by the margin's inset, or why it is
+    not used."""
     inclusions = [z for z in zones if z.inclusion]
     exclusions = [z.polygon(reference) for z in zones if not z.inclusion]
     problems = [p for p in map(polygon_problem, exclusions) if p is not None]
@@ -240,12 +251,12 @@ def _used(
         return _not_used(f"an exclusion zone is not {problems[0]}")
     plural = "s" if len(exclusions) != 1 else ""
     said = [f"{len(exclusions)} exclusion zone{plural} as keep-out zone{plural}"] if exclusions else []
-    keepouts, kept = _grown(exclusions, inset_m, vehicle_ne_m)
+    keepouts, kept = _grown(exclusions, how.inset_m, vehicle_ne_m)
     if not kept:
         said.append("an exclusion zone's margin not kept yet (the vehicle is within it)")
     polygon = None
     if inclusions:
-        area = _inclusion_area(inclusions, reference, vehicle_ne_m, inset_m)
+        area = _inclusion_area(inclusions, reference, vehicle_ne_m, how)
         if isinstance(area, str):
             return _not_used(area)
         polygon, note, kept_in = area
@@ -277,30 +288,39 @@ def _grown(zones: list[PolygonNE], grow_m: float, vehicle_ne_m: tuple[float, flo
 
 
 def _inclusion_area(
-    inclusions: Sequence[_Zone], reference: GlobalReference, vehicle_ne_m: tuple[float, float], inset_m: float
+    inclusions: Sequence[_Zone], reference: GlobalReference, vehicle_ne_m: tuple[float, float], how: _Combine
 ) -> tuple[PolygonNE, str, bool] | str:
     """The flying area of the inclusion zones, what it is and whether the margin is kept; or why there is none:
-    one zone's polygon, or the piece of several zones' intersection that holds the vehicle, moved in by
-    ``inset_m``. With the vehicle within the margin of an edge, the area without the margin (kept: False)."""
+    one zone's polygon, or the piece of several zones' intersection (union) that holds the vehicle, clipped to the
+    circle round home and moved in by the inset. With the vehicle within the margin of an edge, the area without
+    the margin (kept: False)."""
     polygons = [z.polygon(reference) for z in inclusions]
     problems = [p for p in map(polygon_problem, polygons) if p is not None]
     if problems:
         return f"an inclusion zone is not {problems[0]}"
-    what = (
-        f"inclusion {inclusions[0].kind}" if len(polygons) == 1 else f"intersection of {len(polygons)} inclusion zones"
-    )
-    if inset_m > 0.0:
-        moved = inclusion_intersection(polygons, vehicle_ne_m, inset_m)
+    n = len(polygons) + (how.bound is not None)
+    if n == 1:
+        what = f"inclusion {inclusions[0].kind}"
+    elif how.union and len(polygons) > 1:
+        what = f"union of {len(polygons)} inclusion zones{' within the circle round home' if how.bound else ''}"
+    else:
+        what = f"intersection of {n} inclusion zones"
+
+    def combined(inset_m: float) -> PolygonNE | str:
+        return inclusion_area(polygons, vehicle_ne_m, inset_m, union=how.union, bound=how.bound)
+
+    if how.inset_m > 0.0:
+        moved = combined(how.inset_m)
         if not isinstance(moved, str):
-            return moved, f"{what}, {inset_m:.2g} m in from its edges, {len(moved)} vertices", True
-    if len(polygons) > 1:
-        clipped = inclusion_intersection(polygons, vehicle_ne_m)
+            return moved, f"{what}, {how.inset_m:.2g} m in from its edges, {len(moved)} vertices", True
+    if n > 1:
+        clipped = combined(0.0)
         if isinstance(clipped, str):
             return clipped
-        return clipped, f"{what}, {len(clipped)} vertices", inset_m <= 0.0
+        return clipped, f"{what}, {len(clipped)} vertices", how.inset_m <= 0.0
     if not inside_area(polygons[0], *vehicle_ne_m):
         return "the vehicle is outside the inclusion zone"
-    return polygons[0], f"{what} of {len(polygons[0])} vertices", inset_m <= 0.0
+    return polygons[0], f"{what} of {len(polygons[0])} vertices", how.inset_m <= 0.0
 
 
 def _not_used(reason: str) -> FenceArea:

@@ -1,10 +1,11 @@
-"""The intersection of a fence's inclusion zones, as one polygon for bapf-nav's flying area (local NED [m]).
+"""The intersection (or union) of a fence's inclusion zones, as one polygon for bapf-nav's flying area (local NED
+[m]), and its exclusion zones grown by the fence's margin.
 
 ArduPilot keeps the vehicle inside every inclusion zone (``libraries/AC_Fence/AC_PolyFence_loader.cpp``,
 ``breached``: outside any one of them is a breach), unless FENCE_OPTIONS bit 1 asks for their union; PX4 keeps it
 inside every one too (``src/modules/navigator/geofence.cpp``, ``isInsidePolygonOrCircle`` ANDs every zone). The
-intersection is the area both allow. Under the union option it is a part of the allowed area, so planning over it
-never lets the vehicle where the fence would not (it may refuse goals the union allows).
+intersection is the area both allow; under the union option, the union. The circle round home (ArduPilot's
+FENCE_TYPE circle, PX4's GF_MAX_HOR_DIST) is checked apart from the zones, so it clips either (``bound``).
 
 Clipping concave polygons against each other is a job for a geometry engine (collinear edges, touching vertices,
 results in several pieces): shapely (GEOS) does it. Of several pieces, the one that holds the vehicle is the area:
@@ -25,38 +26,47 @@ from shapely.geometry import Point, Polygon
 from apf_companion.planning import PolygonNE
 from apf_companion.planning.params import MAX_AREA_VERTICES
 
-__all__ = ["grown_keepout", "inclusion_intersection"]
+__all__ = ["grown_keepout", "inclusion_area"]
 
 #: Shrink-and-simplify tolerances tried, in turn, for a piece with too many vertices [m].
 SIMPLIFY_STEPS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
 
 
-def inclusion_intersection(
-    zones: Sequence[PolygonNE], vehicle_ne_m: tuple[float, float], inset_m: float = 0.0
+def inclusion_area(
+    zones: Sequence[PolygonNE],
+    vehicle_ne_m: tuple[float, float],
+    inset_m: float = 0.0,
+    *,
+    union: bool = False,
+    bound: PolygonNE | None = None,
 ) -> PolygonNE | str:
-    """The piece of the zones' intersection, moved in by ``inset_m`` [m] (the fence's margin), that holds the
-    vehicle, as a polygon of at most ``MAX_AREA_VERTICES`` vertices inside it; or why there is none. The zones are
-    valid simple polygons (``polygon_problem``). The inset's mitre joins cut reflex corners deeper than a round
-    offset would: never wider than the margin allows."""
+    """The piece of the zones' intersection (their ``union``), clipped to ``bound`` and moved in by ``inset_m``
+    [m] (the fence's margin), that holds the vehicle, as a polygon of at most ``MAX_AREA_VERTICES`` vertices inside
+    it; or why there is none. The zones are valid simple polygons (``polygon_problem``). The inset's mitre joins
+    cut reflex corners deeper than a round offset would: never wider than the margin allows."""
+    what = "union" if union else "intersection"
     try:
-        common = shapely.intersection_all([Polygon(zone) for zone in zones])
+        shapes = [Polygon(zone) for zone in zones]
+        common = shapely.union_all(shapes) if union else shapely.intersection_all(shapes)
+        if bound is not None:
+            common = common.intersection(Polygon(bound))
         if inset_m > 0.0:
             common = common.buffer(-inset_m, join_style="mitre")
     except shapely.errors.GEOSException as err:  # a zone GEOS cannot take (polygon_problem passed it)
-        return f"the inclusion zones cannot be intersected ({err})"
+        return f"the inclusion zones cannot be {'united' if union else 'intersected'} ({err})"
     pieces = [g for g in getattr(common, "geoms", [common]) if isinstance(g, Polygon) and g.area > 0.0]
     if not pieces:
         return "the inclusion zones do not overlap"
     vehicle = Point(vehicle_ne_m)
     holding = [p for p in pieces if p.covers(vehicle)]
     if not holding:
-        return "the vehicle is outside the inclusion zones' intersection"
+        return f"the vehicle is outside the inclusion zones' {what}"
     piece = holding[0]
-    if piece.interiors:  # cannot happen for simple zones (their intersection has no holes); not planned over
-        return "the inclusion zones' intersection has a hole"
+    if piece.interiors:  # an intersection of simple zones has none; a union may (zones round a courtyard)
+        return f"the inclusion zones' {what} has a hole"
     fitted = _fit(piece, vehicle)
     if fitted is None:
-        return f"the inclusion zones' intersection needs more than {MAX_AREA_VERTICES} vertices"
+        return f"the inclusion zones' {what} needs more than {MAX_AREA_VERTICES} vertices"
     return fitted
 
 

@@ -1,25 +1,33 @@
-"""The autopilot's fence parameters: whether it enforces its fence, how far its own planners keep from it, its
-circle round home and its ceiling. Read over PARAM_REQUEST_READ (``ParamRead``, a state machine on an injected
-clock) and turned into ``FenceLimits`` (``fence_limits``), which ``apf_companion.fence`` applies to the zones.
+"""The autopilot's fence parameters: which of its fences are configured and switched on, how far its own planners
+keep from them, its circle round home, its ceiling and how its inclusion zones combine. Read over
+PARAM_REQUEST_READ (``ParamRead``, a state machine on an injected clock) and turned into ``FenceLimits``
+(``fence_limits``), which ``apf_companion.fence`` applies to the zones.
 
 ArduPilot (``libraries/AC_Fence/AC_Fence.cpp``):
-- ``FENCE_ENABLE`` is the master switch: while it is 0, ``get_enabled_fences`` gives no fence, and ArduPilot's own
-  path planners plan without one (``libraries/AC_Avoidance/AP_OABendyRuler.cpp``, ``calc_margin_from_*``). So does
-  bapf-nav. The parameters are read again at every fence read (``planner.fence_poll_s``), so a fence switched on
-  in flight (a switch, or auto-enable after takeoff) is in service within one poll.
-- ``FENCE_TYPE`` (bitmask): 1 maximum altitude, 2 a circle centred on home, 4 the uploaded inclusion/exclusion
-  polygons and circles, 8 minimum altitude (not used: the planner does not descend).
-- ``FENCE_RADIUS`` [m]: the circle round home. ``FENCE_ALT_MAX`` [m above home]: the ceiling.
-- ``FENCE_MARGIN`` [m]: how far the autopilot's planners keep from every fence edge (the path's distance to a
-  polygon minus the margin, ``AP_OABendyRuler.cpp``; the circle's radius minus the margin; the ceiling minus the
-  margin, ``get_safe_alt_max``). bapf-nav keeps the same: the zones' edges move in by the part of the margin
-  that its own clearance C does not already keep.
+- ``FENCE_TYPE`` (bitmask) says which fences are configured: 1 maximum altitude, 2 a circle of ``FENCE_RADIUS``
+  [m] round home, 4 the uploaded inclusion/exclusion polygons and circles, 8 minimum altitude (not used: the
+  planner does not descend).
+- The uploaded zones are used whenever FENCE_TYPE configures them, whatever ``FENCE_ENABLE`` says: the user
+  drew them, and since ArduPilot 4.6 a fence is also switched on at run time without that parameter changing
+  (an RC switch, MAV_CMD_DO_FENCE_ENABLE, ``FENCE_AUTOENABLE`` on arming: "these changes are not persisted").
+  Planning inside a fence that is not switched on is never unsafe.
+- The circle round home and the ceiling (``FENCE_ALT_MAX`` [m above home]) are used only with ``FENCE_ENABLE``
+  1: every Copter has them configured by default (FENCE_TYPE 7, 300 m, 100 m), so without the switch they say
+  nothing about this flight, and a 1 km transect with the fence off must not be refused.
+- ``FENCE_MARGIN`` [m]: how far the autopilot's planners keep from every fence (the path's distance to a polygon
+  minus the margin, ``libraries/AC_Avoidance/AP_OABendyRuler.cpp``; the ceiling less the margin,
+  ``get_safe_alt_max``). ``FENCE_MARGIN_XY`` (4.6+, read when the autopilot has it) replaces it horizontally when
+  positive (``get_margin_ne_m``). bapf-nav keeps the same: the zones' edges move in by the part of the margin that
+  its own clearance C does not already keep.
+- ``FENCE_OPTIONS`` bit 1 (read when the autopilot has it): the allowed area is the union of the inclusion zones
+  instead of their intersection (``AC_PolyFence_loader.cpp``); the circle round home still bounds it.
 PX4 (``src/modules/navigator/geofence_params.c``):
-- ``GF_ACTION`` 0 (None): a breach does nothing, so the fence is not enforced.
-- ``GF_MAX_HOR_DIST`` [m from home] and ``GF_MAX_VER_DIST`` [m above home]: 0 = off.
-- PX4 has no margin parameter: the zones keep bapf-nav's clearance C only.
+- ``GF_MAX_HOR_DIST`` [m from home] and ``GF_MAX_VER_DIST`` [m above home], 0 = off (the default): a value is
+  the user's own limit, used whatever ``GF_ACTION`` does on a breach. The uploaded zones are always used. PX4 has
+  no margin parameter: the zones keep bapf-nav's clearance C only.
 
-Values come as floats; ArduPilot casts integer parameters to float, PX4 sends an INT32's bytes in the float
+The parameters are read again at every fence read (``planner.fence_poll_s``). Values come as floats; ArduPilot
+casts integer parameters to float, PX4 sends an INT32's bytes in the float
 (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE): ``param_float`` undoes that.
 """
 
@@ -35,18 +43,24 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import Autopilot
 
-__all__ = ["FENCE_PARAMS", "FenceLimits", "ParamRead", "ReadStage", "fence_limits", "param_float"]
+__all__ = ["FENCE_PARAMS", "OPTIONAL_PARAMS", "FenceLimits", "ParamRead", "ReadStage", "fence_limits", "param_float"]
 
-#: The parameters read, per autopilot.
+#: The parameters read, per autopilot: the ones the read needs, and ones an autopilot may not have (newer
+#: firmware): those that stay unanswered are taken as absent.
 FENCE_PARAMS: dict[Autopilot, tuple[str, ...]] = {
     Autopilot.ARDUPILOT: ("FENCE_ENABLE", "FENCE_TYPE", "FENCE_RADIUS", "FENCE_ALT_MAX", "FENCE_MARGIN"),
-    Autopilot.PX4: ("GF_ACTION", "GF_MAX_HOR_DIST", "GF_MAX_VER_DIST"),
+    Autopilot.PX4: ("GF_MAX_HOR_DIST", "GF_MAX_VER_DIST"),
+}
+OPTIONAL_PARAMS: dict[Autopilot, tuple[str, ...]] = {
+    Autopilot.ARDUPILOT: ("FENCE_MARGIN_XY", "FENCE_OPTIONS"),
+    Autopilot.PX4: (),
 }
 
 # AC_Fence.h: the FENCE_TYPE bits
 _TYPE_ALT_MAX = 1
 _TYPE_CIRCLE = 2
 _TYPE_POLYGON = 4
+_OPTION_UNION = 2  # FENCE_OPTIONS bit 1
 
 _INT_TYPES = (
     mavlink.MAV_PARAM_TYPE_INT8,
@@ -71,11 +85,12 @@ class FenceLimits:
     """What the autopilot enforces of its fence, as the planner takes it.
 
     Attributes:
-        zones: the uploaded zones (polygons and circles) are enforced.
+        zones: the uploaded zones (polygons and circles) are configured.
         margin_m: the autopilot's planners keep this far from every fence edge [m] (0 on PX4).
-        home_radius_m: a circle of this radius round home is enforced [m] (moved in by the margin as every zone
-            edge is, ``apf_companion.fence``), or None.
+        home_radius_m: a circle of this radius round home bounds the flight [m] (moved in by the margin as every
+            zone edge is, ``apf_companion.fence``), or None.
         ceiling_m: the highest goal above home [m] (already less the margin), or None.
+        union: the inclusion zones' union is allowed (ArduPilot FENCE_OPTIONS bit 1), not their intersection.
         note: what was read, said with the fence's outcome.
     """
 
@@ -84,6 +99,7 @@ class FenceLimits:
     home_radius_m: float | None
     ceiling_m: float | None
     note: str
+    union: bool = False
 
     @property
     def enforced(self) -> bool:
@@ -91,28 +107,34 @@ class FenceLimits:
 
 
 def fence_limits(profile: Autopilot, values: Mapping[str, float]) -> FenceLimits | str:
-    """The limits of the values of ``FENCE_PARAMS[profile]`` (module docstring), or why they are unusable."""
+    """The limits of the values of ``FENCE_PARAMS[profile]`` and those of ``OPTIONAL_PARAMS[profile]`` that the
+    autopilot has (module docstring), or why they are unusable."""
     bad = [name for name in FENCE_PARAMS[profile] if not math.isfinite(values.get(name, math.nan))]
+    bad += [name for name in OPTIONAL_PARAMS[profile] if name in values and not math.isfinite(values[name])]
     if bad:
         return f"{bad[0]} is {values.get(bad[0])!r}"
     if profile is Autopilot.PX4:
-        if values["GF_ACTION"] == 0:
-            return FenceLimits(False, 0.0, None, None, "GF_ACTION 0: PX4 does not enforce its fence")
         hor, ver = values["GF_MAX_HOR_DIST"], values["GF_MAX_VER_DIST"]
         return FenceLimits(True, 0.0, hor if hor > 0.0 else None, ver if ver > 0.0 else None, _px4_note(hor, ver))
-    if values["FENCE_ENABLE"] == 0:
-        return FenceLimits(False, 0.0, None, None, "FENCE_ENABLE 0: ArduPilot does not enforce its fence")
-    kinds, margin = int(values["FENCE_TYPE"]), max(values["FENCE_MARGIN"], 0.0)
-    radius: float | None = values["FENCE_RADIUS"] if kinds & _TYPE_CIRCLE and values["FENCE_RADIUS"] > 0.0 else None
-    ceiling: float | None = values["FENCE_ALT_MAX"] - margin if kinds & _TYPE_ALT_MAX else None
-    said = [f"FENCE_MARGIN {margin:g} m"]
-    if radius is not None:
-        said.append(f"circle of {values['FENCE_RADIUS']:g} m round home")
+    kinds, on = int(values["FENCE_TYPE"]), values["FENCE_ENABLE"] != 0.0
+    margin_xy = values.get("FENCE_MARGIN_XY", 0.0)
+    margin = max(margin_xy if margin_xy > 0.0 else values["FENCE_MARGIN"], 0.0)
+    radius = values["FENCE_RADIUS"]
+    home_radius = radius if on and kinds & _TYPE_CIRCLE and radius > 0.0 else None
+    ceiling = values["FENCE_ALT_MAX"] - max(values["FENCE_MARGIN"], 0.0) if on and kinds & _TYPE_ALT_MAX else None
+    union = bool(int(values.get("FENCE_OPTIONS", 0.0)) & _OPTION_UNION)
+    said = [f"FENCE_MARGIN{'_XY' if margin_xy > 0.0 else ''} {margin:g} m"]
+    if home_radius is not None:
+        said.append(f"circle of {radius:g} m round home")
     if ceiling is not None:
         said.append(f"ceiling {values['FENCE_ALT_MAX']:g} m")
+    if not on and kinds & (_TYPE_CIRCLE | _TYPE_ALT_MAX):
+        said.append("FENCE_ENABLE 0: no circle round home or ceiling")
     if not kinds & _TYPE_POLYGON:
-        said.append("FENCE_TYPE without polygons: uploaded zones not enforced")
-    return FenceLimits(bool(kinds & _TYPE_POLYGON), margin, radius, ceiling, ", ".join(said))
+        said.append("FENCE_TYPE without polygons: uploaded zones not used")
+    if union:
+        said.append("FENCE_OPTIONS union of inclusion zones")
+    return FenceLimits(bool(kinds & _TYPE_POLYGON), margin, home_radius, ceiling, ", ".join(said), union)
 
 
 def _px4_note(radius: float, ceiling: float) -> str:
@@ -131,13 +153,23 @@ class ReadStage(enum.Enum):
 
 
 class ParamRead:
-    """Reads ``names`` by PARAM_REQUEST_READ: all asked at once, the unanswered ones again after ``timeout_s``, at
-    most ``retries`` times; an autopilot stays silent about a name it does not have, so that ends in FAILED."""
+    """Reads ``names`` and ``optional`` names by PARAM_REQUEST_READ: all asked at once, the unanswered ones again
+    after ``timeout_s``. An autopilot stays silent about a name it does not have: a needed name unanswered after
+    ``retries`` repeats ends the read FAILED; an optional one, after ``optional_retries``, is taken as absent."""
 
-    def __init__(self, names: tuple[str, ...], timeout_s: float = 1.0, retries: int = 5) -> None:
+    def __init__(
+        self,
+        names: tuple[str, ...],
+        timeout_s: float = 1.0,
+        retries: int = 5,
+        optional: tuple[str, ...] = (),
+        optional_retries: int = 1,
+    ) -> None:
         self.names = names
+        self.optional = optional
         self.timeout_s = timeout_s
         self.retries = retries
+        self.optional_retries = optional_retries
         self.stage = ReadStage.IDLE
         self.values: dict[str, float] = {}
         self.reason = ""
@@ -157,16 +189,21 @@ class ParamRead:
         if self.stage is not ReadStage.RUNNING or now_s - self._sent_at < self.timeout_s:
             return ()
         missing = tuple(n for n in self.names if n not in self.values)
-        if self._tries > self.retries:
+        asking = self._tries <= self.optional_retries
+        optional = tuple(n for n in self.optional if n not in self.values) if asking else ()
+        if not missing and not optional:  # the optional ones unanswered: absent
+            self.stage = ReadStage.DONE
+            return ()
+        if missing and self._tries > self.retries:
             self.stage, self.reason = ReadStage.FAILED, f"no {missing[0]} after {self.retries + 1} requests"
             return ()
         self._tries += 1
         self._sent_at = now_s
-        return missing
+        return missing + optional
 
     def on_value(self, name: str, value: float) -> None:
         """A PARAM_VALUE from the autopilot (any asker's: the value is the same); other names are not ours."""
-        if self.stage is ReadStage.RUNNING and name in self.names:
+        if self.stage is ReadStage.RUNNING and (name in self.names or name in self.optional):
             self.values[name] = value
-            if len(self.values) == len(self.names):
+            if all(n in self.values for n in (*self.names, *self.optional)):
                 self.stage = ReadStage.DONE

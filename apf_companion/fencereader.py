@@ -34,7 +34,15 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.fence import FenceArea, FenceDownload, FenceItem, FenceOutcome, FenceStage, fence_area
-from apf_companion.fencelimits import FENCE_PARAMS, FenceLimits, ParamRead, ReadStage, fence_limits, param_float
+from apf_companion.fencelimits import (
+    FENCE_PARAMS,
+    OPTIONAL_PARAMS,
+    FenceLimits,
+    ParamRead,
+    ReadStage,
+    fence_limits,
+    param_float,
+)
 from apf_companion.goal import FenceBounds, GlobalReference
 from apf_companion.links.messages import FenceRecord, HomePosition, MissionCount, MissionItemInt, ParamValue, Source
 from apf_companion.outbox import Outbox
@@ -80,7 +88,9 @@ class FenceReader:
         #: Replaced when a PARAM_SET changes ``planner.fence_poll_s`` (APF_FENCE_POLL); ``due`` follows it at once.
         self.params = params
         self.download = FenceDownload(params.timeout_s, params.retries)
-        self.param_read = ParamRead(FENCE_PARAMS[params.profile], params.timeout_s, params.retries)
+        self.param_read = ParamRead(
+            FENCE_PARAMS[params.profile], params.timeout_s, params.retries, optional=OPTIONAL_PARAMS[params.profile]
+        )
         #: The last parameters read as limits, or why they could not be (None before the first read ended).
         self.limits: FenceLimits | str | None = None
         #: HOME_POSITION's latitude, longitude [1e-7 deg] (None until heard).

@@ -308,8 +308,17 @@ def test_the_reader_takes_only_fence_answers_addressed_to_it() -> None:
 
 
 AP = Source(1, 1)
-#: ArduPilot's fence parameters with the uploaded zones enforced and nothing else (no margin, circle, ceiling).
-ENFORCED = {"FENCE_ENABLE": 1.0, "FENCE_TYPE": 4.0, "FENCE_RADIUS": 300.0, "FENCE_ALT_MAX": 100.0, "FENCE_MARGIN": 0.0}
+#: ArduPilot's (4.6) fence parameters with the uploaded zones enforced and nothing else (no margin, circle,
+#: ceiling, union).
+ENFORCED = {
+    "FENCE_ENABLE": 1.0,
+    "FENCE_TYPE": 4.0,
+    "FENCE_RADIUS": 300.0,
+    "FENCE_ALT_MAX": 100.0,
+    "FENCE_MARGIN": 0.0,
+    "FENCE_MARGIN_XY": 0.0,
+    "FENCE_OPTIONS": 0.0,
+}
 
 
 def _give_params(reader: FenceReader, values: dict[str, float]) -> None:

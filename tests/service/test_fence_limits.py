@@ -19,7 +19,7 @@ from apf_companion.fence import FenceArea, FenceOutcome, fence_area
 from apf_companion.fenceclip import grown_keepout
 from apf_companion.fencelimits import FenceLimits, ParamRead, ReadStage, fence_limits, param_float
 from apf_companion.goal import FenceBounds, Route, route_outside_limits
-from apf_companion.links.messages import HomePosition, MissionCount
+from apf_companion.links.messages import HomePosition, MissionCount, MissionItemInt
 from apf_companion.planning import inside_area
 from tests.service.test_fence import (
     AP,
@@ -51,27 +51,36 @@ def _limits(profile: Autopilot, values: dict[str, float]) -> FenceLimits:
 
 
 def test_ardupilot_fence_parameters_say_what_is_enforced() -> None:
-    """AC_Fence.cpp: FENCE_ENABLE 0 enforces nothing; FENCE_TYPE's bits pick the ceiling (1), the circle round
-    home (2) and the uploaded zones (4); the ceiling kept is FENCE_ALT_MAX less FENCE_MARGIN."""
+    """AC_Fence.cpp: FENCE_TYPE's bits configure the ceiling (1), the circle round home (2) and the uploaded zones
+    (4). The zones are used whatever FENCE_ENABLE says (4.6 switches fences on at run time without it); the circle
+    and the ceiling, configured on every Copter by default, only with FENCE_ENABLE 1. The ceiling kept is
+    FENCE_ALT_MAX less FENCE_MARGIN; FENCE_MARGIN_XY, when positive, is the horizontal margin."""
     on = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS)
     assert on == FenceLimits(True, 2.0, 300.0, 98.0, "FENCE_MARGIN 2 m, circle of 300 m round home, ceiling 100 m")
     off = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_ENABLE": 0.0})
-    assert not off.enforced and off.note == "FENCE_ENABLE 0: ArduPilot does not enforce its fence"
+    assert (off.zones, off.home_radius_m, off.ceiling_m) == (True, None, None)
+    assert off.note == "FENCE_MARGIN 2 m, FENCE_ENABLE 0: no circle round home or ceiling"
     ceiling_only = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 1.0})
     assert (ceiling_only.zones, ceiling_only.home_radius_m, ceiling_only.ceiling_m) == (False, None, 98.0)
-    assert ceiling_only.enforced and "uploaded zones not enforced" in ceiling_only.note
+    assert ceiling_only.enforced and "uploaded zones not used" in ceiling_only.note
     assert _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 0.0}).enforced is False
+    assert _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 3.0, "FENCE_ENABLE": 0.0}).enforced is False
+    xy = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_MARGIN_XY": 3.0})
+    assert (xy.margin_m, xy.ceiling_m) == (3.0, 98.0) and xy.note.startswith("FENCE_MARGIN_XY 3 m")
+    union = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_OPTIONS": 3.0})
+    assert union.union and union.note.endswith("FENCE_OPTIONS union of inclusion zones")
     assert fence_limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_MARGIN": math.nan}) == "FENCE_MARGIN is nan"
+    assert fence_limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_OPTIONS": math.inf}) == "FENCE_OPTIONS is inf"
     assert fence_limits(Autopilot.ARDUPILOT, {"FENCE_ENABLE": 1.0}) == "FENCE_TYPE is None"
 
 
 def test_px4_geofence_parameters_say_what_is_enforced() -> None:
-    """geofence_params.c: GF_ACTION 0 does nothing on a breach; GF_MAX_HOR_DIST / GF_MAX_VER_DIST 0 are off."""
-    px4 = {"GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 0.0, "GF_MAX_VER_DIST": 0.0}
+    """geofence_params.c: GF_MAX_HOR_DIST / GF_MAX_VER_DIST 0 are off (the default); the uploaded zones always."""
+    px4 = {"GF_MAX_HOR_DIST": 0.0, "GF_MAX_VER_DIST": 0.0}
     assert _limits(Autopilot.PX4, px4) == FenceLimits(True, 0.0, None, None, "no circle, no ceiling")
     both = _limits(Autopilot.PX4, px4 | {"GF_MAX_HOR_DIST": 150.0, "GF_MAX_VER_DIST": 60.0})
     assert (both.home_radius_m, both.ceiling_m, both.margin_m) == (150.0, 60.0, 0.0)
-    assert _limits(Autopilot.PX4, px4 | {"GF_ACTION": 0.0}).enforced is False
+    assert both.note == "circle of 150 m round home, ceiling 60 m"
 
 
 def test_px4_integer_parameters_arrive_as_their_bytes() -> None:
@@ -99,6 +108,17 @@ def test_the_parameter_read_repeats_the_unanswered_and_gives_up() -> None:
     for t in (0.0, 1.0, 2.0):
         assert read.due(t) == ("A", "B", "C")
     assert read.due(3.0) == () and _stage(read) is ReadStage.FAILED and read.reason == "no A after 3 requests"
+
+
+def test_optional_parameters_an_older_autopilot_lacks_are_absent_after_two_requests() -> None:
+    """FENCE_MARGIN_XY and FENCE_OPTIONS (ArduPilot 4.6): an older firmware stays silent about them."""
+    read = ParamRead(("A",), timeout_s=1.0, retries=5, optional=("X", "Y"))
+    read.start()
+    assert read.due(0.0) == ("A", "X", "Y")
+    read.on_value("A", 1.0)
+    read.on_value("Y", 2.0)
+    assert read.due(1.0) == ("X",)
+    assert read.due(2.0) == () and _stage(read) is ReadStage.DONE and read.values == {"A": 1.0, "Y": 2.0}
 
 
 def _last(results: list[FenceArea]) -> FenceArea:
@@ -193,11 +213,36 @@ def test_the_circle_round_home_bounds_goals_and_clips_an_inclusion_zone() -> Non
     assert no_home.outcome is FenceOutcome.NO_FENCE and no_home.provisional  # placed once HOME_POSITION comes
 
 
-def test_a_fence_switched_off_is_none_or_not_used() -> None:
+def test_uploaded_zones_outlast_fence_enable_0_but_not_a_fence_type_without_them() -> None:
     off = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_ENABLE": 0.0})
-    assert fence_area([], REF, (10.0, 5.0), off).outcome is FenceOutcome.NO_FENCE  # nothing uploaded either
-    uploaded = fence_area(_polygon(L_SHAPE), REF, (10.0, 5.0), off)
-    assert uploaded.outcome is FenceOutcome.NOT_USED and uploaded.note.startswith("FENCE_ENABLE 0")
+    kept = fence_area(_polygon(L_SHAPE), REF, (10.0, 0.0), off, None, 0.6)
+    assert kept.outcome is FenceOutcome.USED and kept.polygon_ne_m is not None and kept.bounds == FenceBounds()
+    assert kept.note.endswith("FENCE_ENABLE 0: no circle round home or ceiling")
+    nothing = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_ENABLE": 0.0, "FENCE_TYPE": 3.0})
+    assert fence_area([], REF, (10.0, 5.0), nothing).outcome is FenceOutcome.NO_FENCE  # nothing uploaded either
+    uploaded = fence_area(_polygon(L_SHAPE), REF, (10.0, 5.0), nothing)
+    assert uploaded.outcome is FenceOutcome.NOT_USED and "uploaded zones not used" in uploaded.note
+
+
+def test_the_union_option_plans_over_the_union_within_the_circle_round_home() -> None:
+    """FENCE_OPTIONS bit 1: two overlapping squares become their union (an L-ish octagon), not their
+    intersection; the circle round home still clips it (AC_Fence checks it apart from the zones)."""
+    a = ((0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0))
+    b = ((5.0, 5.0), (15.0, 5.0), (15.0, 15.0), (5.0, 15.0))
+    items = [*_polygon(a), *_polygon(b, first=4)]
+    params = ENFORCED | {"FENCE_OPTIONS": 2.0}
+    union = fence_area(items, REF, (2.0, 2.0), _limits(Autopilot.ARDUPILOT, params))
+    assert union.polygon_ne_m is not None and union.note.startswith("union of 2 inclusion zones, 8 vertices")
+    assert Polygon(union.polygon_ne_m).area == pytest.approx(175.0, rel=0.01)
+    inter = fence_area(items, REF, (7.0, 7.0), _limits(Autopilot.ARDUPILOT, ENFORCED))
+    assert inter.polygon_ne_m is not None and Polygon(inter.polygon_ne_m).area == pytest.approx(25.0, rel=0.01)
+    home = _latlon_e7(2.0, 2.0)
+    circled = ENFORCED | {"FENCE_OPTIONS": 2.0, "FENCE_TYPE": 6.0, "FENCE_RADIUS": 8.0}
+    clipped = fence_area(items, REF, (2.0, 2.0), _limits(Autopilot.ARDUPILOT, circled), home)
+    assert clipped.polygon_ne_m is not None
+    assert clipped.note.startswith("union of 2 inclusion zones within the circle round home")
+    assert all(math.hypot(n - 2.0, e - 2.0) <= 8.0 + 0.02 for n, e in clipped.polygon_ne_m)
+    assert not inside_area(clipped.polygon_ne_m, 14.0, 14.0) and inside_area(union.polygon_ne_m, 14.0, 14.0)
 
 
 def test_goals_above_the_fences_ceiling_are_refused() -> None:
@@ -209,13 +254,13 @@ def test_goals_above_the_fences_ceiling_are_refused() -> None:
 
 
 def test_the_reader_reads_the_parameters_each_time_and_falls_back_without_them() -> None:
-    """Parameters read at every poll: switching the fence off takes it out, on again puts it back. An autopilot
-    that does not answer them: every uploaded zone is used, and the note says why."""
+    """Parameters read at every poll: a FENCE_TYPE without polygons takes the zones out, with them again puts
+    them back. An autopilot that does not answer them: every uploaded zone is used, and the note says why."""
     results: list[FenceArea] = []
     reader = _reader(5.0, results)
     t = _answer(reader, _polygon(L_SHAPE), 0.0)
     assert _last(results).outcome is FenceOutcome.USED
-    t = _answer(reader, _polygon(L_SHAPE), t + 5.0, ENFORCED | {"FENCE_ENABLE": 0.0})
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0, ENFORCED | {"FENCE_TYPE": 3.0, "FENCE_ENABLE": 0.0})
     assert _last(results).outcome is FenceOutcome.NOT_USED and reader.changes == 1
     t = _answer(reader, _polygon(L_SHAPE), t + 5.0)
     assert _last(results).outcome is FenceOutcome.USED and reader.changes == 2
@@ -228,11 +273,22 @@ def test_the_reader_reads_the_parameters_each_time_and_falls_back_without_them()
         t += 0.1
         reader.due(t)
     assert reader.limits == "fence parameters not read (no FENCE_ENABLE after 6 requests)"
-    reader.on_record(MissionCount(src=AP, target_system=1, target_component=191, count=0, mission_type=FENCE))
-    for _ in range(3):
+    reader.on_record(MissionCount(src=AP, target_system=1, target_component=191, count=6, mission_type=FENCE))
+    for item in _polygon(L_SHAPE):
         t += 0.1
         reader.due(t)
-    assert silent[-1].outcome is FenceOutcome.NO_FENCE
+        reader.on_record(
+            MissionItemInt(
+                src=AP, target_system=1, target_component=191, seq=item.seq, frame=mavlink.MAV_FRAME_GLOBAL,
+                command=item.command, param1=item.param1, x=item.x, y=item.y, mission_type=FENCE,
+            )
+        )  # fmt: skip
+    for _ in range(2):
+        t += 0.1
+        reader.due(t)
+    assert _last(silent).outcome is FenceOutcome.USED
+    want = "inclusion polygon of 6 vertices; fence parameters not read (no FENCE_ENABLE after 6 requests): every "
+    assert _last(silent).note == want + "uploaded zone used"
 
 
 def test_the_reader_places_the_circle_round_home_once_home_is_heard() -> None:

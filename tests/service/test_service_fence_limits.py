@@ -51,25 +51,33 @@ async def test_arducopters_default_fence_parameters_shape_the_area_and_the_goals
         assert sim.engine.params["FENCE_ENABLE"] == 1.0
 
 
-async def test_a_fence_switched_off_in_flight_is_taken_out_and_put_back(caplog: pytest.LogCaptureFixture) -> None:
-    """FENCE_ENABLE 0 (a ground station's PARAM_SET, a switch): ArduPilot's planners then plan without a fence,
-    and so does the service at its next read, saying so; switched on again, the fence is back."""
+async def test_fence_parameters_changed_in_flight_are_followed(caplog: pytest.LogCaptureFixture) -> None:
+    """FENCE_ENABLE 0 (a ground station's PARAM_SET): the circle round home and the ceiling go, the uploaded L
+    stays (a fence can be switched on at run time without the parameter). FENCE_TYPE 3 (no polygons) with the
+    fence on: the L goes (said), the circle and the ceiling are back. Each within a read."""
     assert YARD.area_ne_m is not None
     caplog.set_level(logging.INFO, logger="apf_companion")
-    async with yard_flight(YARD.area_ne_m, fence_poll_s=1.0) as (svc, sim):
+    async with yard_flight(YARD.area_ne_m, fence_poll_s=1.0, sim_params={}) as (svc, sim):
         fence = svc.fence
         assert fence is not None
-        await until(lambda: svc.planner.params.nav_area_ne_m is not None, HANG_S, "the fence in service")
+        await until(lambda: fence.bounds.ceiling_m is not None, HANG_S, "the fence in service")
+        assert svc.planner.params.nav_area_ne_m is not None and fence.bounds.home_circle is not None
         sim.engine.params.set("FENCE_ENABLE", 0.0)
-        await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "the fence taken out")
-        result = fence.result
-        assert result is not None and result.outcome is FenceOutcome.NOT_USED
-        assert result.note == "FENCE_ENABLE 0: ArduPilot does not enforce its fence"
-        said = [getattr(r, "reason", None) for r in caplog.records if r.getMessage() == "fence.not_used"]
-        assert said == ["FENCE_ENABLE 0: ArduPilot does not enforce its fence"]  # and the same in a STATUSTEXT
+        await until(lambda: fence.bounds.ceiling_m is None, HANG_S, "the ceiling taken out")
+        assert fence.bounds.home_circle is None and svc.planner.params.nav_area_ne_m is not None
+        assert fence.result is not None and fence.result.note.endswith(
+            "FENCE_ENABLE 0: no circle round home or ceiling"
+        )
+        sim.engine.params.set("FENCE_TYPE", 3.0)
         sim.engine.params.set("FENCE_ENABLE", 1.0)
-        await until(lambda: svc.planner.params.nav_area_ne_m is not None, HANG_S, "the fence back")
+        await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "the L taken out")
+        assert fence.bounds.ceiling_m == 98.0 and fence.bounds.home_circle is not None
         assert fence.changes == 2 and fence.failures == 0
+    said = [getattr(r, "note", None) for r in caplog.records if r.getMessage() == "fence.area"]
+    assert said[-1] == (
+        "FENCE_MARGIN 2 m, circle of 300 m round home, ceiling 100 m, FENCE_TYPE without polygons: uploaded zones "
+        "not used; goals within the circle round home"
+    )
 
 
 async def test_px4s_circle_round_home_refuses_goals_beyond_it() -> None:
