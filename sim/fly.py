@@ -738,7 +738,8 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
         "--fence",
         action="store_true",
         help="the vehicle serves the world file's flying area as its fence, and the service reads it from there "
-        "(planner.fence_area) instead of from its config",
+        "(planner.fence_area) instead of from its config, with ArduCopter's fence parameters (FENCE_MARGIN 2 m: "
+        "see --vehicle-param)",
     )
     p.add_argument(
         "--vehicle-param",
