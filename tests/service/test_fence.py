@@ -352,6 +352,11 @@ def _answer(
     _give_params(reader, ENFORCED if params is None else params)
     t += 0.05
     reader.due(t)
+    return _download(reader, items, t)
+
+
+def _download(reader: FenceReader, items: list[FenceItem] | None, t: float) -> float:
+    """The download part of ``_answer``, from ``t`` [s] with the parameters read; the time after it has ended."""
     assert reader.download.stage is FenceStage.COUNT
     if items is None:
         reader.on_record(MissionAck(src=AP, target_system=1, target_component=191, type=DENIED, mission_type=FENCE))

@@ -19,16 +19,16 @@ from apf_companion.fence import FenceArea, FenceOutcome, fence_area
 from apf_companion.fenceclip import grown_keepout
 from apf_companion.fencelimits import FenceLimits, ParamRead, ReadStage, fence_limits, param_float
 from apf_companion.goal import FenceBounds, Route, route_outside_limits
-from apf_companion.links.messages import HomePosition, MissionCount, MissionItemInt
+from apf_companion.links.messages import HomePosition
 from apf_companion.planning import inside_area
 from tests.service.test_fence import (
     AP,
     ENFORCED,
-    FENCE,
     L_SHAPE,
     REF,
     VERTEX_OUT,
     _answer,
+    _download,
     _give_params,
     _latlon_e7,
     _polygon,
@@ -273,19 +273,7 @@ def test_the_reader_reads_the_parameters_each_time_and_falls_back_without_them()
         t += 0.1
         reader.due(t)
     assert reader.limits == "fence parameters not read (no FENCE_ENABLE after 6 requests)"
-    reader.on_record(MissionCount(src=AP, target_system=1, target_component=191, count=6, mission_type=FENCE))
-    for item in _polygon(L_SHAPE):
-        t += 0.1
-        reader.due(t)
-        reader.on_record(
-            MissionItemInt(
-                src=AP, target_system=1, target_component=191, seq=item.seq, frame=mavlink.MAV_FRAME_GLOBAL,
-                command=item.command, param1=item.param1, x=item.x, y=item.y, mission_type=FENCE,
-            )
-        )  # fmt: skip
-    for _ in range(2):
-        t += 0.1
-        reader.due(t)
+    _download(reader, _polygon(L_SHAPE), t)
     assert _last(silent).outcome is FenceOutcome.USED
     want = "inclusion polygon of 6 vertices; fence parameters not read (no FENCE_ENABLE after 6 requests): every "
     assert _last(silent).note == want + "uploaded zone used"
