@@ -2,10 +2,11 @@
 (``apf_companion.fence`` has the protocol's state and the geometry, ``apf_companion.fencelimits`` the fence
 parameters; this drives them with what the other parts know).
 
-A read asks for the fence parameters first (PARAM_REQUEST_READ of ``FENCE_PARAMS[profile]``: is the fence
-enforced, its margin, circle round home and ceiling) and for HOME_POSITION (MAV_CMD_REQUEST_MESSAGE: the circle's
-centre), then downloads the items. Parameters that cannot be read (an autopilot without them stays silent) leave
-every uploaded zone in use, as before the parameters were read, and the note says so.
+A read asks for the fence parameters first (PARAM_REQUEST_READ of ``FENCE_PARAMS[profile]``: which fences are
+configured and on, the margin, the circle round home and the ceiling) and for HOME_POSITION
+(MAV_CMD_REQUEST_MESSAGE: the circle's centre), then downloads the items. Parameters that cannot be read (an
+autopilot without them stays silent) leave every uploaded zone in use, as before the parameters were read, and
+the note says so.
 
 The first download starts when the autopilot has been heard and the global reference (GLOBAL_POSITION_INT beside
 a local pose) can place latitude/longitude in local NED. The autopilot's answers (MISSION_COUNT, MISSION_ITEM_INT,
@@ -16,9 +17,10 @@ Why poll: a ground station that uploads a new fence tells only itself (the closi
 uploader), and the plan-change ids of MAVLink's MISSION_CURRENT (``fence_id``) are not in pymavlink's dialect
 (2.4.50) nor sent by every autopilot. So the fence is read again every ``poll_s``; a fence of 10 vertices costs
 23 small messages, 718 bytes. ``on_area`` gets a result when it differs from the last one: the first read
-(whatever it gave), then a fence whose items changed (compared item by item, in 1e-7 degrees, so the global
-reference's centimetre jitter moves nothing), or the same fence when it was not used and now is (the vehicle, outside
-it at the last read, has flown in). A later read that fails (a ground station uploading answers DENIED)
+(whatever it gave), then a fence whose items or parameters changed (compared as sent, items in 1e-7 degrees, so
+the global reference's centimetre jitter moves nothing), or the same fence when it was not used and now is (the
+vehicle, outside it at the last read, has flown in) or was used provisionally and now is whole (home heard, the
+vehicle out of the margin). A later read that fails (a ground station uploading answers DENIED)
 keeps what is in service and is counted; the next read comes ``poll_s`` later. ``due`` is stepped by the service's
 ``apf.fence`` task on the service clock.
 """
@@ -233,7 +235,7 @@ class FenceReader:
         result = fence_area(items, *where, limits, home, clearance)
         if isinstance(self.limits, str) and result.outcome is FenceOutcome.USED:
             result = dataclasses.replace(result, note=f"{result.note}; {self.limits}: every uploaded zone used")
-        if inputs == self._inputs and result == self.result:  # still not used, or provisional, for the same reason
+        if inputs == self._inputs and r is not None and _same(result, r):  # still not used, or provisional
             return
         self.changes += self._inputs is not None
         self._inputs = inputs
@@ -245,3 +247,9 @@ class FenceReader:
 
 
 _RUNNING = (FenceStage.COUNT, FenceStage.ITEMS)
+
+
+def _same(a: FenceArea, b: FenceArea) -> bool:
+    """The same outcome of the same fence: placed again about a reference that moved by centimetres, its polygons
+    differ by as much, and that is no news."""
+    return (a.outcome, a.note, a.provisional) == (b.outcome, b.note, b.provisional)

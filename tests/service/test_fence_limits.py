@@ -4,6 +4,7 @@ reader's parameter stage (repeats, give-up, fallback) and goals refused beyond t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 
@@ -18,8 +19,10 @@ from apf_companion.autopilot import Autopilot
 from apf_companion.fence import FenceArea, FenceOutcome, fence_area
 from apf_companion.fenceclip import grown_keepout
 from apf_companion.fencelimits import FenceLimits, ParamRead, ReadStage, fence_limits, param_float
-from apf_companion.goal import FenceBounds, Route, route_outside_limits
+from apf_companion.fencereader import FenceReader, FenceReaderParams
+from apf_companion.goal import FenceBounds, GlobalReference, Route, route_outside_limits
 from apf_companion.links.messages import HomePosition
+from apf_companion.outbox import Outbox
 from apf_companion.planning import inside_area
 from tests.service.test_fence import (
     AP,
@@ -315,3 +318,28 @@ def test_home_moving_matters_only_to_a_circle_round_it() -> None:
     _answer(reader, _polygon(L_SHAPE), t + 5.0, circle)
     circle_now = _last(results).bounds.home_circle
     assert reader.changes == 2 and circle_now is not None and circle_now[0] == pytest.approx(12.0, abs=0.02)
+
+
+def test_a_provisional_area_is_told_once_and_again_when_it_is_whole() -> None:
+    """The vehicle within FENCE_MARGIN of the L's edge: the L as uploaded, told once (read again every poll about a
+    reference that moves by centimetres: no news), then the L moved in once the vehicle is 3 m from the edge."""
+    results: list[FenceArea] = []
+    where = [(10.0, -2.0)]
+    rng = np.random.default_rng(5)
+
+    def reference() -> tuple[GlobalReference, tuple[float, float]]:  # the pose moves by centimetres each time
+        n, e, d = REF.pos_ned_m
+        return dataclasses.replace(REF, pos_ned_m=(n + float(rng.normal(0.0, 0.01)), e, d)), where[0]
+
+    outbox = Outbox(None, dry_run=False, target_system=1, target_component=1, now_s=lambda: 0.0)
+    params = FenceReaderParams(our_system=1, our_component=191, autopilot=AP, poll_s=5.0)
+    reader = FenceReader(params, outbox=outbox, reference=reference, on_area=results.append)
+    margin = ENFORCED | {"FENCE_MARGIN": 2.0}
+    t = 0.0
+    for _ in range(3):
+        t = _answer(reader, _polygon(L_SHAPE), t, margin) + 5.0
+    assert len(results) == 1 and results[0].provisional and reader.changes == 0
+    where[0] = (10.0, 0.0)
+    _answer(reader, _polygon(L_SHAPE), t, margin)
+    assert len(results) == 2 and not _last(results).provisional
+    assert _last(results).note.startswith("inclusion polygon, 2 m in from its edges")
