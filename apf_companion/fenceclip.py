@@ -28,6 +28,8 @@ from apf_companion.planning.params import MAX_AREA_VERTICES
 
 __all__ = ["grown_keepout", "inclusion_area"]
 
+#: Vertices are snapped to this grid before a margin's offset [m].
+SNAP_M = 1e-6
 #: Shrink-and-simplify tolerances tried, in turn, for a piece with too many vertices [m].
 SIMPLIFY_STEPS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
 
@@ -72,13 +74,23 @@ def inclusion_area(
 
 def grown_keepout(zone: PolygonNE, grow_m: float) -> PolygonNE | None:
     """An exclusion zone grown by ``grow_m`` [m] (the fence's margin) with mitre joins, which cover the round
-    offset; None when GEOS cannot grow it or the result needs more than ``MAX_AREA_VERTICES`` vertices even
-    when grown by a tolerance more and simplified by it (which stays outside the grown zone)."""
+    offset; None when GEOS cannot grow it, the result does not cover the round offset (checked against its
+    inscribed 64-gon arcs: a residue of at most 0.12 % of the margin), or it needs more than ``MAX_AREA_VERTICES``
+    vertices even when grown by a tolerance more and simplified by it (which stays outside the grown zone).
+    Vertices are first snapped to a micrometre (``SNAP_M``: far below the 1 cm of a fence's 1e-7 degrees), which
+    drops near-duplicates whose direction the mitre would follow; the growth adds the snap back."""
     try:
-        grown = Polygon(zone).buffer(grow_m, join_style="mitre")
+        base = shapely.set_precision(Polygon(zone), SNAP_M)
+        grown = base.buffer(grow_m + SNAP_M, join_style="mitre")
+        must_cover = Polygon(zone).buffer(grow_m, quad_segs=16)
         for t in (0.0, *SIMPLIFY_STEPS_M):
-            fitted = grown if t == 0.0 else Polygon(zone).buffer(grow_m + t, join_style="mitre").simplify(t)
-            if isinstance(fitted, Polygon) and _vertex_count(fitted) <= MAX_AREA_VERTICES and fitted.covers(grown):
+            fitted = grown if t == 0.0 else base.buffer(grow_m + SNAP_M + t, join_style="mitre").simplify(t)
+            if (
+                isinstance(fitted, Polygon)
+                and _vertex_count(fitted) <= MAX_AREA_VERTICES
+                and fitted.covers(grown)
+                and fitted.covers(must_cover)
+            ):
                 return _vertices(fitted)
     except shapely.errors.GEOSException:
         return None
