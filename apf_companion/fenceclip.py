@@ -30,6 +30,9 @@ __all__ = ["grown_keepout", "inclusion_area"]
 
 #: Vertices are snapped to this grid before a margin's offset [m].
 SNAP_M = 1e-6
+#: A margin's offset may miss the exact one by this much [m] (GEOS's mitre at a needle-sharp vertex: 30 um seen);
+#: a fence's vertices are placed to a centimetre.
+EXACT_TO_M = 1e-3
 #: Shrink-and-simplify tolerances tried, in turn, for a piece with too many vertices [m].
 SIMPLIFY_STEPS_M = (0.05, 0.1, 0.2, 0.4, 0.8)
 
@@ -52,8 +55,10 @@ def inclusion_area(
         common = shapely.union_all(shapes) if union else shapely.intersection_all(shapes)
         if bound is not None:
             common = common.intersection(Polygon(bound))
-        if inset_m > 0.0:
-            common = common.buffer(-inset_m, join_style="mitre")
+        exact = None
+        if inset_m > 0.0:  # snapped first (``grown_keepout``); must lie in the round (exact) inset, to a millimetre
+            exact = common.buffer(-inset_m, quad_segs=16).buffer(EXACT_TO_M)
+            common = shapely.set_precision(common, SNAP_M).buffer(-(inset_m + SNAP_M), join_style="mitre")
     except shapely.errors.GEOSException as err:  # a zone GEOS cannot take (polygon_problem passed it)
         return f"the inclusion zones cannot be {'united' if union else 'intersected'} ({err})"
     pieces = [g for g in getattr(common, "geoms", [common]) if isinstance(g, Polygon) and g.area > 0.0]
@@ -64,6 +69,8 @@ def inclusion_area(
     if not holding:
         return f"the vehicle is outside the inclusion zones' {what}"
     piece = holding[0]
+    if exact is not None and not exact.covers(piece):
+        return f"the inclusion zones' {what} cannot be moved in by the margin"
     if piece.interiors:  # an intersection of simple zones has none; a union may (zones round a courtyard)
         return f"the inclusion zones' {what} has a hole"
     fitted = _fit(piece, vehicle)
@@ -89,7 +96,7 @@ def grown_keepout(zone: PolygonNE, grow_m: float) -> PolygonNE | None:
                 isinstance(fitted, Polygon)
                 and _vertex_count(fitted) <= MAX_AREA_VERTICES
                 and fitted.covers(grown)
-                and fitted.covers(must_cover)
+                and fitted.buffer(EXACT_TO_M).covers(must_cover)
             ):
                 return _vertices(fitted)
     except shapely.errors.GEOSException:

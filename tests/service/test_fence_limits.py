@@ -17,7 +17,7 @@ from shapely.geometry import Polygon
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.fence import FenceArea, FenceOutcome, fence_area
-from apf_companion.fenceclip import grown_keepout
+from apf_companion.fenceclip import grown_keepout, inclusion_area
 from apf_companion.fencelimits import FenceLimits, ParamRead, ReadStage, fence_limits, param_float
 from apf_companion.fencereader import FenceReader, FenceReaderParams
 from apf_companion.goal import FenceBounds, GlobalReference, Route, route_outside_limits
@@ -191,7 +191,30 @@ def test_a_grown_keep_out_zone_always_covers_the_exact_offset(points: list[tuple
     if grown is None:  # GEOS could not: the zone is used as uploaded (said), never a narrower one
         return
     assert len(grown) <= 64
-    assert Polygon(grown).buffer(1e-6).covers(hull.buffer(grow_m, quad_segs=16))
+    assert Polygon(grown).buffer(1e-3).covers(hull.buffer(grow_m, quad_segs=16))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.floats(0.5, 20), st.floats(0, 2 * math.pi)), min_size=3, max_size=16, unique_by=lambda p: p[1]
+    ),
+    st.floats(0.05, 3.0),
+)
+def test_an_inset_area_always_lies_within_the_exact_inset(rays: list[tuple[float, float]], inset_m: float) -> None:
+    """Any star-shaped polygon (concave corners included), any margin: the area never reaches nearer an edge."""
+    ring = [(r * math.cos(a), r * math.sin(a)) for r, a in sorted(rays, key=lambda p: p[1])]
+    zone = Polygon(ring)
+    if not zone.is_valid or zone.area < 0.5:
+        return
+    exact = zone.buffer(-inset_m, quad_segs=32)
+    if exact.is_empty:
+        return
+    inner = exact.representative_point()
+    area = inclusion_area([tuple(ring)], (inner.x, inner.y), inset_m)
+    if isinstance(area, str):  # too many vertices, or GEOS could not: the zone is used as uploaded (said)
+        return
+    assert exact.buffer(1e-3).covers(Polygon(area))
 
 
 def test_the_circle_round_home_bounds_goals_and_clips_an_inclusion_zone() -> None:
