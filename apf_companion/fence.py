@@ -209,7 +209,10 @@ def fence_area(
             centre = FenceItem(seq=-1, command=_CIRCLE_IN, param1=limits.home_radius_m, x=home[0], y=home[1])
             north, east = ne_from_global(reference, home[0] * _DEG_E7, home[1] * _DEG_E7)
             circle = (north, east, limits.home_radius_m - inset)
-            bound = _Zone(True, True, (centre,)).polygon(reference)
+            if any(z.inclusion for z in zones):  # it clips them (ArduPilot checks it apart: under a union too)
+                bound = _Zone(True, True, (centre,)).polygon(reference)
+            else:  # it is the area (600 m across by default: on bapf-nav's moving grid)
+                zones.append(_Zone(True, True, (centre,)))
     ceiling = None if limits is None else limits.ceiling_m
     if not zones and ceiling is None and circle is None:
         note = "; ".join(["the autopilot has no fence", *notes])
@@ -218,8 +221,6 @@ def fence_area(
     area = _used(zones, reference, vehicle_ne_m, _Combine(inset, union, bound), ceiling, notes, provisional)
     if area.outcome is not FenceOutcome.USED:
         return area
-    if circle is not None and not any(z.inclusion for z in zones):  # alone no area: 600 m across by default
-        area = dataclasses.replace(area, note=f"{area.note}; goals within the circle round home")
     return dataclasses.replace(area, bounds=FenceBounds(ceiling, circle))
 
 

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
+
 # Imported with the service (0.1-0.2 s at start), not when a fence first needs it: an import in flight would hold
 # the event loop, and the cycles with it, for as long.
 import shapely
@@ -58,7 +60,7 @@ def inclusion_area(
         exact = None
         if inset_m > 0.0:  # snapped first (``grown_keepout``); must lie in the round (exact) inset, to a millimetre
             exact = common.buffer(-inset_m, quad_segs=16).buffer(EXACT_TO_M)
-            common = shapely.set_precision(common, SNAP_M).buffer(-(inset_m + SNAP_M), join_style="mitre")
+            common = _snapped(common).buffer(-(inset_m + SNAP_M), join_style="mitre")
     except shapely.errors.GEOSException as err:  # a zone GEOS cannot take (polygon_problem passed it)
         return f"the inclusion zones cannot be {'united' if union else 'intersected'} ({err})"
     pieces = [g for g in getattr(common, "geoms", [common]) if isinstance(g, Polygon) and g.area > 0.0]
@@ -87,7 +89,7 @@ def grown_keepout(zone: PolygonNE, grow_m: float) -> PolygonNE | None:
     Vertices are first snapped to a micrometre (``SNAP_M``: far below the 1 cm of a fence's 1e-7 degrees), which
     drops near-duplicates whose direction the mitre would follow; the growth adds the snap back."""
     try:
-        base = shapely.set_precision(Polygon(zone), SNAP_M)
+        base = _snapped(Polygon(zone))
         grown = base.buffer(grow_m + SNAP_M, join_style="mitre")
         must_cover = Polygon(zone).buffer(grow_m, quad_segs=16)
         for t in (0.0, *SIMPLIFY_STEPS_M):
@@ -102,6 +104,13 @@ def grown_keepout(zone: PolygonNE, grow_m: float) -> PolygonNE | None:
     except shapely.errors.GEOSException:
         return None
     return None
+
+
+def _snapped(geometry: shapely.Geometry) -> shapely.Geometry:
+    """``geometry`` with its vertices on the ``SNAP_M`` grid. GEOS may warn through numpy (a zero-length edge
+    divides by zero) on degenerate zones; the result is checked against the exact offset where it is used."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return shapely.set_precision(geometry, SNAP_M)
 
 
 def _fit(piece: Polygon, vehicle: Point) -> PolygonNE | None:

@@ -20,7 +20,9 @@ taken only when the map has no way in), so "no path" means the agent's own regio
 
 A grid over a given flying area (``PlannerParams.nav_area_ne_m``) has a fixed corner, blocks its cells outside the
 area and has no exits: beyond its edge is outside the area, so the goal's cells are the only seeds, and a goal
-outside the area has none (no way).
+outside the area has none (no way). An area wider than ``MAX_AREA_CELLS`` cells (a fence round a field of hundreds
+of metres) gets the moving grid instead, with its cells outside the area blocked: its edge cells inside the area
+are exits, as without an area.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from apf_companion.planning.area import FlyingArea, KeepOuts, area_bounds
 from apf_companion.planning.navzones import ZoneCells
+from apf_companion.planning.params import MAX_AREA_CELLS
 
 __all__ = ["NavGrid"]
 
@@ -73,19 +76,21 @@ class NavGrid:
         zone_margin_m: float = 0.0,
     ) -> None:
         self.cell_m = float(cell_m)
-        #: The flying area (a rectangle or a polygon, ``area``) [m] the grid covers (its bounds), or None: a grid of
-        #: side ``side_m`` that moves with the agent and whose edge cells are exits.
+        #: The flying area (a rectangle or a polygon, ``area``) [m], or None. The grid covers it (its bounds) when
+        #: they fit in ``MAX_AREA_CELLS`` cells a side; otherwise, and without an area, a grid of side ``side_m``
+        #: moves with the agent and its edge cells are exits.
         self.area_ne_m = area_ne_m
         #: The grid's corner when it covers a flying area (on the lattice of multiples of the cell size), else None.
         self.fixed_origin_m: FloatArray | None = None
-        if area_ne_m is None:
-            self.n = math.ceil(side_m / cell_m - 1e-9)
-        else:
+        self.n = math.ceil(side_m / cell_m - 1e-9)
+        if area_ne_m is not None:
             bounds = area_bounds(area_ne_m)
             low = np.array(bounds[:2], dtype=np.float64)
             high = np.array(bounds[2:], dtype=np.float64)
-            self.fixed_origin_m = np.floor(low / self.cell_m) * self.cell_m
-            self.n = max(math.ceil(float(x) / self.cell_m - 1e-9) for x in high - self.fixed_origin_m)
+            origin = np.floor(low / self.cell_m) * self.cell_m
+            n = max(math.ceil(float(x) / self.cell_m - 1e-9) for x in high - origin)
+            if n <= MAX_AREA_CELLS:
+                self.fixed_origin_m, self.n = origin, n
         self.size = self.n * self.n
         #: The cells the area and the keep-out zones (``nav_keepout_ne_m``) close, with a band of
         #: ``zone_margin_m`` along their edges (``navzones``).
@@ -116,8 +121,8 @@ class NavGrid:
 
     @property
     def exits(self) -> bool:
-        """Whether the edge cells are exits into unknown space (no flying area)."""
-        return self.area_ne_m is None
+        """Whether the edge cells are exits into unknown space (a moving grid: no flying area, or a wide one)."""
+        return self.fixed_origin_m is None
 
     # --- frames ---------------------------------------------------------------------------------------------
 

@@ -62,9 +62,10 @@ class RandomWalkRule(enum.Enum):
     SINGLE_DRAW = "single-draw"
 
 
-#: Cells a side of a flying area's grid (``nav_area_ne_m``), at most. A field is one Dijkstra search over every
-#: cell, in the service's cycle: 256 x 256 cells took 22.6 ms on the 2-core development VM (384 x 384: 54 ms, more
-#: than a 20 Hz cycle), so a larger area must take larger cells (docs/planner.md, "A flying area").
+#: Cells a side of a flying area's fixed grid (``nav_area_ne_m``), at most. A field is one Dijkstra search over
+#: every cell, in the service's cycle: 256 x 256 cells took 22.6 ms on the 2-core development VM (384 x 384: 54 ms,
+#: more than a 20 Hz cycle), so a larger area is planned on the grid that moves with the agent, its cells outside
+#: the area closed (docs/planner.md, "A flying area").
 MAX_AREA_CELLS = 256
 #: Vertices of a polygonal flying area or keep-out zone, at most: the line-of-sight test crosses every edge each step.
 MAX_AREA_VERTICES = 64
@@ -144,8 +145,10 @@ class PlannerParams:
         (libraries/AC_Avoidance/AP_OADijkstra.h, "path planning around polygon fence"). A target outside the
         area has no way: the agent gives up at once (STUCK). A straight line to the target that leaves a
         polygon starts an escape, as an obstacle on it does (``area.leaves_area``). The bounds are at least 8
-        and at most ``MAX_AREA_CELLS`` = 256 cells of ``nav_cell_m`` a side (76.8 m at 0.3 m cells): a field is
-        a search over every cell, in the service's cycle.
+        cells of ``nav_cell_m`` a side. An area wider than ``MAX_AREA_CELLS`` = 256 cells (76.8 m at 0.3 m
+        cells; a field is a search over every cell, in the service's cycle) is planned on the ``nav_grid_m`` grid
+        that moves with the agent instead, its cells outside the area closed and its edge cells inside the area
+        exits into unknown space, as without an area.
     nav_keepout_ne_m : bapf-nav: keep-out zones, polygons ((north, east), ...) in local NED [m] the vehicle must not
         enter (a fence's exclusion zones), with or without a flying area; at most ``MAX_KEEPOUTS`` = 16 of 3 to 64
         vertices. Their cells are blocked in every field, a target in one gives up at once, and a straight line
@@ -275,15 +278,14 @@ class PlannerParams:
 
     def _check_area(self) -> None:
         """``nav_area_ne_m``: None, a rectangle (four finite numbers, min < max) or a polygon (3 to
-        ``MAX_AREA_VERTICES`` finite [north, east] pairs, edges that do not cross), 8 to 256 cells a side (its
+        ``MAX_AREA_VERTICES`` finite [north, east] pairs, edges that do not cross), at least 8 cells a side (its
         bounds); kept as a tuple of floats or of pairs (a config file gives lists)."""
         area: Any = self.nav_area_ne_m
         if area is None:
             return
         allowed = (
             f"None, [north_min, east_min, north_max, east_max] (min < max) or [[north, east], ...] (3 to "
-            f"{MAX_AREA_VERTICES} vertices, edges that do not cross) [m], 8 to {MAX_AREA_CELLS} cells of nav_cell_m "
-            "a side (a larger area: a larger nav_cell_m)"
+            f"{MAX_AREA_VERTICES} vertices, edges that do not cross) [m], at least 8 cells of nav_cell_m a side"
         )
         if isinstance(area, str | bytes) or not isinstance(area, tuple | list) or not area:
             raise _fail("nav_area_ne_m", area, allowed)
@@ -301,7 +303,7 @@ class PlannerParams:
             raise _fail("nav_area_ne_m", area, allowed)
         bounds = area_bounds(value)
         sides = (bounds[2] - bounds[0], bounds[3] - bounds[1])
-        if not all(8.0 * self.nav_cell_m <= side <= MAX_AREA_CELLS * self.nav_cell_m for side in sides):
+        if not all(8.0 * self.nav_cell_m <= side for side in sides):
             raise _fail("nav_area_ne_m", area, allowed)
         object.__setattr__(self, "nav_area_ne_m", value)
 

@@ -362,6 +362,33 @@ def test_a_concave_area_with_nothing_to_see_is_flown_round_its_notch(dim: int) -
     assert worst[True] >= 2.5
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_an_area_wider_than_the_fixed_grid_is_planned_on_the_moving_grid(dim: int) -> None:
+    """yard-l's L four times as large (104 m across, over the fixed grid's 256 cells of 0.3 m): the grid moves
+    with the agent, its cells outside the L closed, and the agent goes round the inner corner all the same,
+    inside the L and never nearer its edges than C less a cell, within 5 % of the corner route."""
+    area = tuple((4.0 * n, 4.0 * e) for n, e in _YARD_L)
+    params = PlannerParams(dim=dim, nav_area_ne_m=area)
+    planner = get_planner("bapf-nav", params)
+    grid = NavGrid(params.nav_cell_m, params.nav_grid_m, area)
+    assert grid.fixed_origin_m is None and grid.exits and grid.n == 54  # nav_grid_m's 16 m, not 104 m
+    start, goal = np.array([80.0, 4.0, 5.0])[:dim], np.array([8.0, 80.0, 5.0])[:dim]
+    pos, path, nearest = start, 0.0, math.inf
+    for _ in range(600):
+        if np.linalg.norm(pos[:2] - goal[:2]) <= 0.7:
+            break
+        d = planner.step(pos, goal, np.zeros((0, dim)))
+        assert d.next_point_m is not None, d.reason
+        path += float(np.linalg.norm(d.next_point_m - pos))
+        pos = d.next_point_m
+        assert _outside_m(area, pos) == 0.0
+        nearest = min(nearest, _edge_distance_m(area, pos))
+    assert np.linalg.norm(pos[:2] - goal[:2]) <= 0.7
+    corner = math.dist((80.0, 4.0), (36.0, 24.0)) + math.dist((36.0, 24.0), (8.0, 80.0))  # 48.3 + 62.6 m
+    assert corner <= path <= 1.05 * corner, (path, corner)
+    assert nearest >= params.clearance_m - params.nav_cell_m
+
+
 #: A 6 m x 6 m keep-out square across the straight line from (0, 0) to (20, 0), with nothing in it to see.
 _SQUARE = ((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0))
 

@@ -79,14 +79,11 @@ BAD: list[tuple[str, dict[str, Any]]] = [
     ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 10.0)}),
     ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, float("nan"), 10.0)}),
     ("nav_area_ne_m", {"nav_area_ne_m": "0,0,10,10"}),
-    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 76.9, 10.0)}),  # over 256 cells of 0.3 m a side
-    ("nav_area_ne_m", {"nav_area_ne_m": (0.0, 0.0, 100.0, 10.0), "nav_cell_m": 0.39}),
     ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 10.0))}),  # two pairs: a world file's corners, not here
     ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 10.0), (10.0, 0.0), (0.0, 12.0))}),  # edges cross
     ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 0.0), (10.0, 10.0, 1.0))}),  # not a pair
     ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (10.0, 0.0), (10.0, float("inf")))}),
     ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0))}),  # bounds under 8 cells a side
-    ("nav_area_ne_m", {"nav_area_ne_m": ((0.0, 0.0), (100.0, 0.0), (100.0, 10.0))}),  # over 256 cells a side
     (
         "nav_area_ne_m",
         {
@@ -112,6 +109,9 @@ def test_a_flying_area_is_kept_as_a_tuple_of_floats() -> None:
     assert all(type(v) is float for v in p.nav_area_ne_m)
     assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 76.8, 76.8)).nav_area_ne_m is not None  # 256 cells a side
     assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 100.0, 10.0), nav_cell_m=0.4).nav_area_ne_m is not None
+    # Wider than 256 cells: planned on the moving grid (``NavGrid``), no longer a config error.
+    assert PlannerParams(nav_area_ne_m=(0.0, 0.0, 76.9, 10.0)).nav_area_ne_m is not None
+    assert PlannerParams(nav_area_ne_m=((0.0, 0.0), (600.0, 0.0), (600.0, 10.0))).nav_area_ne_m is not None
 
 
 def test_keep_out_zones_are_kept_as_tuples_of_float_pairs() -> None:

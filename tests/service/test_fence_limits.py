@@ -218,16 +218,19 @@ def test_an_inset_area_always_lies_within_the_exact_inset(rays: list[tuple[float
 
 
 def test_the_circle_round_home_bounds_goals_and_clips_an_inclusion_zone() -> None:
-    """FENCE_TYPE 2 alone: no area (300 m across would not fit the grid), goals outside the circle less the
-    inset are refused. With the L as well: the circle (here 12 m, round the vehicle) clips it."""
+    """FENCE_TYPE 2 alone: the circle (less the inset) is the area, hundreds of metres across by default and then
+    planned on bapf-nav's moving grid; goals outside it are refused. With the L as well: the circle (here 12 m,
+    round the vehicle) clips it."""
     home = _latlon_e7(10.0, 5.0)
     alone = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 2.0, "FENCE_RADIUS": 40.0})
     area = fence_area([], REF, (10.0, 5.0), alone, home, 0.6)
-    assert area.outcome is FenceOutcome.USED and area.polygon_ne_m is None
+    assert area.outcome is FenceOutcome.USED and area.polygon_ne_m is not None and len(area.polygon_ne_m) == 32
+    assert area.note.startswith("inclusion circle, 1.4 m in from its edges, 32 vertices")
+    assert all(math.hypot(n - 10.0, e - 5.0) <= 38.6 + 0.02 for n, e in area.polygon_ne_m)
+    assert Polygon(area.polygon_ne_m).area >= 0.98 * math.pi * 38.6**2
     assert area.bounds.home_circle is not None
     north, east, radius = area.bounds.home_circle
     assert (north, east) == pytest.approx((10.0, 5.0), abs=0.01) and radius == pytest.approx(38.6)
-    assert "goals within the circle round home" in area.note
     near = Route.point(30.0, 5.0, -5.0, source="test")
     far = Route.point(50.0, 5.0, -5.0, source="test")
     assert route_outside_limits(near, None, max_altitude_m=0.0, max_distance_m=0.0, fence=area.bounds) is None

@@ -54,7 +54,8 @@ async def test_arducopters_default_fence_parameters_shape_the_area_and_the_goals
 async def test_fence_parameters_changed_in_flight_are_followed(caplog: pytest.LogCaptureFixture) -> None:
     """FENCE_ENABLE 0 (a ground station's PARAM_SET): the circle round home and the ceiling go, the uploaded L
     stays (a fence can be switched on at run time without the parameter). FENCE_TYPE 3 (no polygons) with the
-    fence on: the L goes (said), the circle and the ceiling are back. Each within a read."""
+    fence on: the L goes (said), the circle (now the area, on the moving grid) and the ceiling are back. Each
+    within a read."""
     assert YARD.area_ne_m is not None
     caplog.set_level(logging.INFO, logger="apf_companion")
     async with yard_flight(YARD.area_ne_m, fence_poll_s=1.0, sim_params={}) as (svc, sim):
@@ -70,25 +71,27 @@ async def test_fence_parameters_changed_in_flight_are_followed(caplog: pytest.Lo
         )
         sim.engine.params.set("FENCE_TYPE", 3.0)
         sim.engine.params.set("FENCE_ENABLE", 1.0)
-        await until(lambda: svc.planner.params.nav_area_ne_m is None, HANG_S, "the L taken out")
+        await until(lambda: len(svc.planner.params.nav_area_ne_m or ()) == 32, HANG_S, "the circle for the L")
         assert fence.bounds.ceiling_m == 98.0 and fence.bounds.home_circle is not None
         assert fence.changes == 2 and fence.failures == 0
     said = [getattr(r, "note", None) for r in caplog.records if r.getMessage() == "fence.area"]
     assert said[-1] == (
-        "FENCE_MARGIN 2 m, circle of 300 m round home, ceiling 100 m, FENCE_TYPE without polygons: uploaded zones "
-        "not used; goals within the circle round home"
+        "inclusion circle, 1.4 m in from its edges, 32 vertices; FENCE_MARGIN 2 m, circle of 300 m round home, "
+        "ceiling 100 m, FENCE_TYPE without polygons: uploaded zones not used"
     )
 
 
-async def test_px4s_circle_round_home_refuses_goals_beyond_it() -> None:
-    """PX4 with GF_MAX_HOR_DIST 40 m and no uploaded fence: no area to plan over (PX4 has no margin parameter),
-    goals further than 40 m from home refused, nearer ones flown."""
+async def test_px4s_circle_round_home_is_the_area_and_refuses_goals_beyond_it() -> None:
+    """PX4 with GF_MAX_HOR_DIST 40 m and no uploaded fence: the circle is the area (80 m across: wider than the
+    fixed grid's 76.8 m, so bapf-nav plans it on its moving grid; PX4 has no margin parameter), goals further
+    than 40 m from home are refused, nearer ones flown."""
     async with yard_flight(None, profile="px4", sim_params={"GF_MAX_HOR_DIST": 40.0}) as (svc, _):
         fence = svc.fence
         assert fence is not None
         await until(lambda: fence.bounds.home_circle is not None, HANG_S, "the circle round home")
-        assert svc.planner.params.nav_area_ne_m is None
-        assert fence.result is not None and fence.result.note.startswith("circle of 40 m round home")
+        area = svc.planner.params.nav_area_ne_m
+        assert isinstance(area, tuple) and len(area) == 32
+        assert fence.result is not None and fence.result.note.startswith("inclusion circle of 32 vertices")
         now = svc.clock.now()
         assert not svc.set_route(Route.point(41.0, 0.0, -5.0, source="test"), now)
         assert svc.set_route(Route.point(39.0, 0.0, -5.0, source="test"), now)
