@@ -11,9 +11,11 @@ ArduPilot (``libraries/AC_Fence/AC_Fence.cpp``):
   drew them, and since ArduPilot 4.6 a fence is also switched on at run time without that parameter changing
   (an RC switch, MAV_CMD_DO_FENCE_ENABLE, ``FENCE_AUTOENABLE`` on arming: "these changes are not persisted").
   Planning inside a fence that is not switched on is never unsafe.
-- The circle round home and the ceiling (``FENCE_ALT_MAX`` [m above home]) are used only with ``FENCE_ENABLE``
-  1: every Copter has them configured by default (FENCE_TYPE 7, 300 m, 100 m), so without the switch they say
-  nothing about this flight, and a 1 km transect with the fence off must not be refused.
+- The circle round home and the ceiling (``FENCE_ALT_MAX`` [m above home]) are used only while the fence is
+  switched on: ``FENCE_ENABLE`` 1, or SYS_STATUS's GEOFENCE bit enabled (``libraries/GCS_MAVLink/GCS.cpp``
+  ``update_sensor_status_flags``: configured, switched on at run time, FENCE_ACTION not report-only). Every Copter
+  has them configured by default (FENCE_TYPE 7, 300 m, 100 m), so with the fence off they say nothing about this
+  flight, and a 1 km transect with the fence off must not be refused.
 - ``FENCE_MARGIN`` [m]: how far the autopilot's planners keep from every fence (the path's distance to a polygon
   minus the margin, ``libraries/AC_Avoidance/AP_OABendyRuler.cpp``; the ceiling less the margin,
   ``get_safe_alt_max``). ``FENCE_MARGIN_XY`` (4.6+, read when the autopilot has it) replaces it horizontally when
@@ -106,9 +108,10 @@ class FenceLimits:
         return self.zones or self.home_radius_m is not None or self.ceiling_m is not None
 
 
-def fence_limits(profile: Autopilot, values: Mapping[str, float]) -> FenceLimits | str:
+def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on: bool = False) -> FenceLimits | str:
     """The limits of the values of ``FENCE_PARAMS[profile]`` and those of ``OPTIONAL_PARAMS[profile]`` that the
-    autopilot has (module docstring), or why they are unusable."""
+    autopilot has (module docstring), or why they are unusable. ``switched_on``: ArduPilot's SYS_STATUS says its
+    fence is on (GEOFENCE enabled), whatever FENCE_ENABLE says."""
     bad = [name for name in FENCE_PARAMS[profile] if not math.isfinite(values.get(name, math.nan))]
     bad += [name for name in OPTIONAL_PARAMS[profile] if name in values and not math.isfinite(values[name])]
     if bad:
@@ -116,7 +119,7 @@ def fence_limits(profile: Autopilot, values: Mapping[str, float]) -> FenceLimits
     if profile is Autopilot.PX4:
         hor, ver = values["GF_MAX_HOR_DIST"], values["GF_MAX_VER_DIST"]
         return FenceLimits(True, 0.0, hor if hor > 0.0 else None, ver if ver > 0.0 else None, _px4_note(hor, ver))
-    kinds, on = int(values["FENCE_TYPE"]), values["FENCE_ENABLE"] != 0.0
+    kinds, on = int(values["FENCE_TYPE"]), values["FENCE_ENABLE"] != 0.0 or switched_on
     margin_xy = values.get("FENCE_MARGIN_XY", 0.0)
     margin = max(margin_xy if margin_xy > 0.0 else values["FENCE_MARGIN"], 0.0)
     radius = values["FENCE_RADIUS"]
@@ -124,6 +127,8 @@ def fence_limits(profile: Autopilot, values: Mapping[str, float]) -> FenceLimits
     ceiling = values["FENCE_ALT_MAX"] - max(values["FENCE_MARGIN"], 0.0) if on and kinds & _TYPE_ALT_MAX else None
     union = bool(int(values.get("FENCE_OPTIONS", 0.0)) & _OPTION_UNION)
     said = [f"FENCE_MARGIN{'_XY' if margin_xy > 0.0 else ''} {margin:g} m"]
+    if switched_on and values["FENCE_ENABLE"] == 0.0:
+        said.append("switched on (SYS_STATUS)")
     if home_radius is not None:
         said.append(f"circle of {radius:g} m round home")
     if ceiling is not None:

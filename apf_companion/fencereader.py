@@ -31,6 +31,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -46,7 +47,16 @@ from apf_companion.fencelimits import (
     param_float,
 )
 from apf_companion.goal import FenceBounds, GlobalReference
-from apf_companion.links.messages import FenceRecord, HomePosition, MissionCount, MissionItemInt, ParamValue, Source
+from apf_companion.links.messages import (
+    FenceRecord,
+    HomePosition,
+    MissionAck,
+    MissionCount,
+    MissionItemInt,
+    ParamValue,
+    Source,
+    SysStatus,
+)
 from apf_companion.outbox import Outbox
 
 __all__ = ["FenceReader", "FenceReaderParams"]
@@ -97,6 +107,8 @@ class FenceReader:
         self.limits: FenceLimits | str | None = None
         #: HOME_POSITION's latitude, longitude [1e-7 deg] (None until heard).
         self.home: tuple[int, int] | None = None
+        #: ArduPilot's SYS_STATUS says its fence is switched on (GEOFENCE enabled); False until heard.
+        self.switched_on = False
         #: The last result given to ``on_area`` (None before the first read has ended).
         self.result: FenceArea | None = None
         #: Downloads that ended: read whole, and failed.
@@ -143,14 +155,17 @@ class FenceReader:
         """HOME_POSITION from the autopilot: the centre of its circle round home."""
         self.home = (rec.latitude, rec.longitude)
 
+    def on_sys_status(self, rec: SysStatus) -> None:
+        """SYS_STATUS from the autopilot: whether its fence is switched on now (read with the parameters)."""
+        self.switched_on = bool(rec.enabled & rec.present & mavlink.MAV_SYS_STATUS_GEOFENCE)
+
     def on_record(self, rec: FenceRecord) -> None:
         """A record from the autopilot: a parameter, home, or an answer to the download when addressed to us,
         about the fence, and one runs."""
-        if isinstance(rec, ParamValue):
-            self.on_param(rec)
-            return
-        if isinstance(rec, HomePosition):
-            self.on_home(rec)
+        other = _OTHER_RECORDS.get(type(rec))
+        if other is not None or not isinstance(rec, MissionCount | MissionItemInt | MissionAck):
+            if other is not None:
+                other(self, rec)
             return
         p = self.params
         ours = rec.target_system == p.our_system and rec.target_component == p.our_component
@@ -199,7 +214,7 @@ class FenceReader:
         if pr.stage is ReadStage.RUNNING:
             return False
         if pr.stage is ReadStage.DONE:
-            self.limits = fence_limits(self.params.profile, pr.values)
+            self.limits = fence_limits(self.params.profile, pr.values, switched_on=self.switched_on)
         else:
             self.limits = f"fence parameters not read ({pr.reason})"
         pr.rest()
@@ -247,6 +262,12 @@ class FenceReader:
 
 
 _RUNNING = (FenceStage.COUNT, FenceStage.ITEMS)
+#: The records besides the download's answers, each to its handler.
+_OTHER_RECORDS: dict[type, Callable[[FenceReader, Any], None]] = {
+    ParamValue: FenceReader.on_param,
+    HomePosition: FenceReader.on_home,
+    SysStatus: FenceReader.on_sys_status,
+}
 
 
 def _same(a: FenceArea, b: FenceArea) -> bool:

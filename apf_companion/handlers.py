@@ -55,6 +55,7 @@ from apf_companion.links.messages import (
     PositionTargetLocalNed,
     Record,
     Source,
+    SysStatus,
 )
 from apf_companion.navigator import Navigator
 from apf_companion.outbox import Outbox
@@ -92,6 +93,7 @@ _STREAM_OF = {
     Attitude: mavlink.MAVLINK_MSG_ID_ATTITUDE,
     GlobalPositionInt: mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
     EkfStatusReport: mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+    SysStatus: mavlink.MAVLINK_MSG_ID_SYS_STATUS,
 }
 
 
@@ -126,8 +128,8 @@ class AutopilotHandlers:
             a cycle, and the stream's gaps measure the link's loss).
         route_at_start: Flown once the autopilot is first heard.
         on_param: Handles a PARAM_* addressed to us (apf_companion.params.ParamServer.handle); None = ignored.
-        on_fence: Takes the autopilot's MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK, PARAM_VALUE and
-            HOME_POSITION (the fence read,
+        on_fence: Takes the autopilot's MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK, PARAM_VALUE,
+            HOME_POSITION and SYS_STATUS (the fence read,
             apf_companion.fencereader.FenceReader.on_record); None = ignored.
     """
 
@@ -430,5 +432,6 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     MissionAck: AutopilotHandlers._on_fence,
     ParamValue: AutopilotHandlers._on_fence,
     HomePosition: AutopilotHandlers._on_fence,
+    SysStatus: AutopilotHandlers._on_fence,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""

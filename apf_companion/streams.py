@@ -25,11 +25,13 @@ STREAM_STALE_S = 3.0  # a requested message not heard for this long is asked for
 STREAM_RETRY_S = 5.0  # at most this often
 GLOBAL_POSITION_HZ = 5.0  # only the takeoff (PX4: AMSL) and DO_REPOSITION use it
 EKF_STATUS_HZ = 2.0  # readiness before taking over (ArduPilot)
+SYS_STATUS_HZ = 1.0  # whether ArduPilot's fence is switched on (its GEOFENCE bit; apf_companion.fencelimits)
 
 
 def wanted_streams(profile: Autopilot, telemetry_rate_hz: float, *, targets: bool = False) -> dict[int, float]:
     """The messages the service consumes from the autopilot, with their rates [Hz]: the pose at the telemetry
-    rate, the global reference for goals and the PX4 takeoff, (ArduPilot) the EKF status, and with ``targets``
+    rate, the global reference for goals and the PX4 takeoff, (ArduPilot) the EKF status and SYS_STATUS (is the
+    fence switched on), and with ``targets``
     (goal adoption, apf_companion.adopt) the autopilot's POSITION_TARGET_* reports (ArduPilot sends them in its
     EXTENDED_STATUS stream, which a companion port may not have)."""
     out = {
@@ -39,6 +41,7 @@ def wanted_streams(profile: Autopilot, telemetry_rate_hz: float, *, targets: boo
     }
     if profile is Autopilot.ARDUPILOT:
         out[mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT] = EKF_STATUS_HZ
+        out[mavlink.MAVLINK_MSG_ID_SYS_STATUS] = SYS_STATUS_HZ
     if targets:
         out[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT] = GLOBAL_POSITION_HZ
         out[mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED] = GLOBAL_POSITION_HZ

@@ -44,6 +44,7 @@ __all__ = [
     "PositionTargetLocalNed",
     "Record",
     "Source",
+    "SysStatus",
     "decode",
     "source",
 ]
@@ -220,6 +221,16 @@ class ParamSet:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class SysStatus:
+    """Only the onboard sensors' bitmasks (MAV_SYS_STATUS_SENSOR): the fence reader reads GEOFENCE's."""
+
+    src: Source
+    present: int  # onboard_control_sensors_present
+    enabled: int  # onboard_control_sensors_enabled
+    health: int  # onboard_control_sensors_health
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class ParamValue:
     """One of the autopilot's parameters (the service reads its fence parameters: apf_companion.fencelimits)."""
 
@@ -308,6 +319,7 @@ Record = (
     | ParamRequestRead
     | ParamSet
     | ParamValue
+    | SysStatus
     | PositionTargetLocalNed
     | PositionTargetGlobalInt
     | MissionCount
@@ -319,7 +331,7 @@ Record = (
 #: The mission protocol's answers the service reads (the fence download).
 MissionRecord = MissionCount | MissionItemInt | MissionAck
 #: What the fence reader takes from the autopilot: the download's answers, its parameters, its home.
-FenceRecord = MissionCount | MissionItemInt | MissionAck | ParamValue | HomePosition
+FenceRecord = MissionCount | MissionItemInt | MissionAck | ParamValue | HomePosition | SysStatus
 
 
 def _src(msg: Any) -> Source:
@@ -498,6 +510,15 @@ def _param_value(msg: Any) -> ParamValue:
     )
 
 
+def _sys_status(msg: Any) -> SysStatus:
+    return SysStatus(
+        src=_src(msg),
+        present=int(msg.onboard_control_sensors_present),
+        enabled=int(msg.onboard_control_sensors_enabled),
+        health=int(msg.onboard_control_sensors_health),
+    )
+
+
 def _home_position(msg: Any) -> HomePosition:
     return HomePosition(
         src=_src(msg), latitude=int(msg.latitude), longitude=int(msg.longitude), altitude=int(msg.altitude)
@@ -581,6 +602,7 @@ DECODERS: dict[str, Callable[[Any], Record]] = {
     "PARAM_SET": _param_set,
     "PARAM_VALUE": _param_value,
     "HOME_POSITION": _home_position,
+    "SYS_STATUS": _sys_status,
     "POSITION_TARGET_LOCAL_NED": _position_target_local_ned,
     "POSITION_TARGET_GLOBAL_INT": _position_target_global_int,
     "MISSION_COUNT": _mission_count,

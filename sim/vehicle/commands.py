@@ -157,6 +157,13 @@ def _condition_yaw(v: VehicleEngine, c: Command) -> int:
     return v.profile_rules.condition_yaw(v, c.p)
 
 
+def _fence_enable(v: VehicleEngine, c: Command) -> int:
+    """MAV_CMD_DO_FENCE_ENABLE: ArduPilot's run-time switch (``GCS_Fence.cpp``; sim.vehicle.fenceswitch)."""
+    if "FENCE_TYPE" not in v.params:  # the PX4 profile keeps no such switch
+        return int(mavlink.MAV_RESULT_UNSUPPORTED)
+    return v.fence.switch.command(float(c.p[0]))
+
+
 def _send_after_ack(msg_id: int) -> CommandHandler:
     """ACCEPTED and the message, or FAILED when there is nothing to send yet (no home before the EKF origin:
     GCS_Common.cpp ``handle_command_get_home_position`` returns MAV_RESULT_FAILED while ``!home_is_set()``)."""
@@ -187,5 +194,6 @@ COMMANDS: dict[int, CommandHandler] = {
     mavlink.MAV_CMD_REQUEST_MESSAGE: _request_message,
     mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: _send_after_ack(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION),
     mavlink.MAV_CMD_GET_HOME_POSITION: _send_after_ack(mavlink.MAVLINK_MSG_ID_HOME_POSITION),
+    mavlink.MAV_CMD_DO_FENCE_ENABLE: _fence_enable,
     mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN: handle_reboot,
 }

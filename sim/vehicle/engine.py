@@ -115,7 +115,8 @@ class VehicleEngine:
         self.boot = BootState()
         self.own_id_drops = 0  # messages from our own sysid/compid, dropped (ArduPilot profile)
         #: The fence held, served and uploaded over the mission protocol (sim.vehicle.fence).
-        self.fence = FenceStore.of_zones(cfg.fence, cfg.fence_keepouts, cfg.home)
+        on = "FENCE_ENABLE" in self.params and self.params["FENCE_ENABLE"] == 1.0  # ArduPilot's; PX4 has none
+        self.fence = FenceStore.of_zones(cfg.fence, cfg.fence_keepouts, cfg.home, on=on)
         self.proximity = Proximity.at_boot(self.params)
         self._next_noise_t = 0.0
         self._noise_vel = np.zeros(2)

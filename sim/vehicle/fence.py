@@ -38,6 +38,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.autopilot import Autopilot
 from apf_companion.planning import FlyingArea, KeepOuts, area_polygon
 from sim.vehicle.fence_px4 import PX4_FENCE_HANDLERS, Px4Transfer
+from sim.vehicle.fenceswitch import FenceSwitch
 from sim.vehicle.geo import ne_to_latlon
 from sim.vehicle.missionwire import FENCE, MAX_ITEMS, FenceItemRaw, send_ack, send_item, src_of
 
@@ -78,13 +79,15 @@ class FenceStore:
 
     home: HomeConfig
     items: list[FenceItemRaw]
+    #: ArduPilot's run-time switch (FENCE_ENABLE at boot, MAV_CMD_DO_FENCE_ENABLE; sim.vehicle.fenceswitch).
+    switch: FenceSwitch = field(default_factory=lambda: FenceSwitch(False))
     upload: FenceUpload | None = None  # ArduPilot's upload in progress
     px4: Px4Transfer = field(default_factory=Px4Transfer)  # PX4's one transfer (sim.vehicle.fence_px4)
     uploads: int = 0
 
     @classmethod
-    def of_zones(cls, area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig) -> FenceStore:
-        return cls(home, fence_items(area, keepouts, home))
+    def of_zones(cls, area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig, *, on: bool) -> FenceStore:
+        return cls(home, fence_items(area, keepouts, home), FenceSwitch(on))
 
     def replace_items(self, items: list[FenceItemRaw]) -> None:
         """A completed upload's items (none: cleared) become the fence held."""

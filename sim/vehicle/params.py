@@ -145,6 +145,7 @@ _FENCE = (
         hi=15.0,
         doc="fences: 1 max alt, 2 circle, 4 polygons, 8 min alt",
     ),
+    ParamSpec(name="FENCE_ACTION", default=1.0, lo=0.0, hi=7.0, doc="breach action: 0 report only, 1 RTL or land"),
     ParamSpec(name="FENCE_RADIUS", default=300.0, lo=0.0, hi=10000.0, doc="circle fence radius round home [m]"),
     ParamSpec(name="FENCE_ALT_MAX", default=100.0, lo=0.0, hi=1000.0, doc="ceiling above home [m]"),
     ParamSpec(name="FENCE_MARGIN", default=2.0, lo=0.0, hi=10.0, doc="distance planners keep from the fence [m]"),

@@ -19,6 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.autopilot import ACC_IGNORE, VEL_IGNORE, YAW_ALL_IGNORE, Autopilot
 from sim.vehicle.config import DEFAULT_RATES_HZ
 from sim.vehicle.dynamics import TargetKind
+from sim.vehicle.fenceswitch import geofence_flags
 from sim.vehicle.geo import ne_to_latlon
 from sim.vehicle.profiles import Behaviour
 
@@ -85,8 +86,9 @@ def _heartbeat(v: VehicleEngine) -> Any:
 def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
     """SYS_STATUS onboard_control_sensors_(present, enabled, health), as ArduPilot's GCS.cpp
     update_sensor_status_flags: the geofence bit is healthy unless the fence is breached, also when no fence is
-    present (no fence here; MAVProxy reports "fence breach" when the bit drops); PREARM_CHECK is present and
-    enabled, and healthy when armed or when arming would pass."""
+    present (there are no breaches here; MAVProxy reports "fence breach" when the bit drops), present when one
+    is configured and enabled when it is switched on (``fenceswitch.geofence_flags``); PREARM_CHECK is present
+    and enabled, and healthy when armed or when arming would pass."""
     present = enabled = int(SENSORS_PRESENT)
     health = present if not v.crashed else 0
     health |= mavlink.MAV_SYS_STATUS_GEOFENCE
@@ -97,6 +99,12 @@ def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
         if v.armed or (not v.crashed and rules.arm_refusal(v, force=False) is None):
             health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
     prx_present, prx_enabled, prx_health = v.proximity.sensor_flags(v.t_s)  # none unless PRX1_TYPE at boot
+    if "FENCE_TYPE" in v.params:  # ArduPilot: the fence present, and switched on (sim.vehicle.fenceswitch)
+        on = v.fence.switch.follow(v.params["FENCE_ENABLE"] == 1.0)
+        fence_present, fence_enabled = geofence_flags(
+            int(v.params["FENCE_TYPE"]), bool(v.fence.items), on, int(v.params["FENCE_ACTION"])
+        )
+        present, enabled = present | fence_present, enabled | fence_enabled
     return present | prx_present, enabled | prx_enabled, health | prx_health
 
 

@@ -34,6 +34,7 @@ from apf_companion.links.messages import (
     PositionTargetGlobalInt,
     PositionTargetLocalNed,
     Source,
+    SysStatus,
     decode,
     source,
 )
@@ -204,6 +205,12 @@ CASES: list[tuple[str, Any, type[Any], dict[str, Any]]] = [
         lambda m: m.home_position_encode(-353632621, 1491652374, 584000, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0),
         HomePosition,
         {"latitude": -353632621, "longitude": 1491652374, "altitude": 584000},
+    ),
+    (
+        "SYS_STATUS",
+        lambda m: m.sys_status_encode(0x100000, 0x100000, 0x300000, 0, 12000, 0, 80, 0, 0, 0, 0, 0, 0),
+        SysStatus,
+        {"present": 0x100000, "enabled": 0x100000, "health": 0x300000},
     ),
 ]
 

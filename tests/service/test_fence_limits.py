@@ -21,7 +21,7 @@ from apf_companion.fenceclip import grown_keepout, inclusion_area
 from apf_companion.fencelimits import FenceLimits, ParamRead, ReadStage, fence_limits, param_float
 from apf_companion.fencereader import FenceReader, FenceReaderParams
 from apf_companion.goal import FenceBounds, GlobalReference, Route, route_outside_limits
-from apf_companion.links.messages import HomePosition
+from apf_companion.links.messages import HomePosition, SysStatus
 from apf_companion.outbox import Outbox
 from apf_companion.planning import inside_area
 from tests.service.test_fence import (
@@ -47,8 +47,8 @@ AP_DEFAULTS = {
 }
 
 
-def _limits(profile: Autopilot, values: dict[str, float]) -> FenceLimits:
-    limits = fence_limits(profile, values)
+def _limits(profile: Autopilot, values: dict[str, float], *, switched_on: bool = False) -> FenceLimits:
+    limits = fence_limits(profile, values, switched_on=switched_on)
     assert isinstance(limits, FenceLimits), limits
     return limits
 
@@ -371,3 +371,40 @@ def test_a_provisional_area_is_told_once_and_again_when_it_is_whole() -> None:
     _answer(reader, _polygon(L_SHAPE), t, margin)
     assert len(results) == 2 and not _last(results).provisional
     assert _last(results).note.startswith("inclusion polygon, 2 m in from its edges")
+
+
+def test_implausible_parameters_fail_safe() -> None:
+    """A margin no zone survives keeps the zone as uploaded (provisional, read again); a negative ceiling refuses
+    every goal above home; a negative radius or margin is no circle, no margin; NaN is no parameters at all."""
+    huge = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 5.0, "FENCE_MARGIN": 1e9})
+    area = fence_area(_polygon(L_SHAPE), REF, (10.0, 0.0), huge, None, 0.6)
+    assert area.outcome is FenceOutcome.USED and area.provisional and area.polygon_ne_m is not None
+    assert len(area.polygon_ne_m) == 6
+    low = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_ALT_MAX": -5.0})
+    assert low.ceiling_m == -7.0
+    why = route_outside_limits(
+        Route.point(0.0, 0.0, -1.0, source="test"), None, max_altitude_m=0.0, max_distance_m=0.0,
+        fence=FenceBounds(low.ceiling_m, None),
+    )  # fmt: skip
+    assert why is not None and "ceiling" in why
+    odd = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_RADIUS": -1.0, "FENCE_MARGIN": -3.0})
+    assert (odd.home_radius_m, odd.margin_m) == (None, 0.0)
+    assert isinstance(fence_limits(Autopilot.PX4, {"GF_MAX_HOR_DIST": math.nan, "GF_MAX_VER_DIST": 0.0}), str)
+
+
+def test_a_fence_switched_on_at_run_time_brings_its_circle_and_ceiling() -> None:
+    """ArduPilot 4.6 switches its fence on without FENCE_ENABLE (MAV_CMD_DO_FENCE_ENABLE, an RC switch,
+    FENCE_AUTOENABLE on arming); SYS_STATUS's GEOFENCE enabled bit says so."""
+    off = AP_DEFAULTS | {"FENCE_ENABLE": 0.0}
+    assert _limits(Autopilot.ARDUPILOT, off).ceiling_m is None
+    on = _limits(Autopilot.ARDUPILOT, off, switched_on=True)
+    assert (on.home_radius_m, on.ceiling_m) == (300.0, 98.0)
+    assert on.note == "FENCE_MARGIN 2 m, switched on (SYS_STATUS), circle of 300 m round home, ceiling 100 m"
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    bit = mavlink.MAV_SYS_STATUS_GEOFENCE
+    reader.on_record(SysStatus(src=AP, present=bit, enabled=bit, health=bit))
+    _answer(reader, [], 0.0, ENFORCED | {"FENCE_ENABLE": 0.0, "FENCE_TYPE": 1.0})
+    assert _last(results).bounds.ceiling_m == 100.0 and reader.switched_on
+    reader.on_record(SysStatus(src=AP, present=bit, enabled=0, health=bit))
+    assert not reader.switched_on

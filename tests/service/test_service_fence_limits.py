@@ -9,10 +9,13 @@ import logging
 import math
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from shapely.geometry import Polygon
 
 from apf_companion.fence import FenceOutcome
 from apf_companion.goal import Route
+from apf_companion.links import MavlinkLink
+from sim.vehicle.testing import command_long
 from tests.conftest import HANG_S, until
 from tests.service.test_service_fence import YARD, yard_flight
 
@@ -79,6 +82,33 @@ async def test_fence_parameters_changed_in_flight_are_followed(caplog: pytest.Lo
         "inclusion circle, 1.4 m in from its edges, 32 vertices; FENCE_MARGIN 2 m, circle of 300 m round home, "
         "ceiling 100 m, FENCE_TYPE without polygons: uploaded zones not used"
     )
+
+
+async def test_a_fence_switched_on_by_command_brings_its_ceiling_within_a_read() -> None:
+    """ArduPilot 4.6 with FENCE_ENABLE 0: a ground station sends MAV_CMD_DO_FENCE_ENABLE 1 (as an RC switch or
+    FENCE_AUTOENABLE would switch it): the parameter stays 0, SYS_STATUS's GEOFENCE bit says it is on, and the
+    service's next read takes the circle round home and the ceiling into service; switched off, they go."""
+    assert YARD.area_ne_m is not None
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    try:
+        assert gcs.local_address is not None
+        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
+        params = {"FENCE_ENABLE": 0.0}
+        async with yard_flight(YARD.area_ne_m, links=(link,), fence_poll_s=1.0, sim_params=params) as (svc, sim):
+            fence = svc.fence
+            assert fence is not None
+            await until(lambda: fence.result is not None, HANG_S, "the fence read")
+            assert fence.bounds.ceiling_m is None and svc.planner.params.nav_area_ne_m is not None
+            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            ack = await command_long(gcs, mavlink.MAV_CMD_DO_FENCE_ENABLE, 1.0)
+            assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+            await until(lambda: fence.bounds.ceiling_m == 98.0, HANG_S, "the ceiling in service")
+            assert fence.switched_on and sim.engine.params["FENCE_ENABLE"] == 0.0
+            assert fence.result is not None and "switched on (SYS_STATUS)" in fence.result.note
+            ack = await command_long(gcs, mavlink.MAV_CMD_DO_FENCE_ENABLE, 0.0)
+            await until(lambda: fence.bounds.ceiling_m is None, HANG_S, "the ceiling out of service")
+    finally:
+        await gcs.aclose()
 
 
 async def test_px4s_circle_round_home_is_the_area_and_refuses_goals_beyond_it() -> None:
