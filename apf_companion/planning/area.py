@@ -185,16 +185,38 @@ def zones_block_line(
 
 
 def near_edges(polygon: PolygonNE, north_m: npt.ArrayLike, east_m: npt.ArrayLike, margin_m: float) -> BoolArray:
-    """Whether each point (broadcast) lies closer than ``margin_m`` to an edge of ``polygon``."""
+    """Whether each point (broadcast) lies closer than ``margin_m`` to an edge of ``polygon``. Only the edges that
+    come within the margin of the points' bounding box are measured: a grid of 16 m inside a fence of hundreds of
+    metres meets few of its edges, or none."""
     north, east = np.broadcast_arrays(np.asarray(north_m, dtype=np.float64), np.asarray(east_m, dtype=np.float64))
     pts = np.stack([north, east], axis=-1)
     out = np.zeros(north.shape, dtype=bool)
     m2 = margin_m * margin_m
     v = np.array(polygon, dtype=np.float64)
+    w = np.roll(v, -1, axis=0)
+    box = _finite_box(north, east)
+    if box is None:
+        return out
+    n_lo, n_hi, e_lo, e_hi = box
+    near = (
+        (np.minimum(v[:, 0], w[:, 0]) <= n_hi + margin_m)
+        & (np.maximum(v[:, 0], w[:, 0]) >= n_lo - margin_m)
+        & (np.minimum(v[:, 1], w[:, 1]) <= e_hi + margin_m)
+        & (np.maximum(v[:, 1], w[:, 1]) >= e_lo - margin_m)
+    )
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite points compare False
-        for a, b in zip(v, np.roll(v, -1, axis=0), strict=True):
+        for a, b in zip(v[near], w[near], strict=True):
             out |= _dist2_to_segment(pts, a, b) < m2
     return out
+
+
+def _finite_box(north: FloatArray, east: FloatArray) -> tuple[float, float, float, float] | None:
+    """(north min, north max, east min, east max) of the finite points, or None when there is none."""
+    finite = np.isfinite(north) & np.isfinite(east)
+    if not finite.any():
+        return None
+    n, e = north[finite], east[finite]
+    return float(n.min()), float(n.max()), float(e.min()), float(e.max())
 
 
 def _dist2_to_segment(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
@@ -240,12 +262,24 @@ def _side(a: FloatArray, b: FloatArray, p: FloatArray) -> FloatArray:
 
 def _inside_polygon(v: FloatArray, north: FloatArray, east: FloatArray) -> BoolArray:
     """Even-odd rule over the edges of the polygon ``v`` (V, 2), plus the points on an edge. One pass per edge,
-    each vectorised over the points (a grid's cells: broadcast shapes, no (points x edges) temporaries)."""
+    each vectorised over the points (a grid's cells: broadcast shapes, no (points x edges) temporaries). The ray
+    runs north: an edge that spans none of the points' east values, or lies wholly south of them, neither crosses a
+    ray nor holds a point, and is skipped (a grid deep inside a large fence meets few edges)."""
     north, east = np.broadcast_arrays(north, east)
     odd = np.zeros(north.shape, dtype=bool)
     on_edge = np.zeros(north.shape, dtype=bool)
+    box = _finite_box(north, east)
+    if box is None:
+        return odd
+    n_lo, _, e_lo, e_hi = box
+    w = np.roll(v, -1, axis=0)
+    spans = (
+        (np.minimum(v[:, 1], w[:, 1]) <= e_hi)
+        & (np.maximum(v[:, 1], w[:, 1]) >= e_lo)
+        & (np.maximum(v[:, 0], w[:, 0]) >= n_lo)
+    )
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # non-finite points compare False
-        for (an, ae), (bn, be) in zip(v.tolist(), np.roll(v, -1, axis=0).tolist(), strict=True):
+        for (an, ae), (bn, be) in zip(v[spans].tolist(), w[spans].tolist(), strict=True):
             straddles = (ae > east) != (be > east)
             if ae != be:
                 north_at = an + (east - ae) * ((bn - an) / (be - ae))

@@ -12,7 +12,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from apf_companion.planning import area_bounds, area_polygon, area_text, inside_area, polygon_problem
-from apf_companion.planning.area import KeepOuts, in_keepout, leaves_area, meets_keepout, near_edges, outside_zones
+from apf_companion.planning.area import (
+    KeepOuts,
+    _dist2_to_segment,
+    in_keepout,
+    leaves_area,
+    meets_keepout,
+    near_edges,
+    outside_zones,
+)
 
 #: An L: 20 m x 20 m less its north-east 12 m x 12 m (north 8-20, east 8-20 is outside).
 L_SHAPE = ((0.0, 0.0), (20.0, 0.0), (20.0, 8.0), (8.0, 8.0), (8.0, 20.0), (0.0, 20.0))
@@ -128,3 +136,59 @@ def test_keep_out_zones_are_met_by_lines_that_cross_end_in_or_pass_within_the_ma
     assert near_edges(square[0], north, np.array([0.0, 0.0, 0.0, 0.0, 2.5]), 0.6).tolist() == [
         True, True, False, False, True,
     ]  # fmt: skip
+
+
+def _inside_every_edge(v: np.ndarray, north: np.ndarray, east: np.ndarray) -> np.ndarray:
+    """The even-odd rule over every edge, none skipped (what ``_inside_polygon`` did before it skipped edges)."""
+    odd = np.zeros(north.shape, dtype=bool)
+    on_edge = np.zeros(north.shape, dtype=bool)
+    for (an, ae), (bn, be) in zip(v.tolist(), np.roll(v, -1, axis=0).tolist(), strict=True):
+        straddles = (ae > east) != (be > east)
+        if ae != be:
+            odd ^= straddles & (north < an + (east - ae) * ((bn - an) / (be - ae)))
+        cross = (bn - an) * (east - ae) - (be - ae) * (north - an)
+        box = (min(an, bn) <= north) & (north <= max(an, bn)) & (min(ae, be) <= east) & (east <= max(ae, be))
+        on_edge |= (cross == 0.0) & box
+    return odd | on_edge
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(5.0, 300.0), st.floats(0.0, 6.28)), min_size=3, max_size=40, unique_by=lambda p: p[1]),
+    st.tuples(st.floats(-320.0, 320.0), st.floats(-320.0, 320.0)),
+    st.floats(0.05, 3.0),
+)
+def test_skipping_far_edges_changes_no_answer(
+    rays: list[tuple[float, float]], corner: tuple[float, float], margin_m: float
+) -> None:
+    """A 16 m grid anywhere in or around a star-shaped fence of up to 300 m (vertices and grid lines on the same
+    0.25 m lattice, so points on edges and vertices occur): the same insideness and nearness to the edges as with
+    every edge measured."""
+    ring = tuple(
+        (round(r * math.cos(a) * 4) / 4, round(r * math.sin(a) * 4) / 4) for r, a in sorted(rays, key=lambda p: p[1])
+    )
+    if polygon_problem(ring) is not None:
+        return
+    v = np.array(ring)
+    cells = (np.round(np.array(corner) * 4) / 4)[:, None] + np.arange(64)[None, :] * 0.25
+    north, east = np.broadcast_arrays(cells[0][:, None], cells[1][None, :])
+    assert inside_area(ring, north, east).tolist() == _inside_every_edge(v, north, east).tolist()
+    every = np.zeros(north.shape, dtype=bool)
+    pts = np.stack([north, east], axis=-1)
+    for a, b in zip(v, np.roll(v, -1, axis=0), strict=True):
+        every |= _dist2_to_segment(pts, a, b) < margin_m * margin_m
+    assert near_edges(ring, north, east, margin_m).tolist() == every.tolist()
+
+
+@pytest.mark.parametrize("side", ["north", "south", "east", "west"])
+def test_an_edge_just_beyond_a_grid_is_near_its_border_cells(side: str) -> None:
+    """A 100 m square fence whose edge runs 0.5 m beyond a 16 m grid's border cells: those cells (and only those)
+    are within a 0.6 m margin, whichever side the edge is on."""
+    square = ((-50.0, -50.0), (50.0, -50.0), (50.0, 50.0), (-50.0, 50.0))
+    lo = {"north": (33.5, 0.0), "south": (-49.5, 0.0), "east": (0.0, 33.5), "west": (0.0, -49.5)}[side]
+    cells = np.array(lo)[:, None] + np.arange(65)[None, :] * 0.25  # 16 m: north/east border 0.5 m from the edge
+    north, east = np.broadcast_arrays(cells[0][:, None], cells[1][None, :])
+    near = near_edges(square, north, east, 0.6)
+    border = {"north": near[-1, :], "south": near[0, :], "east": near[:, -1], "west": near[:, 0]}[side]
+    assert border.all() and near.sum() == border.size
+    assert inside_area(square, north, east).all()
