@@ -15,6 +15,12 @@ zone becomes a keep-out zone (``nav_keepout_ne_m``): its polygon, or a circle's 
 circle: never narrower than the fence). Anything else (a malformed polygon; inclusion zones that do not overlap;
 the vehicle outside them) leaves the planner as configured, with the reason.
 
+The fence's parameters (``apf_companion.fencelimits``) shape this: which zones are used, the union instead of the
+intersection, the circle round home (it clips the inclusion zones, or is the area when there are none) and the
+ceiling (goals above it are refused: ``FenceBounds``), and the margin, by which every edge moves as far as the
+planner's clearance C does not already keep it (inclusion zones in, exclusion zones out; a vehicle already within
+it gets the zone as uploaded, ``provisional``, until a later read).
+
 The download is driven by ``due`` (what to send now) and the ``on_*`` answers; each request is repeated after
 ``timeout_s``, at most ``retries`` times, then the download fails with its reason.
 """
