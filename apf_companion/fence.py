@@ -16,10 +16,10 @@ circle: never narrower than the fence). Anything else (a malformed polygon; incl
 the vehicle outside them) leaves the planner as configured, with the reason.
 
 The fence's parameters (``apf_companion.fencelimits``) shape this: which zones are used, the union instead of the
-intersection, the circle round home (it clips the inclusion zones, or is the area when there are none) and the
-ceiling (goals above it are refused: ``FenceBounds``), and the margin, by which every edge moves as far as the
-planner's clearance C does not already keep it (inclusion zones in, exclusion zones out; a vehicle already within
-it gets the zone as uploaded, ``provisional``, until a later read).
+intersection, the circle round home (it clips the inclusion zones, or is the area when there are none), the
+ceiling and the floor (goals beyond them are refused: ``FenceBounds``), and the margin, by which every edge moves
+as far as the planner's clearance C does not already keep it (inclusion zones in, exclusion zones out; a vehicle
+already within it gets the zone as uploaded, ``provisional``, until a later read).
 
 The download is driven by ``due`` (what to send now) and the ``on_*`` answers; each request is repeated after
 ``timeout_s``, at most ``retries`` times, then the download fails with its reason.
@@ -220,14 +220,15 @@ def fence_area(
             else:  # it is the area (600 m across by default: on bapf-nav's moving grid)
                 zones.append(_Zone(True, True, (centre,)))
     ceiling = None if limits is None else limits.ceiling_m
-    if not zones and ceiling is None and circle is None:
+    floor = None if limits is None else limits.floor_m
+    if not zones and ceiling is None and circle is None and floor is None:
         note = "; ".join(["the autopilot has no fence", *notes])
         return FenceArea(FenceOutcome.NO_FENCE, note, provisional=provisional)
     union = limits is not None and limits.union
-    area = _used(zones, reference, vehicle_ne_m, _Combine(inset, union, bound), ceiling, notes, provisional)
+    area = _used(zones, reference, vehicle_ne_m, _Combine(inset, union, bound), notes, provisional)
     if area.outcome is not FenceOutcome.USED:
         return area
-    return dataclasses.replace(area, bounds=FenceBounds(ceiling, circle))
+    return dataclasses.replace(area, bounds=FenceBounds(ceiling, circle, floor))
 
 
 @dataclass(frozen=True, slots=True)
@@ -245,7 +246,6 @@ def _used(
     reference: GlobalReference,
     vehicle_ne_m: tuple[float, float],
     how: _Combine,
-    ceiling_m: float | None,
     notes: list[str],
     provisional: bool,
 ) -> FenceArea:

@@ -5,13 +5,13 @@ PARAM_REQUEST_READ (``ParamRead``, a state machine on an injected clock) and tur
 
 ArduPilot (``libraries/AC_Fence/AC_Fence.cpp``):
 - ``FENCE_TYPE`` (bitmask) says which fences are configured: 1 maximum altitude, 2 a circle of ``FENCE_RADIUS``
-  [m] round home, 4 the uploaded inclusion/exclusion polygons and circles, 8 minimum altitude (not used: the
-  planner does not descend).
+  [m] round home, 4 the uploaded inclusion/exclusion polygons and circles, 8 minimum altitude (``FENCE_ALT_MIN``
+  [m above home]: goals below it plus the margin, ``get_safe_alt_min_m``, are refused).
 - The uploaded zones are used whenever FENCE_TYPE configures them, whatever ``FENCE_ENABLE`` says: the user
   drew them, and since ArduPilot 4.6 a fence is also switched on at run time without that parameter changing
   (an RC switch, MAV_CMD_DO_FENCE_ENABLE, ``FENCE_AUTOENABLE`` on arming: "these changes are not persisted").
   Planning inside a fence that is not switched on is never unsafe.
-- The circle round home and the ceiling (``FENCE_ALT_MAX`` [m above home]) are used only while the fence is
+- The circle round home, the ceiling (``FENCE_ALT_MAX`` [m above home]) and the floor are used only while the fence is
   switched on: ``FENCE_ENABLE`` 1, or SYS_STATUS's GEOFENCE bit enabled (``libraries/GCS_MAVLink/GCS.cpp``
   ``update_sensor_status_flags``: configured, switched on at run time, FENCE_ACTION not report-only). Every Copter
   has them configured by default (FENCE_TYPE 7, 300 m, 100 m), so with the fence off they say nothing about this
@@ -54,7 +54,7 @@ FENCE_PARAMS: dict[Autopilot, tuple[str, ...]] = {
     Autopilot.PX4: ("GF_MAX_HOR_DIST", "GF_MAX_VER_DIST"),
 }
 OPTIONAL_PARAMS: dict[Autopilot, tuple[str, ...]] = {
-    Autopilot.ARDUPILOT: ("FENCE_MARGIN_XY", "FENCE_OPTIONS"),
+    Autopilot.ARDUPILOT: ("FENCE_MARGIN_XY", "FENCE_OPTIONS", "FENCE_ALT_MIN"),
     Autopilot.PX4: (),
 }
 
@@ -62,6 +62,7 @@ OPTIONAL_PARAMS: dict[Autopilot, tuple[str, ...]] = {
 _TYPE_ALT_MAX = 1
 _TYPE_CIRCLE = 2
 _TYPE_POLYGON = 4
+_TYPE_ALT_MIN = 8
 _OPTION_UNION = 2  # FENCE_OPTIONS bit 1
 
 _INT_TYPES = (
@@ -92,6 +93,7 @@ class FenceLimits:
         home_radius_m: a circle of this radius round home bounds the flight [m] (moved in by the margin as every
             zone edge is, ``apf_companion.fence``), or None.
         ceiling_m: the highest goal above home [m] (already less the margin), or None.
+        floor_m: the lowest goal above home [m] (FENCE_ALT_MIN plus the margin), or None.
         union: the inclusion zones' union is allowed (ArduPilot FENCE_OPTIONS bit 1), not their intersection.
         note: what was read, said with the fence's outcome.
     """
@@ -102,10 +104,11 @@ class FenceLimits:
     ceiling_m: float | None
     note: str
     union: bool = False
+    floor_m: float | None = None
 
     @property
     def enforced(self) -> bool:
-        return self.zones or self.home_radius_m is not None or self.ceiling_m is not None
+        return self.zones or any(x is not None for x in (self.home_radius_m, self.ceiling_m, self.floor_m))
 
 
 def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on: bool = False) -> FenceLimits | str:
@@ -126,6 +129,8 @@ def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on
     home_radius = radius if on and kinds & _TYPE_CIRCLE and radius > 0.0 else None
     ceiling = values["FENCE_ALT_MAX"] - max(values["FENCE_MARGIN"], 0.0) if on and kinds & _TYPE_ALT_MAX else None
     union = bool(int(values.get("FENCE_OPTIONS", 0.0)) & _OPTION_UNION)
+    has_floor = on and kinds & _TYPE_ALT_MIN and "FENCE_ALT_MIN" in values
+    floor = values["FENCE_ALT_MIN"] + max(values["FENCE_MARGIN"], 0.0) if has_floor else None
     said = [f"FENCE_MARGIN{'_XY' if margin_xy > 0.0 else ''} {margin:g} m"]
     if switched_on and values["FENCE_ENABLE"] == 0.0:
         said.append("switched on (SYS_STATUS)")
@@ -133,13 +138,16 @@ def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on
         said.append(f"circle of {radius:g} m round home")
     if ceiling is not None:
         said.append(f"ceiling {values['FENCE_ALT_MAX']:g} m")
-    if not on and kinds & (_TYPE_CIRCLE | _TYPE_ALT_MAX):
-        said.append("FENCE_ENABLE 0: no circle round home or ceiling")
+    if floor is not None:
+        said.append(f"floor {values['FENCE_ALT_MIN']:g} m")
+    if not on and kinds & (_TYPE_CIRCLE | _TYPE_ALT_MAX | _TYPE_ALT_MIN):
+        off = "circle round home, ceiling or floor" if kinds & _TYPE_ALT_MIN else "circle round home or ceiling"
+        said.append(f"FENCE_ENABLE 0: no {off}")
     if not kinds & _TYPE_POLYGON:
         said.append("FENCE_TYPE without polygons: uploaded zones not used")
     if union:
         said.append("FENCE_OPTIONS union of inclusion zones")
-    return FenceLimits(bool(kinds & _TYPE_POLYGON), margin, home_radius, ceiling, ", ".join(said), union)
+    return FenceLimits(bool(kinds & _TYPE_POLYGON), margin, home_radius, ceiling, ", ".join(said), union, floor)
 
 
 def _px4_note(radius: float, ceiling: float) -> str:

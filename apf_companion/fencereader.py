@@ -138,6 +138,7 @@ class FenceReader:
             "unexpected": self.download.unexpected,
             "limits": self.limits if self.limits is None or isinstance(self.limits, str) else self.limits.note,
             "ceiling_m": self.bounds.ceiling_m,
+            "floor_m": self.bounds.floor_m,
             "home_circle_ne_m": self.bounds.home_circle,
         }
 

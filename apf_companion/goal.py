@@ -269,6 +269,8 @@ class FenceBounds:
 
     ceiling_m: float | None = None
     home_circle: tuple[float, float, float] | None = None
+    #: The lowest goal above home [m] (its minimum altitude plus its margin), or None.
+    floor_m: float | None = None
 
 
 def route_outside_limits(
@@ -282,7 +284,7 @@ def route_outside_limits(
     fence: FenceBounds = FenceBounds(),
 ) -> str | None:
     """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home) or
-    outside the autopilot's fence (``fence``: above its ceiling, outside its circle round home), or
+    outside the autopilot's fence (``fence``: above its ceiling, below its floor, outside its circle round home), or
     horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet),
     or outside the planner's flying area ``area_ne_m`` (a rectangle or polygon, ``planning.area``) or in one of its
     keep-out zones ``keepouts_ne_m`` (bapf-nav would give up at once). 0 / None = no limit. A mistyped or hostile
@@ -319,6 +321,11 @@ def route_outside_limits(
         if high.size:
             i = int(high[0])
             return f"waypoint {i} is {up[i]:.0f} m above home ({name} = {limit:g})"
+    if fence.floor_m is not None:
+        low = np.flatnonzero(np.isfinite(up) & (up < fence.floor_m))
+        if low.size:
+            i = int(low[0])
+            return f"waypoint {i} is {up[i]:.0f} m above home (the fence's floor plus its margin = {fence.floor_m:g})"
     if max_distance_m > 0.0 and pos_ned_m is not None:
         pos = np.asarray(pos_ned_m, dtype=np.float64)
         far = np.flatnonzero(np.hypot(wp[:, 0] - pos[0], wp[:, 1] - pos[1]) > max_distance_m)

@@ -148,6 +148,7 @@ _FENCE = (
     ParamSpec(name="FENCE_ACTION", default=1.0, lo=0.0, hi=7.0, doc="breach action: 0 report only, 1 RTL or land"),
     ParamSpec(name="FENCE_RADIUS", default=300.0, lo=0.0, hi=10000.0, doc="circle fence radius round home [m]"),
     ParamSpec(name="FENCE_ALT_MAX", default=100.0, lo=0.0, hi=1000.0, doc="ceiling above home [m]"),
+    ParamSpec(name="FENCE_ALT_MIN", default=-10.0, lo=-100.0, hi=100.0, doc="floor above home [m] (FENCE_TYPE 8)"),
     ParamSpec(name="FENCE_MARGIN", default=2.0, lo=0.0, hi=10.0, doc="distance planners keep from the fence [m]"),
     ParamSpec(name="FENCE_MARGIN_XY", default=0.0, lo=0.0, hi=50.0, doc="horizontal margin [m] (0 = FENCE_MARGIN)"),
     ParamSpec(name="FENCE_OPTIONS", default=0.0, lo=0.0, hi=7.0, doc="bit 1: union of the inclusion zones"),

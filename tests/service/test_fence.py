@@ -318,6 +318,7 @@ ENFORCED = {
     "FENCE_MARGIN": 0.0,
     "FENCE_MARGIN_XY": 0.0,
     "FENCE_OPTIONS": 0.0,
+    "FENCE_ALT_MIN": -10.0,
 }
 
 

@@ -408,3 +408,24 @@ def test_a_fence_switched_on_at_run_time_brings_its_circle_and_ceiling() -> None
     assert _last(results).bounds.ceiling_m == 100.0 and reader.switched_on
     reader.on_record(SysStatus(src=AP, present=bit, enabled=0, health=bit))
     assert not reader.switched_on
+
+
+def test_the_floor_refuses_goals_below_it_plus_the_margin() -> None:
+    """FENCE_TYPE bit 8 (FENCE_ALT_MIN, 4.x, read when the autopilot has it) with the fence on: goals below the
+    floor plus the margin (``get_safe_alt_min_m``) are refused; off, or an autopilot without it, no floor."""
+    with_floor = AP_DEFAULTS | {"FENCE_TYPE": 15.0, "FENCE_ALT_MIN": 5.0}
+    limits = _limits(Autopilot.ARDUPILOT, with_floor)
+    assert limits.floor_m == 7.0 and limits.note.endswith("ceiling 100 m, floor 5 m")
+    assert _limits(Autopilot.ARDUPILOT, with_floor | {"FENCE_ENABLE": 0.0}).floor_m is None
+    assert _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 15.0}).floor_m is None  # no FENCE_ALT_MIN
+    area = fence_area([], REF, (10.0, 5.0), limits, _latlon_e7(10.0, 5.0), 0.6)
+    assert area.bounds.floor_m == 7.0
+    bounds = FenceBounds(98.0, None, 7.0)
+    low = route_outside_limits(Route.point(0.0, 0.0, -6.0, source="test"), None, max_altitude_m=0.0,
+                               max_distance_m=0.0, fence=bounds)  # fmt: skip
+    assert low == "waypoint 0 is 6 m above home (the fence's floor plus its margin = 7)"
+    ok = route_outside_limits(Route.point(0.0, 0.0, -8.0, source="test"), None, max_altitude_m=0.0,
+                              max_distance_m=0.0, fence=bounds)  # fmt: skip
+    assert ok is None
+    floor_only = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 8.0, "FENCE_ALT_MIN": 5.0})
+    assert floor_only.enforced and fence_area([], REF, (10.0, 5.0), floor_only).outcome is FenceOutcome.USED
