@@ -32,6 +32,20 @@ _PARAMS = {
     "keep-out zones": PlannerParams(
         nav_keepout_ne_m=(((1.0, 0.5), (2.5, 0.5), (2.5, 3.5), (1.0, 3.5)), ((14.0, 14.0), (17.0, 15.0), (15.0, 18.0)))
     ),
+    # The same polygon reaching 100 m north: wider than the fixed grid's 256 cells, so planned on the moving grid
+    # with the cells outside the polygon closed per corner (``NavGrid``), on both paths.
+    "a wide polygonal area": PlannerParams(
+        nav_area_ne_m=(
+            (-4.0, -8.0),
+            (100.0, -8.0),
+            (100.0, 28.0),
+            (4.5, 28.0),
+            (4.5, 1.0),
+            (3.0, 1.0),
+            (3.0, 28.0),
+            (-4.0, 28.0),
+        )
+    ),
     "a polygonal area": PlannerParams(
         nav_area_ne_m=(
             (-4.0, -8.0),
