@@ -205,7 +205,7 @@ def fence_area(
     notes, provisional = [] if limits is None else [limits.note], False
     if limits is not None and not limits.zones:
         zones = []
-    inset = 0.0 if limits is None else max(limits.margin_m - clearance_m, 0.0)
+    inset = 0.0 if limits is None else limits.inset_m(clearance_m)
     circle, bound = None, None
     if limits is not None and limits.home_radius_m is not None:
         if home is None:

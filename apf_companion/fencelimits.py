@@ -110,6 +110,10 @@ class FenceLimits:
     def enforced(self) -> bool:
         return self.zones or any(x is not None for x in (self.home_radius_m, self.ceiling_m, self.floor_m))
 
+    def inset_m(self, clearance_m: float) -> float:
+        """How far every zone edge moves: the part of the margin that the planner's clearance C does not keep."""
+        return max(self.margin_m - clearance_m, 0.0)
+
 
 def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on: bool = False) -> FenceLimits | str:
     """The limits of the values of ``FENCE_PARAMS[profile]`` and those of ``OPTIONAL_PARAMS[profile]`` that the
@@ -123,14 +127,14 @@ def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on
         hor, ver = values["GF_MAX_HOR_DIST"], values["GF_MAX_VER_DIST"]
         return FenceLimits(True, 0.0, hor if hor > 0.0 else None, ver if ver > 0.0 else None, _px4_note(hor, ver))
     kinds, on = int(values["FENCE_TYPE"]), values["FENCE_ENABLE"] != 0.0 or switched_on
-    margin_xy = values.get("FENCE_MARGIN_XY", 0.0)
-    margin = max(margin_xy if margin_xy > 0.0 else values["FENCE_MARGIN"], 0.0)
+    margin_xy, margin_z = values.get("FENCE_MARGIN_XY", 0.0), max(values["FENCE_MARGIN"], 0.0)
+    margin = margin_xy if margin_xy > 0.0 else margin_z
     radius = values["FENCE_RADIUS"]
     home_radius = radius if on and kinds & _TYPE_CIRCLE and radius > 0.0 else None
-    ceiling = values["FENCE_ALT_MAX"] - max(values["FENCE_MARGIN"], 0.0) if on and kinds & _TYPE_ALT_MAX else None
+    ceiling = values["FENCE_ALT_MAX"] - margin_z if on and kinds & _TYPE_ALT_MAX else None
     union = bool(int(values.get("FENCE_OPTIONS", 0.0)) & _OPTION_UNION)
     has_floor = on and kinds & _TYPE_ALT_MIN and "FENCE_ALT_MIN" in values
-    floor = values["FENCE_ALT_MIN"] + max(values["FENCE_MARGIN"], 0.0) if has_floor else None
+    floor = values["FENCE_ALT_MIN"] + margin_z if has_floor else None
     said = [f"FENCE_MARGIN{'_XY' if margin_xy > 0.0 else ''} {margin:g} m"]
     if switched_on and values["FENCE_ENABLE"] == 0.0:
         said.append("switched on (SYS_STATUS)")

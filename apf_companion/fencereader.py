@@ -136,7 +136,7 @@ class FenceReader:
             "changes": self.changes,
             "ignored": self.ignored,
             "unexpected": self.download.unexpected,
-            "limits": self.limits if self.limits is None or isinstance(self.limits, str) else self.limits.note,
+            "limits": self.limits.note if isinstance(self.limits, FenceLimits) else self.limits,
             "ceiling_m": self.bounds.ceiling_m,
             "floor_m": self.bounds.floor_m,
             "home_circle_ne_m": self.bounds.home_circle,
@@ -163,10 +163,8 @@ class FenceReader:
     def on_record(self, rec: FenceRecord) -> None:
         """A record from the autopilot: a parameter, home, or an answer to the download when addressed to us,
         about the fence, and one runs."""
-        other = _OTHER_RECORDS.get(type(rec))
-        if other is not None or not isinstance(rec, MissionCount | MissionItemInt | MissionAck):
-            if other is not None:
-                other(self, rec)
+        if not isinstance(rec, MissionCount | MissionItemInt | MissionAck):
+            _OTHER_RECORDS[type(rec)](self, rec)
             return
         p = self.params
         ours = rec.target_system == p.our_system and rec.target_component == p.our_component
@@ -238,7 +236,7 @@ class FenceReader:
         # What the result depends on: home only with a circle round it (ArduCopter moves home when it arms), the
         # margin's inset rather than C (a PARAM_SET of C that leaves the inset at 0 changes nothing).
         home = self.home if limits is not None and limits.home_radius_m is not None else None
-        inputs = (items, limits, home, 0.0 if limits is None else max(limits.margin_m - clearance, 0.0))
+        inputs = (items, limits, home, 0.0 if limits is None else limits.inset_m(clearance))
         r = self.result
         retry = r is not None and (r.outcome is FenceOutcome.NOT_USED or r.provisional)
         if inputs == self._inputs and not retry:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.autopilot import Autopilot
 from sim.vehicle.geo import GLOBAL_FRAMES, down_from_alt, latlon_to_ne
 from sim.vehicle.profiles import param_int
 from sim.vehicle.reboot import handle_reboot
@@ -159,7 +160,7 @@ def _condition_yaw(v: VehicleEngine, c: Command) -> int:
 
 def _fence_enable(v: VehicleEngine, c: Command) -> int:
     """MAV_CMD_DO_FENCE_ENABLE: ArduPilot's run-time switch (``GCS_Fence.cpp``; sim.vehicle.fenceswitch)."""
-    if "FENCE_TYPE" not in v.params:  # the PX4 profile keeps no such switch
+    if v.profile is not Autopilot.ARDUPILOT:  # the PX4 profile keeps no such switch
         return int(mavlink.MAV_RESULT_UNSUPPORTED)
     return v.fence.switch.command(float(c.p[0]))
 

@@ -45,6 +45,7 @@ from sim.vehicle.dynamics import (
     wrap_pi,
 )
 from sim.vehicle.fence import FenceStore
+from sim.vehicle.fenceswitch import FenceSwitch
 from sim.vehicle.flight_modes import choose_target
 from sim.vehicle.gcs import COMPID, SYSID, handle_message
 from sim.vehicle.guided import GuidedState
@@ -115,8 +116,7 @@ class VehicleEngine:
         self.boot = BootState()
         self.own_id_drops = 0  # messages from our own sysid/compid, dropped (ArduPilot profile)
         #: The fence held, served and uploaded over the mission protocol (sim.vehicle.fence).
-        on = "FENCE_ENABLE" in self.params and self.params["FENCE_ENABLE"] == 1.0  # ArduPilot's; PX4 has none
-        self.fence = FenceStore.of_zones(cfg.fence, cfg.fence_keepouts, cfg.home, on=on)
+        self.fence = FenceStore.of_zones(cfg.fence, cfg.fence_keepouts, cfg.home, FenceSwitch.at_boot(self.params))
         self.proximity = Proximity.at_boot(self.params)
         self._next_noise_t = 0.0
         self._noise_vel = np.zeros(2)

@@ -86,8 +86,8 @@ class FenceStore:
     uploads: int = 0
 
     @classmethod
-    def of_zones(cls, area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig, *, on: bool) -> FenceStore:
-        return cls(home, fence_items(area, keepouts, home), FenceSwitch(on))
+    def of_zones(cls, area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig, switch: FenceSwitch) -> FenceStore:
+        return cls(home, fence_items(area, keepouts, home), switch)
 
     def replace_items(self, items: list[FenceItemRaw]) -> None:
         """A completed upload's items (none: cleared) become the fence held."""

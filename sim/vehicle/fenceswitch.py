@@ -12,7 +12,12 @@ modelled: FENCE_AUTOENABLE, breaches and their actions.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+if TYPE_CHECKING:
+    from sim.vehicle.params import ParamTable
 
 __all__ = ["FenceSwitch", "geofence_flags"]
 
@@ -26,6 +31,11 @@ class FenceSwitch:
     def __init__(self, param_on: bool) -> None:
         self.on = param_on
         self._param_on = param_on
+
+    @classmethod
+    def at_boot(cls, params: ParamTable) -> FenceSwitch:
+        """The switch as FENCE_ENABLE sets it at boot (off on the PX4 profile, which has no such parameter)."""
+        return cls("FENCE_ENABLE" in params and params["FENCE_ENABLE"] == 1.0)
 
     def follow(self, param_on: bool) -> bool:
         """The switch now: a change of FENCE_ENABLE sets it, as ArduPilot's ``update`` does."""

@@ -99,7 +99,7 @@ def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
         if v.armed or (not v.crashed and rules.arm_refusal(v, force=False) is None):
             health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
     prx_present, prx_enabled, prx_health = v.proximity.sensor_flags(v.t_s)  # none unless PRX1_TYPE at boot
-    if "FENCE_TYPE" in v.params:  # ArduPilot: the fence present, and switched on (sim.vehicle.fenceswitch)
+    if v.profile is Autopilot.ARDUPILOT:  # the fence present, and switched on (sim.vehicle.fenceswitch)
         on = v.fence.switch.follow(v.params["FENCE_ENABLE"] == 1.0)
         fence_present, fence_enabled = geofence_flags(
             int(v.params["FENCE_TYPE"]), bool(v.fence.items), on, int(v.params["FENCE_ACTION"])
