@@ -24,9 +24,10 @@ ArduPilot (``libraries/AC_Fence/AC_Fence.cpp``):
 - ``FENCE_OPTIONS`` bit 1 (read when the autopilot has it): the allowed area is the union of the inclusion zones
   instead of their intersection (``AC_PolyFence_loader.cpp``); the circle round home still bounds it.
 PX4 (``src/modules/navigator/geofence_params.c``):
-- ``GF_MAX_HOR_DIST`` [m from home] and ``GF_MAX_VER_DIST`` [m above home], 0 = off (the default): a value is
-  the user's own limit, used whatever ``GF_ACTION`` does on a breach. The uploaded zones are always used. PX4 has
-  no margin parameter: the zones keep bapf-nav's clearance C only.
+- ``GF_MAX_HOR_DIST`` [m from home] and ``GF_MAX_VER_DIST`` [m above home], 0 = off (the default), used while
+  ``GF_ACTION`` is not 0 (None): PX4 checks for a breach only then (``geofence_breach_check``, navigator), as
+  ArduPilot's circle and ceiling count only while its fence is on. The uploaded zones are always used. PX4 has no
+  margin parameter: the zones keep bapf-nav's clearance C only.
 
 The parameters are read again at every fence read (``planner.fence_poll_s``). Values come as floats; ArduPilot
 casts integer parameters to float, PX4 sends an INT32's bytes in the float
@@ -51,7 +52,7 @@ __all__ = ["FENCE_PARAMS", "OPTIONAL_PARAMS", "FenceLimits", "ParamRead", "ReadS
 #: firmware): those that stay unanswered are taken as absent.
 FENCE_PARAMS: dict[Autopilot, tuple[str, ...]] = {
     Autopilot.ARDUPILOT: ("FENCE_ENABLE", "FENCE_TYPE", "FENCE_RADIUS", "FENCE_ALT_MAX", "FENCE_MARGIN"),
-    Autopilot.PX4: ("GF_MAX_HOR_DIST", "GF_MAX_VER_DIST"),
+    Autopilot.PX4: ("GF_ACTION", "GF_MAX_HOR_DIST", "GF_MAX_VER_DIST"),
 }
 OPTIONAL_PARAMS: dict[Autopilot, tuple[str, ...]] = {
     Autopilot.ARDUPILOT: ("FENCE_MARGIN_XY", "FENCE_OPTIONS", "FENCE_ALT_MIN"),
@@ -124,8 +125,7 @@ def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on
     if bad:
         return f"{bad[0]} is {values.get(bad[0])!r}"
     if profile is Autopilot.PX4:
-        hor, ver = values["GF_MAX_HOR_DIST"], values["GF_MAX_VER_DIST"]
-        return FenceLimits(True, 0.0, hor if hor > 0.0 else None, ver if ver > 0.0 else None, _px4_note(hor, ver))
+        return _px4_limits(values["GF_ACTION"] != 0.0, values["GF_MAX_HOR_DIST"], values["GF_MAX_VER_DIST"])
     kinds, on = int(values["FENCE_TYPE"]), values["FENCE_ENABLE"] != 0.0 or switched_on
     margin_xy, margin_z = values.get("FENCE_MARGIN_XY", 0.0), max(values["FENCE_MARGIN"], 0.0)
     margin = margin_xy if margin_xy > 0.0 else margin_z
@@ -154,10 +154,16 @@ def fence_limits(profile: Autopilot, values: Mapping[str, float], *, switched_on
     return FenceLimits(bool(kinds & _TYPE_POLYGON), margin, home_radius, ceiling, ", ".join(said), union, floor)
 
 
-def _px4_note(radius: float, ceiling: float) -> str:
-    said = [f"circle of {radius:g} m round home"] if radius > 0.0 else []
-    said += [f"ceiling {ceiling:g} m"] if ceiling > 0.0 else []
-    return ", ".join(said) or "no circle, no ceiling"
+def _px4_limits(on: bool, radius: float, ceiling: float) -> FenceLimits:
+    """PX4's circle round home and ceiling (0: none), used while its breach action is not None (``on``)."""
+    has_circle, has_ceiling = radius > 0.0, ceiling > 0.0
+    if not on and (has_circle or has_ceiling):
+        off = " or ".join(name for name, has in (("circle round home", has_circle), ("ceiling", has_ceiling)) if has)
+        return FenceLimits(True, 0.0, None, None, f"GF_ACTION 0 (none): no {off}")
+    said = [f"circle of {radius:g} m round home"] if has_circle else []
+    said += [f"ceiling {ceiling:g} m"] if has_ceiling else []
+    note = ", ".join(said) or "no circle, no ceiling"
+    return FenceLimits(True, 0.0, radius if has_circle else None, ceiling if has_ceiling else None, note)
 
 
 class ReadStage(enum.Enum):

@@ -78,12 +78,20 @@ def test_ardupilot_fence_parameters_say_what_is_enforced() -> None:
 
 
 def test_px4_geofence_parameters_say_what_is_enforced() -> None:
-    """geofence_params.c: GF_MAX_HOR_DIST / GF_MAX_VER_DIST 0 are off (the default); the uploaded zones always."""
-    px4 = {"GF_MAX_HOR_DIST": 0.0, "GF_MAX_VER_DIST": 0.0}
+    """geofence_params.c: GF_MAX_HOR_DIST / GF_MAX_VER_DIST 0 are off (the default), and count only while
+    GF_ACTION is not 0 (None: PX4 checks no breach); the uploaded zones always."""
+    px4 = {"GF_ACTION": 2.0, "GF_MAX_HOR_DIST": 0.0, "GF_MAX_VER_DIST": 0.0}
     assert _limits(Autopilot.PX4, px4) == FenceLimits(True, 0.0, None, None, "no circle, no ceiling")
     both = _limits(Autopilot.PX4, px4 | {"GF_MAX_HOR_DIST": 150.0, "GF_MAX_VER_DIST": 60.0})
     assert (both.home_radius_m, both.ceiling_m, both.margin_m) == (150.0, 60.0, 0.0)
     assert both.note == "circle of 150 m round home, ceiling 60 m"
+    warn = _limits(Autopilot.PX4, px4 | {"GF_ACTION": 1.0, "GF_MAX_VER_DIST": 60.0})  # a warning is a check too
+    assert (warn.home_radius_m, warn.ceiling_m, warn.note) == (None, 60.0, "ceiling 60 m")
+    off = _limits(Autopilot.PX4, px4 | {"GF_ACTION": 0.0, "GF_MAX_HOR_DIST": 150.0, "GF_MAX_VER_DIST": 60.0})
+    assert off == FenceLimits(True, 0.0, None, None, "GF_ACTION 0 (none): no circle round home or ceiling")
+    circle_off = _limits(Autopilot.PX4, px4 | {"GF_ACTION": 0.0, "GF_MAX_HOR_DIST": 150.0})
+    assert circle_off.note == "GF_ACTION 0 (none): no circle round home" and circle_off.zones
+    assert _limits(Autopilot.PX4, px4 | {"GF_ACTION": 0.0}).note == "no circle, no ceiling"
 
 
 def test_px4_integer_parameters_arrive_as_their_bytes() -> None:
@@ -389,7 +397,9 @@ def test_implausible_parameters_fail_safe() -> None:
     assert why is not None and "ceiling" in why
     odd = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_RADIUS": -1.0, "FENCE_MARGIN": -3.0})
     assert (odd.home_radius_m, odd.margin_m) == (None, 0.0)
-    assert isinstance(fence_limits(Autopilot.PX4, {"GF_MAX_HOR_DIST": math.nan, "GF_MAX_VER_DIST": 0.0}), str)
+    nan_dist = {"GF_ACTION": 2.0, "GF_MAX_HOR_DIST": math.nan, "GF_MAX_VER_DIST": 0.0}
+    assert fence_limits(Autopilot.PX4, nan_dist) == "GF_MAX_HOR_DIST is nan"
+    assert isinstance(fence_limits(Autopilot.PX4, nan_dist | {"GF_MAX_HOR_DIST": 0.0, "GF_ACTION": math.nan}), str)
 
 
 def test_a_fence_switched_on_at_run_time_brings_its_circle_and_ceiling() -> None:

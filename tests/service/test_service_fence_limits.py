@@ -114,8 +114,10 @@ async def test_a_fence_switched_on_by_command_brings_its_ceiling_within_a_read()
 async def test_px4s_circle_round_home_is_the_area_and_refuses_goals_beyond_it() -> None:
     """PX4 with GF_MAX_HOR_DIST 40 m and no uploaded fence: the circle is the area (80 m across: wider than the
     fixed grid's 76.8 m, so bapf-nav plans it on its moving grid; PX4 has no margin parameter), goals further
-    than 40 m from home are refused, nearer ones flown."""
-    async with yard_flight(None, profile="px4", sim_params={"GF_MAX_HOR_DIST": 40.0}) as (svc, _):
+    than 40 m from home are refused, nearer ones flown. GF_ACTION set to 0 (None: PX4 checks no breach) takes the
+    circle out within a read, and the goal at 41 m is flown."""
+    params = {"GF_MAX_HOR_DIST": 40.0}
+    async with yard_flight(None, profile="px4", sim_params=params, fence_poll_s=1.0) as (svc, sim):
         fence = svc.fence
         assert fence is not None
         await until(lambda: fence.bounds.home_circle is not None, HANG_S, "the circle round home")
@@ -125,3 +127,8 @@ async def test_px4s_circle_round_home_is_the_area_and_refuses_goals_beyond_it() 
         now = svc.clock.now()
         assert not svc.set_route(Route.point(41.0, 0.0, -5.0, source="test"), now)
         assert svc.set_route(Route.point(39.0, 0.0, -5.0, source="test"), now)
+        sim.engine.params.set("GF_ACTION", 0.0)
+        await until(lambda: fence.bounds.home_circle is None, HANG_S, "the circle out of service")
+        assert svc.planner.params.nav_area_ne_m is None
+        assert fence.limits is not None and "GF_ACTION 0 (none): no circle round home" in str(fence.summary())
+        assert svc.set_route(Route.point(41.0, 0.0, -5.0, source="test"), svc.clock.now())
