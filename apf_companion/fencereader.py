@@ -14,15 +14,19 @@ MISSION_ACK) count only when addressed to us and of mission type FENCE: a ground
 fence on the same link does not feed ours.
 
 Why poll: a ground station that uploads a new fence tells only itself (the closing MISSION_ACK goes to the
-uploader), and the plan-change ids of MAVLink's MISSION_CURRENT (``fence_id``) are not in pymavlink's dialect
-(2.4.50) nor sent by every autopilot. So the fence is read again every ``poll_s``; a fence of 10 vertices costs
-23 small messages, 718 bytes. ``on_area`` gets a result when it differs from the last one: the first read
-(whatever it gave), then a fence whose items or parameters changed (compared as sent, items in 1e-7 degrees, so
-the global reference's centimetre jitter moves nothing), or the same fence when it was not used and now is (the
-vehicle, outside it at the last read, has flown in) or was used provisionally and now is whole (home heard, the
-vehicle out of the margin). A later read that fails (a ground station uploading answers DENIED)
-keeps what is in service and is counted; the next read comes ``poll_s`` later. ``due`` is stepped by the service's
-``apf.fence`` task on the service clock.
+uploader). So the fence is read again every ``poll_s``; a fence of 10 vertices costs 23 small messages, 718 bytes.
+An autopilot that gives its fence plan an id (PX4: MISSION_CURRENT ``fence_id`` at 1 Hz and MISSION_COUNT
+``opaque_id``, the CRC32 of its items; ArduPilot 4.6 sends none) is spared the items' download: when a
+MISSION_CURRENT heard since the last read ended gives the id of the items in service, the read takes the
+parameters only (``skipped``). That matters on PX4, whose one transfer state refuses a ground station's upload
+while we download. An id of 0 (no fence, or no ids) always downloads.
+
+``on_area`` gets a result when it differs from the last one: the first read (whatever it gave), then a fence whose
+items or parameters changed (compared as sent, items in 1e-7 degrees, so the global reference's centimetre jitter
+moves nothing), or the same fence when it was not used and now is (the vehicle, outside it at the last read, has
+flown in) or was used provisionally and now is whole (home heard, the vehicle out of the margin). A later read that
+fails (a ground station uploading answers DENIED) keeps what is in service and is counted; the next read comes
+``poll_s`` later. ``due`` is stepped by the service's ``apf.fence`` task on the service clock.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ from apf_companion.links.messages import (
     HomePosition,
     MissionAck,
     MissionCount,
+    MissionCurrent,
     MissionItemInt,
     ParamValue,
     Source,
@@ -111,11 +116,13 @@ class FenceReader:
         self.switched_on = False
         #: The last result given to ``on_area`` (None before the first read has ended).
         self.result: FenceArea | None = None
-        #: Downloads that ended: read whole, and failed.
+        #: Reads that ended: whole (downloaded, or vouched for by the fence id: ``skipped``), and failed downloads.
         self.reads = 0
         self.failures = 0
         #: Reads whose fence differed from the one before (the first read not counted).
         self.changes = 0
+        #: Reads without a download: the autopilot's fence id said the items in service are still its fence.
+        self.skipped = 0
         #: Mission answers that were not for us, not about the fence, or came with no download running: dropped.
         self.ignored = 0
         self._outbox = outbox
@@ -124,6 +131,10 @@ class FenceReader:
         self._clearance_m = clearance_m
         self._inputs: tuple[object, ...] | None = None  # of the last read that ended whole: items, limits, home, C
         self._ended_s = -math.inf  # when the last download ended
+        self._items: tuple[FenceItem, ...] = ()  # of the last download that ended whole
+        self._items_id = 0  # their plan id (MISSION_COUNT opaque_id; 0: none given)
+        self._count_id = 0  # the running download's plan id
+        self._id_heard: int | None = None  # MISSION_CURRENT fence_id, heard since the last read ended
 
     def summary(self) -> dict[str, object]:
         """The status record's ``fence``: the last result (None before the first read ended) and the counters."""
@@ -134,6 +145,7 @@ class FenceReader:
             "reads": self.reads,
             "failures": self.failures,
             "changes": self.changes,
+            "skipped": self.skipped,
             "ignored": self.ignored,
             "unexpected": self.download.unexpected,
             "limits": self.limits.note if isinstance(self.limits, FenceLimits) else self.limits,
@@ -156,6 +168,10 @@ class FenceReader:
         """HOME_POSITION from the autopilot: the centre of its circle round home."""
         self.home = (rec.latitude, rec.longitude)
 
+    def on_mission_current(self, rec: MissionCurrent) -> None:
+        """MISSION_CURRENT from the autopilot: the id of the fence it holds now (0: none, or no ids)."""
+        self._id_heard = rec.fence_id
+
     def on_sys_status(self, rec: SysStatus) -> None:
         """SYS_STATUS from the autopilot: whether its fence is switched on now (read with the parameters)."""
         self.switched_on = bool(rec.enabled & rec.present & mavlink.MAV_SYS_STATUS_GEOFENCE)
@@ -171,6 +187,7 @@ class FenceReader:
         if not ours or rec.mission_type != _FENCE or self.download.stage not in _RUNNING:
             self.ignored += 1
         elif isinstance(rec, MissionCount):
+            self._count_id = rec.opaque_id
             self.download.on_count(rec.count)
         elif isinstance(rec, MissionItemInt):
             self.download.on_item(FenceItem(seq=rec.seq, command=rec.command, param1=rec.param1, x=rec.x, y=rec.y))
@@ -193,6 +210,11 @@ class FenceReader:
                 self._outbox.command_long(mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_HOME_POSITION))
             if not self._params_due(now_s):
                 return now_s + STEP_S
+            if self._items_id != 0 and self._id_heard == self._items_id:
+                self.skipped += 1
+                self._ended(now_s, self._items)
+                return now_s + STEP_S
+            self._count_id = 0
             d.start()
         send = d.due(now_s)
         if send is not None and send.ack:
@@ -200,9 +222,13 @@ class FenceReader:
         elif send is not None:
             self._outbox.mission_request(_FENCE, send.seq)
         if d.stage is FenceStage.DONE and send is None:  # after the closing ack went out
-            self._ended(now_s, whole=True)
+            self._items, self._items_id = tuple(d.items), self._count_id
+            d.rest()
+            self._ended(now_s, self._items)
         elif d.stage is FenceStage.FAILED:
-            self._ended(now_s, whole=False)
+            reason = d.reason
+            d.rest()
+            self._ended(now_s, None, failed=reason)
         return now_s + STEP_S
 
     def _params_due(self, now_s: float) -> bool:
@@ -219,18 +245,17 @@ class FenceReader:
         pr.rest()
         return True
 
-    def _ended(self, now_s: float, *, whole: bool) -> None:
-        """A download ended: the next is due ``poll_s`` later; its result goes out when it is news."""
+    def _ended(self, now_s: float, items: tuple[FenceItem, ...] | None, *, failed: str = "") -> None:
+        """A read ended with the fence's ``items`` (None: the download failed, ``failed`` says why): the next is due
+        ``poll_s`` later; its result goes out when it is news."""
         self._ended_s = now_s
-        reason = self.download.reason
-        self.download.rest()
-        if not whole:
+        self._id_heard = None
+        if items is None:
             self.failures += 1
             if self.result is None:  # the first read: say that there is no fence to plan over (yet)
-                self._tell(FenceArea(FenceOutcome.FAILED, f"download failed: {reason}"))
+                self._tell(FenceArea(FenceOutcome.FAILED, f"download failed: {failed}"))
             return
         self.reads += 1
-        items = tuple(self.download.items)
         limits = self.limits if isinstance(self.limits, FenceLimits) else None
         clearance = self._clearance_m()
         # What the result depends on: home only with a circle round it (ArduCopter moves home when it arms), the
@@ -266,6 +291,7 @@ _OTHER_RECORDS: dict[type, Callable[[FenceReader, Any], None]] = {
     ParamValue: FenceReader.on_param,
     HomePosition: FenceReader.on_home,
     SysStatus: FenceReader.on_sys_status,
+    MissionCurrent: FenceReader.on_mission_current,
 }
 
 

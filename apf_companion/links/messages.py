@@ -12,9 +12,12 @@ Field names and units follow the MAVLink XML (common.xml, ardupilotmega.xml for 
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 __all__ = [
     "DECODERS",
@@ -31,6 +34,7 @@ __all__ = [
     "LocalPositionNed",
     "MissionAck",
     "MissionCount",
+    "MissionCurrent",
     "MissionItemInt",
     "MissionRecord",
     "ObstacleDistance",
@@ -249,6 +253,17 @@ class MissionCount:
     target_component: int
     count: int
     mission_type: int  # MAV_MISSION_TYPE
+    opaque_id: int = 0  # the plan's id (MAVLink 2 extension; 0: not sent, or no plan): as MISSION_CURRENT's
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MissionCurrent:
+    """Only the fence plan's id: 0 when there is no fence or the autopilot sends no ids (ArduPilot 4.6), else a
+    value that changes whenever the fence does (PX4: the CRC32 of its items, ``mavlink_mission.cpp``, 1 Hz on
+    every link)."""
+
+    src: Source
+    fence_id: int
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -323,6 +338,7 @@ Record = (
     | PositionTargetLocalNed
     | PositionTargetGlobalInt
     | MissionCount
+    | MissionCurrent
     | MissionItemInt
     | MissionAck
 )
@@ -331,7 +347,15 @@ Record = (
 #: The mission protocol's answers the service reads (the fence download).
 MissionRecord = MissionCount | MissionItemInt | MissionAck
 #: What the fence reader takes from the autopilot: the download's answers, its parameters, its home.
-FenceRecord = MissionCount | MissionItemInt | MissionAck | ParamValue | HomePosition | SysStatus
+FenceRecord = MissionCount | MissionCurrent | MissionItemInt | MissionAck | ParamValue | HomePosition | SysStatus
+
+
+_V2_HEADER_LEN = 10  # MAVLink 2: magic, len, incompat, compat, seq, sysid, compid, msgid (3 bytes)
+# Payload offsets of extension fields (common.xml: extensions follow the size-sorted base fields in declared order).
+# MISSION_COUNT: count u16, target_system u8, target_component u8, mission_type u8, opaque_id u32.
+_COUNT_OPAQUE_ID = 5
+# MISSION_CURRENT: seq u16, total u16, mission_state u8, mission_mode u8, mission_id u32, fence_id u32, rally u32.
+_CURRENT_FENCE_ID = 10
 
 
 def _src(msg: Any) -> Source:
@@ -549,6 +573,20 @@ def _position_target_global_int(msg: Any) -> PositionTargetGlobalInt:
     )
 
 
+def _extension_u32(msg: Any, name: str, offset: int) -> int:
+    """The uint32 MAVLink 2 extension field ``name`` at payload ``offset``: from the frame where pymavlink's dialect
+    (2.4.50) predates the field (mavlink/mavlink#2012's plan ids). MAVLink 2 trims a payload's trailing zero bytes,
+    so bytes beyond its end are 0; a MAVLink 1 frame has no extensions (0)."""
+    value = getattr(msg, name, None)
+    if value is not None:  # a newer dialect has decoded it
+        return int(value)
+    frame = bytes(msg.get_msgbuf())
+    if len(frame) < _V2_HEADER_LEN or frame[0] != mavlink.PROTOCOL_MARKER_V2:
+        return 0
+    payload = frame[_V2_HEADER_LEN : _V2_HEADER_LEN + frame[1]]
+    return int(struct.unpack_from("<I", payload[offset : offset + 4].ljust(4, b"\0"))[0])
+
+
 def _mission_count(msg: Any) -> MissionCount:
     return MissionCount(
         src=_src(msg),
@@ -556,7 +594,12 @@ def _mission_count(msg: Any) -> MissionCount:
         target_component=int(msg.target_component),
         count=int(msg.count),
         mission_type=int(getattr(msg, "mission_type", 0)),  # a MAVLink 2 extension: 0 (MISSION) when absent
+        opaque_id=_extension_u32(msg, "opaque_id", _COUNT_OPAQUE_ID),
     )
+
+
+def _mission_current(msg: Any) -> MissionCurrent:
+    return MissionCurrent(src=_src(msg), fence_id=_extension_u32(msg, "fence_id", _CURRENT_FENCE_ID))
 
 
 def _mission_item_int(msg: Any) -> MissionItemInt:
@@ -606,6 +649,7 @@ DECODERS: dict[str, Callable[[Any], Record]] = {
     "POSITION_TARGET_LOCAL_NED": _position_target_local_ned,
     "POSITION_TARGET_GLOBAL_INT": _position_target_global_int,
     "MISSION_COUNT": _mission_count,
+    "MISSION_CURRENT": _mission_current,
     "MISSION_ITEM_INT": _mission_item_int,
     "MISSION_ACK": _mission_ack,
 }

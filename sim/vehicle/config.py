@@ -40,6 +40,7 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "GPS_RAW_INT": 0.0,
     "DISTANCE_SENSOR": 0.0,
     "EKF_STATUS_REPORT": 0.0,
+    "MISSION_CURRENT": 1.0,  # PX4 sends it on every link from boot; ArduPilot when asked
 }
 
 

@@ -6,7 +6,8 @@ Where ArduPilot serves downloads without state, PX4 is IDLE, sending a list (a d
 
 - MISSION_REQUEST_LIST starts a download when IDLE, or again from the same partner (a download whose items were
   all sent counts as IDLE); otherwise it is ignored (a STATUSTEXT "Mission download request ignored, already
-  active", no answer).
+  active", no answer). Its MISSION_COUNT carries the fence plan's id (``opaque_id``), which MISSION_CURRENT's
+  ``fence_id`` also gives at 1 Hz (``sim.vehicle.telemetry``).
 - MISSION_REQUEST_INT from the partner during its download: the next item (or the last one again); any other
   sequence ends the download with MAV_MISSION_ERROR. From anyone else: a STATUSTEXT, no answer; when IDLE: ignored.
 - MISSION_ACK from the partner ends its download.
@@ -32,7 +33,16 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim.vehicle.missionwire import FENCE, MAX_ITEMS, FenceItemRaw, send_ack, send_item, src_of
+from sim.vehicle.missionwire import (
+    FENCE,
+    MAX_ITEMS,
+    FenceItemRaw,
+    MissionCountWithId,
+    plan_id,
+    send_ack,
+    send_item,
+    src_of,
+)
 
 if TYPE_CHECKING:
     from sim.vehicle.engine import VehicleEngine
@@ -90,7 +100,7 @@ def _request_list(v: VehicleEngine, msg: Any, link: int, t: Px4Transfer) -> None
         t.state = Px4State.IDLE
     if t.state is Px4State.IDLE or (t.state is Px4State.SENDLIST and t.partner == src_of(msg)):
         t.state, t.partner, t.seq, t.count, t.last_rx_s = Px4State.SENDLIST, src_of(msg), 0, len(v.fence.items), v.t_s
-        v.emit(link, v.mav.mission_count_encode(*t.partner, t.count, FENCE))
+        v.emit(link, MissionCountWithId(t.partner, t.count, FENCE, plan_id(v.fence.items)))
     else:
         v.statustext(mavlink.MAV_SEVERITY_INFO, "Mission download request ignored, already active")
 

@@ -21,6 +21,7 @@ from sim.vehicle.config import DEFAULT_RATES_HZ
 from sim.vehicle.dynamics import TargetKind
 from sim.vehicle.fenceswitch import geofence_flags
 from sim.vehicle.geo import ne_to_latlon
+from sim.vehicle.missionwire import MissionCurrentWithIds, plan_id
 from sim.vehicle.profiles import Behaviour
 
 if TYPE_CHECKING:
@@ -269,6 +270,14 @@ def _distance_sensor(v: VehicleEngine) -> list[Any]:
     return v.proximity.distance_sensor_msgs(v.mav, v.t_s, v.time_boot_ms)
 
 
+def _mission_current(v: VehicleEngine) -> Any:
+    """No mission here; PX4 adds its fence plan's id (``mavlink_mission.cpp`` ``send_mission_current``, 1 Hz on
+    every link), ArduPilot sends none (``GCS_Common.cpp`` ``send_mission_current``: seq, total, state, mode)."""
+    if v.profile is Autopilot.PX4:
+        return MissionCurrentWithIds(0, 0xFFFF, mavlink.MISSION_STATE_NO_MISSION, 0, plan_id(v.fence.items))
+    return v.mav.mission_current_encode(0, 0, mavlink.MISSION_STATE_NO_MISSION, 0)
+
+
 def _autopilot_version(v: VehicleEngine) -> Any:
     version = v.profile_rules.flight_sw_version
     return v.mav.autopilot_version_encode(CAPABILITIES, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, SIM_UID)
@@ -290,6 +299,7 @@ BUILDERS: dict[int, Builder] = {
     mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: _gps_raw_int,
     mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR: _distance_sensor,
     mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT: _ekf_status_report,
+    mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: _mission_current,
 }
 
 # REQUEST_DATA_STREAM: the messages of each stream that this vehicle builds (ArduCopter GCS_MAVLink_Copter.cpp

@@ -23,6 +23,7 @@ from apf_companion.links.messages import (
     LocalPositionNed,
     MissionAck,
     MissionCount,
+    MissionCurrent,
     MissionItemInt,
     ObstacleDistance,
     ObstacleDistance3d,
@@ -38,6 +39,7 @@ from apf_companion.links.messages import (
     decode,
     source,
 )
+from sim.vehicle.missionwire import MissionCountWithId, MissionCurrentWithIds
 
 NAN = math.nan
 
@@ -167,6 +169,12 @@ CASES: list[tuple[str, Any, type[Any], dict[str, Any]]] = [
         {"count": 6, "mission_type": mavlink.MAV_MISSION_TYPE_FENCE, "target_component": 191},
     ),
     (
+        "MISSION_CURRENT",
+        lambda m: m.mission_current_encode(3, 7, mavlink.MISSION_STATE_ACTIVE, 1),
+        MissionCurrent,
+        {"fence_id": 0},  # pymavlink 2.4.50 sends no ids
+    ),
+    (
         "MISSION_ITEM_INT",
         lambda m: m.mission_item_int_encode(
             1,
@@ -229,6 +237,24 @@ def test_decode_gives_the_typed_record(name: str, build: Any, kind: type[Any], f
     assert dataclasses.is_dataclass(rec)
     with pytest.raises(dataclasses.FrozenInstanceError):
         rec.src = Source(2, 2)  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("fence_id", [0xDEADBEEF, 0x100, 1, 0xFFFFFFFF])
+def test_the_plan_ids_that_pymavlinks_dialect_lacks_are_read_from_the_frame(fence_id: int) -> None:
+    # 0x100 and 1: MAVLink 2 trims the payload's trailing zero bytes, mid-field
+    rec = decode(_wire(lambda m: MissionCurrentWithIds(3, 7, mavlink.MISSION_STATE_ACTIVE, 1, fence_id)))
+    assert isinstance(rec, MissionCurrent) and rec.fence_id == fence_id
+    count = decode(_wire(lambda m: MissionCountWithId((1, 191), 6, mavlink.MAV_MISSION_TYPE_FENCE, fence_id)))
+    assert isinstance(count, MissionCount) and (count.count, count.opaque_id) == (6, fence_id)
+    assert count.mission_type == mavlink.MAV_MISSION_TYPE_FENCE and count.target_component == 191
+
+
+def test_a_mavlink1_frame_has_no_plan_ids() -> None:
+    tx = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frame = MissionCurrentWithIds(3, 7, 0, 0, 0xDEADBEEF).pack(tx, force_mavlink1=True)
+    rx = mavlink.MAVLink(None)
+    rec = decode(rx.parse_buffer(frame)[0])
+    assert isinstance(rec, MissionCurrent) and rec.fence_id == 0
 
 
 def test_the_sender_is_kept() -> None:

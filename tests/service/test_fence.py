@@ -24,7 +24,7 @@ from apf_companion.fence import (
 from apf_companion.fencelimits import ReadStage
 from apf_companion.fencereader import FenceReader, FenceReaderParams
 from apf_companion.goal import EARTH_RADIUS_M, GlobalReference
-from apf_companion.links.messages import MissionAck, MissionCount, MissionItemInt, ParamValue, Source
+from apf_companion.links.messages import MissionAck, MissionCount, MissionCurrent, MissionItemInt, ParamValue, Source
 from apf_companion.outbox import Outbox
 from apf_companion.planning import in_keepout, inside_area
 
@@ -344,26 +344,34 @@ def _reader(poll_s: float, results: list[FenceArea], where: list[tuple[float, fl
 
 
 def _answer(
-    reader: FenceReader, items: list[FenceItem] | None, t: float, params: dict[str, float] | None = None
+    reader: FenceReader,
+    items: list[FenceItem] | None,
+    t: float,
+    params: dict[str, float] | None = None,
+    plan_id: int = 0,
 ) -> float:
     """One read from ``t`` [s]: the fence parameters (``params``, default ``ENFORCED``), then the download, each
-    request answered at once with ``items`` (None: refused, DENIED, as while a ground station uploads); the time
-    after it has ended."""
+    request answered at once with ``items`` (None: refused, DENIED, as while a ground station uploads) and their
+    ``plan_id`` in MISSION_COUNT; the time after it has ended."""
     reader.due(t)
     _give_params(reader, ENFORCED if params is None else params)
     t += 0.05
     reader.due(t)
-    return _download(reader, items, t)
+    return _download(reader, items, t, plan_id)
 
 
-def _download(reader: FenceReader, items: list[FenceItem] | None, t: float) -> float:
+def _download(reader: FenceReader, items: list[FenceItem] | None, t: float, plan_id: int = 0) -> float:
     """The download part of ``_answer``, from ``t`` [s] with the parameters read; the time after it has ended."""
     assert reader.download.stage is FenceStage.COUNT
     if items is None:
         reader.on_record(MissionAck(src=AP, target_system=1, target_component=191, type=DENIED, mission_type=FENCE))
     else:
         count = len(items)
-        reader.on_record(MissionCount(src=AP, target_system=1, target_component=191, count=count, mission_type=FENCE))
+        reader.on_record(
+            MissionCount(
+                src=AP, target_system=1, target_component=191, count=count, mission_type=FENCE, opaque_id=plan_id
+            )
+        )
     for item in items or []:
         t += 0.1
         reader.due(t)
@@ -405,6 +413,46 @@ def test_the_fence_is_read_again_every_poll_s_and_only_a_change_is_told() -> Non
     stray = MissionCount(src=AP, target_system=1, target_component=191, count=4, mission_type=FENCE)
     reader.on_record(stray)  # no download running: dropped
     assert reader.ignored == 1
+
+
+def _params_only(reader: FenceReader, t: float, params: dict[str, float] | None = None) -> None:
+    """A read from ``t`` [s] that the fence id spares its download: the parameters, and no download starts."""
+    reader.due(t)
+    _give_params(reader, ENFORCED if params is None else params)
+    reader.due(t + 0.05)
+    assert reader.download.stage is FenceStage.IDLE and reader.param_read.stage is ReadStage.IDLE
+
+
+def test_a_fence_id_that_has_not_changed_spares_the_download_and_any_other_does_not() -> None:
+    """PX4 gives its fence plan an id (MISSION_CURRENT fence_id, MISSION_COUNT opaque_id): while it is the id of
+    the items in service, a read takes the parameters only; a new id, no id heard since the last read, or id 0
+    (no fence, or an autopilot without ids) downloads."""
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    t = _answer(reader, _polygon(L_SHAPE), 0.0, plan_id=111)
+    reader.on_record(MissionCurrent(src=AP, fence_id=111))
+    _params_only(reader, t + 5.0)
+    assert (reader.reads, reader.skipped, len(results)) == (2, 1, 1)
+    t += 5.1
+    reader.due(t + 5.0)  # no MISSION_CURRENT since that read: download
+    _give_params(reader, ENFORCED)
+    reader.due(t + 5.05)
+    t = _download(reader, _polygon(L_SHAPE), t + 5.05, plan_id=111)
+    assert (reader.reads, reader.skipped, len(results)) == (3, 1, 1)
+    reader.on_record(MissionCurrent(src=AP, fence_id=111))
+    _params_only(reader, t + 5.0, {**ENFORCED, "FENCE_MARGIN": 2.0})  # the parameters still count
+    assert len(results) == 2 and reader.changes == 1 and reader.skipped == 2
+    assert "FENCE_MARGIN 2 m" in results[1].note
+    t += 5.1
+    reader.on_record(MissionCurrent(src=AP, fence_id=222))  # a ground station's upload
+    t = _answer(reader, _polygon(SQUARE), t + 5.0, plan_id=222)
+    assert len(results) == 3 and results[2].polygon_ne_m is not None and len(results[2].polygon_ne_m) == 4
+    reader.on_record(MissionCurrent(src=AP, fence_id=0))  # cleared
+    t = _answer(reader, [], t + 5.0)
+    assert results[-1].outcome is FenceOutcome.NO_FENCE
+    reader.on_record(MissionCurrent(src=AP, fence_id=0))  # id 0 vouches for nothing
+    _answer(reader, [], t + 5.0)
+    assert reader.skipped == 2 and reader.summary()["skipped"] == 2
 
 
 def test_a_fence_the_vehicle_was_outside_of_is_used_once_it_has_flown_in() -> None:

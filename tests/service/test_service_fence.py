@@ -242,6 +242,39 @@ async def test_on_px4_the_services_reads_leave_a_ground_stations_upload_free() -
         await gcs.aclose()
 
 
+async def test_on_px4_the_fence_id_spares_the_downloads_so_an_upload_meets_no_read() -> None:
+    """PX4 gives its fence plan an id (MISSION_CURRENT fence_id at 1 Hz, MISSION_COUNT opaque_id): the service
+    downloads the L once and then reads the parameters only, so a ground station's upload is accepted at its first
+    try every time; the new fence's id brings one download, and the box is in service."""
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    try:
+        assert gcs.local_address is not None
+        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
+        async with yard_flight(YARD.area_ne_m, links=(link,), profile="px4", fence_poll_s=1.0) as (svc, sim):
+            fence = svc.fence
+            assert fence is not None and YARD.start_ne_m is not None
+            await until(lambda: fence.skipped >= 3, HANG_S, "three reads spared their download")
+            assert fence.reads - fence.skipped == 1 and len(_area(svc)) == 6
+            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            n, e = YARD.start_ne_m
+            for half in (3.0, 4.0, 3.0):  # three uploads, each a new id
+                box = ((n - half, e - half), (n + half, e - half), (n + half, e + half), (n - half, e + half))
+                ack = await upload_fence(gcs, fence_items(box, (), sim.engine.cfg.home))
+                assert ack.type == mavlink.MAV_MISSION_ACCEPTED  # at the first try: no read was downloading
+                await until(
+                    lambda box=box: len(_area(svc)) == 4 and abs(_area(svc)[0][0] - box[0][0]) < 0.02,  # type: ignore[misc]
+                    HANG_S,
+                    "the uploaded fence in service",
+                )
+            skipped = fence.skipped
+            await until(lambda: fence.skipped >= skipped + 2, HANG_S, "the new fence's id spares the reads again")
+            assert fence.reads - fence.skipped == 4 and fence.failures == 0
+            status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
+            assert status["skipped"] == fence.skipped
+    finally:
+        await gcs.aclose()
+
+
 def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:
     area = svc.planner.params.nav_area_ne_m
     assert isinstance(area, tuple)
