@@ -7,7 +7,8 @@ path length, minimum clearance and flight time, and writes a trajectory plot, bo
 foxglove-sdk, the ``viz`` extra) the service's ``.mcap`` recording to ``--out``. ``--json PATH`` writes the
 outcome record::
 
-    {"outcome": "arrived" | "collision" | "stuck" | "timeout" | "error", "steps": int,
+    {"outcome": "arrived" | "collision" | "fence_breach" | "stuck" | "timeout" | "link_lost" | "error",
+     "steps": int, "fence_breaches": int,
      "min_clearance_m": float | null, "path_length_m": float, "sim_time_s": float, "flight_time_s": float,
      "planner": str, "profile": str, "world": str, "seed": int, "wall_time_s": float, ...}
 
@@ -67,7 +68,7 @@ if TYPE_CHECKING:
 
 __all__ = ["FlyOptions", "flown_world", "fly", "paper_world", "register", "study_same_worlds"]
 
-OUTCOMES = ("arrived", "collision", "stuck", "timeout", "link_lost", "error")
+OUTCOMES = ("arrived", "collision", "fence_breach", "stuck", "timeout", "link_lost", "error")
 PAPER_START = (3.0, 3.0)
 PAPER_GOAL = (22.0, 22.0)
 # Measured: the default service flies the paper's 26.9 m diagonal in ~53 simulated s after the takeoff.
@@ -405,6 +406,8 @@ def _outcome(sim: dict[str, Any] | None, svc: dict[str, Any] | None) -> str:
         return "error"
     if sim.get("collided") or sim.get("crashed"):
         return "collision"
+    if sim.get("fence_breaches"):  # the autopilot enforced its fence (sim.vehicle.fencebreach)
+        return "fence_breach"
     if svc is None:
         return "error"
     outcome = svc.get("outcome")
@@ -561,6 +564,7 @@ def _record(
             "outcome": outcome,
             "steps": int(svc_res["steps"]) if svc_res else 0,
             "min_clearance_m": sim_res.get("min_clearance_m") if sim_res else None,
+            "fence_breaches": int(sim_res.get("fence_breaches", 0)) if sim_res else 0,
             "path_length_m": float(sim_res["path_length_m"]) if sim_res else 0.0,
             "sim_time_s": float(sim_res["sim_time_s"]) if sim_res else 0.0,
             "flight_time_s": float(svc_res["flight_time_s"]) if svc_res else 0.0,

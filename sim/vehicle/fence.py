@@ -38,6 +38,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.autopilot import Autopilot
 from apf_companion.planning import FlyingArea, KeepOuts, area_polygon
 from sim.vehicle.fence_px4 import PX4_FENCE_HANDLERS, Px4Transfer
+from sim.vehicle.fencebreach import FenceGuard
 from sim.vehicle.fenceswitch import FenceSwitch
 from sim.vehicle.geo import ne_to_latlon
 from sim.vehicle.missionwire import FENCE, MAX_ITEMS, FenceItemRaw, send_ack, send_item, src_of
@@ -84,6 +85,8 @@ class FenceStore:
     upload: FenceUpload | None = None  # ArduPilot's upload in progress
     px4: Px4Transfer = field(default_factory=Px4Transfer)  # PX4's one transfer (sim.vehicle.fence_px4)
     uploads: int = 0
+    #: What is breached, and the count of breaches (sim.vehicle.fencebreach).
+    guard: FenceGuard = field(default_factory=FenceGuard)
 
     @classmethod
     def of_zones(cls, area: FlyingArea | None, keepouts: KeepOuts, home: HomeConfig, switch: FenceSwitch) -> FenceStore:

@@ -7,7 +7,7 @@ or disable everything"), and MAV_CMD_DO_FENCE_ENABLE switches it at run time wit
 persisted"). SYS_STATUS reports it (``GCS.cpp`` ``update_sensor_status_flags``): the GEOFENCE bit is present when
 a fence is configured (``present``: FENCE_TYPE's circle or altitude bits, or its polygon bit with items held), and
 enabled when it is present, switched on and FENCE_ACTION is not 0 (report only: ``sys_status_enabled``). Not
-modelled: FENCE_AUTOENABLE, breaches and their actions.
+modelled: FENCE_AUTOENABLE. Breaches and their actions: ``sim.vehicle.fencebreach``.
 """
 
 from __future__ import annotations

@@ -135,7 +135,7 @@ _ARDUPILOT = (
     ),
 )
 
-# AC_Fence.cpp (Copter defaults): stored and served, not enforced (no breach action); the service reads them
+# AC_Fence.cpp (Copter defaults): stored, served and enforced (sim.vehicle.fencebreach); the service reads them
 _FENCE = (
     ParamSpec(name="FENCE_ENABLE", default=0.0, lo=0.0, hi=1.0, doc="fence master switch (1 while a fence is served)"),
     ParamSpec(
@@ -195,7 +195,7 @@ _PX4 = (
     ParamSpec(name="MPC_LAND_ALT2", default=5.0, lo=0.0, hi=122.0, doc="land: MPC_LAND_SPEED below [m]"),
     ParamSpec(name="MIS_TAKEOFF_ALT", default=2.5, lo=0.0, hi=80.0, doc="default takeoff altitude [m]"),
     ParamSpec(name="RTL_RETURN_ALT", default=30.0, lo=0.0, hi=150.0, doc="RTL return altitude [m]"),
-    # geofence_params.c: stored and served, not enforced
+    # geofence_params.c: stored, served and enforced (sim.vehicle.fencebreach)
     ParamSpec(name="GF_ACTION", default=2.0, lo=0.0, hi=5.0, doc="geofence breach action: 0 none, 1 warn, 2 hold, ..."),
     ParamSpec(name="GF_MAX_HOR_DIST", default=0.0, lo=0.0, hi=10000.0, doc="max distance from home [m] (0 = off)"),
     ParamSpec(name="GF_MAX_VER_DIST", default=0.0, lo=0.0, hi=10000.0, doc="max height above home [m] (0 = off)"),

@@ -51,6 +51,7 @@ def flight_result(v: VehicleEngine) -> dict[str, Any]:
         "sim_time_s": round(v.t_s, 6),
         "path_length_m": v.path_length_m,
         "min_clearance_m": v.min_clearance_m if math.isfinite(v.min_clearance_m) else None,
+        "fence_breaches": v.fence.guard.breaches,  # breaches the autopilot acted on (sim.vehicle.fencebreach)
         "vehicle_radius_m": v.params["SIM_VEH_RADIUS"],
         "final_pos_ned_m": v.state.pos_ned_m.tolist(),
         "final_mode": v.mode_name(),

@@ -106,7 +106,7 @@ class SimConfig:
         fence: the autopilot's fence, served over the mission protocol as one inclusion polygon (sim.vehicle.fence);
             None: no inclusion zone. fence_keepouts: its exclusion polygons. Neither: no fence (count 0). The
             ArduPilot profile serves FENCE_ENABLE 1 with a fence (unless ``params`` says otherwise); FENCE_* and
-            PX4's GF_* parameters are stored and served, not enforced (a breach does nothing).
+            PX4's GF_* parameters are stored, served and enforced (sim.vehicle.fencebreach).
         signing_key: MAVLink 2 signing key (32 bytes, ``apf_companion.links.load_signing_key``): every link signs
             its frames (link id = link index, timestamp from the wall clock, as ArduPilot with a GPS fix) and
             drops frames not signed with it, except the profile's ``UNSIGNED_ACCEPTED``; None = signing off.

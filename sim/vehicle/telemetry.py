@@ -86,13 +86,13 @@ def _heartbeat(v: VehicleEngine) -> Any:
 
 def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
     """SYS_STATUS onboard_control_sensors_(present, enabled, health), as ArduPilot's GCS.cpp
-    update_sensor_status_flags: the geofence bit is healthy unless the fence is breached, also when no fence is
-    present (there are no breaches here; MAVProxy reports "fence breach" when the bit drops), present when one
+    update_sensor_status_flags: the geofence bit is healthy unless the fence is breached (sim.vehicle.fencebreach),
+    also when no fence is present (MAVProxy reports "fence breach" when the bit drops), present when one
     is configured and enabled when it is switched on (``fenceswitch.geofence_flags``); PREARM_CHECK is present
     and enabled, and healthy when armed or when arming would pass."""
     present = enabled = int(SENSORS_PRESENT)
     health = present if not v.crashed else 0
-    health |= mavlink.MAV_SYS_STATUS_GEOFENCE
+    health |= 0 if v.fence.guard.breached else mavlink.MAV_SYS_STATUS_GEOFENCE
     rules = v.profile_rules
     if rules.reports_prearm_check:
         present |= mavlink.MAV_SYS_STATUS_PREARM_CHECK

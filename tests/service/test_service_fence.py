@@ -156,6 +156,23 @@ async def test_a_fence_changed_in_flight_is_planned_over_and_a_removed_one_taken
     assert events == [("fence.area", False, None), ("fence.area", True, None), ("fence.none", None, True)]
 
 
+async def test_a_flight_that_breaches_the_autopilots_fence_is_taken_over_by_its_return() -> None:
+    """The simulated ArduPilot enforces its fence (FENCE_ACTION 1: RTL). The service reads the L once
+    (``fence_poll_s`` 0) and the autopilot's fence is then shrunk to a box round the start: the flight to the goal
+    leaves the box, the autopilot says so and returns home, and the service drops its goal without fighting it."""
+    assert YARD.goal_ne_m is not None and YARD.area_ne_m is not None and YARD.start_ne_m is not None
+    route = Route.point(*YARD.goal_ne_m, -5.0, source="test")
+    async with yard_flight(YARD.area_ne_m, route=route, fence_poll_s=0.0) as (svc, sim):
+        await until(lambda: svc.fence is not None and svc.fence.result is not None, HANG_S, "the fence read")
+        n, e = YARD.start_ne_m
+        sim.engine.fence.set_zones(((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0)))
+        assert await wait_state(svc, {State.IDLE, State.ARRIVED, State.STUCK}, 120.0) is State.IDLE
+        assert sim.engine.mode_name() == "RTL" and sim.engine.fence.guard.breaches == 1
+        assert "Polygon fence breached" in [s.text for s in sim.engine.statustexts]
+        pos = sim.engine.state.pos_ned_m
+        assert max(abs(pos[0] - n), abs(pos[1] - e)) > 3.0  # it was outside when the autopilot took over
+
+
 async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_is_flown() -> None:
     """A ground station uploads a new fence over its own link: while its upload is open the service's re-reads
     are DENIED (counted; the L stays in service), and once it is complete the new fence is in service."""

@@ -88,6 +88,9 @@ def test_outcome_rules() -> None:
     assert _outcome({"collided": True}, {"outcome": "arrived"}) == "collision"
     assert _outcome({"collided": False, "crashed": False}, {"outcome": "arrived"}) == "arrived"
     assert _outcome({"collided": False}, {"outcome": "stuck"}) == "stuck"
+    # The autopilot enforced its fence: whatever the service then said (its goal dropped: IDLE)
+    assert _outcome({"collided": False, "fence_breaches": 1}, {"outcome": "error"}) == "fence_breach"
+    assert _outcome({"collided": True, "fence_breaches": 1}, {"outcome": "error"}) == "collision"
     assert _outcome({"collided": False}, {"outcome": "timeout"}) == "timeout"
     # LINK_LOST is an outcome of its own (issue 9's sweeps count it); anything else the service reports is an error.
     assert _outcome({"collided": False}, {"outcome": "link_lost"}) == "link_lost"

@@ -23,6 +23,7 @@ from apf_companion.autopilot import (
     TypeMask,
 )
 from sim.vehicle.dynamics import Limits, TargetKind, wrap_pi
+from sim.vehicle.fencebreach import check_fence
 from sim.vehicle.geo import LOCAL_FRAMES
 from sim.vehicle.guided import Setpoint, classify_mask_arducopter, position_setpoint, stop_setpoint
 from sim.vehicle.params import ParamTable
@@ -255,7 +256,7 @@ class ArduCopterProfile:
         v.guided.sp = position_setpoint(v.t_s, target_ned_m)  # GUIDED holds the takeoff altitude
 
     def check_failsafes(self, v: VehicleEngine) -> None:
-        return None
+        check_fence(v)
 
     def spawn_in_air(self, v: VehicleEngine) -> None:
         return None

@@ -30,6 +30,7 @@ from apf_companion.autopilot import (
     TypeMask,
 )
 from sim.vehicle.dynamics import Limits, TargetKind
+from sim.vehicle.fencebreach import check_fence
 from sim.vehicle.guided import Setpoint
 from sim.vehicle.params import ParamTable
 from sim.vehicle.profiles.base import Behaviour, ProfileTexts, SetpointRule, param_int
@@ -264,7 +265,9 @@ class Px4Profile:
         v.hold_pos_ned_m = target_ned_m
 
     def check_failsafes(self, v: VehicleEngine) -> None:
-        """OFFBOARD without a setpoint for COM_OF_LOSS_T: the COM_OBL_RC_ACT failsafe."""
+        """The geofence (sim.vehicle.fencebreach); OFFBOARD without a setpoint for COM_OF_LOSS_T: the COM_OBL_RC_ACT
+        failsafe."""
+        check_fence(v)
         if v.custom_mode != PX4_OFFBOARD.to_custom_mode():
             return
         last = v.guided.last_t_s
