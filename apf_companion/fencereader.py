@@ -19,7 +19,8 @@ An autopilot that gives its fence plan an id (PX4: MISSION_CURRENT ``fence_id`` 
 ``opaque_id``, the CRC32 of its items; ArduPilot 4.6 sends none) is spared the items' download: when a
 MISSION_CURRENT heard since the last read ended gives the id of the items in service, the read takes the
 parameters only (``skipped``). That matters on PX4, whose one transfer state refuses a ground station's upload
-while we download. An id of 0 (no fence, or no ids) always downloads.
+while we download. An id of 0 (no fence, or no ids) always downloads. A MISSION_CURRENT whose id differs from the
+one in service starts a read at once (``early``): a fence changed on PX4 is in service a second or two later.
 
 ``on_area`` gets a result when it differs from the last one: the first read (whatever it gave), then a fence whose
 items or parameters changed (compared as sent, items in 1e-7 degrees, so the global reference's centimetre jitter
@@ -123,6 +124,8 @@ class FenceReader:
         self.changes = 0
         #: Reads without a download: the autopilot's fence id said the items in service are still its fence.
         self.skipped = 0
+        #: Reads started before ``poll_s`` because the autopilot's fence id changed.
+        self.early = 0
         #: Mission answers that were not for us, not about the fence, or came with no download running: dropped.
         self.ignored = 0
         self._outbox = outbox
@@ -135,6 +138,7 @@ class FenceReader:
         self._items_id = 0  # their plan id (MISSION_COUNT opaque_id; 0: none given)
         self._count_id = 0  # the running download's plan id
         self._id_heard: int | None = None  # MISSION_CURRENT fence_id, heard since the last read ended
+        self._early_for: int | None = None  # the last id that started an early read
 
     def summary(self) -> dict[str, object]:
         """The status record's ``fence``: the last result (None before the first read ended) and the counters."""
@@ -146,6 +150,7 @@ class FenceReader:
             "failures": self.failures,
             "changes": self.changes,
             "skipped": self.skipped,
+            "early": self.early,
             "ignored": self.ignored,
             "unexpected": self.download.unexpected,
             "limits": self.limits.note if isinstance(self.limits, FenceLimits) else self.limits,
@@ -198,14 +203,10 @@ class FenceReader:
         """Start a read when one is due, send what is due, finish; the time of the next step."""
         d = self.download
         if d.stage is FenceStage.IDLE:
-            if self.result is not None and self.params.poll_s <= 0.0:
-                return now_s + IDLE_S
-            next_read_s = self._ended_s + self.params.poll_s
-            if now_s < next_read_s:
-                return min(next_read_s, now_s + IDLE_S)
-            if self._reference() is None:
-                return now_s + STEP_S
             if self.param_read.stage is ReadStage.IDLE:
+                wait_until_s = self._next_read_s(now_s)
+                if wait_until_s is not None:
+                    return wait_until_s
                 self.param_read.start()
                 self._outbox.command_long(mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_HOME_POSITION))
             if not self._params_due(now_s):
@@ -230,6 +231,29 @@ class FenceReader:
             d.rest()
             self._ended(now_s, None, failed=reason)
         return now_s + STEP_S
+
+    def _next_read_s(self, now_s: float) -> float | None:
+        """When to look again if no read starts now; None: start one (``poll_s`` since the last read, or the
+        autopilot's fence id changed since, and the vehicle can be placed)."""
+        if self.result is not None and self.params.poll_s <= 0.0:
+            return now_s + IDLE_S
+        next_read_s = self._ended_s + self.params.poll_s
+        early = now_s < next_read_s
+        if early and not self._id_changed():
+            return min(next_read_s, now_s + IDLE_S)
+        if self._reference() is None:
+            return now_s + STEP_S
+        if early:
+            self._early_for = self._id_heard
+            self.early += 1
+        return None
+
+    def _id_changed(self) -> bool:
+        """A MISSION_CURRENT since the last read gave a fence id other than the one in service: the fence changed
+        (an upload, a clear). Once per new id, so an autopilot whose MISSION_COUNT omits the id is read again only
+        at the poll."""
+        heard = self._id_heard
+        return self.result is not None and heard is not None and heard not in (self._items_id, self._early_for)
 
     def _params_due(self, now_s: float) -> bool:
         """Ask for the fence parameters that are due; True once their read has ended (read whole or not)."""

@@ -455,6 +455,36 @@ def test_a_fence_id_that_has_not_changed_spares_the_download_and_any_other_does_
     assert reader.skipped == 2 and reader.summary()["skipped"] == 2
 
 
+def test_a_new_fence_id_starts_a_read_at_once_and_only_once() -> None:
+    """PX4 sends MISSION_CURRENT at 1 Hz: an id other than the one in service (an upload, a clear) starts a read
+    before ``poll_s``; once per id, so an autopilot whose MISSION_COUNT omits the id is not read every second.
+    ``poll_s`` 0 reads once, whatever the id."""
+    results: list[FenceArea] = []
+    reader = _reader(5.0, results)
+    t = _answer(reader, _polygon(L_SHAPE), 0.0, plan_id=111)
+    reader.on_record(MissionCurrent(src=AP, fence_id=111))
+    assert reader.due(t + 1.0) == pytest.approx(t + 2.0) and reader.param_read.stage is ReadStage.IDLE
+    reader.on_record(MissionCurrent(src=AP, fence_id=222))  # an upload
+    t = _answer(reader, _polygon(SQUARE), t + 1.5, plan_id=222)  # 1.5 s after the last read, not 5
+    assert reader.early == 1 and len(results) == 2 and reader.summary()["early"] == 1
+    reader.on_record(MissionCurrent(src=AP, fence_id=222))
+    reader.due(t + 1.0)
+    assert reader.param_read.stage is ReadStage.IDLE  # the id in service: nothing until the poll
+    reader.on_record(MissionCurrent(src=AP, fence_id=333))  # an upload, on an autopilot without MISSION_COUNT ids
+    t = _answer(reader, _polygon(L_SHAPE), t + 1.5, plan_id=0)
+    reader.on_record(MissionCurrent(src=AP, fence_id=333))
+    reader.due(t + 1.0)
+    assert reader.param_read.stage is ReadStage.IDLE and reader.early == 2  # read once for that id
+    t = _answer(reader, _polygon(L_SHAPE), t + 5.0)  # the poll downloads (no id in service to vouch)
+    assert reader.skipped == 0 and reader.early == 2
+    once: list[FenceArea] = []
+    reader = _reader(0.0, once)
+    t = _answer(reader, _polygon(L_SHAPE), 0.0, plan_id=111)
+    reader.on_record(MissionCurrent(src=AP, fence_id=222))
+    reader.due(t + 1.0)
+    assert reader.param_read.stage is ReadStage.IDLE and reader.early == 0
+
+
 def test_a_fence_the_vehicle_was_outside_of_is_used_once_it_has_flown_in() -> None:
     results: list[FenceArea] = []
     where = [(15.0, 15.0)]  # in the L's notch: outside it

@@ -292,6 +292,28 @@ async def test_on_px4_the_fence_id_spares_the_downloads_so_an_upload_meets_no_re
         await gcs.aclose()
 
 
+async def test_on_px4_a_new_fence_id_brings_the_new_fence_without_waiting_for_the_poll() -> None:
+    """With a poll of an hour, a ground station's upload on PX4 is in service within seconds: MISSION_CURRENT's new
+    fence id starts the read."""
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    try:
+        assert gcs.local_address is not None
+        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
+        async with yard_flight(YARD.area_ne_m, links=(link,), profile="px4", fence_poll_s=3600.0) as (svc, sim):
+            fence = svc.fence
+            assert fence is not None and YARD.start_ne_m is not None
+            await until(lambda: fence.result is not None, HANG_S, "the fence read")
+            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            n, e = YARD.start_ne_m
+            box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
+            ack = await upload_fence(gcs, fence_items(box, (), sim.engine.cfg.home))
+            assert ack.type == mavlink.MAV_MISSION_ACCEPTED
+            await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
+            assert (fence.early, fence.reads, fence.changes) == (1, 2, 1)  # the poll would be an hour later
+    finally:
+        await gcs.aclose()
+
+
 def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:
     area = svc.planner.params.nav_area_ne_m
     assert isinstance(area, tuple)
