@@ -79,6 +79,29 @@ async def yard_flight(
         yield svc, sim
 
 
+@contextlib.asynccontextmanager
+async def with_station(
+    fence: FlyingArea | None, profile: str = "ardupilot", **planner: Any
+) -> AsyncIterator[tuple[CompanionService, Simulator, MavlinkLink]]:
+    """``yard_flight`` with a ground station (system 255) on its own link to the simulator, which it has heard."""
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    try:
+        assert gcs.local_address is not None
+        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
+        async with yard_flight(fence, links=(link,), profile=profile, **planner) as (svc, sim):
+            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            yield svc, sim, gcs
+    finally:
+        await gcs.aclose()
+
+
+def _box(half_m: float) -> tuple[tuple[float, float], ...]:
+    """A square of ``2 half_m`` round yard-l's start (north, east) [m]."""
+    assert YARD.start_ne_m is not None
+    n, e = YARD.start_ne_m
+    return ((n - half_m, e - half_m), (n + half_m, e - half_m), (n + half_m, e + half_m), (n - half_m, e + half_m))
+
+
 async def test_the_fence_becomes_the_flying_area_and_the_yard_is_flown_round_its_corner() -> None:
     """yard-l's L, served as the autopilot's fence: read within seconds of the first global position, to a
     centimetre; said once in a STATUSTEXT; the goal in the other arm is reached round the inner corner."""
@@ -138,9 +161,7 @@ async def test_a_fence_changed_in_flight_is_planned_over_and_a_removed_one_taken
         assert fence is not None
         await until(lambda: fence.result is not None, HANG_S, "the fence read")
         assert len(_area(svc)) == 6
-        assert YARD.start_ne_m is not None
-        n, e = YARD.start_ne_m
-        box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
+        box = _box(3.0)
         sim.engine.fence.set_zones(box)
         await until(lambda: len(_area(svc)) == 4, HANG_S, "the new fence in service")
         got = np.array(_area(svc))
@@ -165,7 +186,7 @@ async def test_a_flight_that_breaches_the_autopilots_fence_is_taken_over_by_its_
     async with yard_flight(YARD.area_ne_m, route=route, fence_poll_s=0.0) as (svc, sim):
         await until(lambda: svc.fence is not None and svc.fence.result is not None, HANG_S, "the fence read")
         n, e = YARD.start_ne_m
-        sim.engine.fence.set_zones(((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0)))
+        sim.engine.fence.set_zones(_box(3.0))
         assert await wait_state(svc, {State.IDLE, State.ARRIVED, State.STUCK}, 120.0) is State.IDLE
         assert sim.engine.mode_name() == "RTL" and sim.engine.fence.guard.breaches == 1
         assert "Polygon fence breached" in [s.text for s in sim.engine.statustexts]
@@ -176,31 +197,23 @@ async def test_a_flight_that_breaches_the_autopilots_fence_is_taken_over_by_its_
 async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_is_flown() -> None:
     """A ground station uploads a new fence over its own link: while its upload is open the service's re-reads
     are DENIED (counted; the L stays in service), and once it is complete the new fence is in service."""
-    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
-    try:
-        assert gcs.local_address is not None
-        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
-        async with yard_flight(YARD.area_ne_m, links=(link,), fence_poll_s=1.0) as (svc, sim):
-            fence = svc.fence
-            assert fence is not None and YARD.start_ne_m is not None
-            await until(lambda: fence.result is not None, HANG_S, "the fence read")
-            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
-            n, e = YARD.start_ne_m
-            box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
-            items = fence_items(box, (), sim.engine.cfg.home)
-            assert await upload_fence(gcs, items, stop_after=2) is None  # the upload left open
-            await until(lambda: fence.failures >= 2, HANG_S, "re-reads refused while the upload is open")
-            assert len(_area(svc)) == 6 and fence.changes == 0
-            ack = await upload_fence(gcs, items)  # the same ground station starts again and completes it
-            assert ack.type == mavlink.MAV_MISSION_ACCEPTED
-            await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
-            assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02 and fence.changes == 1
-            status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
-            assert status["outcome"] == "used"
-            assert status["note"] == "inclusion polygon of 4 vertices; FENCE_MARGIN 0 m, ceiling 100 m"
-            assert status["changes"] == 1 and status["failures"] >= 2 and status["reads"] >= 2
-    finally:
-        await gcs.aclose()
+    async with with_station(YARD.area_ne_m, fence_poll_s=1.0) as (svc, sim, gcs):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.result is not None, HANG_S, "the fence read")
+        box = _box(3.0)
+        items = fence_items(box, (), sim.engine.cfg.home)
+        assert await upload_fence(gcs, items, stop_after=2) is None  # the upload left open
+        await until(lambda: fence.failures >= 2, HANG_S, "re-reads refused while the upload is open")
+        assert len(_area(svc)) == 6 and fence.changes == 0
+        ack = await upload_fence(gcs, items)  # the same ground station starts again and completes it
+        assert ack.type == mavlink.MAV_MISSION_ACCEPTED
+        await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
+        assert np.abs(np.array(_area(svc)) - np.array(box)).max() < 0.02 and fence.changes == 1
+        status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
+        assert status["outcome"] == "used"
+        assert status["note"] == "inclusion polygon of 4 vertices; FENCE_MARGIN 0 m, ceiling 100 m"
+        assert status["changes"] == 1 and status["failures"] >= 2 and status["reads"] >= 2
 
 
 @pytest.mark.skipif(mavproxy_path() is None, reason="MAVProxy not installed (pip install --no-deps MAVProxy)")
@@ -215,8 +228,7 @@ async def test_a_fence_loaded_in_mavproxy_is_planned_over(tmp_path: Path) -> Non
         fence = svc.fence
         assert fence is not None
         await until(lambda: fence.result is not None, HANG_S, "the fence read")
-        n, e = YARD.start_ne_m
-        box = ((n - 4.0, e - 4.0), (n + 4.0, e - 4.0), (n + 4.0, e + 4.0), (n - 4.0, e + 4.0))
+        box = _box(4.0)
         lines = ["QGC WPL 110"] + [
             f"{i}\t0\t{mavlink.MAV_FRAME_GLOBAL}\t{cmd}\t{p1}\t0\t0\t0\t{lat * 1e-7:.7f}\t{lon * 1e-7:.7f}\t0\t1"
             for i, (cmd, p1, lat, lon) in enumerate(fence_items(box, (), sim.engine.cfg.home))
@@ -237,81 +249,55 @@ async def test_on_px4_the_services_reads_leave_a_ground_stations_upload_free() -
     """PX4 keeps one transfer state for every link (mavlink_mission.cpp) and refuses an upload while a download is
     open. The service reads the (empty) fence every second and acks each read, count 0 included, so a ground
     station's upload goes through at once or at the next try; without the ack every try was refused."""
-    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
-    try:
-        assert gcs.local_address is not None
-        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
-        async with yard_flight(None, links=(link,), profile="px4", fence_poll_s=1.0) as (svc, sim):
-            fence = svc.fence
-            assert fence is not None and YARD.start_ne_m is not None
-            await until(lambda: fence.reads >= 3, HANG_S, "three reads of the empty fence")
-            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
-            n, e = YARD.start_ne_m
-            box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
-            acks: list[int] = []
-            while len(acks) < 5 and (not acks or acks[-1] != mavlink.MAV_MISSION_ACCEPTED):
-                acks.append((await upload_fence(gcs, fence_items(box, (), sim.engine.cfg.home))).type)
-            # A try that meets one of the service's reads (a few ms of each second) is refused, and is repeated.
-            assert acks[-1] == mavlink.MAV_MISSION_ACCEPTED and len(acks) <= 2, acks
-            await until(lambda: svc.planner.params.nav_area_ne_m is not None, HANG_S, "the uploaded fence in service")
-            assert len(_area(svc)) == 4
-    finally:
-        await gcs.aclose()
+    async with with_station(None, profile="px4", fence_poll_s=1.0) as (svc, sim, gcs):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.reads >= 3, HANG_S, "three reads of the empty fence")
+        acks: list[int] = []
+        while len(acks) < 5 and (not acks or acks[-1] != mavlink.MAV_MISSION_ACCEPTED):
+            acks.append((await upload_fence(gcs, fence_items(_box(3.0), (), sim.engine.cfg.home))).type)
+        # A try that meets one of the service's reads (a few ms of each second) is refused, and is repeated.
+        assert acks[-1] == mavlink.MAV_MISSION_ACCEPTED and len(acks) <= 2, acks
+        await until(lambda: svc.planner.params.nav_area_ne_m is not None, HANG_S, "the uploaded fence in service")
+        assert len(_area(svc)) == 4
 
 
 async def test_on_px4_the_fence_id_spares_the_downloads_so_an_upload_meets_no_read() -> None:
     """PX4 gives its fence plan an id (MISSION_CURRENT fence_id at 1 Hz, MISSION_COUNT opaque_id): the service
     downloads the L once and then reads the parameters only, so a ground station's upload is accepted at its first
     try every time; the new fence's id brings one download, and the box is in service."""
-    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
-    try:
-        assert gcs.local_address is not None
-        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
-        async with yard_flight(YARD.area_ne_m, links=(link,), profile="px4", fence_poll_s=1.0) as (svc, sim):
-            fence = svc.fence
-            assert fence is not None and YARD.start_ne_m is not None
-            await until(lambda: fence.skipped >= 3, HANG_S, "three reads spared their download")
-            assert fence.reads - fence.skipped == 1 and len(_area(svc)) == 6
-            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
-            n, e = YARD.start_ne_m
-            for half in (3.0, 4.0, 3.0):  # three uploads, each a new id
-                box = ((n - half, e - half), (n + half, e - half), (n + half, e + half), (n - half, e + half))
-                ack = await upload_fence(gcs, fence_items(box, (), sim.engine.cfg.home))
-                assert ack.type == mavlink.MAV_MISSION_ACCEPTED  # at the first try: no read was downloading
-                await until(
-                    lambda box=box: len(_area(svc)) == 4 and abs(_area(svc)[0][0] - box[0][0]) < 0.02,  # type: ignore[misc]
-                    HANG_S,
-                    "the uploaded fence in service",
-                )
-            skipped = fence.skipped
-            await until(lambda: fence.skipped >= skipped + 2, HANG_S, "the new fence's id spares the reads again")
-            assert fence.reads - fence.skipped == 4 and fence.failures == 0
-            status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
-            assert status["skipped"] == fence.skipped
-    finally:
-        await gcs.aclose()
+    async with with_station(YARD.area_ne_m, profile="px4", fence_poll_s=1.0) as (svc, sim, gcs):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.skipped >= 3, HANG_S, "three reads spared their download")
+        assert fence.reads - fence.skipped == 1 and len(_area(svc)) == 6
+        for half in (3.0, 4.0, 3.0):  # three uploads, each a new id
+            box = _box(half)
+            ack = await upload_fence(gcs, fence_items(box, (), sim.engine.cfg.home))
+            assert ack.type == mavlink.MAV_MISSION_ACCEPTED  # at the first try: no read was downloading
+            await until(
+                lambda box=box: len(_area(svc)) == 4 and abs(_area(svc)[0][0] - box[0][0]) < 0.02,  # type: ignore[misc]
+                HANG_S,
+                "the uploaded fence in service",
+            )
+        skipped = fence.skipped
+        await until(lambda: fence.skipped >= skipped + 2, HANG_S, "the new fence's id spares the reads again")
+        assert fence.reads - fence.skipped == 4 and fence.failures == 0
+        status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
+        assert status["skipped"] == fence.skipped
 
 
 async def test_on_px4_a_new_fence_id_brings_the_new_fence_without_waiting_for_the_poll() -> None:
     """With a poll of an hour, a ground station's upload on PX4 is in service within seconds: MISSION_CURRENT's new
     fence id starts the read."""
-    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
-    try:
-        assert gcs.local_address is not None
-        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
-        async with yard_flight(YARD.area_ne_m, links=(link,), profile="px4", fence_poll_s=3600.0) as (svc, sim):
-            fence = svc.fence
-            assert fence is not None and YARD.start_ne_m is not None
-            await until(lambda: fence.result is not None, HANG_S, "the fence read")
-            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
-            n, e = YARD.start_ne_m
-            box = ((n - 3.0, e - 3.0), (n + 3.0, e - 3.0), (n + 3.0, e + 3.0), (n - 3.0, e + 3.0))
-            ack = await upload_fence(gcs, fence_items(box, (), sim.engine.cfg.home))
-            assert ack.type == mavlink.MAV_MISSION_ACCEPTED
-            await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
-            assert (fence.early, fence.reads, fence.changes) == (1, 2, 1)  # the poll would be an hour later
-    finally:
-        await gcs.aclose()
+    async with with_station(YARD.area_ne_m, profile="px4", fence_poll_s=3600.0) as (svc, sim, gcs):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.result is not None, HANG_S, "the fence read")
+        ack = await upload_fence(gcs, fence_items(_box(3.0), (), sim.engine.cfg.home))
+        assert ack.type == mavlink.MAV_MISSION_ACCEPTED
+        await until(lambda: len(_area(svc)) == 4, HANG_S, "the uploaded fence in service")
+        assert (fence.early, fence.reads, fence.changes) == (1, 2, 1)  # the poll would be an hour later
 
 
 def _area(svc: CompanionService) -> tuple[tuple[float, float], ...]:
