@@ -33,6 +33,7 @@ fails (a ground station uploading answers DENIED) keeps what is in service and i
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -66,6 +67,8 @@ from apf_companion.links.messages import (
 from apf_companion.outbox import Outbox
 
 __all__ = ["FenceReader", "FenceReaderParams"]
+
+log = logging.getLogger(__name__)
 
 _FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 #: How often the reader is stepped while it downloads [s] (a request's repeat comes after ``timeout_s``).
@@ -115,6 +118,10 @@ class FenceReader:
         self.home: tuple[int, int] | None = None
         #: ArduPilot's SYS_STATUS says its fence is switched on (GEOFENCE enabled); False until heard.
         self.switched_on = False
+        #: ... and breached now (GEOFENCE present, not healthy: ``GCS.cpp``, ``!fence->sys_status_failed()``), and
+        #: how often it was newly breached.
+        self.breached = False
+        self.breaches = 0
         #: The last result given to ``on_area`` (None before the first read has ended).
         self.result: FenceArea | None = None
         #: Reads that ended: whole (downloaded, or vouched for by the fence id: ``skipped``), and failed downloads.
@@ -151,6 +158,8 @@ class FenceReader:
             "changes": self.changes,
             "skipped": self.skipped,
             "early": self.early,
+            "breached": self.breached,
+            "breaches": self.breaches,
             "ignored": self.ignored,
             "unexpected": self.download.unexpected,
             "limits": self.limits.note if isinstance(self.limits, FenceLimits) else self.limits,
@@ -178,8 +187,15 @@ class FenceReader:
         self._id_heard = rec.fence_id
 
     def on_sys_status(self, rec: SysStatus) -> None:
-        """SYS_STATUS from the autopilot: whether its fence is switched on now (read with the parameters)."""
-        self.switched_on = bool(rec.enabled & rec.present & mavlink.MAV_SYS_STATUS_GEOFENCE)
+        """SYS_STATUS from the autopilot: whether its fence is switched on now (read with the parameters), and
+        breached (said in the status record; the autopilot's FENCE_ACTION acts on it, not the service)."""
+        geofence = mavlink.MAV_SYS_STATUS_GEOFENCE
+        self.switched_on = bool(rec.enabled & rec.present & geofence)
+        breached = bool(rec.present & geofence) and not rec.health & geofence
+        if breached and not self.breached:
+            self.breaches += 1
+            log.warning("fence.breached", extra={"breaches": self.breaches})
+        self.breached = breached
 
     def on_record(self, rec: FenceRecord) -> None:
         """A record from the autopilot: a parameter, home, or an answer to the download when addressed to us,

@@ -92,7 +92,8 @@ def sensor_flags(v: VehicleEngine) -> tuple[int, int, int]:
     and enabled, and healthy when armed or when arming would pass."""
     present = enabled = int(SENSORS_PRESENT)
     health = present if not v.crashed else 0
-    health |= 0 if v.fence.guard.breached else mavlink.MAV_SYS_STATUS_GEOFENCE
+    ardupilot_breach = v.profile is Autopilot.ARDUPILOT and v.fence.guard.breached  # AC_Fence sys_status_failed
+    health |= 0 if ardupilot_breach else mavlink.MAV_SYS_STATUS_GEOFENCE
     rules = v.profile_rules
     if rules.reports_prearm_check:
         present |= mavlink.MAV_SYS_STATUS_PREARM_CHECK

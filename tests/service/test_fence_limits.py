@@ -420,6 +420,20 @@ def test_a_fence_switched_on_at_run_time_brings_its_circle_and_ceiling() -> None
     assert not reader.switched_on
 
 
+def test_a_breach_the_autopilot_reports_is_said_and_counted() -> None:
+    """GCS.cpp: GEOFENCE present and not healthy is a breach (``!fence->sys_status_failed()``); healthy again, it
+    is over; a new breach counts again. No fence present says nothing."""
+    reader = _reader(5.0, [])
+    bit = mavlink.MAV_SYS_STATUS_GEOFENCE
+    sequence = [(bit, bit), (bit, 0), (bit, 0), (bit, bit), (bit, 0), (0, 0)]
+    seen = []
+    for present, health in sequence:
+        reader.on_record(SysStatus(src=AP, present=present, enabled=present, health=health))
+        seen.append((reader.breached, reader.breaches))
+    assert seen == [(False, 0), (True, 1), (True, 1), (False, 1), (True, 2), (False, 2)]
+    assert reader.summary()["breached"] is False and reader.summary()["breaches"] == 2
+
+
 def test_the_floor_refuses_goals_below_it_plus_the_margin() -> None:
     """FENCE_TYPE bit 8 (FENCE_ALT_MIN, 4.x, read when the autopilot has it) with the fence on: goals below the
     floor plus the margin (``get_safe_alt_min_m``) are refused; off, or an autopilot without it, no floor."""

@@ -194,6 +194,23 @@ async def test_a_flight_that_breaches_the_autopilots_fence_is_taken_over_by_its_
         assert max(abs(pos[0] - n), abs(pos[1] - e)) > 3.0  # it was outside when the autopilot took over
 
 
+async def test_a_breach_the_autopilot_only_reports_is_in_the_status_record() -> None:
+    """FENCE_ACTION 0 (report only): the autopilot keeps flying the service's setpoints outside its shrunk fence;
+    SYS_STATUS's GEOFENCE health drops, and the service's status record says breached."""
+    assert YARD.goal_ne_m is not None and YARD.area_ne_m is not None
+    route = Route.point(*YARD.goal_ne_m, -5.0, source="test")
+    params = EXACT | {"FENCE_ACTION": 0.0}
+    async with yard_flight(YARD.area_ne_m, route=route, fence_poll_s=0.0, sim_params=params) as (svc, sim):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.result is not None, HANG_S, "the fence read")
+        sim.engine.fence.set_zones(_box(3.0))
+        await until(lambda: fence.breached, HANG_S, "the breach reported")
+        assert fence.breaches == 1 and sim.engine.mode_name() == "GUIDED" and svc.navigator.state is State.NAVIGATING
+        status = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["fence"]
+        assert status["breached"] is True and status["breaches"] == 1
+
+
 async def test_a_ground_station_uploading_a_fence_is_waited_out_then_its_fence_is_flown() -> None:
     """A ground station uploads a new fence over its own link: while its upload is open the service's re-reads
     are DENIED (counted; the L stays in service), and once it is complete the new fence is in service."""
