@@ -201,7 +201,8 @@ class PlannerConfig:
             with its parameters: the edges kept FENCE_MARGIN away, its circle round home, ceiling and floor
             (docs/service.md, "The autopilot's fence" and "The autopilot's fence parameters").
         fence_poll_s: With ``fence_area``: read the fence again this long after each read, so a fence changed
-            on the ground station in flight is planned over [s]; 0 = read once at start.
+            on the ground station in flight is planned over [s]; sooner when the autopilot's fence id changes
+            (PX4); 0 = read once at start.
         params: Overrides of PlannerParams fields (e.g. step_m, rho_u_m; for bapf-nav vehicle_radius_m,
             safety_margin_m, noise_std_m, noise_k and the nav_* fields), validated by the planner. Values are
             numbers, strings, booleans, or lists of numbers or of such lists (bapf-nav's flying area,
