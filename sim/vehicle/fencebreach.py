@@ -17,8 +17,9 @@ inclusion zone at least, no exclusion zone) are checked. A new breach says "Geof
 ``GF_ACTION`` 1 only warns, 2 Hold, 3 Return, 5 Land; 4 (Terminate) is flown as Land here: flight termination
 (motors off) is not simulated.
 
-Not modelled: the backup fences 20 m further out that repeat the action, ArduPilot's manual recovery, the pre-arm
-refusal while breached, and FENCE_ACTION 6/7 (GUIDED to the return point: RTL here).
+ArduPilot also refuses to arm while a fence is breached (``arming_refusal``: "PreArm: Vehicle breaching Polygon
+fence"). Not modelled: the backup fences 20 m further out that repeat the action, ArduPilot's manual recovery, PX4's
+arming check, and FENCE_ACTION 6/7 (GUIDED to the return point: RTL here).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ if TYPE_CHECKING:
     from sim.vehicle.config import HomeConfig
     from sim.vehicle.engine import VehicleEngine
 
-__all__ = ["FenceGuard", "FenceKind", "check_fence", "fence_zones"]
+__all__ = ["FenceGuard", "FenceKind", "arming_refusal", "check_fence", "fence_names", "fence_zones"]
 
 #: ``AC_FENCE_GIVE_UP_DISTANCE``: a breach further out than this lands instead of returning [m].
 GIVE_UP_M = 100.0
@@ -189,10 +190,21 @@ def check_fence(v: VehicleEngine) -> None:
         _px4_action(v)
 
 
+def fence_names(kinds: FenceKind) -> str:
+    """ArduPilot's names of fences (``AC_Fence::get_fence_names``): "Polygon fence", "Max Alt and Circle fences"."""
+    names = [name for kind, name in _NAMES.items() if kind & kinds]
+    return " and ".join(names) + (" fences" if len(names) > 1 else " fence")
+
+
+def arming_refusal(v: VehicleEngine) -> str | None:
+    """ArduPilot refuses to arm while a fence is breached (``AC_Fence::pre_arm_check``, through
+    ``AP_Arming::fence_checks``; a forced arm skips it); None: no breach."""
+    breached = v.fence.guard.breached
+    return f"PreArm: Vehicle breaching {fence_names(breached)}" if breached else None
+
+
 def _ardupilot_action(v: VehicleEngine, new: FenceKind, beyond_m: float) -> None:
-    names = [name for kind, name in _NAMES.items() if kind & new]
-    said = " and ".join(names) + (" fences" if len(names) > 1 else " fence")
-    v.statustext(mavlink.MAV_SEVERITY_NOTICE, f"{said} breached")
+    v.statustext(mavlink.MAV_SEVERITY_NOTICE, f"{fence_names(new)} breached")
     action = round(v.params["FENCE_ACTION"])
     if action == 0:
         return

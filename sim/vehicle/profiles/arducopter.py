@@ -23,7 +23,7 @@ from apf_companion.autopilot import (
     TypeMask,
 )
 from sim.vehicle.dynamics import Limits, TargetKind, wrap_pi
-from sim.vehicle.fencebreach import check_fence
+from sim.vehicle.fencebreach import arming_refusal, check_fence
 from sim.vehicle.geo import LOCAL_FRAMES
 from sim.vehicle.guided import Setpoint, classify_mask_arducopter, position_setpoint, stop_setpoint
 from sim.vehicle.params import ParamTable
@@ -177,7 +177,7 @@ class ArduCopterProfile:
         if v.custom_mode in MODES_NEED_POSITION and not v.startup.origin_set:
             # AP_Arming_Copter.cpp mandatory_position_checks (run even when forced): no position_ok() yet
             return "PreArm: Need Position Estimate"
-        return None
+        return None if force else arming_refusal(v)
 
     def takeoff(self, v: VehicleEngine, p: tuple[float, ...]) -> int:
         """NAV_TAKEOFF: only armed, in GUIDED and landed; param7 = altitude above home [m]."""

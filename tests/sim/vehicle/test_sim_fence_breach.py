@@ -11,7 +11,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.autopilot import MASK_POSITION, Autopilot
 from sim.vehicle import EngineConfig, SpawnConfig, VehicleEngine
 from sim.vehicle.fence import fence_items
-from sim.vehicle.fencebreach import FenceKind, fence_zones
+from sim.vehicle.fencebreach import FenceKind, fence_names, fence_zones
 from sim.vehicle.telemetry import sensor_flags
 
 GCS = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
@@ -96,15 +96,31 @@ def test_a_breach_more_than_100_m_out_lands() -> None:
     assert v.mode_name() == "LAND" and "Polygon fence breached" in _texts(v)
 
 
-def test_on_the_ground_a_breach_is_recorded_but_not_acted_on() -> None:
-    v = VehicleEngine(
-        EngineConfig(fence=SQUARE, spawn=SpawnConfig(pos_ne_m=(30.0, 30.0)), params={"FENCE_ENABLE": 1.0}),
-        n_links=1,
-        emit=lambda link, msg: None,
-    )
+def _arm(v: VehicleEngine, out: list[Any], *, force: bool = False) -> int:
+    """MAV_CMD_COMPONENT_ARM_DISARM (21196 in param2 forces it); the COMMAND_ACK's result."""
+    out.clear()
+    magic = 21196 if force else 0
+    msg = GCS.command_long_encode(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, magic, 0, 0, 0, 0, 0)
+    v.handle(GCS.decode(bytearray(msg.pack(GCS))), 0)
+    return int(next(m.result for m in out if m.get_type() == "COMMAND_ACK"))
+
+
+@pytest.mark.parametrize("enable", [1.0, 0.0])
+def test_on_the_ground_a_breach_is_recorded_refuses_arming_and_is_not_acted_on(enable: float) -> None:
+    """AC_Fence::pre_arm_check through AP_Arming::fence_checks: "Vehicle breaching Polygon fence" while the fence
+    is on; a forced arm skips it. Off, nothing is breached."""
+    out: list[Any] = []
+    cfg = EngineConfig(fence=SQUARE, spawn=SpawnConfig(pos_ne_m=(30.0, 30.0)), params={"FENCE_ENABLE": enable})
+    v = VehicleEngine(cfg, n_links=1, emit=lambda link, msg: out.append(msg))
     v.step()
-    assert v.fence.guard.breached == FenceKind.POLYGON and v.fence.guard.breaches == 0
-    assert not any("breached" in t for t in _texts(v))
+    assert v.fence.guard.breaches == 0 and not any("breached" in t for t in _texts(v))
+    if enable == 0.0:
+        assert v.fence.guard.breached == FenceKind(0) and _arm(v, out) == mavlink.MAV_RESULT_ACCEPTED
+        return
+    assert v.fence.guard.breached == FenceKind.POLYGON
+    assert _arm(v, out) == mavlink.MAV_RESULT_FAILED and not v.armed
+    assert "PreArm: Vehicle breaching Polygon fence" in _texts(v)
+    assert _arm(v, out, force=True) == mavlink.MAV_RESULT_ACCEPTED and v.armed
 
 
 @pytest.mark.parametrize(("action", "mode"), [(1, "OFFBOARD"), (2, "AUTO.LOITER"), (3, "AUTO.RTL"), (5, "AUTO.LAND")])
@@ -126,6 +142,11 @@ def test_px4_with_gf_action_none_checks_nothing_and_its_inclusion_zones_are_a_un
     v.fence.items = v.fence.items + fence_items(east, (), v.fence.home)
     _fly_to(v, 10.0, 30.0, 20.0)
     assert v.fence.guard.breaches == 0 and v.state.pos_ned_m[1] > 29.0
+
+
+def test_fence_names_are_ardupilots() -> None:
+    assert fence_names(FenceKind.POLYGON) == "Polygon fence"
+    assert fence_names(FenceKind.ALT_MAX | FenceKind.CIRCLE) == "Max Alt and Circle fences"
 
 
 def test_fence_zones_read_the_items_as_the_autopilot_holds_them() -> None:
