@@ -17,9 +17,8 @@ inclusion zone at least, no exclusion zone) are checked. A new breach says "Geof
 ``GF_ACTION`` 1 only warns, 2 Hold, 3 Return, 5 Land; 4 (Terminate) is flown as Land here: flight termination
 (motors off) is not simulated.
 
-ArduPilot also refuses to arm while a fence is breached (``arming_refusal``: "PreArm: Vehicle breaching Polygon
-fence"). Not modelled: the backup fences 20 m further out that repeat the action, ArduPilot's manual recovery, PX4's
-arming check, and FENCE_ACTION 6/7 (GUIDED to the return point: RTL here).
+Both refuse to arm while a fence is breached (``arming_refusal``). Not modelled: the backup fences 20 m further out
+that repeat the action, ArduPilot's manual recovery, and FENCE_ACTION 6/7 (GUIDED to the return point: RTL here).
 """
 
 from __future__ import annotations
@@ -197,10 +196,15 @@ def fence_names(kinds: FenceKind) -> str:
 
 
 def arming_refusal(v: VehicleEngine) -> str | None:
-    """ArduPilot refuses to arm while a fence is breached (``AC_Fence::pre_arm_check``, through
-    ``AP_Arming::fence_checks``; a forced arm skips it); None: no breach."""
+    """Both autopilots refuse to arm while a fence is breached; None: no breach. ArduPilot: ``AC_Fence::pre_arm_check``
+    through ``AP_Arming::fence_checks`` (a forced arm skips it); PX4: the commander's arming check while GF_ACTION
+    is not None (``arm_requirements.geofence && geofence_violated``)."""
     breached = v.fence.guard.breached
-    return f"PreArm: Vehicle breaching {fence_names(breached)}" if breached else None
+    if not breached:
+        return None
+    if v.profile is Autopilot.ARDUPILOT:
+        return f"PreArm: Vehicle breaching {fence_names(breached)}"
+    return "Arming denied, vehicle outside geofence"
 
 
 def _ardupilot_action(v: VehicleEngine, new: FenceKind, beyond_m: float) -> None:

@@ -30,7 +30,7 @@ from apf_companion.autopilot import (
     TypeMask,
 )
 from sim.vehicle.dynamics import Limits, TargetKind
-from sim.vehicle.fencebreach import check_fence
+from sim.vehicle.fencebreach import arming_refusal, check_fence
 from sim.vehicle.guided import Setpoint
 from sim.vehicle.params import ParamTable
 from sim.vehicle.profiles.base import Behaviour, ProfileTexts, SetpointRule, param_int
@@ -192,7 +192,7 @@ class Px4Profile:
     def arm_refusal(self, v: VehicleEngine, *, force: bool) -> str | None:
         if v.custom_mode == PX4_OFFBOARD.to_custom_mode() and not self.offboard_ready(v):
             return "Arming denied: no offboard setpoints"
-        return None
+        return arming_refusal(v)
 
     def takeoff(self, v: VehicleEngine, p: tuple[float, ...]) -> int:
         """NAV_TAKEOFF: param7 is an AMSL altitude (NaN = MIS_TAKEOFF_ALT above home)."""

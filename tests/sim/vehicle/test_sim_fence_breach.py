@@ -144,6 +144,19 @@ def test_px4_with_gf_action_none_checks_nothing_and_its_inclusion_zones_are_a_un
     assert v.fence.guard.breaches == 0 and v.state.pos_ned_m[1] > 29.0
 
 
+def test_px4_refuses_to_arm_outside_its_geofence_while_it_checks_one() -> None:
+    """PX4's commander: "Arming denied, vehicle outside geofence" while GF_ACTION is not None."""
+    for action, refused in ((2.0, True), (0.0, False)):
+        out: list[Any] = []
+        spawn = SpawnConfig(pos_ne_m=(30.0, 30.0))
+        cfg = EngineConfig(profile=Autopilot.PX4, fence=SQUARE, spawn=spawn, params={"GF_ACTION": action})
+        v = VehicleEngine(cfg, n_links=1, emit=lambda link, msg, out=out: out.append(msg))  # type: ignore[misc]
+        v.step()
+        result = _arm(v, out)
+        assert (result == mavlink.MAV_RESULT_ACCEPTED) is not refused and v.armed is not refused
+        assert ("Arming denied, vehicle outside geofence" in _texts(v)) is refused
+
+
 def test_fence_names_are_ardupilots() -> None:
     assert fence_names(FenceKind.POLYGON) == "Polygon fence"
     assert fence_names(FenceKind.ALT_MAX | FenceKind.CIRCLE) == "Max Alt and Circle fences"
