@@ -229,7 +229,7 @@ class FenceReader:
                 return now_s + STEP_S
             if self._items_id != 0 and self._id_heard == self._items_id:
                 self.skipped += 1
-                self._ended(now_s, self._items)
+                self._ended(now_s)
                 return now_s + STEP_S
             self._count_id = 0
             d.start()
@@ -241,11 +241,11 @@ class FenceReader:
         if d.stage is FenceStage.DONE and send is None:  # after the closing ack went out
             self._items, self._items_id = tuple(d.items), self._count_id
             d.rest()
-            self._ended(now_s, self._items)
+            self._ended(now_s)
         elif d.stage is FenceStage.FAILED:
             reason = d.reason
             d.rest()
-            self._ended(now_s, None, failed=reason)
+            self._ended(now_s, failed=reason)
         return now_s + STEP_S
 
     def _next_read_s(self, now_s: float) -> float | None:
@@ -285,12 +285,12 @@ class FenceReader:
         pr.rest()
         return True
 
-    def _ended(self, now_s: float, items: tuple[FenceItem, ...] | None, *, failed: str = "") -> None:
-        """A read ended with the fence's ``items`` (None: the download failed, ``failed`` says why): the next is due
-        ``poll_s`` later; its result goes out when it is news."""
+    def _ended(self, now_s: float, *, failed: str | None = None) -> None:
+        """A read ended with ``self._items`` as the fence, or its download failed (``failed`` says why): the next is
+        due ``poll_s`` later; its result goes out when it is news."""
         self._ended_s = now_s
         self._id_heard = None
-        if items is None:
+        if failed is not None:
             self.failures += 1
             if self.result is None:  # the first read: say that there is no fence to plan over (yet)
                 self._tell(FenceArea(FenceOutcome.FAILED, f"download failed: {failed}"))
@@ -301,7 +301,7 @@ class FenceReader:
         # What the result depends on: home only with a circle round it (ArduCopter moves home when it arms), the
         # margin's inset rather than C (a PARAM_SET of C that leaves the inset at 0 changes nothing).
         home = self.home if limits is not None and limits.home_radius_m is not None else None
-        inputs = (items, limits, home, 0.0 if limits is None else limits.inset_m(clearance))
+        inputs = (self._items, limits, home, 0.0 if limits is None else limits.inset_m(clearance))
         r = self.result
         retry = r is not None and (r.outcome is FenceOutcome.NOT_USED or r.provisional)
         if inputs == self._inputs and not retry:
@@ -311,7 +311,7 @@ class FenceReader:
             if self.result is None:
                 self._tell(FenceArea(FenceOutcome.NOT_USED, "no global reference to place the fence"))
             return
-        result = fence_area(items, *where, limits, home, clearance)
+        result = fence_area(self._items, *where, limits, home, clearance)
         if isinstance(self.limits, str) and result.outcome is FenceOutcome.USED:
             result = dataclasses.replace(result, note=f"{result.note}; {self.limits}: every uploaded zone used")
         if inputs == self._inputs and r is not None and _same(result, r):  # still not used, or provisional

@@ -84,7 +84,8 @@ class FenceGuard:
 
 def fence_zones(items: list[FenceItemRaw], home: HomeConfig) -> Zones:
     """The zones of fence items (polygons of ``param1`` vertices, circles of radius ``param1``); return points and
-    items that make no zone are left out."""
+    items that make no zone are left out. The simulator's own reading, not ``apf_companion.fence``'s: the autopilot
+    judges the service's flight, so it must not share the service's parsing (a bug there would pass unseen)."""
     inclusion: list[shapely.Geometry] = []
     exclusion: list[shapely.Geometry] = []
     i = 0
@@ -162,8 +163,9 @@ def _breaches(v: VehicleEngine, limits: _Limits) -> dict[FenceKind, float]:
     out: dict[FenceKind, float] = {}
     if limits.ceiling_m is not None and -down >= limits.ceiling_m:
         out[FenceKind.ALT_MAX] = -down - limits.ceiling_m
-    if limits.radius_m is not None and math.hypot(north, east) >= limits.radius_m:
-        out[FenceKind.CIRCLE] = math.hypot(north, east) - limits.radius_m
+    from_home_m = math.hypot(north, east)
+    if limits.radius_m is not None and from_home_m >= limits.radius_m:
+        out[FenceKind.CIRCLE] = from_home_m - limits.radius_m
     if limits.zones and v.fence.items:
         beyond = _zones_breach_m(v.fence.guard.zones(v.fence.items, v.fence.home), north, east, limits.union)
         if beyond is not None:

@@ -14,10 +14,9 @@ from shapely.geometry import Polygon
 
 from apf_companion.fence import FenceOutcome
 from apf_companion.goal import Route
-from apf_companion.links import MavlinkLink
 from sim.vehicle.testing import command_long
 from tests.conftest import HANG_S, until
-from tests.service.test_service_fence import YARD, yard_flight
+from tests.service.test_service_fence import YARD, with_station, yard_flight
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -89,26 +88,19 @@ async def test_a_fence_switched_on_by_command_brings_its_ceiling_within_a_read()
     FENCE_AUTOENABLE would switch it): the parameter stays 0, SYS_STATUS's GEOFENCE bit says it is on, and the
     service's next read takes the circle round home and the ceiling into service; switched off, they go."""
     assert YARD.area_ne_m is not None
-    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
-    try:
-        assert gcs.local_address is not None
-        link = f"udpout:127.0.0.1:{gcs.local_address[1]}"
-        params = {"FENCE_ENABLE": 0.0}
-        async with yard_flight(YARD.area_ne_m, links=(link,), fence_poll_s=1.0, sim_params=params) as (svc, sim):
-            fence = svc.fence
-            assert fence is not None
-            await until(lambda: fence.result is not None, HANG_S, "the fence read")
-            assert fence.bounds.ceiling_m is None and svc.planner.params.nav_area_ne_m is not None
-            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
-            ack = await command_long(gcs, mavlink.MAV_CMD_DO_FENCE_ENABLE, 1.0)
-            assert ack.result == mavlink.MAV_RESULT_ACCEPTED
-            await until(lambda: fence.bounds.ceiling_m == 98.0, HANG_S, "the ceiling in service")
-            assert fence.switched_on and sim.engine.params["FENCE_ENABLE"] == 0.0
-            assert fence.result is not None and "switched on (SYS_STATUS)" in fence.result.note
-            ack = await command_long(gcs, mavlink.MAV_CMD_DO_FENCE_ENABLE, 0.0)
-            await until(lambda: fence.bounds.ceiling_m is None, HANG_S, "the ceiling out of service")
-    finally:
-        await gcs.aclose()
+    params = {"FENCE_ENABLE": 0.0}
+    async with with_station(YARD.area_ne_m, fence_poll_s=1.0, sim_params=params) as (svc, sim, gcs):
+        fence = svc.fence
+        assert fence is not None
+        await until(lambda: fence.result is not None, HANG_S, "the fence read")
+        assert fence.bounds.ceiling_m is None and svc.planner.params.nav_area_ne_m is not None
+        ack = await command_long(gcs, mavlink.MAV_CMD_DO_FENCE_ENABLE, 1.0)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        await until(lambda: fence.bounds.ceiling_m == 98.0, HANG_S, "the ceiling in service")
+        assert fence.switched_on and sim.engine.params["FENCE_ENABLE"] == 0.0
+        assert fence.result is not None and "switched on (SYS_STATUS)" in fence.result.note
+        ack = await command_long(gcs, mavlink.MAV_CMD_DO_FENCE_ENABLE, 0.0)
+        await until(lambda: fence.bounds.ceiling_m is None, HANG_S, "the ceiling out of service")
 
 
 async def test_px4s_circle_round_home_is_the_area_and_refuses_goals_beyond_it() -> None:
