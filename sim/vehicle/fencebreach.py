@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -138,19 +139,23 @@ class _Limits:
     union: bool
 
 
-def _limits(v: VehicleEngine) -> _Limits | None:
-    """The fences checked now (None: none: the fence is off, or PX4's GF_ACTION is None)."""
+def _ardupilot_limits(v: VehicleEngine) -> _Limits | None:
+    """The fences ``FENCE_TYPE`` configures, while the fence is switched on (None: off)."""
     p = v.params
-    if v.profile is Autopilot.ARDUPILOT:
-        if not v.fence.switch.follow(p["FENCE_ENABLE"] == 1.0):
-            return None
-        kinds = int(p["FENCE_TYPE"])
-        return _Limits(
-            p["FENCE_ALT_MAX"] if kinds & FenceKind.ALT_MAX else None,
-            p["FENCE_RADIUS"] if kinds & FenceKind.CIRCLE else None,
-            bool(kinds & FenceKind.POLYGON),
-            bool(int(p["FENCE_OPTIONS"]) & _UNION),
-        )
+    if not v.fence.switch.follow(p["FENCE_ENABLE"] == 1.0):
+        return None
+    kinds = int(p["FENCE_TYPE"])
+    return _Limits(
+        p["FENCE_ALT_MAX"] if kinds & FenceKind.ALT_MAX else None,
+        p["FENCE_RADIUS"] if kinds & FenceKind.CIRCLE else None,
+        bool(kinds & FenceKind.POLYGON),
+        bool(int(p["FENCE_OPTIONS"]) & _UNION),
+    )
+
+
+def _px4_limits(v: VehicleEngine) -> _Limits | None:
+    """The circle and ceiling where set (> 0), and the zones, while ``GF_ACTION`` is not None (None: checks off)."""
+    p = v.params
     if p["GF_ACTION"] == 0.0:
         return None
     ver, hor = p["GF_MAX_VER_DIST"], p["GF_MAX_HOR_DIST"]
@@ -176,7 +181,8 @@ def _breaches(v: VehicleEngine, limits: _Limits) -> dict[FenceKind, float]:
 def check_fence(v: VehicleEngine) -> None:
     """One fence check (each physics step): a new breach while armed and flying is said and acted on."""
     guard = v.fence.guard
-    limits = _limits(v)
+    rules = _RULES[v.profile]
+    limits = rules.limits(v)
     now = {} if limits is None else _breaches(v, limits)
     breached = FenceKind(sum(now, NO_BREACH))
     new = breached & ~guard.breached
@@ -184,11 +190,7 @@ def check_fence(v: VehicleEngine) -> None:
     if not new or not v.armed or v.state.on_ground:
         return
     guard.breaches += 1
-    beyond = max(d for kind, d in now.items() if kind & new)
-    if v.profile is Autopilot.ARDUPILOT:
-        _ardupilot_action(v, new, beyond)
-    else:
-        _px4_action(v)
+    rules.act(v, new, max(d for kind, d in now.items() if kind & new))
 
 
 def fence_names(kinds: FenceKind) -> str:
@@ -202,11 +204,7 @@ def arming_refusal(v: VehicleEngine) -> str | None:
     through ``AP_Arming::fence_checks`` (a forced arm skips it); PX4: the commander's arming check while GF_ACTION
     is not None (``arm_requirements.geofence && geofence_violated``)."""
     breached = v.fence.guard.breached
-    if not breached:
-        return None
-    if v.profile is Autopilot.ARDUPILOT:
-        return f"PreArm: Vehicle breaching {fence_names(breached)}"
-    return "Arming denied, vehicle outside geofence"
+    return _RULES[v.profile].refusal(breached) if breached else None
 
 
 def _ardupilot_action(v: VehicleEngine, new: FenceKind, beyond_m: float) -> None:
@@ -222,10 +220,28 @@ def _ardupilot_action(v: VehicleEngine, new: FenceKind, beyond_m: float) -> None
 _AP_ACTIONS = {1: CopterMode.RTL, 2: CopterMode.LAND, 3: CopterMode.RTL, 4: CopterMode.BRAKE, 5: CopterMode.LAND}
 
 
-def _px4_action(v: VehicleEngine) -> None:
+def _px4_action(v: VehicleEngine, _new: FenceKind, _beyond_m: float) -> None:
     v.statustext(mavlink.MAV_SEVERITY_CRITICAL, "Geofence violation")
     action = round(v.params["GF_ACTION"])  # 1 (Warning): nothing more; 4 (Terminate): Land here
     rules = v.profile_rules
     mode = {2: PX4_HOLD.to_custom_mode(), 3: rules.rtl_mode, 4: rules.land_mode, 5: rules.land_mode}.get(action)
     if mode is not None:
         v.set_mode(mode, "geofence breach")
+
+
+@dataclass(frozen=True, slots=True)
+class _FenceRules:
+    """One profile's fence: what it checks now, what it does on a new breach (the fences newly breached, how far
+    out [m]), and its arming refusal while breached."""
+
+    limits: Callable[[VehicleEngine], _Limits | None]
+    act: Callable[[VehicleEngine, FenceKind, float], None]
+    refusal: Callable[[FenceKind], str]
+
+
+_RULES = {
+    Autopilot.ARDUPILOT: _FenceRules(
+        _ardupilot_limits, _ardupilot_action, lambda breached: f"PreArm: Vehicle breaching {fence_names(breached)}"
+    ),
+    Autopilot.PX4: _FenceRules(_px4_limits, _px4_action, lambda _breached: "Arming denied, vehicle outside geofence"),
+}
