@@ -95,6 +95,8 @@ class FenceDownload:
         #: Why the download failed ("" unless FAILED).
         self.reason = ""
         self.items: list[FenceItem] = []
+        #: The plan id the count came with (MISSION_COUNT ``opaque_id``; 0: none, or no count yet).
+        self.plan_id = 0
         #: Answers that were not the one awaited (a repeated item, a stray count): counted, dropped.
         self.unexpected = 0
         self._count = 0
@@ -104,7 +106,7 @@ class FenceDownload:
 
     def start(self) -> None:
         """Begin (again): ask for the count at the next ``due``."""
-        self.stage, self.reason, self.items = FenceStage.COUNT, "", []
+        self.stage, self.reason, self.items, self.plan_id = FenceStage.COUNT, "", [], 0
         self._sent_at, self._tries, self._ack_due = -math.inf, 0, False
 
     def rest(self) -> None:
@@ -126,15 +128,15 @@ class FenceDownload:
         self._sent_at = now_s
         return FenceSend(seq=None if self.stage is FenceStage.COUNT else len(self.items))
 
-    def on_count(self, count: int) -> None:
-        """MISSION_COUNT (fence) from the autopilot."""
+    def on_count(self, count: int, plan_id: int = 0) -> None:
+        """MISSION_COUNT (fence) from the autopilot, with its plan id (``opaque_id``; 0: none)."""
         if self.stage is not FenceStage.COUNT:
             self.unexpected += 1
             return
         if not 0 <= count <= MAX_FENCE_ITEMS:
             self._fail(f"the fence has {count} items (at most {MAX_FENCE_ITEMS} are read)")
             return
-        self._count = count
+        self._count, self.plan_id = count, plan_id
         self._sent_at, self._tries = -math.inf, 0
         if count == 0:  # an empty fence is acked too: PX4 holds its one transfer state until the ack (or 5 s)
             self.stage, self._ack_due = FenceStage.DONE, True

@@ -143,7 +143,6 @@ class FenceReader:
         self._ended_s = -math.inf  # when the last download ended
         self._items: tuple[FenceItem, ...] = ()  # of the last download that ended whole
         self._items_id = 0  # their plan id (MISSION_COUNT opaque_id; 0: none given)
-        self._count_id = 0  # the running download's plan id
         self._id_heard: int | None = None  # MISSION_CURRENT fence_id, heard since the last read ended
         self._early_for: int | None = None  # the last id that started an early read
 
@@ -208,8 +207,7 @@ class FenceReader:
         if not ours or rec.mission_type != _FENCE or self.download.stage not in _RUNNING:
             self.ignored += 1
         elif isinstance(rec, MissionCount):
-            self._count_id = rec.opaque_id
-            self.download.on_count(rec.count)
+            self.download.on_count(rec.count, rec.opaque_id)
         elif isinstance(rec, MissionItemInt):
             self.download.on_item(FenceItem(seq=rec.seq, command=rec.command, param1=rec.param1, x=rec.x, y=rec.y))
         else:
@@ -231,7 +229,6 @@ class FenceReader:
                 self.skipped += 1
                 self._ended(now_s)
                 return now_s + STEP_S
-            self._count_id = 0
             d.start()
         send = d.due(now_s)
         if send is not None and send.ack:
@@ -239,7 +236,7 @@ class FenceReader:
         elif send is not None:
             self._outbox.mission_request(_FENCE, send.seq)
         if d.stage is FenceStage.DONE and send is None:  # after the closing ack went out
-            self._items, self._items_id = tuple(d.items), self._count_id
+            self._items, self._items_id = tuple(d.items), d.plan_id
             d.rest()
             self._ended(now_s)
         elif d.stage is FenceStage.FAILED:

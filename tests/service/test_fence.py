@@ -223,6 +223,19 @@ def test_an_intersection_of_too_many_vertices_is_fitted_inside_it() -> None:
     assert _far_from_edges(placed, v, 0.01).all() and _inside_all(placed, v[:, 0], v[:, 1]).all()  # type: ignore[arg-type]
 
 
+def test_the_download_keeps_the_plan_id_of_its_count_until_it_starts_again() -> None:
+    d = FenceDownload()
+    d.start()
+    d.on_count(0, 0xDEADBEEF)
+    assert d.stage is FenceStage.DONE and d.plan_id == 0xDEADBEEF
+    d.on_count(2, 7)  # a stray count: counted, the id stays
+    assert d.unexpected == 1 and d.plan_id == 0xDEADBEEF
+    d.rest()
+    assert d.plan_id == 0xDEADBEEF  # kept after the end is taken
+    d.start()
+    assert d.plan_id == 0  # a new download has no id until its count
+
+
 def test_the_download_asks_repeats_and_acks() -> None:
     d = FenceDownload(timeout_s=1.0, retries=2)
     assert d.due(0.0) is None  # not started
