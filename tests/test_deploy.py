@@ -1,17 +1,22 @@
-"""deploy/: the systemd units pass ``systemd-analyze verify`` and rate under 3 in ``systemd-analyze security``;
+"""deploy/: the example config holds every key at its default; the systemd units pass ``systemd-analyze verify``
+and rate under 3 in ``systemd-analyze security``;
 ``install.sh`` (--dry-run, a staged --destdir install, --uninstall) in a temporary root."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from apf_companion.cli import EXIT_CONFIG
+from apf_companion.config import ServiceConfig, load_config
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 UNITS = ("apf-companion.service", "apf-mavproxy.service")
@@ -164,3 +169,30 @@ def test_install_option_errors(args: list[str], message: str) -> None:
     result = _install(*args)
     assert result.returncode == 2
     assert message in result.stderr
+
+
+def _uncommented(text: str) -> dict[str, Any]:
+    """The example config with its commented-out keys and sections (``# [goal]``, ``# north_m = 22.0``) read too."""
+    lines = (re.sub(r"^# (?=\[[a-z_.]+\]|[a-z_]+ = )", "", line) for line in text.splitlines())
+    return tomllib.loads("\n".join(lines))
+
+
+def test_the_example_config_holds_every_key_at_its_default() -> None:
+    """deploy/apf-companion.toml says "Every value below is the default": every key of every section is there (set,
+    or commented out where a value would change behaviour: [goal], [planner.params]), and what it sets is the
+    default."""
+    path = DEPLOY / "apf-companion.toml"
+    cfg = load_config(path)
+    assert cfg == ServiceConfig(base_dir=cfg.base_dir)
+    data = _uncommented(path.read_text())
+    missing = []
+    for section in dataclasses.fields(ServiceConfig):
+        if section.name == "base_dir":
+            continue
+        kind = section.default_factory if section.default_factory is not dataclasses.MISSING else None
+        if isinstance(kind, type) and dataclasses.is_dataclass(kind):
+            keys = data.get(section.name, {})
+            missing += [f"{section.name}.{f.name}" for f in dataclasses.fields(kind) if f.name not in keys]
+        elif section.name not in data:
+            missing.append(section.name)
+    assert missing == []
