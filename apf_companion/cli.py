@@ -25,7 +25,7 @@ from apf_companion.config import ServiceConfig, VisualisationConfig, load_config
 from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.goal import Route, load_route, parse_goal_text
 
-__all__ = ["build_parser", "main"]
+__all__ = ["LOG_LEVELS", "add_log_level_option", "build_parser", "log_level", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -83,12 +83,30 @@ LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 LOG_FORMATS = ("text", "json")
 
 
-def _log_level(text: str) -> str:
-    """``--log-level`` / $APF_LOG_LEVEL, any case; argparse reports a bad one (exit 2), not a traceback."""
+def log_level(text: str) -> str:
+    """``--log-level`` / $APF_LOG_LEVEL, any case, as its upper-case name; argparse reports a bad one (exit 2),
+    not a traceback."""
     if text.upper() not in LOG_LEVELS:
         msg = f"invalid log level {text!r} (choose from {', '.join(LOG_LEVELS)}; also $APF_LOG_LEVEL)"
         raise argparse.ArgumentTypeError(msg)
     return text.upper()
+
+
+def _env(name: str, default: str) -> str:
+    """An environment variable's value; unset or empty (``APF_LOG_LEVEL=``) gives ``default``."""
+    return os.environ.get(name) or default
+
+
+def add_log_level_option(parser: argparse.ArgumentParser, *, default: str) -> None:
+    """Add ``--log-level`` (checked by ``log_level``, default $APF_LOG_LEVEL, else ``default``) to ``parser``: the
+    same option for ``apf-companion`` and ``apf-sim``."""
+    parser.add_argument(
+        "--log-level",
+        type=log_level,
+        metavar="LEVEL",
+        default=_env("APF_LOG_LEVEL", default),
+        help=f"{', '.join(LOG_LEVELS)} (default: $APF_LOG_LEVEL or {default})",
+    )
 
 
 def _log_format(text: str) -> str:
@@ -112,16 +130,11 @@ def build_parser() -> argparse.ArgumentParser:
     except importlib.metadata.PackageNotFoundError:
         version = __version__
     parser.add_argument("--version", action="version", version=f"%(prog)s {version}")
-    parser.add_argument(
-        "--log-level",
-        type=_log_level,
-        default=os.environ.get("APF_LOG_LEVEL", "INFO"),
-        help="DEBUG, INFO, WARNING, ERROR (default: $APF_LOG_LEVEL or INFO)",
-    )
+    add_log_level_option(parser, default="INFO")
     parser.add_argument(
         "--log-format",
         type=_log_format,
-        default=os.environ.get("APF_LOG_FORMAT", "text"),
+        default=_env("APF_LOG_FORMAT", "text"),
         help="log lines as text or one JSON object per line (default: $APF_LOG_FORMAT or text)",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

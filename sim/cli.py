@@ -16,10 +16,11 @@ import argparse
 import importlib
 import importlib.metadata
 import logging
-import os
 import sys
 from collections.abc import Callable, Sequence
 from typing import cast
+
+from apf_companion.cli import add_log_level_option
 
 _SUBCOMMAND_MODULES = ("sim.fly", "sim.vehicle.cli", "sim.study.cli", "sim.sweep_cli", "sim.mcap_plot")
 
@@ -35,11 +36,7 @@ def package_version() -> str:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="apf-sim", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
-    parser.add_argument(
-        "--log-level",
-        default=os.environ.get("APF_LOG_LEVEL", "WARNING"),
-        help="logging level (default: $APF_LOG_LEVEL or WARNING)",
-    )
+    add_log_level_option(parser, default="WARNING")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in _SUBCOMMAND_MODULES:
         importlib.import_module(name).register(sub)
@@ -48,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=str(args.log_level).upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     func = cast(Callable[[argparse.Namespace], int], args.func)
     try:
         return func(args)

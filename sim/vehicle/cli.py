@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from apf_companion.cli import add_log_level_option
 from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.links import load_signing_key
 from apf_companion.planning import FlyingArea, KeepOuts
@@ -380,10 +381,10 @@ def run_sensor(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Standalone entry (``python -m sim.vehicle.cli vehicle ...``), the same as ``apf-sim vehicle|sensor``."""
     parser = argparse.ArgumentParser(prog="python -m sim.vehicle.cli")
-    parser.add_argument("--log-level", default="WARNING")
+    add_log_level_option(parser, default="WARNING")
     register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)
-    logging.basicConfig(level=str(args.log_level).upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     return int(args.func(args))
 
 

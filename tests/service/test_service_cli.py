@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from apf_companion.cli import main
+from apf_companion.cli import build_parser, main
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -113,3 +113,14 @@ def test_bad_log_level_or_format_is_a_clear_error(
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert says in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("name", ["APF_LOG_LEVEL", "APF_LOG_FORMAT"])
+def test_an_empty_log_variable_counts_as_unset(
+    name: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv(name, "")
+    assert main(["check-config", str(REPO / "deploy" / "apf-companion.toml")]) == 0
+    assert "OK" in capsys.readouterr().err
+    args = build_parser().parse_args(["check-config", "x.toml"])
+    assert (args.log_level, args.log_format) == ("INFO", "text")
