@@ -19,7 +19,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from apf_companion.errors import ConfigError
 from apf_companion.viz import Topic
+from sim.extras import require
 
 __all__ = ["Recording", "plot_recording", "read_recording", "register"]
 
@@ -166,6 +168,11 @@ def plot_recording(path: Path, out: Path, *, at_s: float | None = None) -> None:
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    try:
+        require("apf-sim mcap-plot", "mcap", "mcap_protobuf", "matplotlib")
+    except ConfigError as err:
+        print(err, file=sys.stderr)
+        return 2
     try:
         plot_recording(args.file, args.output, at_s=args.at)
     except (OSError, ValueError, ImportError) as err:

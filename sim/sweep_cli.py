@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from apf_companion.errors import ConfigError
+from sim.extras import require
 from sim.study.config import DEFAULT_DENSITIES, PRESET_NAMES, Density, StudyConfig, check_planner_names
 from sim.sweep_grid import format_value, parse_params, sweepable_fields
 
@@ -150,6 +151,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--trials: need >= 1, got {args.trials}")
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers: need >= 1, got {args.workers}")
+    if not args.no_plots:
+        require("the heatmaps (--no-plots skips them)", "matplotlib")  # before the sweep, not after it
     swept = parse_params(args.param, config.planner_params)
     planners = check_planner_names(tuple(p.strip() for p in args.planners.split(",") if p.strip()))
     plan = plan_sweep(config, planners, swept, _scenarios(args), args.trials, args.seed)

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from apf_companion.errors import ConfigError
 from apf_companion.planning import ALL_PLANNER_NAMES, AbapfRule
+from sim.extras import require
 from sim.study.config import (
     DEFAULT_DENSITIES,
     PRESET_NAMES,
@@ -266,6 +267,8 @@ def _run(args: argparse.Namespace) -> int:
 
     config = _config(args)
     planners = _planners(args.planners)
+    if args.plots is not None:
+        require("--plots", "matplotlib")  # before the study, not after it
     if args.world:
         return _run_worlds(args, config, planners)
     densities = _densities(args.densities)

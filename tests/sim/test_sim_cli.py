@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import pytest
 
 from sim.cli import build_parser, main
@@ -38,3 +41,49 @@ def test_log_level_default_comes_from_the_environment_and_empty_counts_as_unset(
     args = build_parser().parse_args(["study"])
     assert args.log_level == level
     assert build_parser().parse_args(["--log-level", "info", "study"]).log_level == "INFO"
+
+
+def _without(monkeypatch: pytest.MonkeyPatch, *modules: str) -> None:
+    """Make ``import <module>`` fail in this process, as on an install without the extra."""
+    for module in modules:
+        monkeypatch.setitem(sys.modules, module, None)
+
+
+def test_study_plots_without_matplotlib_stops_before_the_study(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _without(monkeypatch, "matplotlib")
+    plots = tmp_path / "plots"
+    argv = ["study", "--trials", "1", "--workers", "1", "--planners", "bapf", "--no-progress", "--plots", str(plots)]
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert err == "apf-sim study: --plots needs matplotlib: pip install 'apf-companion[sim]'\n"
+    assert out == "" and not plots.exists()  # no table: the study did not run
+
+
+def test_sweep_heatmaps_without_matplotlib_stop_before_the_sweep(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _without(monkeypatch, "matplotlib")
+    out_dir = tmp_path / "sweep"
+    argv = ["sweep", "--param", "mu_o=100", "--trials", "1", "--workers", "1", "--no-progress", "--out", str(out_dir)]
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert "needs matplotlib: pip install 'apf-companion[sim]'" in err and "--no-plots" in err
+    assert out == "" and not out_dir.exists()
+
+
+@pytest.mark.parametrize(
+    ("missing", "says"),
+    [
+        ("matplotlib", "apf-sim mcap-plot needs matplotlib: pip install 'apf-companion[sim]'"),
+        ("mcap", "apf-sim mcap-plot needs mcap: pip install 'apf-companion[viz]'"),
+        ("mcap_protobuf", "apf-sim mcap-plot needs mcap-protobuf-support: pip install 'apf-companion[viz]'"),
+    ],
+)
+def test_mcap_plot_names_the_missing_extra(
+    missing: str, says: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _without(monkeypatch, missing)
+    assert main(["mcap-plot", str(tmp_path / "flight.mcap"), "-o", str(tmp_path / "flight.png")]) == 2
+    assert capsys.readouterr().err == says + "\n"
