@@ -24,6 +24,7 @@ from apf_companion import __version__
 from apf_companion.config import ServiceConfig, VisualisationConfig, load_config
 from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.goal import Route, load_route, parse_goal_text
+from apf_companion.planning import ALL_PLANNER_NAMES, DEFAULT_PLANNER
 
 __all__ = ["LOG_LEVELS", "add_log_level_option", "build_parser", "log_level", "main"]
 
@@ -142,7 +143,11 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run the service", description=_cmd_run.__doc__)
     run.add_argument("--config", type=Path, help="TOML config file (default: built-in defaults)")
     run.add_argument("--connect", metavar="ENDPOINT", help="override link.connect (e.g. udpin:127.0.0.1:14540)")
-    run.add_argument("--planner", help="override planner.name (capf, bapf, a-bapf, cr-bapf, cr-bapf*)")
+    run.add_argument(
+        "--planner",
+        metavar="NAME",
+        help=f"override planner.name (default {DEFAULT_PLANNER}; one of {', '.join(ALL_PLANNER_NAMES)})",
+    )
     run.add_argument("--goal", metavar="N,E[,D]", help="goal in local NED metres (overrides [goal])")
     run.add_argument("--route", type=Path, metavar="FILE", help="route file (overrides [goal])")
     run.add_argument("--dry-run", action="store_true", help="plan and log, send nothing")

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from apf_companion.cli import build_parser, main
+from apf_companion.planning import ALL_PLANNER_NAMES, DEFAULT_PLANNER
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -124,3 +125,16 @@ def test_an_empty_log_variable_counts_as_unset(
     assert "OK" in capsys.readouterr().err
     args = build_parser().parse_args(["check-config", "x.toml"])
     assert (args.log_level, args.log_format) == ("INFO", "text")
+
+
+def test_run_help_lists_every_registered_planner(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("COLUMNS", "400")  # one line per option: no name broken at a hyphen
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--help"])
+    assert exc.value.code == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.lstrip().startswith("--planner"))
+    assert f"default {DEFAULT_PLANNER};" in line
+    assert line.endswith(f"one of {', '.join(ALL_PLANNER_NAMES)})")
+    assert {"bapf-nav", "bendyruler", "cr-bapf*"} <= set(ALL_PLANNER_NAMES)
