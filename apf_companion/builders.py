@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from apf_companion.adopt import AdoptParams
-from apf_companion.config import ServiceConfig
+from apf_companion.config import ServiceConfig, did_you_mean
 from apf_companion.errors import ConfigError
 from apf_companion.fence import FenceArea
 from apf_companion.forwarder import ForwarderParams
@@ -92,8 +92,9 @@ def build_planner(config: ServiceConfig) -> Any:
 def _override(key: str, value: Any, current: dict[str, Any]) -> Any:
     """One ``[planner.params]`` value as the PlannerParams field's type; ConfigError naming the key."""
     if key not in current or key == "dim":
-        allowed = ", ".join(sorted(k for k in current if k != "dim"))
-        msg = f"unknown planner parameter planner.params.{key} (allowed: {allowed}; dim is planner.dim)"
+        names = sorted(k for k in current if k != "dim")
+        hint = did_you_mean(key, names)
+        msg = f"unknown planner parameter planner.params.{key}{hint} (allowed: {', '.join(names)}; dim is planner.dim)"
         raise ConfigError(msg)
     old = current[key]
     if isinstance(old, enum.Enum):

@@ -16,7 +16,7 @@ import dataclasses
 import difflib
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +41,7 @@ __all__ = [
     "VisualisationConfig",
     "ZenohSection",
     "config_from_mapping",
+    "did_you_mean",
     "load_config",
     "parse_source",
 ]
@@ -622,9 +623,15 @@ _SECTIONS: dict[str, type[Any]] = {
 _TOP_LEVEL = ("dry_run", "exit_when_done", "max_flight_s")
 
 
+def did_you_mean(key: str, choices: Iterable[str]) -> str:
+    """``"; did you mean 'name'?"`` when the last part of ``key`` is close to one of ``choices`` (a typo), else
+    ``""``: the hint of every unknown-key error (config keys and ``[planner.params]``)."""
+    close = difflib.get_close_matches(key.split(".")[-1], list(choices), n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
 def _unknown_key(key: str, choices: list[str]) -> ConfigError:
-    close = difflib.get_close_matches(key.split(".")[-1], choices, n=1)
-    hint = f"; did you mean {close[0]!r}?" if close else ""
+    hint = did_you_mean(key, choices)
     return ConfigError(f"unknown config key {key!r}{hint} (allowed: {', '.join(sorted(choices))})")
 
 

@@ -67,6 +67,13 @@ def test_typo_gets_a_suggestion() -> None:
         config_from_mapping({"cycle": {"rate_hzz": 10}})
     with pytest.raises(ConfigError, match=r"unknown config key 'cylce'; did you mean 'cycle'"):
         config_from_mapping({"cylce": {}})
+    typo = config_from_mapping({"planner": {"params": {"vehicle_radus_m": 0.3}}})
+    match = r"unknown planner parameter planner\.params\.vehicle_radus_m; did you mean 'vehicle_radius_m'\? \(allowed"
+    with pytest.raises(ConfigError, match=match):
+        build_planner(typo)
+    with pytest.raises(ConfigError) as far:  # nothing close: no guess, only the list
+        build_planner(config_from_mapping({"planner": {"params": {"zzz": 1}}}))
+    assert "did you mean" not in str(far.value) and "allowed: " in str(far.value)
 
 
 def test_ints_become_floats_and_lists_tuples() -> None:

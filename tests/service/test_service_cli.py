@@ -33,6 +33,9 @@ def test_check_config_names_the_bad_key(tmp_path: Path, capsys: pytest.CaptureFi
     typo.write_text("[planner]\nnmae = 'bapf'\n")
     assert main(["check-config", str(typo)]) == 2
     assert "did you mean 'name'" in capsys.readouterr().err
+    typo.write_text("[planner.params]\nvehicle_radus_m = 0.3\n")
+    assert main(["check-config", str(typo)]) == 2
+    assert "planner.params.vehicle_radus_m; did you mean 'vehicle_radius_m'?" in capsys.readouterr().err
 
 
 def test_run_refuses_bad_overrides(capsys: pytest.CaptureFixture[str]) -> None:
