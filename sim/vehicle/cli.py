@@ -300,6 +300,13 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
 
 
 async def _sensor_main(args: argparse.Namespace) -> int:
+    if not (args.output or args.zenoh_connect or args.zenoh_listen or args.to_autopilot):
+        # Said here with the flags, before SensorOnlyConfig says it with its field names.
+        msg = (
+            "needs an output: --output ENDPOINT (MAVLink, repeatable), --zenoh-connect/--zenoh-listen, "
+            "or --to-autopilot"
+        )
+        raise ConfigError(msg)
     cfg = SensorOnlyConfig(
         autopilot=args.autopilot,
         outputs=tuple(args.output),

@@ -87,3 +87,11 @@ def test_mcap_plot_names_the_missing_extra(
     _without(monkeypatch, missing)
     assert main(["mcap-plot", str(tmp_path / "flight.mcap"), "-o", str(tmp_path / "flight.png")]) == 2
     assert capsys.readouterr().err == says + "\n"
+
+
+def test_sensor_without_an_output_names_the_flags(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sensor", "--autopilot", "udpin:127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("apf-sim sensor: needs an output: --output ENDPOINT")
+    assert "--zenoh-connect/--zenoh-listen, or --to-autopilot" in err
+    assert "also_to_autopilot" not in err and "outputs" not in err
