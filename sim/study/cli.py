@@ -87,9 +87,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     _add_execution_options(p)
     _add_model_options(p)
     _add_output_options(p)
-    p.add_argument(
-        "--noise", type=float, default=None, metavar="SD", help="actuation noise SD per axis [m] (default 0.1)"
-    )
     _register_worlds(p)
     p.set_defaults(func=run)
 
@@ -148,10 +145,13 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--noise-std",
+        "--noise",
+        dest="noise_std",
         type=float,
         default=None,
         metavar="M",
-        help="position noise N(0, M^2) per axis added on every move [m] (default 0.1, the paper's; 0 = noise-free)",
+        help="actuation (position) noise N(0, M^2) per axis added on every move [m] (default 0.1, the paper's; "
+        "0 = noise-free); --noise is the same option under another name, for random fields and --world alike",
     )
     p.add_argument(
         "--abapf-rule",
@@ -250,14 +250,12 @@ def _config(args: argparse.Namespace) -> StudyConfig:
     if args.obstacles is not None:
         config = dataclasses.replace(config, obstacle_sampling=ObstacleSampling(args.obstacles))
     if args.noise_std is not None:
+        if not args.noise_std >= 0:
+            raise ConfigError(f"--noise-std/--noise: need >= 0, got {args.noise_std}")
         config = dataclasses.replace(config, noise_std_m=args.noise_std)
     if args.abapf_rule is not None:
         params = dataclasses.replace(config.planner_params, abapf_rule=AbapfRule(args.abapf_rule))
         config = dataclasses.replace(config, planner_params=params)
-    if args.noise is not None:
-        if not args.noise >= 0:
-            raise ConfigError(f"--noise: need >= 0, got {args.noise}")
-        config = dataclasses.replace(config, noise_std_m=args.noise)
     return config
 
 

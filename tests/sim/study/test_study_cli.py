@@ -105,6 +105,22 @@ def test_bad_arguments_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert _run(["--densities", "9-3", "--trials", "1", "--workers", "1"]) == 2
 
 
+@pytest.mark.parametrize("flag", ["--noise-std", "--noise"])
+def test_noise_and_noise_std_are_one_option(flag: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from sim.study.cli import _config
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["study", flag, "0.25"])
+    assert args.noise_std == 0.25 and _config(args).noise_std_m == 0.25
+    assert _run([flag, "-0.1", "--trials", "1", "--workers", "1"]) == 2
+    assert "--noise-std/--noise: need >= 0, got -0.1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parser.parse_args(["study", "--help"])
+    usage = " ".join(capsys.readouterr().out.split())
+    assert "--noise-std M, --noise M" in usage and "--noise is the same option under another name" in usage
+
+
 def test_abapf_rule_option_and_abapf_equals_bapf_at_mu_max(tmp_path: Path) -> None:
     docs = {}
     for rule in ("exact", "paper"):
