@@ -225,7 +225,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         try:
             svc = await CompanionService.open(cfg, route=route, result_path=args.result_json)
         except ApfCompanionError as err:
-            log.error("service.open_failed", extra={"error": str(err)})
+            # Said once, on stderr (journald keeps it too); the log line only for --log-level DEBUG.
+            log.debug("service.open_failed", extra={"error": str(err)})
             print(f"apf-companion: {err}", file=sys.stderr)
             return EXIT_ERROR
         loop = asyncio.get_running_loop()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -141,3 +142,15 @@ def test_run_help_lists_every_registered_planner(
     assert f"default {DEFAULT_PLANNER};" in line
     assert line.endswith(f"one of {', '.join(ALL_PLANNER_NAMES)})")
     assert {"bapf-nav", "bendyruler", "cr-bapf*"} <= set(ALL_PLANNER_NAMES)
+
+
+def test_a_startup_error_is_said_once(capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        assert main(["run", "--connect", f"udpin:127.0.0.1:{port}", "--dry-run"]) == 1
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "cannot open MAVLink endpoint" in line]
+    assert len(lines) == 1, err  # not also as an ERROR log line
+    assert lines[0].startswith(f"apf-companion: cannot open MAVLink endpoint udpin:127.0.0.1:{port}: ")
+    assert "service.open_failed" not in err
