@@ -28,7 +28,13 @@ from apf_companion.planning.params import Preset
 from apf_companion.planning.registry import ALL_PLANNER_NAMES, DEFAULT_PLANNER
 
 __all__ = [
+    "HEARTBEAT_TIMEOUT_RANGE_S",
+    "MAX_AGE_RANGE_S",
+    "MAX_FLIGHT_RANGE_S",
     "PLANNER_PRESETS",
+    "RATE_RANGE_HZ",
+    "TAKEOFF_ALT_RANGE_M",
+    "TIME_SCALE_RANGE",
     "AutopilotConfig",
     "CycleConfig",
     "GoalConfig",
@@ -48,6 +54,15 @@ __all__ = [
 
 PLANNER_PRESETS: tuple[str, ...] = tuple(Preset)
 _PLANNER_NAMES = ALL_PLANNER_NAMES
+
+# The allowed [lo, hi] of settings a simulated flight derives from its own options (``apf-sim fly`` checks its
+# flags against these before it starts anything, sim/fly.py).
+HEARTBEAT_TIMEOUT_RANGE_S: tuple[float, float] = (0.5, 60.0)  # link.heartbeat_timeout_s
+TAKEOFF_ALT_RANGE_M: tuple[float, float] = (0.0, 500.0)  # autopilot.takeoff_alt_m
+RATE_RANGE_HZ: tuple[float, float] = (1.0, 50.0)  # cycle.rate_hz
+MAX_AGE_RANGE_S: tuple[float, float] = (0.02, 10.0)  # cycle.pose_max_age_s and cycle.ranges_max_age_s
+TIME_SCALE_RANGE: tuple[float, float] = (0.1, 100.0)  # cycle.time_scale
+MAX_FLIGHT_RANGE_S: tuple[float, float] = (0.0, 86400.0)  # max_flight_s
 
 
 def _fail(key: str, allowed: str, value: object) -> ConfigError:
@@ -145,7 +160,7 @@ class LinkConfig:
             _check_id("link.gcs_sysids[]", sysid)
             if sysid == self.autopilot_sysid:
                 raise _fail("link.gcs_sysids[]", "different from link.autopilot_sysid", sysid)
-        _check_range("link.heartbeat_timeout_s", self.heartbeat_timeout_s, 0.5, 60.0)
+        _check_range("link.heartbeat_timeout_s", self.heartbeat_timeout_s, *HEARTBEAT_TIMEOUT_RANGE_S)
         _check_range("link.telemetry_rate_hz", self.telemetry_rate_hz, 1.0, 100.0)
 
 
@@ -177,7 +192,7 @@ class AutopilotConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.profile, Autopilot):
             raise _fail("autopilot.profile", "one of 'ardupilot', 'px4'", self.profile)
-        _check_range("autopilot.takeoff_alt_m", self.takeoff_alt_m, 0.0, 500.0)
+        _check_range("autopilot.takeoff_alt_m", self.takeoff_alt_m, *TAKEOFF_ALT_RANGE_M)
         _check_range("autopilot.mode_timeout_s", self.mode_timeout_s, 0.5, 60.0)
         _check_range("autopilot.offboard_prestream_s", self.offboard_prestream_s, 1.0, 10.0, lo_open=True)
         _check_range("autopilot.ready_timeout_s", self.ready_timeout_s, 1.0, 3600.0)
@@ -266,13 +281,13 @@ class CycleConfig:
     realtime_priority: int = 5
 
     def __post_init__(self) -> None:
-        _check_range("cycle.rate_hz", self.rate_hz, 1.0, 50.0)
-        _check_range("cycle.pose_max_age_s", self.pose_max_age_s, 0.02, 10.0)
-        _check_range("cycle.ranges_max_age_s", self.ranges_max_age_s, 0.02, 10.0)
+        _check_range("cycle.rate_hz", self.rate_hz, *RATE_RANGE_HZ)
+        _check_range("cycle.pose_max_age_s", self.pose_max_age_s, *MAX_AGE_RANGE_S)
+        _check_range("cycle.ranges_max_age_s", self.ranges_max_age_s, *MAX_AGE_RANGE_S)
         _check_range("cycle.cruise_speed_m_s", self.cruise_speed_m_s, 0.0, 20.0, lo_open=True)
         _check_range("cycle.arrival_radius_m", self.arrival_radius_m, 0.0, 100.0, lo_open=True)
         _check_range("cycle.replan_radius_m", self.replan_radius_m, 0.0, 10.0, lo_open=True)
-        _check_range("cycle.time_scale", self.time_scale, 0.1, 100.0)
+        _check_range("cycle.time_scale", self.time_scale, *TIME_SCALE_RANGE)
         _check_id("cycle.realtime_priority", self.realtime_priority, 0, 99)
 
 
@@ -588,7 +603,7 @@ class ServiceConfig:
     """Directory relative paths (goal.route, link.tlog) are resolved against (the config file's)."""
 
     def __post_init__(self) -> None:
-        _check_range("max_flight_s", self.max_flight_s, 0.0, 86400.0)
+        _check_range("max_flight_s", self.max_flight_s, *MAX_FLIGHT_RANGE_S)
         if self.sensors.zenoh and not self.zenoh.enabled:
             raise _fail("sensors.zenoh", "false unless zenoh.enabled is true", True)
         lc = self.link

@@ -58,6 +58,7 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.config import HEARTBEAT_TIMEOUT_RANGE_S, MAX_AGE_RANGE_S, TIME_SCALE_RANGE
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink, load_signing_key
 from apf_companion.planning import FlyingArea, KeepOuts, area_text
@@ -74,6 +75,33 @@ PAPER_GOAL = (22.0, 22.0)
 # Measured: the default service flies the paper's 26.9 m diagonal in ~53 simulated s after the takeoff.
 EXPECTED_SPEED_M_S = 0.5
 GCS_POSITION_INTERVAL_US = 200_000.0  # the ground-station watcher's LOCAL_POSITION_NED: 5 Hz
+# The service's time limits at a speed-up (simulated s): the heartbeat timeout is the speed-up, never less than
+# HEARTBEAT_FLOOR_S (one wall second of silence); the staleness limits MAX_AGE_PER_SPEEDUP_S per unit of speed-up
+# (100 ms of wall time), never less than MAX_AGE_FLOOR_S.
+HEARTBEAT_FLOOR_S = 3.0
+MAX_AGE_FLOOR_S = 0.5
+MAX_AGE_PER_SPEEDUP_S = 0.1
+
+
+def heartbeat_timeout_s(speedup: float) -> float:
+    """``link.heartbeat_timeout_s`` of the service at ``--speedup`` [simulated s]."""
+    return max(HEARTBEAT_FLOOR_S, speedup)
+
+
+def max_age_s(speedup: float) -> float:
+    """``cycle.pose_max_age_s`` and ``cycle.ranges_max_age_s`` of the service at ``--speedup`` [simulated s]."""
+    return max(MAX_AGE_FLOOR_S, MAX_AGE_PER_SPEEDUP_S * speedup)
+
+
+def _speedup_range() -> tuple[float, float]:
+    """The ``--speedup`` values whose settings the service's config accepts: ``cycle.time_scale`` is the speed-up,
+    the heartbeat timeout grows with it up to its limit, and so do the staleness limits (the floors lie inside)."""
+    hi = min(TIME_SCALE_RANGE[1], HEARTBEAT_TIMEOUT_RANGE_S[1], MAX_AGE_RANGE_S[1] / MAX_AGE_PER_SPEEDUP_S)
+    return TIME_SCALE_RANGE[0], hi
+
+
+#: [lo, hi] of ``--speedup`` (from the service config's limits: apf_companion/config.py).
+SPEEDUP_RANGE = _speedup_range()
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -198,7 +226,7 @@ connect = "udpin:127.0.0.1:{port}"
 tlog = "{tlog}"
 # Simulated seconds: a simulator process that falls behind the wall clock for a moment (a loaded machine)
 # freezes its vehicle too, so a longer heartbeat timeout here flies nothing blind.
-heartbeat_timeout_s = {max(3.0, 1.0 * opt.speedup)}
+heartbeat_timeout_s = {heartbeat_timeout_s(opt.speedup)}
 
 {_signing_toml(opt)}
 [autopilot]
@@ -215,8 +243,8 @@ progress_timeout_s = 120.0
 [cycle]
 rate_hz = {opt.rate_hz}
 time_scale = {opt.speedup}
-pose_max_age_s = {max(0.5, 0.1 * opt.speedup)}
-ranges_max_age_s = {max(0.5, 0.1 * opt.speedup)}
+pose_max_age_s = {max_age_s(opt.speedup)}
+ranges_max_age_s = {max_age_s(opt.speedup)}
 
 [goal]
 north_m = {north}
@@ -608,14 +636,18 @@ def error_reason(
     return f"exit codes: service {exit_codes[0]}, vehicle {exit_codes[1]}"
 
 
+ERROR_DETAIL_LINES = 5  # at most this many "  - ..." lines under an error line (the service's config errors)
+
+
 def _last_error_line(path: Path) -> str | None:
-    """The last ERROR/CRITICAL JSON log event (with its error field) or plain ``prog: ...`` line of a log."""
+    """The last ERROR/CRITICAL JSON log event (with its error field) or plain ``prog: ...`` line of a log, with the
+    first ``ERROR_DETAIL_LINES`` of the ``  - ...`` lines under it (``config error: 4 config errors:`` lists them)."""
     try:
         lines = path.read_text(errors="replace").splitlines()
     except OSError:
         return None
-    for line in reversed(lines):
-        text = line.strip()
+    for i in range(len(lines) - 1, -1, -1):
+        text = lines[i].strip()
         if text.startswith("{"):
             with contextlib.suppress(ValueError):
                 ev = json.loads(text)
@@ -623,8 +655,20 @@ def _last_error_line(path: Path) -> str | None:
                     return f"{ev.get('event')}: {ev.get('error', '')}".rstrip(": ")
             continue
         if text.startswith(("apf-companion:", "apf-sim")) or "Error" in text:
-            return text
+            return text + _detail_lines(lines[i + 1 :], path.name)
     return None
+
+
+def _detail_lines(lines: list[str], log_name: str) -> str:
+    """The ``  - ...`` lines that follow an error line, the first ``ERROR_DETAIL_LINES`` of them, one per line."""
+    details: list[str] = []
+    for line in lines:
+        if not line.lstrip().startswith("- "):
+            break
+        details.append(line.strip())
+    shown = [f"\n  {d}" for d in details[:ERROR_DETAIL_LINES]]
+    more = len(details) - ERROR_DETAIL_LINES
+    return "".join(shown) + (f"\n  ... and {more} more in {log_name}" if more > 0 else "")
 
 
 def output_files(out: Path) -> list[str]:
@@ -686,6 +730,23 @@ def plot_trajectory(
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def _speedup(text: str) -> float:
+    """``--speedup``: a number in SPEEDUP_RANGE (argparse names the flag in its error)."""
+    lo, hi = SPEEDUP_RANGE
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not lo <= value <= hi:  # NaN too
+        msg = (
+            f"must be a number in [{lo:g}, {hi:g}], got {text!r} (the service's cycle.time_scale is the speed-up, "
+            f"its link.heartbeat_timeout_s max({HEARTBEAT_FLOOR_S:g}, speed-up) s must stay within "
+            f"{HEARTBEAT_TIMEOUT_RANGE_S[1]:g} s)"
+        )
+        raise argparse.ArgumentTypeError(msg)
+    return value
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -761,7 +822,14 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
 def _add_flight_options(p: argparse.ArgumentParser) -> None:
     """How one flight runs and what it writes: height, speed-up, rates, limits, noise, output."""
     p.add_argument("--alt", type=float, default=5.0, help="flight height above home [m]")
-    p.add_argument("--speedup", type=float, default=5.0, help="simulated s per wall s (default 5)")
+    lo, hi = SPEEDUP_RANGE
+    p.add_argument(
+        "--speedup",
+        type=_speedup,
+        default=5.0,
+        help=f"simulated s per wall s, in [{lo:g}, {hi:g}] (the service's cycle.time_scale and "
+        "link.heartbeat_timeout_s follow it and have limits; default 5)",
+    )
     p.add_argument("--rate", type=float, default=10.0, help="service cycle rate in simulated Hz (default 10)")
     p.add_argument("--max-flight", type=float, default=300.0, help="give up after this many simulated s")
     p.add_argument("--noise", type=float, default=0.0, help="actuation noise SD [m] (the paper's is 0.1)")

@@ -110,7 +110,12 @@ def validation_rules(cls: type[Any]) -> list[tuple[str, str]]:
         try:
             # _fail(key, allowed, value); _check_range/_check_id(key, value, lo, hi): skip the value (the instance).
             skip = 2 if node.func.id == "_fail" else 1
-            args = [None if i == skip else _eval(a, namespace) for i, a in enumerate(node.args)]
+            args: list[Any] = []
+            for a in node.args:  # a range may be a module constant spread in: _check_range(key, v, *RANGE)
+                if isinstance(a, ast.Starred):
+                    args.extend(_eval(a.value, namespace))
+                else:
+                    args.append(None if len(args) == skip else _eval(a, namespace))
             keywords = {k.arg: _eval(k.value, namespace) for k in node.keywords if k.arg}
         except Exception:  # the call uses a loop variable or the instance: not a static rule
             continue

@@ -1,0 +1,70 @@
+"""apf-sim fly refuses bad input before it starts anything (exit 2, a message naming the flag and what it takes),
+and says what went wrong when a flight fails: the checks run in-process, the flights on loopback."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from apf_companion.config import config_from_mapping
+from apf_companion.errors import ConfigError
+from sim.cli import main as sim_main
+from sim.fly import SPEEDUP_RANGE, FlyOptions, _service_toml, error_reason
+
+
+def _refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    """Run ``apf-sim ARGV`` in-process; it must exit 2 (argparse's usage error). Returns its stderr."""
+    with pytest.raises(SystemExit) as exc:
+        sim_main(argv)
+    assert exc.value.code == 2
+    return capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "100", "60.5", "0.05", "fast"])
+def test_speedup_outside_what_the_service_accepts_is_refused(
+    value: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    err = _refused(["fly", f"--speedup={value}", "--out", str(tmp_path / "out")], capsys)
+    assert "argument --speedup: must be a number in [0.1, 60]" in err, err
+    assert "link.heartbeat_timeout_s" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_speedup_range_is_what_the_service_config_accepts(tmp_path: Path) -> None:
+    """At both ends of SPEEDUP_RANGE the service's config (heartbeat timeout, staleness limits, time scale) loads;
+    just outside it does not: the range is derived from the config's limits, not a copy of them."""
+    lo, hi = SPEEDUP_RANGE
+    assert (lo, hi) == (0.1, 60.0)
+    for speedup in (lo, 1.0, 5.0, hi):
+        config = config_from_mapping(tomllib.loads(_service_toml(FlyOptions(speedup=speedup), 1, tmp_path / "t")))
+        assert config.cycle.time_scale == speedup
+    for speedup in (lo * 0.99, hi * 1.01):
+        with pytest.raises(ConfigError):
+            config_from_mapping(tomllib.loads(_service_toml(FlyOptions(speedup=speedup), 1, tmp_path / "t")))
+
+
+def test_help_gives_the_speedup_range(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        sim_main(["fly", "--help"])
+    assert exc.value.code == 0
+    assert "in [0.1, 60]" in " ".join(capsys.readouterr().out.split())
+
+
+def test_a_service_config_error_shows_its_lines_not_only_the_count(tmp_path: Path) -> None:
+    """The service prints ``config error: 4 config errors:`` and one ``  - ...`` line each: the flight's error
+    carries the first ones (ERROR_DETAIL_LINES) and says how many more the log has."""
+    errors = [f"  - cycle.key_{k} must be in [0, 1], got {k}" for k in range(7)]
+    (tmp_path / "service.log").write_text(
+        "\n".join(["apf-companion: config error: 7 config errors:", *errors, ""]), encoding="utf-8"
+    )
+    reason = error_reason(tmp_path, None, None, (2, -2))
+    lines = reason.splitlines()
+    assert lines[0] == "service: apf-companion: config error: 7 config errors:"
+    assert lines[1:6] == [f"  {e.strip()}" for e in errors[:5]]
+    assert lines[6] == "  ... and 2 more in service.log"
+    # One error: its own line, as before.
+    one = "apf-companion: config error: planner.name must be one of x"
+    (tmp_path / "service.log").write_text(one + "\n")
+    assert error_reason(tmp_path, None, None, (2, -2)) == f"service: {one}"
