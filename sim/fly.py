@@ -58,11 +58,21 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.config import HEARTBEAT_TIMEOUT_RANGE_S, MAX_AGE_RANGE_S, TIME_SCALE_RANGE
+from apf_companion.autopilot import Autopilot
+from apf_companion.config import (
+    HEARTBEAT_TIMEOUT_RANGE_S,
+    MAX_AGE_RANGE_S,
+    MAX_FLIGHT_RANGE_S,
+    RATE_RANGE_HZ,
+    TAKEOFF_ALT_RANGE_M,
+    TIME_SCALE_RANGE,
+)
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink, load_signing_key
 from apf_companion.planning import FlyingArea, KeepOuts, area_text
 from sim.linkfaults import LinkFaults, LinkProxy
+from sim.vehicle.params import ParamSpec, ParamTable, param_specs
+from sim.world.field import DENSITIES, MAX_OBSTACLES
 
 if TYPE_CHECKING:
     from sim.world import World
@@ -750,11 +760,94 @@ def _speedup(text: str) -> float:
 
 
 def _pair(text: str) -> tuple[float, float]:
+    """``--start`` / ``--goal``: two finite numbers N,E [m]."""
     parts = text.split(",")
-    if len(parts) != 2:
-        msg = f"expected N,E got {text!r}"
+    try:
+        north, east = (float(part) for part in parts)
+    except ValueError:
+        north = east = math.nan
+    if not (math.isfinite(north) and math.isfinite(east)):
+        msg = f"expected N,E (two finite numbers in metres), got {text!r}"
         raise argparse.ArgumentTypeError(msg)
-    return float(parts[0]), float(parts[1])
+    return north, east
+
+
+def _number_in(lo: float, hi: float, *, lo_open: bool = False, what: str) -> Callable[[str], float]:
+    """An argparse type: a number in [lo, hi] (``(lo, hi]`` with ``lo_open``); ``what`` is its unit and meaning."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not ((value > lo if lo_open else value >= lo) and value <= hi):  # NaN too
+            msg = f"must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}] {what}, got {text!r}"
+            raise argparse.ArgumentTypeError(msg)
+        return value
+
+    return parse
+
+
+def _int_from(lo: int) -> Callable[[str], int]:
+    """An argparse type: an integer >= lo."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = lo - 1
+        if value < lo:
+            msg = f"must be an integer >= {lo}, got {text!r}"
+            raise argparse.ArgumentTypeError(msg)
+        return value
+
+    return parse
+
+
+def _obstacles(text: str) -> str:
+    """``--obstacles``: a count in [0, MAX_OBSTACLES] or a density name, or a comma list of them (the trials')."""
+    items = [item.strip() for item in text.split(",")]
+    for item in items:
+        if item in DENSITIES or (item.isdigit() and int(item) <= MAX_OBSTACLES):
+            continue
+        msg = (
+            f"must be an obstacle count in [0, {MAX_OBSTACLES}] or a density ({', '.join(DENSITIES)}), or a "
+            f"comma list of them, got {text!r}"
+        )
+        raise argparse.ArgumentTypeError(msg)
+    return ",".join(items)
+
+
+def _vehicle_param(text: str) -> str:
+    """``--vehicle-param NAME=VALUE`` with a finite number (the name and its range are checked per profile by
+    :func:`vehicle_params`)."""
+    name, sep, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not sep or not name.strip() or not math.isfinite(number):
+        msg = f"must be NAME=VALUE with a finite number VALUE, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return f"{name.strip().upper()}={value.strip()}"
+
+
+def _noise_spec() -> ParamSpec:
+    """The vehicle's actuation noise parameter (``--noise``), the same in both profiles."""
+    return next(spec for spec in param_specs(Autopilot.ARDUPILOT) if spec.name == "SIM_POS_NOISE")
+
+
+def vehicle_params(opt: FlyOptions) -> ParamTable:
+    """The simulated autopilot's parameters for ``opt`` (``--vehicle-param`` and ``--noise``), checked as the
+    vehicle would check them. Raises ConfigError naming an unknown parameter or a value outside its range."""
+    overrides = {name: float(value) for name, _, value in (item.partition("=") for item in opt.vehicle_params)}
+    if opt.noise_m > 0:
+        overrides["SIM_POS_NOISE"] = opt.noise_m
+    try:
+        return ParamTable(Autopilot(opt.profile), overrides)
+    except ConfigError as err:
+        msg = f"--vehicle-param for the {opt.profile} profile: {err}"
+        raise ConfigError(msg) from err
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -784,12 +877,16 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
         help="the simulated vehicle's response: auto (default: arducopter, ArduCopter's controller shape, for the "
         "ardupilot profile; simple for px4), simple, or arducopter",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the random field and the planner (default 0)")
+    p.add_argument(
+        "--seed", type=_int_from(0), default=0, help="seed of the random field and the planner, >= 0 (default 0)"
+    )
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
     p.add_argument(
         "--obstacles",
+        type=_obstacles,
         default="mid",
-        help="obstacle count N, or density low|mid|high (default mid); a list (low,mid,high) cycles over --trials",
+        help=f"obstacle count N in [0, {MAX_OBSTACLES}], or density {'|'.join(DENSITIES)} (default mid); a list "
+        "(low,mid,high) cycles over --trials",
     )
     p.add_argument("--world", help=f"world TOML file or bundled example ({', '.join(_bundled_worlds())})")
     p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
@@ -809,6 +906,7 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--vehicle-param",
         action="append",
+        type=_vehicle_param,
         default=[],
         metavar="NAME=VALUE",
         help="a parameter of the simulated autopilot (apf-sim vehicle --param), e.g. FENCE_MARGIN=0.5 (ArduPilot's "
@@ -821,7 +919,13 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
 
 def _add_flight_options(p: argparse.ArgumentParser) -> None:
     """How one flight runs and what it writes: height, speed-up, rates, limits, noise, output."""
-    p.add_argument("--alt", type=float, default=5.0, help="flight height above home [m]")
+    alt_hi = TAKEOFF_ALT_RANGE_M[1]
+    p.add_argument(
+        "--alt",
+        type=_number_in(0.0, alt_hi, lo_open=True, what="m (the service's autopilot.takeoff_alt_m)"),
+        default=5.0,
+        help=f"flight height above home, in (0, {alt_hi:g}] m (default 5)",
+    )
     lo, hi = SPEEDUP_RANGE
     p.add_argument(
         "--speedup",
@@ -830,9 +934,27 @@ def _add_flight_options(p: argparse.ArgumentParser) -> None:
         help=f"simulated s per wall s, in [{lo:g}, {hi:g}] (the service's cycle.time_scale and "
         "link.heartbeat_timeout_s follow it and have limits; default 5)",
     )
-    p.add_argument("--rate", type=float, default=10.0, help="service cycle rate in simulated Hz (default 10)")
-    p.add_argument("--max-flight", type=float, default=300.0, help="give up after this many simulated s")
-    p.add_argument("--noise", type=float, default=0.0, help="actuation noise SD [m] (the paper's is 0.1)")
+    rate_lo, rate_hi = RATE_RANGE_HZ
+    p.add_argument(
+        "--rate",
+        type=_number_in(rate_lo, rate_hi, what="Hz (the service's cycle.rate_hz)"),
+        default=10.0,
+        help=f"service cycle rate in simulated Hz, in [{rate_lo:g}, {rate_hi:g}] (default 10)",
+    )
+    flight_hi = MAX_FLIGHT_RANGE_S[1]
+    p.add_argument(
+        "--max-flight",
+        type=_number_in(0.0, flight_hi, lo_open=True, what="simulated s (the service's max_flight_s)"),
+        default=300.0,
+        help=f"give up after this many simulated s, in (0, {flight_hi:g}] (default 300)",
+    )
+    noise = _noise_spec()
+    p.add_argument(
+        "--noise",
+        type=_number_in(noise.lo, noise.hi, what=f"m (the vehicle's {noise.name})"),
+        default=0.0,
+        help=f"actuation noise SD [m], in [{noise.lo:g}, {noise.hi:g}] (the paper's is 0.1; {noise.name})",
+    )
     p.add_argument("--out", type=Path, default=Path("fly-out"), help="output directory (default ./fly-out)")
     p.add_argument("--json", type=Path, help="write the result record here too")
     p.add_argument("--no-plot", action="store_true", help="skip the trajectory PNG")
@@ -850,13 +972,13 @@ def _add_sweep_options(p: argparse.ArgumentParser) -> None:
     """Several flights: --trials, the study on the same worlds, seeded link faults."""
     p.add_argument(
         "--trials",
-        type=int,
+        type=_int_from(1),
         default=1,
-        help="fly this many worlds (seeds SEED, SEED+1, ...) one after another and print the success rate",
+        help="fly this many worlds (seeds SEED, SEED+1, ...) one after another and print the success rate (>= 1)",
     )
     p.add_argument(
         "--study-reps",
-        type=int,
+        type=_int_from(0),
         default=100,
         metavar="R",
         help="with --trials on a paper field: also run the study's engine R times on each flown field "
@@ -945,6 +1067,11 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         link_faults=args.link_faults,
         signing_key=args.signing_key,
     )
+    try:
+        vehicle_params(opt)
+    except ConfigError as err:
+        print(f"apf-sim fly: {err}", file=sys.stderr)
+        return 2
     if args.trials <= 1:
         opt = dataclasses.replace(opt, obstacles=_densities(opt)[0])
     if args.trials > 1:

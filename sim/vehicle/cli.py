@@ -169,7 +169,14 @@ def _sensor_args(p: argparse.ArgumentParser) -> None:
 
 
 def _pair(text: str) -> tuple[float, float]:
-    a, b = (float(x) for x in text.split(","))
+    """N,E: two finite numbers (a NaN start would fly nowhere and report a NaN path)."""
+    try:
+        a, b = (float(x) for x in text.split(","))
+    except ValueError:
+        a = b = math.nan
+    if not (math.isfinite(a) and math.isfinite(b)):
+        msg = f"expected N,E (two finite numbers in metres), got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
     return a, b
 
 

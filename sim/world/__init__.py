@@ -8,6 +8,7 @@ from __future__ import annotations
 from sim.world.field import (
     DENSITIES,
     FIELD_PRESETS,
+    MAX_OBSTACLES,
     PAPER_START_NE_M,
     PAPER_TARGET_NE_M,
     FieldPreset,
@@ -21,6 +22,7 @@ __all__ = [
     "DENSITIES",
     "EXAMPLES_DIR",
     "FIELD_PRESETS",
+    "MAX_OBSTACLES",
     "PAPER_START_NE_M",
     "PAPER_TARGET_NE_M",
     "FieldPreset",

@@ -25,6 +25,7 @@ from sim.world.model import World
 __all__ = [
     "DENSITIES",
     "FIELD_PRESETS",
+    "MAX_OBSTACLES",
     "PAPER_START_NE_M",
     "PAPER_TARGET_NE_M",
     "FieldPreset",
@@ -52,6 +53,8 @@ FIELD_PRESETS: dict[str, FieldPreset] = {
 
 # The study's obstacle-count ranges N ~ U{N_l, N_u} (inclusive).
 DENSITIES: dict[str, tuple[int, int]] = {"low": (20, 45), "mid": (45, 70), "high": (70, 95)}
+#: The most obstacles a field may have.
+MAX_OBSTACLES = 100_000
 
 
 def paper_field(
@@ -85,8 +88,8 @@ def paper_field(
         n = int(rng.integers(lo, hi, endpoint=True))
     else:
         n = int(n_obstacles)
-    if not 0 <= n <= 100_000:
-        msg = f"paper field obstacle count must be in [0, 100000], got {n}"
+    if not 0 <= n <= MAX_OBSTACLES:
+        msg = f"paper field obstacle count must be in [0, {MAX_OBSTACLES}], got {n}"
         raise ConfigError(msg)
     if not radius_m >= 0:
         msg = f"paper field radius_m must be >= 0, got {radius_m}"

@@ -10,8 +10,9 @@ import pytest
 
 from apf_companion.config import config_from_mapping
 from apf_companion.errors import ConfigError
+from sim.cli import build_parser
 from sim.cli import main as sim_main
-from sim.fly import SPEEDUP_RANGE, FlyOptions, _service_toml, error_reason
+from sim.fly import SPEEDUP_RANGE, FlyOptions, _service_toml, error_reason, vehicle_params
 
 
 def _refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
@@ -68,3 +69,63 @@ def test_a_service_config_error_shows_its_lines_not_only_the_count(tmp_path: Pat
     one = "apf-companion: config error: planner.name must be one of x"
     (tmp_path / "service.log").write_text(one + "\n")
     assert error_reason(tmp_path, None, None, (2, -2)) == f"service: {one}"
+
+
+@pytest.mark.parametrize(
+    ("words", "says"),
+    [
+        (["--start", "nan,3"], "argument --start: expected N,E (two finite numbers in metres), got 'nan,3'"),
+        (["--goal=3,inf"], "argument --goal: expected N,E"),
+        (["--start", "3"], "argument --start: expected N,E"),
+        (["--noise", "-0.1"], "argument --noise: must be a number in [0, 5] m (the vehicle's SIM_POS_NOISE)"),
+        (["--noise", "nan"], "argument --noise: must be a number in [0, 5]"),
+        (["--trials", "0"], "argument --trials: must be an integer >= 1, got '0'"),
+        (["--trials", "1.5"], "argument --trials: must be an integer >= 1"),
+        (["--study-reps", "-1"], "argument --study-reps: must be an integer >= 0"),
+        (["--seed", "-1"], "argument --seed: must be an integer >= 0"),
+        (["--alt", "-5"], "argument --alt: must be a number in (0, 500] m (the service's autopilot.takeoff_alt_m)"),
+        (["--alt", "0"], "argument --alt: must be a number in (0, 500]"),
+        (["--rate", "0.5"], "argument --rate: must be a number in [1, 50] Hz (the service's cycle.rate_hz)"),
+        (["--max-flight", "0"], "argument --max-flight: must be a number in (0, 86400] simulated s"),
+        (["--max-flight", "inf"], "argument --max-flight: must be a number in (0, 86400]"),
+        (["--obstacles", "extreme"], "argument --obstacles: must be an obstacle count in [0, 100000] or a density "),
+        (["--obstacles", "low,-3"], "(low, mid, high), or a comma list of them, got 'low,-3'"),
+        (["--vehicle-param", "FENCE_MARGIN=abc"], "argument --vehicle-param: must be NAME=VALUE with a finite number"),
+        (["--vehicle-param", "FENCE_MARGIN"], "argument --vehicle-param: must be NAME=VALUE"),
+    ],
+)
+def test_bad_flags_are_refused_at_parsing_naming_the_flag(
+    words: list[str], says: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    err = _refused(["fly", *words, "--out", str(tmp_path / "out")], capsys)
+    assert says in " ".join(err.split()), err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("words", [["--obstacles", "low,mid,high"], ["--obstacles", "0"], ["--noise", "0.1"]])
+def test_good_flags_still_parse(words: list[str]) -> None:
+    args = build_parser().parse_args(["fly", *words, "--trials", "2", "--seed", "0", "--alt", "7.5"])
+    assert (args.trials, args.seed, args.alt) == (2, 0, 7.5)
+
+
+@pytest.mark.parametrize(
+    ("param", "says"),
+    [
+        ("FENCE_MARGIN=11", "--vehicle-param for the ardupilot profile: FENCE_MARGIN 11 not in [0, 10]"),
+        ("NO_SUCH=1", "--vehicle-param for the ardupilot profile: unknown parameter 'NO_SUCH'"),
+    ],
+)
+def test_vehicle_parameters_are_checked_before_anything_starts(
+    param: str, says: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Names and ranges as the simulated autopilot checks them (per profile), before either process starts."""
+    assert sim_main(["fly", "--vehicle-param", param, "--out", str(tmp_path / "out")]) == 2
+    assert says in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+    table = vehicle_params(FlyOptions(vehicle_params=("FENCE_MARGIN=0.5",), noise_m=0.1))
+    assert (table["FENCE_MARGIN"], table["SIM_POS_NOISE"]) == (0.5, 0.1)
+
+
+def test_the_vehicle_refuses_a_start_that_is_not_finite(capsys: pytest.CaptureFixture[str]) -> None:
+    err = _refused(["vehicle", "--start", "nan,0", "--duration", "0.1"], capsys)
+    assert "argument --start: expected N,E (two finite numbers in metres), got 'nan,0'" in err
