@@ -66,6 +66,7 @@ from apf_companion.config import (
     RATE_RANGE_HZ,
     TAKEOFF_ALT_RANGE_M,
     TIME_SCALE_RANGE,
+    GoalConfig,
 )
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink, load_signing_key
@@ -919,10 +920,11 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
 
 def _add_flight_options(p: argparse.ArgumentParser) -> None:
     """How one flight runs and what it writes: height, speed-up, rates, limits, noise, output."""
-    alt_hi = TAKEOFF_ALT_RANGE_M[1]
+    # The service takes off to --alt (autopilot.takeoff_alt_m) and refuses a goal higher than goal.max_altitude_m.
+    alt_hi = min(TAKEOFF_ALT_RANGE_M[1], GoalConfig().max_altitude_m)
     p.add_argument(
         "--alt",
-        type=_number_in(0.0, alt_hi, lo_open=True, what="m (the service's autopilot.takeoff_alt_m)"),
+        type=_number_in(0.0, alt_hi, lo_open=True, what="m (the service's takeoff height and goal.max_altitude_m)"),
         default=5.0,
         help=f"flight height above home, in (0, {alt_hi:g}] m (default 5)",
     )
