@@ -70,7 +70,7 @@ from apf_companion.config import (
 )
 from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
 from apf_companion.links import MavlinkLink, load_signing_key
-from apf_companion.planning import FlyingArea, KeepOuts, area_text
+from apf_companion.planning import FlyingArea, KeepOuts, area_text, in_keepout, inside_area
 from sim.linkfaults import LinkFaults, LinkProxy
 from sim.vehicle.params import ParamSpec, ParamTable, param_specs
 from sim.world.field import DENSITIES, MAX_OBSTACLES
@@ -78,7 +78,7 @@ from sim.world.field import DENSITIES, MAX_OBSTACLES
 if TYPE_CHECKING:
     from sim.world import World
 
-__all__ = ["FlyOptions", "flown_world", "fly", "paper_world", "register", "study_same_worlds"]
+__all__ = ["FlyOptions", "flown_world", "fly", "paper_world", "register", "route_problem", "study_same_worlds"]
 
 OUTCOMES = ("arrived", "collision", "fence_breach", "stuck", "timeout", "link_lost", "error")
 PAPER_START = (3.0, 3.0)
@@ -624,6 +624,7 @@ def _record(
             "dropped_goal": bool(svc_res and svc_res.get("state") in ("IDLE", "LINK_LOST")),
             "service_events": _service_events(opt.out / "service.log"),
             "mcap": next((str(p) for p in sorted(opt.out.glob("apf-*.mcap"))), None),
+            "crash": (sim_res or {}).get("crashed_at"),  # the simulator's: reason, t_s, pos_ned_m, obstacle_id
         }
         | ({"error": error_reason(opt.out, svc_res, sim_res, exit_codes)} if outcome == "error" else {})
     )
@@ -1016,6 +1017,7 @@ class _Route:
     goal_ne_m: tuple[float, float]
     area_ne_m: FlyingArea | None
     keepouts_ne_m: KeepOuts
+    world: World | None = None  # the world file's obstacles (None: a paper field)
 
 
 def _route(args: argparse.Namespace) -> _Route:
@@ -1024,6 +1026,7 @@ def _route(args: argparse.Namespace) -> _Route:
     start, goal = PAPER_START, PAPER_GOAL
     area: FlyingArea | None = None
     keepouts: KeepOuts = ()
+    world: World | None = None
     if args.world is not None:
         from sim.world import load_world
 
@@ -1032,7 +1035,38 @@ def _route(args: argparse.Namespace) -> _Route:
         goal = world.goal_ne_m or goal
         if not args.no_area:
             area, keepouts = world.area_ne_m, world.keepouts_ne_m
-    return _Route(args.start or start, args.goal or goal, area, keepouts)
+    return _Route(args.start or start, args.goal or goal, area, keepouts, world)
+
+
+def route_problem(opt: FlyOptions, world: World | None, radius_m: float) -> str | None:
+    """Why ``apf-sim fly`` refuses ``opt``'s start or goal before it starts anything, or None.
+
+    A start or goal outside the world's flying area or in one of its keep-out zones (the service refuses such a
+    goal, bapf-nav gives up at once; ``--no-area`` flies without them), or a start whose clearance to an obstacle
+    of ``world`` (``World.nearest_obstacle``, the distance the simulator judges collisions by) is less than the
+    vehicle's collision radius ``radius_m`` (SIM_VEH_RADIUS): the simulator would end the flight in a collision at
+    once."""
+    where = f"world {opt.world}" if opt.world is not None else "the world"
+    for flag, (north, east) in (("--start", opt.start_ne_m), ("--goal", opt.goal_ne_m)):
+        point = f"{flag} (north {north:g} m, east {east:g} m)"
+        if opt.area_ne_m is not None and not inside_area(opt.area_ne_m, north, east):
+            return (
+                f"{point} lies outside the flying area of {where}, area_ne_m = {area_text(opt.area_ne_m)}: "
+                "pick a point inside it, or fly without the area (--no-area)"
+            )
+        if in_keepout(opt.keepouts_ne_m, north, east):
+            return f"{point} lies in a keep-out zone of {where}: pick a point outside it, or --no-area"
+    if world is not None:
+        i, clearance = world.nearest_obstacle(opt.start_ne_m)
+        if clearance < radius_m:
+            kind = "cylinder" if i < world.n_circles else "wall"
+            north, east = opt.start_ne_m
+            gap = f"lies inside {kind} {i}" if clearance < 0 else f"is {clearance:.2f} m from {kind} {i}"
+            return (
+                f"--start (north {north:g} m, east {east:g} m) {gap} of {where}, within the vehicle's collision "
+                f"radius SIM_VEH_RADIUS = {radius_m:g} m: the flight would end in a collision at once"
+            )
+    return None
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
@@ -1070,12 +1104,18 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         signing_key=args.signing_key,
     )
     try:
-        vehicle_params(opt)
+        radius_m = vehicle_params(opt)["SIM_VEH_RADIUS"]
     except ConfigError as err:
         print(f"apf-sim fly: {err}", file=sys.stderr)
         return 2
     if args.trials <= 1:
         opt = dataclasses.replace(opt, obstacles=_densities(opt)[0])
+    # A world file's obstacles, or the one paper field a single flight flies (the trials' are random draws).
+    world = route.world if opt.world is not None else (paper_world(opt) if args.trials <= 1 else None)
+    problem = route_problem(opt, world, radius_m)
+    if problem is not None:
+        print(f"apf-sim fly: {problem}", file=sys.stderr)
+        return 2
     if args.trials > 1:
         return _sweep(opt, args.trials, study_reps=args.study_reps)
     try:
@@ -1083,20 +1123,40 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     except ApfCompanionError as err:
         print(f"apf-sim fly: {err}", file=sys.stderr)
         return 1
-    clearance = rec["min_clearance_m"]
     if rec["outcome"] == "error":
         print(f"apf-sim fly: error: {rec.get('error', 'unknown')}", file=sys.stderr)
-    print(
+    print(flight_summary(rec, opt.out))
+    return 0 if rec["outcome"] == "arrived" else 3
+
+
+def flight_summary(rec: dict[str, Any], out: Path) -> str:
+    """What ``apf-sim fly`` prints after one flight: outcome (and the simulator's crash message after a
+    collision), path, clearance, times and the files the flight wrote to ``out``."""
+    clearance = rec["min_clearance_m"]
+    crash = rec.get("crash")
+    mcap = rec.get("mcap")
+    return (
         f"outcome: {rec['outcome']}\n"
-        f"planner: {rec['planner']} ({rec['profile']}), world: {rec['world']}, seed {rec['seed']}\n"
+        + (f"crash: {_crash_text(crash)}\n" if rec["outcome"] == "collision" and isinstance(crash, dict) else "")
+        + f"planner: {rec['planner']} ({rec['profile']}), world: {rec['world']}, seed {rec['seed']}\n"
         f"path length: {rec['path_length_m']:.2f} m\n"
         f"min clearance: {'n/a' if clearance is None else f'{clearance:.3f} m'}\n"
         f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
         f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
-        f"output: {opt.out}/ ({', '.join(output_files(opt.out)) or 'nothing written'})"
-        + (f"; {Path(rec['mcap']).name}: apf-sim mcap-plot, or open it in Foxglove" if rec["mcap"] else "")
+        f"output: {out}/ ({', '.join(output_files(out)) or 'nothing written'})"
+        + (f"; {Path(mcap).name}: apf-sim mcap-plot, or open it in Foxglove" if mcap else "")
     )
-    return 0 if rec["outcome"] == "arrived" else 3
+
+
+def _crash_text(crash: dict[str, Any]) -> str:
+    """The simulator's crash record (its ``crashed_at``) for the summary: reason, time and place."""
+    text = str(crash.get("reason", "crashed"))
+    t_s, pos = crash.get("t_s"), crash.get("pos_ned_m")
+    if isinstance(t_s, int | float):
+        text += f" at t={t_s:.1f} s"
+    if isinstance(pos, list) and len(pos) >= 2:
+        text += f", north {pos[0]:.2f} m, east {pos[1]:.2f} m"
+    return text
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:

@@ -3,6 +3,8 @@ and says what went wrong when a flight fails: the checks run in-process, the fli
 
 from __future__ import annotations
 
+import asyncio
+import dataclasses
 import tomllib
 from pathlib import Path
 
@@ -12,7 +14,19 @@ from apf_companion.config import config_from_mapping
 from apf_companion.errors import ConfigError
 from sim.cli import build_parser
 from sim.cli import main as sim_main
-from sim.fly import SPEEDUP_RANGE, FlyOptions, _service_toml, error_reason, vehicle_params
+from sim.fly import (
+    SPEEDUP_RANGE,
+    FlyOptions,
+    _route,
+    _service_toml,
+    error_reason,
+    flight_summary,
+    fly,
+    paper_world,
+    route_problem,
+    vehicle_params,
+)
+from sim.world import EXAMPLES_DIR, World
 
 
 def _refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
@@ -138,3 +152,89 @@ def test_vehicle_parameters_are_checked_before_anything_starts(
 def test_the_vehicle_refuses_a_start_that_is_not_finite(capsys: pytest.CaptureFixture[str]) -> None:
     err = _refused(["vehicle", "--start", "nan,0", "--duration", "0.1"], capsys)
     assert "argument --start: expected N,E (two finite numbers in metres), got 'nan,0'" in err
+
+
+def _options(words: list[str]) -> tuple[FlyOptions, World | None]:
+    """The FlyOptions ``apf-sim fly WORDS`` flies (its route from the world file), and the world file's World."""
+    args = build_parser().parse_args(["fly", *words])
+    r = _route(args)
+    opt = FlyOptions(
+        world=args.world, start_ne_m=r.start_ne_m, goal_ne_m=r.goal_ne_m, area_ne_m=r.area_ne_m,
+        keepouts_ne_m=r.keepouts_ne_m,
+    )  # fmt: skip
+    return opt, r.world
+
+
+def test_a_start_outside_the_flying_area_is_refused_before_anything_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """wall-gap's arena is its flying area: a start outside it flew 144 s and ended stuck; now it is refused the
+    way the goal is, at once (exit 2), and --no-area still flies it."""
+    out = tmp_path / "out"
+    assert sim_main(["fly", "--world", "wall-gap", "--start", "-12,0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "apf-sim fly: --start (north -12 m, east 0 m) lies outside the flying area of world wall-gap" in err
+    assert "area_ne_m = [-3.0, -12.0, 23.0, 12.0]" in err and "--no-area" in err
+    assert not out.exists()
+    assert sim_main(["fly", "--world", "wall-gap", "--goal", "40,0", "--out", str(out)]) == 2
+    assert "--goal (north 40 m, east 0 m) lies outside the flying area" in capsys.readouterr().err
+    assert route_problem(*_options(["--world", "wall-gap", "--start", "-12,0", "--no-area"]), 0.25) is None
+
+
+def test_a_start_or_goal_in_a_keep_out_zone_is_refused() -> None:
+    zone = ((7.0, -3.0), (13.0, -3.0), (13.0, 3.0), (7.0, 3.0))
+    opt = FlyOptions(world="w", start_ne_m=(8.0, 0.0), goal_ne_m=(20.0, 0.0), keepouts_ne_m=(zone,))
+    assert route_problem(opt, None, 0.25) == (
+        "--start (north 8 m, east 0 m) lies in a keep-out zone of world w: pick a point outside it, or --no-area"
+    )
+    opt = FlyOptions(world="w", start_ne_m=(0.0, 0.0), goal_ne_m=(10.0, 0.0), keepouts_ne_m=(zone,))
+    assert "--goal (north 10 m, east 0 m) lies in a keep-out zone" in str(route_problem(opt, None, 0.25))
+
+
+def test_a_start_within_the_collision_radius_of_an_obstacle_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--start 10,0 is inside wall-gap's crossing wall (it reported ``outcome: collision`` at t=0); 9.8,0 is 0.1 m
+    from it, within SIM_VEH_RADIUS 0.25 m; 9.5,0 is clear, until --vehicle-param SIM_VEH_RADIUS=0.5."""
+    out = tmp_path / "out"
+    assert sim_main(["fly", "--world", "wall-gap", "--start", "10,0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert (
+        "apf-sim fly: --start (north 10 m, east 0 m) lies inside wall 0 of world wall-gap, within the vehicle's " in err
+    )
+    assert "collision radius SIM_VEH_RADIUS = 0.25 m: the flight would end in a collision at once" in err
+    assert not out.exists()
+    opt, world = _options(["--world", "wall-gap", "--start", "9.8,0"])
+    assert "is 0.10 m from wall 0 of world wall-gap" in str(route_problem(opt, world, 0.25))
+    opt, world = _options(["--world", "wall-gap", "--start", "9.5,0"])
+    assert route_problem(opt, world, 0.25) is None
+    assert sim_main(["fly", "--world", "wall-gap", "--start", "9.5,0", "--vehicle-param", "SIM_VEH_RADIUS=0.5",
+                     "--out", str(out)]) == 2  # fmt: skip
+    assert "is 0.40 m from wall 0 of world wall-gap, within the vehicle's collision radius SIM_VEH_RADIUS = 0.5 m" in (
+        capsys.readouterr().err
+    )
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml")))
+def test_every_bundled_world_s_own_start_and_goal_fly(name: str) -> None:
+    assert route_problem(*_options(["--world", name]), 0.25) is None
+
+
+def test_the_paper_field_s_start_is_clear() -> None:
+    for seed in range(5):
+        opt = FlyOptions(seed=seed, obstacles="high")
+        assert route_problem(opt, paper_world(opt), 0.25) is None
+
+
+def test_a_collision_prints_the_simulator_s_crash_message(tmp_path: Path) -> None:
+    """A flight that ends in a collision (here: set up in-process past fly's own checks, started inside a wall)
+    keeps the simulator's crash record in its result and prints its message in the summary."""
+    opt, _ = _options(["--world", "wall-gap", "--start", "10,0"])
+    opt = dataclasses.replace(opt, out=tmp_path / "out", plot=False, progress=False)
+    rec = asyncio.run(fly(opt))
+    assert rec["outcome"] == "collision", rec
+    assert rec["crash"]["reason"].startswith("Crash: hit wall 0")
+    summary = flight_summary(rec, opt.out)
+    lines = summary.splitlines()
+    assert lines[0] == "outcome: collision"
+    assert lines[1].startswith("crash: Crash: hit wall 0 clearance -0.10 m at t=0.0 s, north 10.00 m, east 0.00 m")
