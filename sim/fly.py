@@ -510,8 +510,8 @@ def _port_taken(record: dict[str, Any]) -> bool:
 async def _fly_once(opt: FlyOptions) -> tuple[dict[str, Any], dict[str, Any] | None]:
     """One attempt: the result record and the simulator's result (None if it wrote none)."""
     opt.out.mkdir(parents=True, exist_ok=True)
-    for stale in ("sim_result.json", "service_result.json", *(p.name for p in opt.out.glob("apf-*.mcap"))):
-        (opt.out / stale).unlink(missing_ok=True)
+    for stale in (*FLIGHT_FILES, *(p.name for p in opt.out.glob("apf-*.mcap"))):
+        (opt.out / stale).unlink(missing_ok=True)  # a previous flight's: only this flight's are listed after it
     port = free_udp_port()
     gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
     assert gcs.local_address is not None
@@ -683,10 +683,16 @@ def _detail_lines(lines: list[str], log_name: str) -> str:
     return "".join(shown) + (f"\n  ... and {more} more in {log_name}" if more > 0 else "")
 
 
+# What ``apf-sim fly`` lists on its ``output:`` line, then the rest it writes to --out (and apf-*.mcap). Each flight
+# removes a previous flight's before it starts, so what is there afterwards is its own; anything else in --out
+# (signing.timestamp, the user's files) is left alone.
+LISTED_FILES = ("trajectory.png", "vehicle.tlog", "companion.tlog", "result.json", "service.log", "vehicle.log")
+FLIGHT_FILES = (*LISTED_FILES, "sim_result.json", "service_result.json", "service.toml")
+
+
 def output_files(out: Path) -> list[str]:
     """The files a flight actually wrote (what ``apf-sim fly`` lists: never a file it did not write)."""
-    names = ("trajectory.png", "vehicle.tlog", "companion.tlog", "result.json", "service.log", "vehicle.log")
-    return [n for n in names if (out / n).is_file() and (out / n).stat().st_size > 0]
+    return [n for n in LISTED_FILES if (out / n).is_file() and (out / n).stat().st_size > 0]
 
 
 def _write_result(opt: FlyOptions, record: dict[str, Any], sim_res: dict[str, Any] | None) -> None:

@@ -238,3 +238,23 @@ def test_a_collision_prints_the_simulator_s_crash_message(tmp_path: Path) -> Non
     lines = summary.splitlines()
     assert lines[0] == "outcome: collision"
     assert lines[1].startswith("crash: Crash: hit wall 0 clearance -0.10 m at t=0.0 s, north 10.00 m, east 0.00 m")
+
+
+def test_the_output_line_lists_only_this_flight_s_files(tmp_path: Path) -> None:
+    """A previous flight in the same --out left trajectory.png, companion.tlog and an .mcap; this flight fails at
+    the service's config (a planner typo) and writes neither: the output line must not list them. The user's own
+    files and the signing timestamp in --out stay."""
+    out = tmp_path / "out"
+    out.mkdir()
+    for stale in ("trajectory.png", "companion.tlog", "apf-20250101T000000Z.mcap", "sim_result.json"):
+        (out / stale).write_bytes(b"from the last flight")
+    (out / "notes.txt").write_text("mine")
+    (out / "signing.timestamp").write_text("123")
+    opt = FlyOptions(planner="cr-bapff", out=out, plot=False, progress=False)
+    rec = asyncio.run(fly(opt))
+    assert rec["outcome"] == "error" and rec["mcap"] is None, rec
+    listed = flight_summary(rec, out).split("output:")[1]
+    assert "trajectory.png" not in listed and "companion.tlog" not in listed and ".mcap" not in listed
+    assert "result.json" in listed and "service.log" in listed
+    assert not (out / "trajectory.png").exists() and not (out / "companion.tlog").exists()
+    assert (out / "notes.txt").read_text() == "mine" and (out / "signing.timestamp").read_text() == "123"
