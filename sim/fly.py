@@ -625,9 +625,35 @@ def _record(
             "service_events": _service_events(opt.out / "service.log"),
             "mcap": next((str(p) for p in sorted(opt.out.glob("apf-*.mcap"))), None),
             "crash": (sim_res or {}).get("crashed_at"),  # the simulator's: reason, t_s, pos_ned_m, obstacle_id
+            "airborne": airborne(sim_res),
         }
         | ({"error": error_reason(opt.out, svc_res, sim_res, exit_codes)} if outcome == "error" else {})
     )
+
+
+AIRBORNE_M = 0.1  # a flight took off once the vehicle was this high above home [m]
+
+
+def airborne(sim_res: dict[str, Any] | None) -> bool:
+    """Whether the vehicle ever left the ground (its recorded trajectory rose ``AIRBORNE_M`` above home): a flight
+    that never took off has no clearance worth printing, only the one of where it stood."""
+    traj = (sim_res or {}).get("trajectory_ned_m") or []
+    return any(isinstance(p, list) and len(p) == 3 and -float(p[2]) >= AIRBORNE_M for p in traj)
+
+
+def clearance_flown(rec: dict[str, Any]) -> float | None:
+    """A record's min clearance when it means something: the vehicle took off (or collided), else None."""
+    clearance = rec.get("min_clearance_m")
+    flew = rec.get("airborne", True) or rec.get("outcome") == "collision"
+    return float(clearance) if isinstance(clearance, int | float) and flew else None
+
+
+def _clearance_text(rec: dict[str, Any]) -> str:
+    """The summary's min clearance: n/a when there is none or the vehicle never took off."""
+    clearance = clearance_flown(rec)
+    if clearance is None:
+        return "n/a" if rec.get("airborne", True) else "n/a (the vehicle never took off)"
+    return f"{clearance:.3f} m"
 
 
 def error_reason(
@@ -734,7 +760,7 @@ def plot_trajectory(
     crash = sim_res.get("crashed_at")
     if isinstance(crash, dict) and "pos_ned_m" in crash:
         ax.plot(crash["pos_ned_m"][1], crash["pos_ned_m"][0], "rx", ms=12, mew=2, label="collision")
-    clearance = record.get("min_clearance_m")
+    clearance = clearance_flown(record)
     ax.set_title(
         f"{record['planner']} ({record['profile']}), {record['world']}: {record['outcome']}\n"
         f"path {record['path_length_m']:.1f} m, min clearance "
@@ -1138,7 +1164,6 @@ def _cmd_fly(args: argparse.Namespace) -> int:
 def flight_summary(rec: dict[str, Any], out: Path) -> str:
     """What ``apf-sim fly`` prints after one flight: outcome (and the simulator's crash message after a
     collision), path, clearance, times and the files the flight wrote to ``out``."""
-    clearance = rec["min_clearance_m"]
     crash = rec.get("crash")
     mcap = rec.get("mcap")
     return (
@@ -1146,7 +1171,7 @@ def flight_summary(rec: dict[str, Any], out: Path) -> str:
         + (f"crash: {_crash_text(crash)}\n" if rec["outcome"] == "collision" and isinstance(crash, dict) else "")
         + f"planner: {rec['planner']} ({rec['profile']}), world: {rec['world']}, seed {rec['seed']}\n"
         f"path length: {rec['path_length_m']:.2f} m\n"
-        f"min clearance: {'n/a' if clearance is None else f'{clearance:.3f} m'}\n"
+        f"min clearance: {_clearance_text(rec)}\n"
         f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
         f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
         f"output: {out}/ ({', '.join(output_files(out)) or 'nothing written'})"
@@ -1203,8 +1228,8 @@ def _sweep_loop(
             rec["obstacles"] = opt.obstacles
         records.append(rec)
         ok = sum(r["outcome"] == "arrived" for r in records)
-        clearance = rec.get("min_clearance_m")
-        clearance_txt = f"{clearance:.3f} m" if isinstance(clearance, float) else "-"
+        clearance = clearance_flown(rec)
+        clearance_txt = "-" if clearance is None else f"{clearance:.3f} m"
         print(
             f"[{k + 1}/{trials}] seed {seed}: {rec['outcome']:9s} world {rec.get('world')} "
             f"clearance {clearance_txt} steps {rec.get('steps')}  (success so far {ok}/{k + 1})"
@@ -1220,7 +1245,7 @@ def _densities(opt: FlyOptions) -> list[str]:
 
 def _fault_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Collisions, lowest clearance, dropped goals and LINK_LOST events over the trials (for --link-faults)."""
-    clearances = [r["min_clearance_m"] for r in records if r.get("min_clearance_m") is not None]
+    clearances = [c for c in map(clearance_flown, records) if c is not None]
     events = [r.get("service_events") or {} for r in records]
     return {
         "collisions": sum(r["outcome"] == "collision" for r in records),

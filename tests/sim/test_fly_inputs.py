@@ -17,8 +17,10 @@ from sim.cli import main as sim_main
 from sim.fly import (
     SPEEDUP_RANGE,
     FlyOptions,
+    _fault_summary,
     _route,
     _service_toml,
+    airborne,
     error_reason,
     flight_summary,
     fly,
@@ -258,3 +260,22 @@ def test_the_output_line_lists_only_this_flight_s_files(tmp_path: Path) -> None:
     assert "result.json" in listed and "service.log" in listed
     assert not (out / "trajectory.png").exists() and not (out / "companion.tlog").exists()
     assert (out / "notes.txt").read_text() == "mine" and (out / "signing.timestamp").read_text() == "123"
+
+
+def test_a_flight_that_never_took_off_prints_no_clearance(tmp_path: Path) -> None:
+    """The service refused its config before the takeoff: the vehicle stood at its start, and the clearance of
+    that spot (2.9 m in wall-gap) is no flight's clearance. A flight that took off keeps its number."""
+    out = tmp_path / "out"
+    opt = FlyOptions(planner="cr-bapff", world="wall-gap", start_ne_m=(0.0, 0.0), out=out, plot=False, progress=False)
+    rec = asyncio.run(fly(opt))
+    assert rec["outcome"] == "error" and rec["airborne"] is False and rec["min_clearance_m"] is not None, rec
+    assert "min clearance: n/a (the vehicle never took off)\n" in flight_summary(rec, out)
+    flown = rec | {"airborne": True, "min_clearance_m": 0.5}
+    assert "min clearance: 0.500 m\n" in flight_summary(flown, out)
+    assert airborne({"trajectory_ned_m": [[0.0, 0.0, 0.0], [0.0, 0.0, -0.05]]}) is False
+    assert airborne({"trajectory_ned_m": [[0.0, 0.0, 0.0], [0.1, 0.0, -2.0]]}) is True
+    # The sweep's lowest clearance leaves out flights that never took off, not collisions on the ground.
+    ground = {"outcome": "error", "min_clearance_m": 0.1, "airborne": False}
+    crash = {"outcome": "collision", "min_clearance_m": -0.1, "airborne": False}
+    assert _fault_summary([ground, flown])["min_clearance_m"] == 0.5
+    assert _fault_summary([ground, crash, flown])["min_clearance_m"] == -0.1
