@@ -1095,7 +1095,8 @@ def route_problem(opt: FlyOptions, world: World | None, radius_m: float) -> str 
             north, east = opt.start_ne_m
             gap = f"lies inside {kind} {i}" if clearance < 0 else f"is {clearance:.2f} m from {kind} {i}"
             return (
-                f"--start (north {north:g} m, east {east:g} m) {gap} of {where}, within the vehicle's collision "
+                f"--start (north {north:g} m, east {east:g} m) {gap} of world {world.name}, within the vehicle's "
+                "collision "
                 f"radius SIM_VEH_RADIUS = {radius_m:g} m: the flight would end in a collision at once"
             )
     return None

@@ -279,3 +279,11 @@ def test_a_flight_that_never_took_off_prints_no_clearance(tmp_path: Path) -> Non
     crash = {"outcome": "collision", "min_clearance_m": -0.1, "airborne": False}
     assert _fault_summary([ground, flown])["min_clearance_m"] == 0.5
     assert _fault_summary([ground, crash, flown])["min_clearance_m"] == -0.1
+
+
+def test_a_start_on_a_paper_field_obstacle_names_the_field() -> None:
+    opt = FlyOptions(seed=0, obstacles="mid")
+    world = paper_world(opt)
+    north, east = (float(v) for v in world.circles_ne_m[3])
+    on_it = dataclasses.replace(opt, start_ne_m=(north, east))  # on a point obstacle: 0 m from it
+    assert f"is 0.00 m from cylinder 3 of world {world.name}, within" in str(route_problem(on_it, world, 0.25))
