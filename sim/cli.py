@@ -5,7 +5,7 @@ sets ``func`` (a callable taking the parsed namespace and returning an exit code
 - ``study``   the paper's Monte Carlo study (sim/study/cli.py)
 - ``vehicle`` the simulated autopilot + vehicle + world + range sensor (sim/vehicle/cli.py)
 - ``sensor``  world and range sensor only, following an external autopilot (sim/vehicle/cli.py)
-- ``fly``     the simulator and the companion service together, one SITL-style flight (sim/fly.py)
+- ``fly``     the simulator and the companion service together, one SITL-style flight (sim/flycli.py, sim/fly.py)
 - ``sweep``   R_s and path length over a grid of planner parameters and densities (sim/sweep_cli.py)
 - ``mcap-plot`` a recorded flight (.mcap) drawn to PNG (sim/mcap_plot.py)
 """
@@ -22,7 +22,7 @@ from typing import cast
 
 from apf_companion.cli import add_log_level_option
 
-_SUBCOMMAND_MODULES = ("sim.fly", "sim.vehicle.cli", "sim.study.cli", "sim.sweep_cli", "sim.mcap_plot")
+_SUBCOMMAND_MODULES = ("sim.flycli", "sim.vehicle.cli", "sim.study.cli", "sim.sweep_cli", "sim.mcap_plot")
 
 
 def package_version() -> str:

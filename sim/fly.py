@@ -35,7 +35,6 @@ when the takeoff is done and lasts the start-goal distance at ``EXPECTED_SPEED_M
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import dataclasses
@@ -44,7 +43,6 @@ import importlib.util
 import json
 import math
 import os
-import re
 import signal
 import socket
 import sys
@@ -58,27 +56,20 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.autopilot import Autopilot
 from apf_companion.config import (
     HEARTBEAT_TIMEOUT_RANGE_S,
     MAX_AGE_RANGE_S,
-    MAX_FLIGHT_RANGE_S,
-    RATE_RANGE_HZ,
-    TAKEOFF_ALT_RANGE_M,
     TIME_SCALE_RANGE,
-    GoalConfig,
 )
-from apf_companion.errors import ApfCompanionError, ConfigError, LinkTimeout
-from apf_companion.links import MavlinkLink, load_signing_key
-from apf_companion.planning import FlyingArea, KeepOuts, area_text, in_keepout, inside_area
+from apf_companion.errors import ConfigError, LinkTimeout
+from apf_companion.links import MavlinkLink
+from apf_companion.planning import FlyingArea, KeepOuts, area_text
 from sim.linkfaults import LinkFaults, LinkProxy
-from sim.vehicle.params import ParamSpec, ParamTable, param_specs
-from sim.world.field import DENSITIES, MAX_OBSTACLES
 
 if TYPE_CHECKING:
     from sim.world import World
 
-__all__ = ["FlyOptions", "flown_world", "fly", "paper_world", "register", "route_problem", "study_same_worlds"]
+__all__ = ["FlyOptions", "flown_world", "fly", "paper_world", "study_same_worlds"]
 
 OUTCOMES = ("arrived", "collision", "fence_breach", "stuck", "timeout", "link_lost", "error")
 PAPER_START = (3.0, 3.0)
@@ -432,7 +423,7 @@ async def _stop(proc: asyncio.subprocess.Process, grace_s: float) -> None:
         await proc.wait()
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
+def read_json(path: Path) -> dict[str, Any] | None:
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -555,8 +546,8 @@ async def _fly_once(opt: FlyOptions) -> tuple[dict[str, Any], dict[str, Any] | N
         svc_log.close()
         sim_log.close()
     wall_s = time.monotonic() - t0
-    sim_res = _read_json(opt.out / "sim_result.json")
-    svc_res = _read_json(opt.out / "service_result.json")
+    sim_res = read_json(opt.out / "sim_result.json")
+    svc_res = read_json(opt.out / "service_result.json")
     outcome = "timeout" if timed_out and sim_res is not None else _outcome(sim_res, svc_res)
     record = _record(opt, outcome, sim_res, svc_res, wall_s, (service.returncode, vehicle.returncode), progress.texts)
     if proxy is not None:
@@ -648,7 +639,7 @@ def clearance_flown(rec: dict[str, Any]) -> float | None:
     return float(clearance) if isinstance(clearance, int | float) and flew else None
 
 
-def _clearance_text(rec: dict[str, Any]) -> str:
+def clearance_text(rec: dict[str, Any]) -> str:
     """The summary's min clearance: n/a when there is none or the vehicle never took off."""
     clearance = clearance_flown(rec)
     if clearance is None:
@@ -730,7 +721,9 @@ def _write_result(opt: FlyOptions, record: dict[str, Any], sim_res: dict[str, An
     if opt.plot and sim_res is not None:
         try:
             plot_trajectory(sim_res, record, opt.out / "trajectory.png", goal_ne_m=opt.goal_ne_m)
-        except Exception as err:  # a missing matplotlib must not lose the flight result
+        except ImportError as err:  # a missing matplotlib must not lose the flight result
+            print(f"apf-sim fly: no plot ({err}; pip install 'apf-companion[sim]', or --no-plot)", file=sys.stderr)
+        except Exception as err:  # nor a plot that fails for any other reason
             print(f"apf-sim fly: no plot ({err})", file=sys.stderr)
 
 
@@ -774,630 +767,3 @@ def plot_trajectory(
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
-
-
-def _speedup(text: str) -> float:
-    """``--speedup``: a number in SPEEDUP_RANGE (argparse names the flag in its error)."""
-    lo, hi = SPEEDUP_RANGE
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not lo <= value <= hi:  # NaN too
-        msg = (
-            f"must be a number in [{lo:g}, {hi:g}], got {text!r} (the service's cycle.time_scale is the speed-up, "
-            f"its link.heartbeat_timeout_s max({HEARTBEAT_FLOOR_S:g}, speed-up) s must stay within "
-            f"{HEARTBEAT_TIMEOUT_RANGE_S[1]:g} s)"
-        )
-        raise argparse.ArgumentTypeError(msg)
-    return value
-
-
-def _pair(text: str) -> tuple[float, float]:
-    """``--start`` / ``--goal``: two finite numbers N,E [m]."""
-    parts = text.split(",")
-    try:
-        north, east = (float(part) for part in parts)
-    except ValueError:
-        north = east = math.nan
-    if not (math.isfinite(north) and math.isfinite(east)):
-        msg = f"expected N,E (two finite numbers in metres), got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return north, east
-
-
-def _number_in(lo: float, hi: float, *, lo_open: bool = False, what: str) -> Callable[[str], float]:
-    """An argparse type: a number in [lo, hi] (``(lo, hi]`` with ``lo_open``); ``what`` is its unit and meaning."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not ((value > lo if lo_open else value >= lo) and value <= hi):  # NaN too
-            msg = f"must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}] {what}, got {text!r}"
-            raise argparse.ArgumentTypeError(msg)
-        return value
-
-    return parse
-
-
-def _int_from(lo: int) -> Callable[[str], int]:
-    """An argparse type: an integer >= lo."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = lo - 1
-        if value < lo:
-            msg = f"must be an integer >= {lo}, got {text!r}"
-            raise argparse.ArgumentTypeError(msg)
-        return value
-
-    return parse
-
-
-def _obstacles(text: str) -> str:
-    """``--obstacles``: a count in [0, MAX_OBSTACLES] or a density name, or a comma list of them (the trials')."""
-    items = [item.strip() for item in text.split(",")]
-    for item in items:
-        if item in DENSITIES or (item.isdigit() and int(item) <= MAX_OBSTACLES):
-            continue
-        msg = (
-            f"must be an obstacle count in [0, {MAX_OBSTACLES}] or a density ({', '.join(DENSITIES)}), or a "
-            f"comma list of them, got {text!r}"
-        )
-        raise argparse.ArgumentTypeError(msg)
-    return ",".join(items)
-
-
-def _vehicle_param(text: str) -> str:
-    """``--vehicle-param NAME=VALUE`` with a finite number (the name and its range are checked per profile by
-    :func:`vehicle_params`)."""
-    name, sep, value = text.partition("=")
-    try:
-        number = float(value)
-    except ValueError:
-        number = math.nan
-    if not sep or not name.strip() or not math.isfinite(number):
-        msg = f"must be NAME=VALUE with a finite number VALUE, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return f"{name.strip().upper()}={value.strip()}"
-
-
-def _noise_spec() -> ParamSpec:
-    """The vehicle's actuation noise parameter (``--noise``), the same in both profiles."""
-    return next(spec for spec in param_specs(Autopilot.ARDUPILOT) if spec.name == "SIM_POS_NOISE")
-
-
-def vehicle_params(opt: FlyOptions) -> ParamTable:
-    """The simulated autopilot's parameters for ``opt`` (``--vehicle-param`` and ``--noise``), checked as the
-    vehicle would check them. Raises ConfigError naming an unknown parameter or a value outside its range."""
-    overrides = {name: float(value) for name, _, value in (item.partition("=") for item in opt.vehicle_params)}
-    if opt.noise_m > 0:
-        overrides["SIM_POS_NOISE"] = opt.noise_m
-    try:
-        return ParamTable(Autopilot(opt.profile), overrides)
-    except ConfigError as err:
-        msg = f"--vehicle-param for the {opt.profile} profile: {err}"
-        raise ConfigError(msg) from err
-
-
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Add ``apf-sim fly``."""
-    p = subparsers.add_parser(
-        "fly",
-        help="fly the companion service against the simulator (the paper's scenario by default)",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    _add_scenario_options(p)
-    _add_flight_options(p)
-    _add_sweep_options(p)
-    p.set_defaults(func=_cmd_fly)
-
-
-def _add_scenario_options(p: argparse.ArgumentParser) -> None:
-    """What flies where: planner, autopilot profile, dynamics, the world and its start and goal."""
-    p.add_argument(
-        "--planner", default="bapf-nav", help="bapf-nav (default), bendyruler, capf, bapf, a-bapf, cr-bapf, cr-bapf*"
-    )
-    p.add_argument("--profile", choices=("ardupilot", "px4"), default="ardupilot")
-    p.add_argument(
-        "--dynamics",
-        choices=("auto", "simple", "arducopter"),
-        default="auto",
-        help="the simulated vehicle's response: auto (default: arducopter, ArduCopter's controller shape, for the "
-        "ardupilot profile; simple for px4), simple, or arducopter",
-    )
-    p.add_argument(
-        "--seed", type=_int_from(0), default=0, help="seed of the random field and the planner, >= 0 (default 0)"
-    )
-    p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
-    p.add_argument(
-        "--obstacles",
-        type=_obstacles,
-        default="mid",
-        help=f"obstacle count N in [0, {MAX_OBSTACLES}], or density {'|'.join(DENSITIES)} (default mid); a list "
-        "(low,mid,high) cycles over --trials",
-    )
-    p.add_argument("--world", help=f"world TOML file or bundled example ({', '.join(_bundled_worlds())})")
-    p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
-    p.add_argument("--goal", type=_pair, metavar="N,E", help="goal (default: the world file's, else 22,22)")
-    p.add_argument(
-        "--no-area",
-        action="store_true",
-        help="fly without the world file's flying area (area_ne_m): bapf-nav's grid then moves with the vehicle",
-    )
-    p.add_argument(
-        "--fence",
-        action="store_true",
-        help="the vehicle serves the world file's flying area as its fence, and the service reads it from there "
-        "(planner.fence_area) instead of from its config, with ArduCopter's fence parameters (FENCE_MARGIN 2 m: "
-        "see --vehicle-param)",
-    )
-    p.add_argument(
-        "--vehicle-param",
-        action="append",
-        type=_vehicle_param,
-        default=[],
-        metavar="NAME=VALUE",
-        help="a parameter of the simulated autopilot (apf-sim vehicle --param), e.g. FENCE_MARGIN=0.5 (ArduPilot's "
-        "default is 2 m, which closes a gap within 2 m of a fence drawn on the walls); repeatable",
-    )
-    # "--start -12.0,0.0": argparse takes a word starting with "-" for an option unless it looks like a negative
-    # number, and its pattern (argparse._ActionsContainer) has no comma; widen it to N,E pairs for this parser.
-    p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d*\.?\d*,-?\d*\.?\d*$")
-
-
-def _add_flight_options(p: argparse.ArgumentParser) -> None:
-    """How one flight runs and what it writes: height, speed-up, rates, limits, noise, output."""
-    # The service takes off to --alt (autopilot.takeoff_alt_m) and refuses a goal higher than goal.max_altitude_m.
-    alt_hi = min(TAKEOFF_ALT_RANGE_M[1], GoalConfig().max_altitude_m)
-    p.add_argument(
-        "--alt",
-        type=_number_in(0.0, alt_hi, lo_open=True, what="m (the service's takeoff height and goal.max_altitude_m)"),
-        default=5.0,
-        help=f"flight height above home, in (0, {alt_hi:g}] m (default 5)",
-    )
-    lo, hi = SPEEDUP_RANGE
-    p.add_argument(
-        "--speedup",
-        type=_speedup,
-        default=5.0,
-        help=f"simulated s per wall s, in [{lo:g}, {hi:g}] (the service's cycle.time_scale and "
-        "link.heartbeat_timeout_s follow it and have limits; default 5)",
-    )
-    rate_lo, rate_hi = RATE_RANGE_HZ
-    p.add_argument(
-        "--rate",
-        type=_number_in(rate_lo, rate_hi, what="Hz (the service's cycle.rate_hz)"),
-        default=10.0,
-        help=f"service cycle rate in simulated Hz, in [{rate_lo:g}, {rate_hi:g}] (default 10)",
-    )
-    flight_hi = MAX_FLIGHT_RANGE_S[1]
-    p.add_argument(
-        "--max-flight",
-        type=_number_in(0.0, flight_hi, lo_open=True, what="simulated s (the service's max_flight_s)"),
-        default=300.0,
-        help=f"give up after this many simulated s, in (0, {flight_hi:g}] (default 300)",
-    )
-    noise = _noise_spec()
-    p.add_argument(
-        "--noise",
-        type=_number_in(noise.lo, noise.hi, what=f"m (the vehicle's {noise.name})"),
-        default=0.0,
-        help=f"actuation noise SD [m], in [{noise.lo:g}, {noise.hi:g}] (the paper's is 0.1; {noise.name})",
-    )
-    p.add_argument("--out", type=Path, default=Path("fly-out"), help="output directory (default ./fly-out)")
-    p.add_argument("--json", type=Path, help="write the result record here too")
-    p.add_argument("--no-plot", action="store_true", help="skip the trajectory PNG")
-    p.add_argument("--quiet", action="store_true", help="no progress line")
-    p.add_argument(
-        "--signing-key",
-        type=Path,
-        metavar="FILE",
-        help="MAVLink 2 signing key file (mode 600): the simulator and the service sign every frame and drop "
-        "unsigned ones (docs/hardening.md#mavlink-2-signing)",
-    )
-
-
-def _add_sweep_options(p: argparse.ArgumentParser) -> None:
-    """Several flights: --trials, the study on the same worlds, seeded link faults."""
-    p.add_argument(
-        "--trials",
-        type=_int_from(1),
-        default=1,
-        help="fly this many worlds (seeds SEED, SEED+1, ...) one after another and print the success rate (>= 1)",
-    )
-    p.add_argument(
-        "--study-reps",
-        type=_int_from(0),
-        default=100,
-        metavar="R",
-        help="with --trials on a paper field: also run the study's engine R times on each flown field "
-        "(its noise and rules) and print its success rate on the same worlds (default 100; 0 = off)",
-    )
-    p.add_argument(
-        "--link-faults",
-        type=_link_faults,
-        metavar="SPEC",
-        help="seeded faults between vehicle and service, e.g. loss=0.3,jitter=0.1,dup=0.05,reorder=0.05,"
-        "blackout=2@40%%  (times in simulated s; see sim/linkfaults.py)",
-    )
-
-
-def _bundled_worlds() -> list[str]:
-    from sim.world import EXAMPLES_DIR
-
-    return sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
-
-
-def _link_faults(text: str) -> LinkFaults:
-    try:
-        return LinkFaults.parse(text)
-    except ConfigError as err:
-        raise argparse.ArgumentTypeError(str(err)) from err
-
-
-@dataclasses.dataclass(frozen=True, slots=True)
-class _Route:
-    """Where ``apf-sim fly`` flies: start, goal, and the world file's zones."""
-
-    start_ne_m: tuple[float, float]
-    goal_ne_m: tuple[float, float]
-    area_ne_m: FlyingArea | None
-    keepouts_ne_m: KeepOuts
-    world: World | None = None  # the world file's obstacles (None: a paper field)
-
-
-def _route(args: argparse.Namespace) -> _Route:
-    """--start/--goal, else the world file's suggested start/goal, else the paper's (3, 3) -> (22, 22); and the
-    world file's flying area and keep-out zones unless --no-area (the file read once)."""
-    start, goal = PAPER_START, PAPER_GOAL
-    area: FlyingArea | None = None
-    keepouts: KeepOuts = ()
-    world: World | None = None
-    if args.world is not None:
-        from sim.world import load_world
-
-        world = load_world(args.world)
-        start = world.start_ne_m or start
-        goal = world.goal_ne_m or goal
-        if not args.no_area:
-            area, keepouts = world.area_ne_m, world.keepouts_ne_m
-    return _Route(args.start or start, args.goal or goal, area, keepouts, world)
-
-
-def route_problem(opt: FlyOptions, world: World | None, radius_m: float) -> str | None:
-    """Why ``apf-sim fly`` refuses ``opt``'s start or goal before it starts anything, or None.
-
-    A start or goal outside the world's flying area or in one of its keep-out zones (the service refuses such a
-    goal, bapf-nav gives up at once; ``--no-area`` flies without them), or a start whose clearance to an obstacle
-    of ``world`` (``World.nearest_obstacle``, the distance the simulator judges collisions by) is less than the
-    vehicle's collision radius ``radius_m`` (SIM_VEH_RADIUS): the simulator would end the flight in a collision at
-    once."""
-    where = f"world {opt.world}" if opt.world is not None else "the world"
-    for flag, (north, east) in (("--start", opt.start_ne_m), ("--goal", opt.goal_ne_m)):
-        point = f"{flag} (north {north:g} m, east {east:g} m)"
-        if opt.area_ne_m is not None and not inside_area(opt.area_ne_m, north, east):
-            return (
-                f"{point} lies outside the flying area of {where}, area_ne_m = {area_text(opt.area_ne_m)}: "
-                "pick a point inside it, or fly without the area (--no-area)"
-            )
-        if in_keepout(opt.keepouts_ne_m, north, east):
-            return f"{point} lies in a keep-out zone of {where}: pick a point outside it, or --no-area"
-    if world is not None:
-        i, clearance = world.nearest_obstacle(opt.start_ne_m)
-        if clearance < radius_m:
-            kind = "cylinder" if i < world.n_circles else "wall"
-            north, east = opt.start_ne_m
-            gap = f"lies inside {kind} {i}" if clearance < 0 else f"is {clearance:.2f} m from {kind} {i}"
-            return (
-                f"--start (north {north:g} m, east {east:g} m) {gap} of world {world.name}, within the vehicle's "
-                "collision "
-                f"radius SIM_VEH_RADIUS = {radius_m:g} m: the flight would end in a collision at once"
-            )
-    return None
-
-
-def _cmd_fly(args: argparse.Namespace) -> int:
-    try:
-        route = _route(args)
-        if args.signing_key is not None:
-            load_signing_key(args.signing_key)  # a key file others can read: refused before anything starts
-    except ApfCompanionError as err:
-        print(f"apf-sim fly: {err}", file=sys.stderr)
-        return 2
-    opt = FlyOptions(
-        planner=args.planner,
-        profile=args.profile,
-        dynamics=args.dynamics,
-        seed=args.seed,
-        preset=args.preset,
-        obstacles=args.obstacles,
-        world=args.world,
-        start_ne_m=route.start_ne_m,
-        goal_ne_m=route.goal_ne_m,
-        area_ne_m=route.area_ne_m,
-        keepouts_ne_m=route.keepouts_ne_m,
-        fence=args.fence,
-        vehicle_params=tuple(args.vehicle_param),
-        alt_m=args.alt,
-        speedup=args.speedup,
-        rate_hz=args.rate,
-        max_flight_s=args.max_flight,
-        noise_m=args.noise,
-        out=args.out,
-        json_path=args.json,
-        plot=not args.no_plot,
-        progress=not args.quiet,
-        link_faults=args.link_faults,
-        signing_key=args.signing_key,
-    )
-    try:
-        radius_m = vehicle_params(opt)["SIM_VEH_RADIUS"]
-    except ConfigError as err:
-        print(f"apf-sim fly: {err}", file=sys.stderr)
-        return 2
-    if args.trials <= 1:
-        opt = dataclasses.replace(opt, obstacles=_densities(opt)[0])
-    # A world file's obstacles, or the one paper field a single flight flies (the trials' are random draws).
-    world = route.world if opt.world is not None else (paper_world(opt) if args.trials <= 1 else None)
-    problem = route_problem(opt, world, radius_m)
-    if problem is not None:
-        print(f"apf-sim fly: {problem}", file=sys.stderr)
-        return 2
-    if args.trials > 1:
-        return _sweep(opt, args.trials, study_reps=args.study_reps)
-    try:
-        rec = asyncio.run(fly(opt))
-    except ApfCompanionError as err:
-        print(f"apf-sim fly: {err}", file=sys.stderr)
-        return 1
-    if rec["outcome"] == "error":
-        print(f"apf-sim fly: error: {rec.get('error', 'unknown')}", file=sys.stderr)
-    print(flight_summary(rec, opt.out))
-    return 0 if rec["outcome"] == "arrived" else 3
-
-
-def flight_summary(rec: dict[str, Any], out: Path) -> str:
-    """What ``apf-sim fly`` prints after one flight: outcome (and the simulator's crash message after a
-    collision), path, clearance, times and the files the flight wrote to ``out``."""
-    crash = rec.get("crash")
-    mcap = rec.get("mcap")
-    return (
-        f"outcome: {rec['outcome']}\n"
-        + (f"crash: {_crash_text(crash)}\n" if rec["outcome"] == "collision" and isinstance(crash, dict) else "")
-        + f"planner: {rec['planner']} ({rec['profile']}), world: {rec['world']}, seed {rec['seed']}\n"
-        f"path length: {rec['path_length_m']:.2f} m\n"
-        f"min clearance: {_clearance_text(rec)}\n"
-        f"flight time: {rec['flight_time_s']:.1f} s simulated ({rec['sim_time_s']:.1f} s since boot), "
-        f"{rec['steps']} planner steps, {rec['wall_time_s']:.1f} s wall\n"
-        f"output: {out}/ ({', '.join(output_files(out)) or 'nothing written'})"
-        + (f"; {Path(mcap).name}: apf-sim mcap-plot, or open it in Foxglove" if mcap else "")
-    )
-
-
-def _crash_text(crash: dict[str, Any]) -> str:
-    """The simulator's crash record (its ``crashed_at``) for the summary: reason, time and place."""
-    text = str(crash.get("reason", "crashed"))
-    t_s, pos = crash.get("t_s"), crash.get("pos_ned_m")
-    if isinstance(t_s, int | float):
-        text += f" at t={t_s:.1f} s"
-    if isinstance(pos, list) and len(pos) >= 2:
-        text += f", north {pos[0]:.2f} m, east {pos[1]:.2f} m"
-    return text
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a binomial proportion."""
-    if n == 0:
-        return (0.0, 1.0)
-    p = successes / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
-def _sweep_loop(
-    base: FlyOptions, trials: int, records: list[dict[str, Any]], fields: list[npt.NDArray[np.float64]]
-) -> None:
-    from sim.study.cli import eta_text
-
-    densities = _densities(base)
-    started = time.monotonic()
-    for k in range(trials):
-        seed = base.seed + k
-        opt = dataclasses.replace(
-            base,
-            seed=seed,
-            obstacles=densities[k % len(densities)],
-            out=base.out / f"seed-{seed}",
-            json_path=None,
-            progress=False,
-            plot=base.plot,
-        )
-        try:
-            rec = asyncio.run(fly(opt))
-        except ApfCompanionError as err:
-            rec = {"outcome": "error", "seed": seed, "error": str(err)}
-        if base.world is None:
-            fields.append(flown_world(opt, _read_json(opt.out / "sim_result.json")))
-            rec["obstacles"] = opt.obstacles
-        records.append(rec)
-        ok = sum(r["outcome"] == "arrived" for r in records)
-        clearance = clearance_flown(rec)
-        clearance_txt = "-" if clearance is None else f"{clearance:.3f} m"
-        print(
-            f"[{k + 1}/{trials}] seed {seed}: {rec['outcome']:9s} world {rec.get('world')} "
-            f"clearance {clearance_txt} steps {rec.get('steps')}  (success so far {ok}/{k + 1})"
-            f"{eta_text(k + 1, trials, time.monotonic() - started)}",
-            flush=True,
-        )
-
-
-def _densities(opt: FlyOptions) -> list[str]:
-    """``--obstacles low,mid,high``: the densities the trials cycle through (one entry: all the same)."""
-    return [d.strip() for d in opt.obstacles.split(",") if d.strip()] or ["mid"]
-
-
-def _fault_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Collisions, lowest clearance, dropped goals and LINK_LOST events over the trials (for --link-faults)."""
-    clearances = [c for c in map(clearance_flown, records) if c is not None]
-    events = [r.get("service_events") or {} for r in records]
-    return {
-        "collisions": sum(r["outcome"] == "collision" for r in records),
-        "min_clearance_m": min(clearances) if clearances else None,
-        "dropped_goals": sum(bool(r.get("dropped_goal")) for r in records),
-        "link_lost_events": sum(int(e.get("link_lost", 0)) for e in events),
-        "flights_with_link_lost": sum(int(e.get("link_lost", 0)) > 0 for e in events),
-        "takeover_failures": sum(len(e.get("takeover_failed") or []) for e in events),
-        "by_obstacles": {
-            d: {o: sum(r["outcome"] == o and r.get("obstacles") == d for r in records) for o in OUTCOMES}
-            for d in sorted({str(r.get("obstacles")) for r in records})
-        },
-    }
-
-
-def _mean_ci(values: npt.NDArray[np.float64], z: float = 1.96) -> tuple[float, float, float]:
-    """Mean and its normal-approximation 95 % interval (worlds as the sampling unit)."""
-    mean = float(values.mean())
-    if values.size < 2:
-        return mean, -math.inf, math.inf
-    half = z * float(values.std(ddof=1)) / math.sqrt(values.size)
-    return mean, mean - half, mean + half
-
-
-def _study_summary(
-    base: FlyOptions, records: list[dict[str, Any]], fields: list[npt.NDArray[np.float64]], replications: int
-) -> dict[str, Any]:
-    """The study's rate on the flown fields, per world into ``records``, overall as the returned dict."""
-    successes = study_same_worlds(
-        fields, preset=base.preset, planner=base.planner, replications=replications, seed=base.seed
-    )
-    for rec, n_ok in zip(records, successes, strict=True):
-        rec["study_successes"] = int(n_ok)
-        rec["study_rate"] = float(n_ok) / replications
-    total = int(successes.sum())
-    n = replications * len(records)
-    quiet = study_same_worlds(
-        fields, preset=base.preset, planner=base.planner, replications=replications, seed=base.seed, noise_std_m=0.0
-    )
-    for rec, n_ok in zip(records, quiet, strict=True):
-        rec["study_rate_no_noise"] = float(n_ok) / replications
-    fly_ok = np.array([r["outcome"] == "arrived" for r in records], dtype=np.float64)
-    study_rate = successes.astype(np.float64) / replications
-    mean, lo, hi = _mean_ci(study_rate)
-    diff, dlo, dhi = _mean_ci(fly_ok - study_rate)
-    return {
-        "rate": total / n,
-        # Every trial as independent (as the study reports its rates) ...
-        "ci95": list(wilson_interval(total, n)),
-        # ... and with the world as the unit (these worlds are a sample of the density's fields).
-        "ci95_worlds": [max(0.0, lo), min(1.0, hi)],
-        "replications": replications,
-        "trials": n,
-        "preset": base.preset,
-        "planner": base.planner,
-        "noise_std_m": _study_noise(base.preset),
-        "fly_minus_study": diff,
-        "fly_minus_study_ci95": [dlo, dhi],
-        "study_mean_of_world_rates": mean,
-        # The same trials without actuation noise: how much of the gap the noise explains.
-        "no_noise": {"rate": int(quiet.sum()) / n, "ci95": list(wilson_interval(int(quiet.sum()), n))},
-    }
-
-
-def _study_noise(preset: str) -> float:
-    from sim.study.config import StudyConfig
-
-    return float(StudyConfig.from_preset(preset).noise_std_m)
-
-
-def _sweep(base: FlyOptions, trials: int, study_reps: int = 0) -> int:
-    """Fly seeds base.seed .. base.seed + trials - 1; per-trial output in OUT/seed-<k>/, summary in OUT/.
-
-    With ``study_reps`` > 0 (paper fields only) the study's engine then runs ``study_reps`` noisy trials on each
-    flown field, so the flight rate can be compared with the study's on exactly the same worlds.
-    """
-    records: list[dict[str, Any]] = []
-    fields: list[npt.NDArray[np.float64]] = []
-    try:
-        _sweep_loop(base, trials, records, fields)
-    except KeyboardInterrupt:
-        print(f"interrupted after {len(records)} flights", file=sys.stderr)
-    trials = len(records)
-    if trials == 0:
-        return 130
-    summary = _sweep_summary(base, records)
-    study: dict[str, Any] | None = None
-    if study_reps > 0 and base.world is None and len(fields) == trials:
-        study = _study_summary(base, records, fields, study_reps)
-        summary["study_same_worlds"] = study
-    summary["records"] = records
-    base.out.mkdir(parents=True, exist_ok=True)
-    (base.out / "sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
-    if base.json_path is not None:
-        base.json_path.write_text(json.dumps(summary, indent=2) + "\n")
-    _print_sweep(base, summary, study, study_reps)
-    return 0
-
-
-def _sweep_summary(base: FlyOptions, records: list[dict[str, Any]]) -> dict[str, Any]:
-    """The sweep's summary: outcome counts, success rate with its Wilson interval, means, fault counts."""
-    trials = len(records)
-    counts = {o: sum(r["outcome"] == o for r in records) for o in OUTCOMES}
-    ok = counts["arrived"]
-    lo, hi = wilson_interval(ok, trials)
-    wins = [r for r in records if r["outcome"] == "arrived"]
-    return {
-        "planner": base.planner,
-        "profile": base.profile,
-        "preset": base.preset if base.world is None else None,
-        "obstacles": base.obstacles if base.world is None else None,
-        "world": base.world,
-        "noise_m": base.noise_m,
-        "trials": trials,
-        "first_seed": base.seed,
-        "success_rate": ok / trials,
-        "success_rate_95ci": [lo, hi],
-        "counts": counts,
-        "mean_steps_success": (sum(r["steps"] for r in wins) / len(wins)) if wins else None,
-        "mean_path_length_m_success": (sum(r["path_length_m"] for r in wins) / len(wins)) if wins else None,
-        "link_faults": None if base.link_faults is None else str(base.link_faults),
-        **_fault_summary(records),
-    }
-
-
-def _print_sweep(base: FlyOptions, summary: dict[str, Any], study: dict[str, Any] | None, study_reps: int) -> None:
-    """The sweep's summary lines on stdout."""
-    trials = summary["trials"]
-    counts = summary["counts"]
-    ok = counts["arrived"]
-    lo, hi = summary["success_rate_95ci"]
-    print(
-        f"success {ok}/{trials} = {ok / trials:.3f} (95 % CI {lo:.3f}-{hi:.3f}); "
-        + ", ".join(f"{o} {n}" for o, n in counts.items())
-    )
-    clearance = summary["min_clearance_m"]
-    print(
-        f"collisions {summary['collisions']}, lowest clearance "
-        f"{'n/a' if clearance is None else f'{clearance:.3f} m'}, dropped goals {summary['dropped_goals']}, "
-        f"LINK_LOST {summary['link_lost_events']} (in {summary['flights_with_link_lost']} flights), "
-        f"failed takeovers {summary['takeover_failures']}"
-        + ("" if base.link_faults is None else f"; link faults {base.link_faults}")
-    )
-    if study is not None:
-        slo, shi = study["ci95"]
-        wlo, whi = study["ci95_worlds"]
-        dlo, dhi = study["fly_minus_study_ci95"]
-        print(
-            f"study on the same {trials} worlds ({study['preset']}, noise {study['noise_std_m']} m, "
-            f"{study_reps} replications each): {study['rate']:.3f} (95 % CI {slo:.3f}-{shi:.3f} over trials, "
-            f"{wlo:.3f}-{whi:.3f} over worlds); without its noise {study['no_noise']['rate']:.3f}\n"
-            f"flight {ok / trials:.3f} vs study {study['rate']:.3f}: paired difference "
-            f"{study['fly_minus_study']:+.3f} (95 % CI {dlo:+.3f} to {dhi:+.3f})"
-        )

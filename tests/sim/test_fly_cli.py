@@ -99,26 +99,13 @@ def test_outcome_rules() -> None:
     assert _outcome({"collided": False}, None) == "error"
 
 
-def test_fly_error_prints_the_reason_and_only_outputs_it_wrote(tmp_path: Path) -> None:
-    """A planner typo reaches the service, which refuses its config: the reason is printed, and the output line
-    lists only files that exist (no companion.tlog: the service never opened its link)."""
+def test_a_planner_typo_is_refused_before_anything_starts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
-    proc = subprocess.run(
-        [sys.executable, "-m", "sim", "fly", "--planner", "cr-bapff", "--out", str(out), "--quiet", "--no-plot"],
-        capture_output=True,
-        text=True,
-        timeout=110,
-        env=os.environ | {"OPENBLAS_NUM_THREADS": "1"},
-        check=False,
-    )
-    assert proc.returncode == 3, proc.stdout + proc.stderr
-    assert "outcome: error" in proc.stdout
-    assert "apf-sim fly: error: service: apf-companion: config error: planner.name must be one of" in proc.stderr
-    assert "'cr-bapff'" in proc.stderr
-    listed = proc.stdout.split("output:")[1]
-    assert "companion.tlog" not in listed and "trajectory.png" not in listed
-    assert not (out / "companion.tlog").exists() and not (out / "trajectory.png").exists()
-    assert "planner.name" in json.loads((out / "result.json").read_text())["error"]
+    with pytest.raises(SystemExit) as exc:
+        sim_main(["fly", "--planner", "cr-bapff", "--out", str(out)])
+    assert exc.value.code == 2
+    assert "argument --planner: invalid choice: 'cr-bapff'" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_a_port_taken_before_the_service_binds_it_is_picked_again(

@@ -12,7 +12,8 @@ from typing import Any
 import pytest
 
 from sim.cli import build_parser
-from sim.fly import OUTCOMES, FlyOptions, _densities, _fault_summary, _service_events, expected_flight_s
+from sim.fly import OUTCOMES, FlyOptions, _service_events, expected_flight_s
+from sim.flysweep import _fault_summary, flight_densities
 from sim.linkfaults import LinkFaults
 
 pytestmark = pytest.mark.timeout(150)
@@ -38,8 +39,8 @@ def test_cli_parses_the_spec_and_rejects_typos() -> None:
 
 
 def test_densities_cycle_and_expected_flight() -> None:
-    assert _densities(FlyOptions(obstacles="low,mid,high")) == ["low", "mid", "high"]
-    assert _densities(FlyOptions(obstacles="37")) == ["37"]
+    assert flight_densities(FlyOptions(obstacles="low,mid,high")) == ["low", "mid", "high"]
+    assert flight_densities(FlyOptions(obstacles="37")) == ["37"]
     # The paper's diagonal, (3, 3) -> (22, 22): 26.9 m at 0.5 m/s.
     assert expected_flight_s(FlyOptions()) == pytest.approx(53.74, abs=0.01)
 

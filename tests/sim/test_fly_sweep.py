@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from sim.cli import build_parser
-from sim.fly import FlyOptions, _sim_argv, _study_summary, flown_world, paper_world, study_same_worlds
+from sim.fly import FlyOptions, _sim_argv, flown_world, paper_world, study_same_worlds
+from sim.flysweep import _study_summary
 from sim.vehicle.cli import _world as vehicle_world
 
 

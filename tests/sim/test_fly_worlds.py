@@ -14,7 +14,8 @@ import pytest
 from apf_companion.builders import build_planner
 from apf_companion.config import config_from_mapping
 from sim.cli import build_parser
-from sim.fly import FlyOptions, _route, _service_toml, _sim_argv
+from sim.fly import FlyOptions, _service_toml, _sim_argv
+from sim.flycli import _route
 from sim.world import EXAMPLES_DIR, load_world
 
 
