@@ -52,6 +52,8 @@ from sim.world.field import DENSITIES, MAX_OBSTACLES
 if TYPE_CHECKING:
     from sim.world import World
 
+__all__ = ["flight_summary", "register", "route_problem", "vehicle_params"]
+
 
 def _speedup(text: str) -> float:
     """``--speedup``: a number in SPEEDUP_RANGE (argparse names the flag in its error)."""
@@ -68,9 +70,6 @@ def _speedup(text: str) -> float:
         )
         raise argparse.ArgumentTypeError(msg)
     return value
-
-
-__all__ = ["flight_summary", "register", "route_problem", "vehicle_params"]
 
 
 def _pair(text: str) -> tuple[float, float]:

@@ -9,30 +9,16 @@ import json
 import math
 import sys
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from apf_companion.errors import ApfCompanionError
 from sim.fly import OUTCOMES, FlyOptions, clearance_flown, flown_world, fly, read_json, study_same_worlds
+from sim.study.metrics import wilson_interval
 
-if TYPE_CHECKING:
-    pass
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a binomial proportion."""
-    if n == 0:
-        return (0.0, 1.0)
-    p = successes / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
-__all__ = ["flight_densities", "fly_trials", "wilson_interval"]
+__all__ = ["flight_densities", "fly_trials"]
 
 
 def _sweep_loop(
