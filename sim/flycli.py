@@ -10,7 +10,6 @@ import dataclasses
 import math
 import re
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,6 +32,7 @@ from apf_companion.planning import (
     in_keepout,
     inside_area,
 )
+from sim.argtypes import int_from, number_in
 from sim.fly import (
     HEARTBEAT_FLOOR_S,
     PAPER_GOAL,
@@ -83,38 +83,6 @@ def _pair(text: str) -> tuple[float, float]:
         msg = f"expected N,E (two finite numbers in metres), got {text!r}"
         raise argparse.ArgumentTypeError(msg)
     return north, east
-
-
-def _number_in(lo: float, hi: float, *, lo_open: bool = False, what: str) -> Callable[[str], float]:
-    """An argparse type: a number in [lo, hi] (``(lo, hi]`` with ``lo_open``); ``what`` is its unit and meaning."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not ((value > lo if lo_open else value >= lo) and value <= hi):  # NaN too
-            msg = f"must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}] {what}, got {text!r}"
-            raise argparse.ArgumentTypeError(msg)
-        return value
-
-    return parse
-
-
-def _int_from(lo: int) -> Callable[[str], int]:
-    """An argparse type: an integer >= lo."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = lo - 1
-        if value < lo:
-            msg = f"must be an integer >= {lo}, got {text!r}"
-            raise argparse.ArgumentTypeError(msg)
-        return value
-
-    return parse
 
 
 def _obstacles(text: str) -> str:
@@ -195,7 +163,7 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
         "ardupilot profile; simple for px4), simple, or arducopter",
     )
     p.add_argument(
-        "--seed", type=_int_from(0), default=0, help="seed of the random field and the planner, >= 0 (default 0)"
+        "--seed", type=int_from(0), default=0, help="seed of the random field and the planner, >= 0 (default 0)"
     )
     p.add_argument("--preset", choices=("reference", "paper"), default="reference", help="random-field preset")
     p.add_argument(
@@ -240,7 +208,7 @@ def _add_flight_options(p: argparse.ArgumentParser) -> None:
     alt_hi = min(TAKEOFF_ALT_RANGE_M[1], GoalConfig().max_altitude_m)
     p.add_argument(
         "--alt",
-        type=_number_in(0.0, alt_hi, lo_open=True, what="m (the service's takeoff height and goal.max_altitude_m)"),
+        type=number_in(0.0, alt_hi, lo_open=True, what="m (the service's takeoff height and goal.max_altitude_m)"),
         default=5.0,
         help=f"flight height above home, in (0, {alt_hi:g}] m (default 5)",
     )
@@ -255,21 +223,21 @@ def _add_flight_options(p: argparse.ArgumentParser) -> None:
     rate_lo, rate_hi = RATE_RANGE_HZ
     p.add_argument(
         "--rate",
-        type=_number_in(rate_lo, rate_hi, what="Hz (the service's cycle.rate_hz)"),
+        type=number_in(rate_lo, rate_hi, what="Hz (the service's cycle.rate_hz)"),
         default=10.0,
         help=f"service cycle rate in simulated Hz, in [{rate_lo:g}, {rate_hi:g}] (default 10)",
     )
     flight_hi = MAX_FLIGHT_RANGE_S[1]
     p.add_argument(
         "--max-flight",
-        type=_number_in(0.0, flight_hi, lo_open=True, what="simulated s (the service's max_flight_s)"),
+        type=number_in(0.0, flight_hi, lo_open=True, what="simulated s (the service's max_flight_s)"),
         default=300.0,
         help=f"give up after this many simulated s, in (0, {flight_hi:g}] (default 300)",
     )
     noise = _noise_spec()
     p.add_argument(
         "--noise",
-        type=_number_in(noise.lo, noise.hi, what=f"m (the vehicle's {noise.name})"),
+        type=number_in(noise.lo, noise.hi, what=f"m (the vehicle's {noise.name})"),
         default=0.0,
         help=f"actuation noise SD [m], in [{noise.lo:g}, {noise.hi:g}] (the paper's is 0.1; {noise.name})",
     )
@@ -290,13 +258,13 @@ def _add_sweep_options(p: argparse.ArgumentParser) -> None:
     """Several flights: --trials, the study on the same worlds, seeded link faults."""
     p.add_argument(
         "--trials",
-        type=_int_from(1),
+        type=int_from(1),
         default=1,
         help="fly this many worlds (seeds SEED, SEED+1, ...) one after another and print the success rate (>= 1)",
     )
     p.add_argument(
         "--study-reps",
-        type=_int_from(0),
+        type=int_from(0),
         default=100,
         metavar="R",
         help="with --trials on a paper field: also run the study's engine R times on each flown field "

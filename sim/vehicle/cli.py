@@ -18,6 +18,7 @@ from apf_companion.cli import add_log_level_option
 from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.links import load_signing_key
 from apf_companion.planning import FlyingArea, KeepOuts
+from sim.argtypes import int_from, number_in
 from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SENSOR_COMPID, SensorOnlyConfig, SensorSimulator
@@ -123,19 +124,19 @@ def _register_sensor(subparsers: argparse._SubParsersAction) -> None:  # type: i
     _world_args(s)
     s.add_argument("--output", action="append", default=[], metavar="ENDPOINT", help="MAVLink output, repeatable")
     s.add_argument("--to-autopilot", action="store_true", help="also send the sensor messages to the autopilot")
-    s.add_argument("--sysid", type=int, default=1, help="our MAVLink system id (default 1: the vehicle's)")
+    s.add_argument("--sysid", type=int_from(1, 255), default=1, help="our MAVLink system id (default 1: the vehicle's)")
     s.add_argument(
         "--compid",
-        type=int,
+        type=int_from(1, 255),
         default=SENSOR_COMPID,
         help=f"our MAVLink component id (default {SENSOR_COMPID}, MAV_COMP_ID_PERIPHERAL; never 1: ArduPilot drops "
         'packets with its own ids). The service must list it: [sensors] mavlink_sources = ["1/158"]',
     )
-    s.add_argument("--rate", type=float, default=10.0, help="sensor rate [Hz]")
-    s.add_argument("--range", type=float, default=8.0, help="max range [m]")
-    s.add_argument("--min-range", type=float, default=0.2, help="min range [m]")
-    s.add_argument("--noise", type=float, default=0.0, help="range noise SD [m]")
-    s.add_argument("--dropout", type=float, default=0.0, help="probability a reading is lost")
+    s.add_argument("--rate", type=number_in(0.1, 100.0, what="Hz"), default=10.0, help="sensor rate [Hz], [0.1, 100]")
+    s.add_argument("--range", type=number_in(0.0, math.inf, lo_open=True, what="m"), default=8.0, help="max range [m]")
+    s.add_argument("--min-range", type=number_in(0.0, math.inf, what="m"), default=0.2, help="min range [m], < --range")
+    s.add_argument("--noise", type=number_in(0.0, math.inf, what="m"), default=0.0, help="range noise SD [m], >= 0")
+    s.add_argument("--dropout", type=number_in(0.0, 1.0), default=0.0, help="probability a reading is lost, [0, 1]")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--tlog", type=Path, help="record the autopilot link (.tlog)")
     s.add_argument("--result-json", type=Path, help="write clearance/collision result on exit")
@@ -313,6 +314,9 @@ async def _sensor_main(args: argparse.Namespace) -> int:
             "needs an output: --output ENDPOINT (MAVLink, repeatable), --zenoh-connect/--zenoh-listen, "
             "or --to-autopilot"
         )
+        raise ConfigError(msg)
+    if not args.min_range < args.range:
+        msg = f"--min-range ({args.min_range:g} m) must be less than --range ({args.range:g} m)"
         raise ConfigError(msg)
     cfg = SensorOnlyConfig(
         autopilot=args.autopilot,

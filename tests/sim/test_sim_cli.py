@@ -95,3 +95,32 @@ def test_sensor_without_an_output_names_the_flags(capsys: pytest.CaptureFixture[
     assert err.startswith("apf-sim sensor: needs an output: --output ENDPOINT")
     assert "--zenoh-connect/--zenoh-listen, or --to-autopilot" in err
     assert "also_to_autopilot" not in err and "outputs" not in err
+
+
+_SENSOR = ["sensor", "--autopilot", "udpin:127.0.0.1:9", "--output", "udpout:127.0.0.1:9"]
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "says"),
+    [
+        ("--rate", "0", "argument --rate: must be a number in [0.1, 100] Hz, got '0'"),
+        ("--dropout", "2", "argument --dropout: must be a number in [0, 1], got '2'"),
+        ("--noise", "-1", "argument --noise: must be a number in [0, inf) m, got '-1'"),
+        ("--noise", "inf", "argument --noise: must be a number in [0, inf) m, got 'inf'"),
+        ("--range", "nan", "argument --range: must be a number in (0, inf) m, got 'nan'"),
+        ("--sysid", "0", "argument --sysid: must be an integer in [1, 255], got '0'"),
+        ("--compid", "300", "argument --compid: must be an integer in [1, 255], got '300'"),
+    ],
+)
+def test_sensor_flags_are_checked_at_parsing_by_their_names(
+    flag: str, value: str, says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([*_SENSOR, flag, value])
+    assert exc.value.code == 2
+    assert says in capsys.readouterr().err
+
+
+def test_sensor_min_range_must_be_below_its_range(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([*_SENSOR, "--min-range", "9"]) == 2
+    assert capsys.readouterr().err == "apf-sim sensor: --min-range (9 m) must be less than --range (8 m)\n"
