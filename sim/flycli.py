@@ -47,6 +47,7 @@ from sim.fly import (
 from sim.flysweep import flight_densities, fly_trials
 from sim.linkfaults import LinkFaults
 from sim.vehicle.params import ParamSpec, ParamTable, param_specs
+from sim.world import bundled_world_names
 from sim.world.field import DENSITIES, MAX_OBSTACLES
 
 if TYPE_CHECKING:
@@ -173,7 +174,7 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
         help=f"obstacle count N in [0, {MAX_OBSTACLES}], or density {'|'.join(DENSITIES)} (default mid); a list "
         "(low,mid,high) cycles over --trials",
     )
-    p.add_argument("--world", help=f"world TOML file or bundled example ({', '.join(_bundled_worlds())})")
+    p.add_argument("--world", help=f"world TOML file or bundled example ({', '.join(bundled_world_names())})")
     p.add_argument("--start", type=_pair, metavar="N,E", help="start (default: the world file's, else the paper's 3,3)")
     p.add_argument("--goal", type=_pair, metavar="N,E", help="goal (default: the world file's, else 22,22)")
     p.add_argument(
@@ -277,12 +278,6 @@ def _add_sweep_options(p: argparse.ArgumentParser) -> None:
         help="seeded faults between vehicle and service, e.g. loss=0.3,jitter=0.1,dup=0.05,reorder=0.05,"
         "blackout=2@40%%  (times in simulated s; see sim/linkfaults.py)",
     )
-
-
-def _bundled_worlds() -> list[str]:
-    from sim.world import EXAMPLES_DIR
-
-    return sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
 
 
 def _link_faults(text: str) -> LinkFaults:

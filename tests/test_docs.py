@@ -115,3 +115,16 @@ def test_the_import_graph_shows_the_service_wiring() -> None:
     assert "`apf_companion.navigator`" in service[1]
     product_rows = [r for r in table.splitlines() if r.startswith("| `apf_companion")]
     assert product_rows and not any("`sim" in r.split("|")[2] for r in product_rows)  # the product never imports sim
+
+
+def test_the_simulator_page_lists_every_bundled_world() -> None:
+    """docs/simulator-usage.md names the bundled example worlds; a world added to sim/world/examples/ must be there."""
+    from sim.world import bundled_world_names
+
+    text = (DOCS / "simulator-usage.md").read_text()
+    listing = text[text.index("## World files") :]
+    listing = listing[: listing.index("```")]
+    missing = [
+        name for name in bundled_world_names() if not re.search(rf"(?<![\w-]){re.escape(name)}(?![\w-])", listing)
+    ]
+    assert missing == []

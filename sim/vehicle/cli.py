@@ -23,7 +23,7 @@ from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SENSOR_COMPID, SensorOnlyConfig, SensorSimulator
 from sim.vehicle.simulator import SimConfig, Simulator, ZenohOutput
-from sim.world import World, load_world, paper_field, parse_field_spec
+from sim.world import World, bundled_world_names, load_world, paper_field, parse_field_spec
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ def _register_sensor(subparsers: argparse._SubParsersAction) -> None:  # type: i
 
 def _world_args(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--world", help="world TOML file, or a bundled example: forest, corridor, u-trap, wall")
+    g.add_argument("--world", help=f"world TOML file, or a bundled example: {', '.join(bundled_world_names())}")
     g.add_argument("--paper-field", metavar="PRESET:N", help="the paper's random field, e.g. reference:40, paper:mid")
     p.add_argument("--field-seed", type=int, help="seed of --paper-field (default: --seed)")
     p.add_argument("--field-radius", type=float, default=0.0, help="obstacle radius of --paper-field [m]")

@@ -15,7 +15,7 @@ from sim.world.field import (
     paper_field,
     parse_field_spec,
 )
-from sim.world.files import EXAMPLES_DIR, example_world_path, load_world, world_from_mapping
+from sim.world.files import EXAMPLES_DIR, bundled_world_names, example_world_path, load_world, world_from_mapping
 from sim.world.model import World
 
 __all__ = [
@@ -27,6 +27,7 @@ __all__ = [
     "PAPER_TARGET_NE_M",
     "FieldPreset",
     "World",
+    "bundled_world_names",
     "example_world_path",
     "load_world",
     "paper_field",

@@ -54,7 +54,7 @@ from apf_companion.planning import FlyingArea
 from sim.world.field import paper_field
 from sim.world.model import World
 
-__all__ = ["EXAMPLES_DIR", "example_world_path", "load_world", "world_from_mapping"]
+__all__ = ["EXAMPLES_DIR", "bundled_world_names", "example_world_path", "load_world", "world_from_mapping"]
 
 EXAMPLES_DIR = Path(__file__).parent / "examples"
 
@@ -79,12 +79,16 @@ _KEYS = {
 }
 
 
+def bundled_world_names() -> list[str]:
+    """The bundled example worlds by name (the ``*.toml`` stems in ``sim/world/examples/``), sorted."""
+    return sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
+
+
 def example_world_path(name: str) -> Path:
     """The path of a bundled example world by name (the ``*.toml`` stems in ``sim/world/examples/``)."""
     path = EXAMPLES_DIR / f"{name}.toml"
     if not path.is_file():
-        known = sorted(p.stem for p in EXAMPLES_DIR.glob("*.toml"))
-        msg = f"no example world {name!r}; bundled: {known}"
+        msg = f"no example world {name!r}; bundled: {bundled_world_names()}"
         raise ConfigError(msg)
     return path
 
