@@ -205,8 +205,9 @@ def _effective_config(args: argparse.Namespace) -> tuple[ServiceConfig, Route | 
 def _cmd_run(args: argparse.Namespace) -> int:
     """Run the service: connect to the autopilot, fly goals around obstacles, report status.
 
-    Exit codes: 0 = stopped or arrived, 1 = error, 2 = configuration error, 3 = stuck / timeout / link lost
-    (only with exit_when_done).
+    Exit codes: 0 = stopped or arrived, 1 = error (with exit_when_done also a goal given at start that was
+    refused, e.g. beyond goal.max_altitude_m or goal.max_distance_m), 2 = configuration error, 3 = stuck / timeout /
+    link lost (only with exit_when_done).
     """
     from apf_companion.builders import signing_setup
     from apf_companion.heap import freeze_startup_heap

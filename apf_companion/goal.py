@@ -41,6 +41,7 @@ __all__ = [
     "local_goal_from_reposition",
     "ne_from_global",
     "parse_goal_text",
+    "route_check_waits",
     "route_outside_limits",
 ]
 
@@ -331,4 +332,13 @@ def route_outside_limits(
         far = np.flatnonzero(np.hypot(wp[:, 0] - pos[0], wp[:, 1] - pos[1]) > max_distance_m)
         if far.size:
             return f"waypoint {int(far[0])} is more than goal.max_distance_m = {max_distance_m:g} m away"
+    return None
+
+
+def route_check_waits(pos_ned_m: npt.ArrayLike | None, *, max_distance_m: float) -> str | None:
+    """Why a goal that passed ``route_outside_limits`` cannot be flown yet, or None: its check needs the vehicle's
+    position (``max_distance_m`` > 0) and none is known yet (a goal set at the first HEARTBEAT, before any pose).
+    Such a goal is held, not flown, and checked again when the position arrives (docs/hardening.md)."""
+    if max_distance_m > 0.0 and pos_ned_m is None:
+        return "goal waits for a position to check goal.max_distance_m"
     return None

@@ -641,6 +641,7 @@ class Navigator:
         self.engaged = False  # the autopilot has been seen in GUIDED/OFFBOARD for this route
         self.mode_ok = False  # latest HEARTBEAT: autopilot is in GUIDED/OFFBOARD
         self.suspended = False  # the service is busy with arming/takeoff: no setpoints
+        self.goal_waits = False  # the service holds a goal it cannot check yet (``goal_waits_for_check``)
         self.ekf_ready: bool | None = None  # EKF_STATUS_REPORT has a horizontal position (None = not reported)
         self._said: tuple[str, float] = ("", -math.inf)  # the last reason announced, and when
         self.last_output: CycleOutput | None = None
@@ -677,6 +678,7 @@ class Navigator:
             return False
         self.counters.goals += 1
         self.route = route
+        self.goal_waits = False
         _reset_planner(self.planner)
         self._legs.leg = None
         self._steps.target = None
@@ -684,6 +686,14 @@ class Navigator:
         self.engaged = self.mode_ok
         self._change(now_s, State.NAVIGATING, f"new goal from {route.source}: {route.to_json_list()[-1]}")
         return True
+
+    def goal_waits_for_check(self, now_s: float) -> None:
+        """The service holds a goal it cannot check yet (no position for ``goal.max_distance_m``): HOLDING, silent,
+        saying why there is no position, until ``set_route`` (checked: flown) or ``clear_route`` (refused)."""
+        if self.state is State.LINK_LOST or not self.link_alive(now_s):
+            return
+        self.goal_waits = True
+        self._enter_hold_state(now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
 
     def drain_changes(self) -> list[StateChange]:
         """State changes recorded outside ``cycle`` (``set_route``, heartbeats), oldest first; clears them."""
@@ -781,10 +791,10 @@ class Navigator:
 
     def _blocked(self, inp: _Inputs) -> CycleOutput | None:
         """Silence when there is no goal or pose (NAVIGATING -> HOLDING without a pose), or while suspended."""
-        if self.route is None and self.pose is not None and self.state is State.HOLDING:
+        if self.route is None and self.pose is not None and self.state is State.HOLDING and not self.goal_waits:
             return self.recovery.goalless_hold(inp)  # restarted mid-flight (``Recovery.restart_hold``)
         if self.route is None or self.pose is None:
-            if self.route is not None and self.state in (State.NAVIGATING, State.HOLDING):
+            if (self.route is not None or self.goal_waits) and self.state in (State.NAVIGATING, State.HOLDING):
                 self._enter_hold_state(inp.now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
             return self._silent(inp)
         if self.suspended:
@@ -896,6 +906,7 @@ class Navigator:
 
     def _drop_route(self, now_s: float, new: State, reason: str) -> None:
         self.route = None
+        self.goal_waits = False
         self._legs.leg = None
         self.engaged = False
         self._hold.anchor = None

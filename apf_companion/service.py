@@ -62,7 +62,7 @@ from apf_companion.fence import FenceArea, FenceOutcome
 from apf_companion.fencereader import STEP_S, FenceReader, FenceReaderParams
 from apf_companion.flightend import FlightEnd, Outcome
 from apf_companion.forwarder import ObstacleForwarder
-from apf_companion.goal import FenceBounds, GlobalReference, Route, route_outside_limits
+from apf_companion.goal import FenceBounds, GlobalReference, Route, route_check_waits, route_outside_limits
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.heap import GcPauses
 from apf_companion.linkquality import LinkMeter
@@ -259,6 +259,9 @@ class CompanionService:
         self.faults = FaultLog(self.counters)
         self.observers = Observers(self.faults)
         self.navigator = build_navigator(config, self.observers.tap(self.planner), self.perception)
+        self.start_route = route if route is not None else initial_route(config, self.planner)
+        self.held_route: Route | None = None  # a goal not flown until its check can be made (``set_route``)
+        self._goal_error: str | None = None  # exit_when_done: why the goal at start was refused
         self.link_meter = LinkMeter(self.navigator.params.caution)  # pose loss and send failures: caution
         self.outbox = build_outbox(config, link, self.clock.now)
         self.handlers = AutopilotHandlers(
@@ -269,7 +272,7 @@ class CompanionService:
             counters=self.counters,
             set_route=self.set_route,
             on_pose=self._pose_arrived,
-            route_at_start=route if route is not None else initial_route(config, self.planner),
+            route_at_start=self.start_route,
             on_param=lambda rec: self.params.handle(rec),
             on_fence=lambda rec: None if self.fence is None else self.fence.on_record(rec),
         )
@@ -393,7 +396,7 @@ class CompanionService:
             _sd_notify(self, STOPPING=1, STATUS=f"stopping: {self.flight.outcome or Outcome.STOPPED}")
             pauses.close()  # its summary stays for the result
             await self.aclose()
-        result = self.result(error=error)
+        result = self.result(error=error or self._goal_error)
         if self.result_path is not None:
             self.result_path.write_text(result.to_json() + "\n", encoding="utf-8")
         return result
@@ -404,12 +407,15 @@ class CompanionService:
 
     # ---- goals -------------------------------------------------------------------------------------------------
     def set_route(self, route: Route, now: float) -> bool:
-        """Fly ``route`` (replacing the current goal); False while the link is lost."""
+        """Fly ``route`` (replacing the current goal); False when it is refused or while the link is lost. A goal
+        whose check needs the vehicle's position (``goal.max_distance_m``) before any pose is held, not flown
+        (True: taken), and checked at the first pose (``_pose_arrived``): flown then, or refused."""
         pose = self.navigator.pose
+        pos = None if pose is None else pose.pos_ned_m
         gc = self.config.goal
         why = route_outside_limits(
             route,
-            None if pose is None else pose.pos_ned_m,
+            pos,
             max_altitude_m=gc.max_altitude_m,
             fence=FenceBounds() if self.fence is None else self.fence.bounds,
             max_distance_m=gc.max_distance_m,
@@ -417,9 +423,16 @@ class CompanionService:
             keepouts_ne_m=keepout_zones(self.planner),
         )
         if why is not None:
-            self.counters.bad_goals += 1
-            log.warning("goal.refused", extra={"source": route.source, "reason": why})
+            self._refuse(route, why, now)
             return False
+        wait = route_check_waits(pos, max_distance_m=gc.max_distance_m)
+        if wait is not None:
+            self.held_route = route
+            self.navigator.goal_waits_for_check(now)  # HOLDING, silent, saying why there is no position yet
+            log.info("goal.held", extra={"source": route.source, "reason": wait})
+            self.reporter.statustext(mavlink.MAV_SEVERITY_NOTICE, wait)
+            return True
+        self.held_route = None  # a newer goal replaces a held one
         accepted = self.navigator.set_route(route, now)
         if accepted:
             self.counters.goals += 1
@@ -429,6 +442,36 @@ class CompanionService:
         else:
             self.counters.bad_goals += 1
         return accepted
+
+    def _refuse(self, route: Route, why: str, now: float, *, told: bool = False) -> None:
+        """``route`` is refused: counted and logged. A goal nobody is waiting on an answer for (the goal at start,
+        a held goal, ``told``) is said in a STATUSTEXT; with ``exit_when_done`` a refused goal at start ends the
+        run with outcome "error" (nothing else will come)."""
+        self.counters.bad_goals += 1
+        log.warning("goal.refused", extra={"source": route.source, "reason": why})
+        if told or route is self.start_route or route is self.held_route:
+            self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, f"goal refused: {why}")
+        if route is self.held_route:
+            self.held_route = None
+            if self.navigator.goal_waits:
+                self.navigator.clear_route(now, f"goal refused: {why}")  # IDLE, said by the next cycle
+        if route is self.start_route and self.config.exit_when_done:
+            self._goal_error = f"the goal at start was refused: {why}"
+            self.flight.outcome = Outcome.ERROR
+            self._stop.set()
+
+    def recheck_goal(self, now: float) -> None:
+        """The fence's bounds came (or changed): a goal taken before them (flown or held) that lies outside them
+        (above the ceiling, below the floor, outside the circle round home) is refused and dropped (IDLE)."""
+        route = self.navigator.route if self.held_route is None else self.held_route
+        if route is None or self.fence is None:
+            return
+        why = route_outside_limits(route, None, max_altitude_m=0.0, max_distance_m=0.0, fence=self.fence.bounds)
+        if why is None:
+            return
+        self._refuse(route, why, now, told=True)
+        if route is self.navigator.route:
+            self.navigator.clear_route(now, f"goal refused: {why}")
 
     # ---- tasks -------------------------------------------------------------------------------------------------
     async def _rx(self) -> None:
@@ -450,6 +493,11 @@ class CompanionService:
     def _pose_arrived(self, time_boot_ms: int) -> None:
         self.link_meter.pose(time_boot_ms)
         self.trigger.pose_arrived(time.perf_counter())
+        if self.held_route is not None:  # its check needed a position: now it can be made
+            now = self.clock.now()
+            if not self.set_route(self.held_route, now) and self.navigator.goal_waits:
+                self.held_route = None  # the navigator refused it (link lost): not flown
+                self.navigator.clear_route(now, "goal dropped: the autopilot link was lost")
 
     async def _cycle_loop(self) -> None:
         async for now, trigger in self.trigger.cycles():
@@ -712,7 +760,9 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
     (between cycles: the goal is kept, the next cycle plans over them). Called at the first read and whenever the
     fence changed: a new fence replaces the old one's zones; a fence removed, or one that is not used, takes them
     out of service (the autopilot no longer enforces the old one). A fence that is not used is logged and said in
-    a STATUSTEXT (the ground station's user set it up); no fence at the first read is only logged."""
+    a STATUSTEXT (the ground station's user set it up); no fence at the first read is only logged. A goal taken
+    before these bounds were known is checked against them (``recheck_goal``)."""
+    svc.recheck_goal(svc.clock.now())
     in_service = has_zones(svc.planner)
     if area.outcome is FenceOutcome.USED:
         try:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -138,6 +139,36 @@ async def test_exit_when_done_ends_a_run_that_never_navigated_and_the_reason_fol
         await until(lambda: svc.result().outcome == "timeout", HANG_S, "timeout outcome")
         assert svc.result().steps == 0 and svc.result().flight_time_s == 0.0
         assert sim.t_s < 8.0 + 5.0
+
+
+async def test_a_goal_at_start_beyond_max_distance_is_checked_at_the_first_pose_and_refused(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The goal at start is set at the first HEARTBEAT, before any pose: it used to skip the distance check and
+    fly 3 km (``bad_goals`` 0). Now it waits for the position, is refused, and with ``exit_when_done`` the run
+    ends with outcome "error"; nothing was flown."""
+    cfg = config_from_mapping(
+        {
+            "exit_when_done": True,
+            "link": {"connect": "udpin:127.0.0.1:0"},
+            "autopilot": {"profile": "ardupilot"},
+            "planner": {"name": "cr-bapf*", "seed": 1},
+            "cycle": {"rate_hz": 10.0, "time_scale": SPEEDUP},
+        }
+    )
+    route = Route.point(3000.0, 0.0, -5.0, source="cli")  # goal.max_distance_m: 2000 m by default
+    sim_cfg: dict[str, Any] = {"spawn": SpawnConfig(airborne=True, alt_m=5.0, mode="GUIDED")}
+    caplog.set_level(logging.INFO, logger="apf_companion.service")
+    async with service_and_vehicle(cfg, route, **sim_cfg) as (svc, sim, _spy):
+        await until(lambda: svc.result().outcome == "error", HANG_S, "error outcome")
+        assert svc.navigator.pose is not None
+        assert svc.counters.bad_goals == 1 and svc.counters.goals == 0
+        assert svc.navigator.route is None and svc.result().steps == 0
+        assert abs(float(sim.vehicle.pos_ned_m[0])) < 1.0  # never flown towards it
+        events = [(r.getMessage(), getattr(r, "reason", "")) for r in caplog.records]
+        assert ("goal.held", "goal waits for a position to check goal.max_distance_m") in events
+        assert any(e == "goal.refused" and "goal.max_distance_m = 2000" in why for e, why in events)
+        assert not any(e == "goal.set" for e, _ in events)
 
 
 async def test_a_stream_that_stops_is_requested_again() -> None:

@@ -1,0 +1,133 @@
+"""A goal whose check needs the vehicle's position (``goal.max_distance_m``) is held, not flown, until the first
+pose, then flown or refused; a refused goal at start ends an ``exit_when_done`` run with an error (no sockets:
+records go straight to the handlers, the service clock is injected)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as m
+
+from apf_companion.config import config_from_mapping
+from apf_companion.goal import FenceBounds, Route, route_check_waits
+from apf_companion.links.messages import Attitude, Heartbeat, LocalPositionNed, Source
+from apf_companion.navigator import State
+from apf_companion.service import CompanionService, ServiceClock
+
+AP = Source(1, 1)
+HELD = "goal waits for a position to check goal.max_distance_m"
+
+
+class FakeClock(ServiceClock):
+    def __init__(self) -> None:
+        super().__init__(1.0)
+        self.t = 100.0
+
+    def now(self) -> float:
+        return self.t
+
+
+def _service(route: Route, **extra: Any) -> tuple[CompanionService, FakeClock]:
+    clock = FakeClock()
+    cfg = config_from_mapping({"link": {"connect": "udpin:127.0.0.1:0"}, **extra})
+    return CompanionService(cfg, route=route, clock=clock), clock
+
+
+def _heartbeat(svc: CompanionService, clock: FakeClock) -> None:
+    hb = Heartbeat(src=AP, type=m.MAV_TYPE_QUADROTOR, autopilot=3, base_mode=1, custom_mode=4, system_status=3)
+    svc.handlers.handle(hb, clock.t)
+
+
+def _pose(svc: CompanionService, clock: FakeClock, north_m: float = 0.0) -> None:
+    clock.t += 0.1
+    svc.handlers.handle(Attitude(src=AP, time_boot_ms=int(clock.t * 1000), roll=0.0, pitch=0.0, yaw=0.0), clock.t)
+    pose = LocalPositionNed(src=AP, time_boot_ms=int(clock.t * 1000), x=north_m, y=0.0, z=-5.0, vx=0, vy=0, vz=0)
+    svc.handlers.handle(pose, clock.t)
+
+
+def test_route_check_waits_for_a_position_only_when_the_distance_limit_needs_one() -> None:
+    assert route_check_waits(None, max_distance_m=2000.0) == HELD
+    assert route_check_waits((0.0, 0.0, -5.0), max_distance_m=2000.0) is None
+    assert route_check_waits(None, max_distance_m=0.0) is None  # 0 = no limit: nothing to wait for
+
+
+def test_a_far_goal_at_start_is_held_until_the_first_pose_then_refused() -> None:
+    """The bug: the goal at start is set at the first HEARTBEAT, before any pose; the distance check was skipped
+    and a goal 3 km away was flown."""
+    route = Route.point(3000.0, 0.0, -5.0, source="cli")
+    svc, clock = _service(route)
+    _heartbeat(svc, clock)
+    assert svc.navigator.route is None  # not flown: nothing to check it with
+    assert svc.held_route is route and svc.counters.goals == 0 and svc.counters.bad_goals == 0
+    out = svc.run_cycle(clock.t)
+    assert out.state is State.HOLDING and out.setpoint is None  # holding, silent, saying why
+    _pose(svc, clock)
+    assert svc.counters.bad_goals == 1 and svc.counters.goals == 0
+    assert svc.held_route is None and svc.navigator.route is None and svc.navigator.state is State.IDLE
+    out = svc.run_cycle(clock.t)
+    assert out.setpoint is None and any("goal refused" in c.reason for c in out.changes)
+    _pose(svc, clock)
+    assert svc.counters.bad_goals == 1  # refused once
+
+
+def test_a_near_goal_at_start_is_flown_at_the_first_pose() -> None:
+    route = Route.point(30.0, 0.0, -5.0, source="cli")
+    svc, clock = _service(route)
+    _heartbeat(svc, clock)
+    assert svc.held_route is route and svc.navigator.route is None
+    _pose(svc, clock)
+    assert svc.navigator.route is route and svc.navigator.state is State.NAVIGATING
+    assert svc.counters.goals == 1 and svc.counters.bad_goals == 0 and svc.held_route is None
+
+
+def test_without_a_distance_limit_the_goal_at_start_is_flown_at_once() -> None:
+    route = Route.point(3000.0, 0.0, -5.0, source="cli")
+    svc, clock = _service(route, goal={"max_distance_m": 0.0})
+    _heartbeat(svc, clock)
+    assert svc.navigator.route is route and svc.held_route is None
+
+
+def test_a_refused_goal_at_start_ends_an_exit_when_done_run_with_an_error() -> None:
+    route = Route.point(10.0, 10.0, -300.0, source="cli")  # above goal.max_altitude_m (120 m)
+    svc, clock = _service(route, exit_when_done=True)
+    _heartbeat(svc, clock)  # refused at once: the altitude needs no position
+    assert svc.counters.bad_goals == 1
+    result = svc.result()
+    assert result.outcome == "error"
+    assert svc._stop.is_set()
+
+
+def test_a_goal_held_then_refused_ends_an_exit_when_done_run_with_an_error() -> None:
+    svc, clock = _service(Route.point(3000.0, 0.0, -5.0, source="cli"), exit_when_done=True)
+    _heartbeat(svc, clock)
+    assert not svc._stop.is_set()
+    _pose(svc, clock)
+    assert svc._stop.is_set() and svc.result().outcome == "error"
+
+
+def test_a_refused_goal_at_start_without_exit_when_done_leaves_the_service_idle() -> None:
+    svc, clock = _service(Route.point(10.0, 10.0, -300.0, source="cli"))
+    _heartbeat(svc, clock)
+    assert svc.counters.bad_goals == 1 and not svc._stop.is_set()
+    assert svc.result().outcome == "stopped"
+
+
+class _ReadFence:
+    """A fence reader whose first read has ended (only what ``recheck_goal`` reads)."""
+
+    def __init__(self, bounds: FenceBounds) -> None:
+        self.bounds = bounds
+
+
+def test_a_goal_taken_before_the_fence_was_read_is_dropped_when_it_lies_above_the_fences_ceiling() -> None:
+    route = Route.point(10.0, 0.0, -40.0, source="cli")  # 40 m up: under goal.max_altitude_m
+    svc, clock = _service(route)
+    _heartbeat(svc, clock)
+    _pose(svc, clock)
+    assert svc.navigator.route is route  # flown: no fence known yet
+    svc.fence = _ReadFence(FenceBounds(ceiling_m=30.0))  # type: ignore[assignment]
+    svc.recheck_goal(clock.t)
+    assert svc.navigator.route is None and svc.counters.bad_goals == 1
+    assert any(c.new is State.IDLE and "fence's ceiling" in c.reason for c in svc.navigator.drain_changes())
+    svc.recheck_goal(clock.t)  # nothing left to refuse
+    assert svc.counters.bad_goals == 1
