@@ -687,13 +687,15 @@ class Navigator:
         self._change(now_s, State.NAVIGATING, f"new goal from {route.source}: {route.to_json_list()[-1]}")
         return True
 
-    def goal_waits_for_check(self, now_s: float) -> None:
+    def goal_waits_for_check(self, now_s: float) -> bool:
         """The service holds a goal it cannot check yet (no position for ``goal.max_distance_m``): HOLDING, silent,
-        saying why there is no position, until ``set_route`` (checked: flown) or ``clear_route`` (refused)."""
+        saying why there is no position, until ``set_route`` (checked: flown) or ``clear_route`` (refused).
+        Refused (False) while the link is lost, as ``set_route`` would refuse the goal."""
         if self.state is State.LINK_LOST or not self.link_alive(now_s):
-            return
+            return False
         self.goal_waits = True
         self._enter_hold_state(now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
+        return True
 
     def drain_changes(self) -> list[StateChange]:
         """State changes recorded outside ``cycle`` (``set_route``, heartbeats), oldest first; clears them."""

@@ -427,8 +427,10 @@ class CompanionService:
             return False
         wait = route_check_waits(pos, max_distance_m=gc.max_distance_m)
         if wait is not None:
+            if not self.navigator.goal_waits_for_check(now):  # HOLDING, silent, saying why there is no position
+                self.counters.bad_goals += 1  # the link is lost: refused, as the navigator refuses a goal then
+                return False
             self.held_route = route
-            self.navigator.goal_waits_for_check(now)  # HOLDING, silent, saying why there is no position yet
             log.info("goal.held", extra={"source": route.source, "reason": wait})
             self.reporter.statustext(mavlink.MAV_SEVERITY_NOTICE, wait)
             return True

@@ -131,3 +131,10 @@ def test_a_goal_taken_before_the_fence_was_read_is_dropped_when_it_lies_above_th
     assert any(c.new is State.IDLE and "fence's ceiling" in c.reason for c in svc.navigator.drain_changes())
     svc.recheck_goal(clock.t)  # nothing left to refuse
     assert svc.counters.bad_goals == 1
+
+
+def test_a_goal_that_would_wait_is_refused_while_no_autopilot_is_heard() -> None:
+    """As the navigator refuses a goal with the link lost: counted, not held (zenoh goals before any HEARTBEAT)."""
+    svc, clock = _service(Route.point(1.0, 0.0, -5.0, source="cli"))
+    assert not svc.set_route(Route.point(5.0, 5.0, -5.0, source="zenoh"), clock.t)
+    assert svc.counters.bad_goals == 1 and svc.held_route is None and svc.navigator.state is State.IDLE
