@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 FLOAT32_MAX = 3.4028234663852886e38  # MAVLink float fields are IEEE float32
 
 STATUSTEXT_BYTES = 50  # one STATUSTEXT's text field
-STATUSTEXT_MAX_CHUNKS = 4  # a longer text is cut at 200 bytes: a report, not a log
+STATUSTEXT_MAX_CHUNKS = 4  # a longer text is cut at 199 bytes: a report, not a log (no flood on the link)
 UINT32_MASK = 0xFFFFFFFF
 
 
@@ -55,14 +55,20 @@ def statustext_chunks(text: str, last_id: int) -> list[tuple[int, int, bytes]]:
     common.xml STATUSTEXT: ``id`` 0 marks a text that fits one message; a longer one shares a non-zero ``id``
     over chunks numbered from 0 by ``chunk_seq``, and a NUL in a chunk's text ends it. A text filling its last
     chunk exactly is followed by an empty chunk, so the receiver need not wait for a timeout. Cut at
-    ``STATUSTEXT_MAX_CHUNKS`` chunks; non-ASCII characters become '?'.
+    ``STATUSTEXT_MAX_CHUNKS`` chunks, the last of them one byte short so that it still ends the text (the NUL);
+    non-ASCII characters become '?'.
+
+    As ArduPilot's ``GCS::send_textv`` (libraries/GCS_MAVLink/GCS_Common.cpp): a new non-zero id per long text
+    (wrapping past 0), 50-byte chunks while the rest fills one, an empty chunk after a full last one, and at the
+    queue's capacity the last chunk cut by one byte to be NUL-terminated. pymavlink / MAVProxy reassemble by id.
     """
-    data = text.encode("ascii", "replace")[: STATUSTEXT_BYTES * STATUSTEXT_MAX_CHUNKS]
+    cap = STATUSTEXT_BYTES * STATUSTEXT_MAX_CHUNKS - 1  # the last chunk keeps room for its NUL
+    data = text.encode("ascii", "replace")[:cap]
     if len(data) <= STATUSTEXT_BYTES:
         return [(0, 0, data)]
     chunk_id = last_id % 0xFFFF + 1  # 1..65535, wrapping past 0
     parts = [data[i : i + STATUSTEXT_BYTES] for i in range(0, len(data), STATUSTEXT_BYTES)]
-    if len(parts[-1]) == STATUSTEXT_BYTES and len(parts) < STATUSTEXT_MAX_CHUNKS:
+    if len(parts[-1]) == STATUSTEXT_BYTES:
         parts.append(b"")
     return [(chunk_id, seq, part) for seq, part in enumerate(parts)]
 

@@ -65,7 +65,7 @@ _SEVERITY: dict[State, int] = {
     State.ARRIVED: mavlink.MAV_SEVERITY_NOTICE,
 }
 
-STATUSTEXT_MAX = 50  # characters in one STATUSTEXT (no chunking needed at that length)
+STATUSTEXT_MAX = 50  # characters in one STATUSTEXT (no chunking needed at that length; longer: outbox chunks)
 
 
 def severity_for(state: State) -> int:
@@ -84,9 +84,9 @@ def system_status_for(state: State, *, healthy_inputs: bool) -> int:
 
 
 def statustext_for(state: State, reason: str) -> str:
-    """``"APF <STATE>: <reason>"`` cut to the 50 characters one STATUSTEXT holds."""
-    text = f"APF {state.value}: {reason}"
-    return text[:STATUSTEXT_MAX]
+    """``"APF <STATE>: <reason>"`` whole: a text longer than one STATUSTEXT (50 characters) goes in MAVLink 2
+    chunks (``Outbox.statustext``, ``outbox.statustext_chunks``), so the reason's end is not lost."""
+    return f"APF {state.value}: {reason}"
 
 
 def _num(value: float | None, digits: int = 3) -> float | None:

@@ -125,7 +125,7 @@ def fast_config(**sections: dict[str, Any]) -> ServiceConfig:
 
 @contextlib.asynccontextmanager
 async def rig(
-    cfg: ServiceConfig | None = None, route: Route | None = None
+    cfg: ServiceConfig | None = None, route: Route | None = None, custom_mode: int = int(CopterMode.LOITER)
 ) -> AsyncIterator[tuple[CompanionService, ScriptedAutopilot]]:
     cfg = cfg or fast_config()
     clock = SimulatorClock(1.0)
@@ -134,6 +134,7 @@ async def rig(
     port = svc.link.local_address[1]
     ap_link = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
     ap = ScriptedAutopilot(ap_link)
+    ap.custom_mode = custom_mode  # the mode of its first HEARTBEAT
     clock.follow(ap)
     async with asyncio.TaskGroup() as tg:
         svc_task = tg.create_task(svc.run())
@@ -188,6 +189,21 @@ async def test_takeover_guided_then_fly_to_goal() -> None:
         await within(svc.clock.now, lambda: len(ap.of_type("NAMED_VALUE_FLOAT")) > 0, 3.0, "named values")
         names = {m.name for m in ap.of_type("NAMED_VALUE_FLOAT")}
         assert "APF_DGOAL" in names
+
+
+async def test_a_long_statustext_arrives_whole_in_chunks() -> None:
+    """Armed in GUIDED at start (a restart mid-flight): the hold's STATUSTEXT is longer than one message and comes
+    in MAVLink 2 chunks sharing a non-zero id, numbered from 0, that join to the whole text (it was cut at 50)."""
+    async with rig(custom_mode=int(CopterMode.GUIDED)) as (svc, ap):
+
+        def chunks() -> list[Any]:
+            return [m for m in ap.of_type("STATUSTEXT") if m.id != 0]
+
+        await within(svc.clock.now, lambda: any(len(m.text) < 50 for m in chunks()), 5.0, "a long STATUSTEXT")
+        got = chunks()
+        assert len({m.id for m in got}) == 1 and [m.chunk_seq for m in got] == list(range(len(got)))
+        text = "".join(m.text for m in got)
+        assert text == "APF HOLDING: started with the vehicle flying in guided control: holding, send a fresh goal"
 
 
 async def test_a_takeover_whose_mode_commands_are_lost_waits_past_its_deadline() -> None:

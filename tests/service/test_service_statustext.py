@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.navigator import State
 from apf_companion.outbox import STATUSTEXT_BYTES, statustext_chunks
+from apf_companion.status import statustext_for
 
 
 def _reassemble(chunks: list[tuple[int, int, bytes]]) -> bytes:
@@ -32,6 +34,8 @@ def test_a_text_filling_its_last_chunk_ends_with_an_empty_one() -> None:
 def test_chunks_are_capped_and_non_ascii_is_replaced() -> None:
     chunks = statustext_chunks("é" + "z" * 1000, 0)
     assert len(chunks) == 4 and chunks[0][2].startswith(b"?z")
+    assert [len(p) for _, _, p in chunks] == [50, 50, 50, 49]  # the last still ends the text (ArduPilot's cut)
+    assert len(statustext_chunks("v" * 150, 0)) == 4  # 3 full chunks and the empty one: never more than 4
 
 
 def test_chunks_pack_as_mavlink2_statustext() -> None:
@@ -45,3 +49,13 @@ def test_chunks_pack_as_mavlink2_statustext() -> None:
         got.extend(msgs)
     assert [(m.id, m.chunk_seq) for m in got] == [(42, 0), (42, 1), (42, 2)]
     assert "".join(m.text for m in got) == "w" * 120
+
+
+def test_a_state_change_text_is_not_cut_at_50_characters() -> None:
+    """Seen on the wire before: 'APF HOLDING: started with the vehicle flying in gu' (the advice lost)."""
+    reason = "started with the vehicle flying in guided control: holding, send a fresh goal"
+    text = statustext_for(State.HOLDING, reason)
+    assert text == f"APF HOLDING: {reason}"
+    chunks = statustext_chunks(text, 0)
+    assert [(c[0], c[1]) for c in chunks] == [(1, 0), (1, 1)]
+    assert _reassemble(chunks) == text.encode()
