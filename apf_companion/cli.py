@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
+import errno
 import importlib.metadata
 import json
 import logging
@@ -202,12 +203,26 @@ def _effective_config(args: argparse.Namespace) -> tuple[ServiceConfig, Route | 
     return cfg, route
 
 
+def _result_path(path: Path) -> Path:
+    """``--result-json``'s path, absolute, its directory created as ``--tlog``'s is; OSError when the result could
+    not be written there (said at start, not after the flight, when the result would be lost)."""
+    path = path.resolve()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "is a directory")
+    if not os.access(path.parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise PermissionError(errno.EACCES, "permission denied")
+    return path
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     """Run the service: connect to the autopilot, fly goals around obstacles, report status.
 
-    Exit codes: 0 = stopped or arrived, 1 = error (with exit_when_done also a goal given at start that was
-    refused, e.g. beyond goal.max_altitude_m or goal.max_distance_m), 2 = configuration error, 3 = stuck / timeout /
-    link lost (only with exit_when_done).
+    Exit codes: 0 = stopped or arrived (SIGINT / SIGTERM, any number of them), 1 = error (also a --result-json
+    path that cannot be written, said at start; with exit_when_done also a goal given at start that was refused,
+    e.g. beyond goal.max_altitude_m or goal.max_distance_m), 2 = configuration error, 3 = stuck / timeout / link lost
+    (only with exit_when_done), 130 = interrupted while Python was still starting (before the configuration was
+    read).
     """
     from apf_companion.builders import signing_setup
     from apf_companion.heap import freeze_startup_heap
@@ -222,17 +237,38 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"apf-companion: config error: {err}", file=sys.stderr)
         return EXIT_CONFIG
 
+    try:
+        result_path = None if args.result_json is None else _result_path(args.result_json)
+    except OSError as err:
+        why = f"{args.result_json}: cannot write the result there ({err.strerror or err})"
+        print(f"apf-companion: --result-json {why}", file=sys.stderr)
+        return EXIT_ERROR
+
     async def main() -> int:
+        # SIGINT / SIGTERM ask the service to stop, however many arrive and whenever: while it opens too (then it
+        # stops as soon as it runs), so a second Ctrl-C is no KeyboardInterrupt (exit 130) but the same request.
+        stop_requested = False
+        service: list[CompanionService] = []
+
+        def request_stop() -> None:
+            nonlocal stop_requested
+            stop_requested = True
+            for s in service:
+                s.stop()
+
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, request_stop)
         try:
-            svc = await CompanionService.open(cfg, route=route, result_path=args.result_json)
+            svc = await CompanionService.open(cfg, route=route, result_path=result_path)
         except ApfCompanionError as err:
             # Said once, on stderr (journald keeps it too); the log line only for --log-level DEBUG.
             log.debug("service.open_failed", extra={"error": str(err)})
             print(f"apf-companion: {err}", file=sys.stderr)
             return EXIT_ERROR
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, svc.stop)
+        service.append(svc)
+        if stop_requested:
+            svc.stop()
         scheduling = request_realtime(cfg.cycle.realtime_priority)  # best effort (apf_companion/realtime.py)
         frozen = freeze_startup_heap()  # no full collection of the startup heap mid-flight (apf_companion/heap.py)
         log.info(
@@ -250,10 +286,18 @@ def _cmd_run(args: argparse.Namespace) -> int:
         result = await svc.run()
         log.info("service.end", extra={"outcome": result.outcome, "steps": result.steps})
         if result.outcome == "error":
-            return EXIT_ERROR
-        return EXIT_OK if result.outcome in ("arrived", "stopped") else EXIT_STUCK
+            code.append(EXIT_ERROR)
+        else:
+            code.append(EXIT_OK if result.outcome in ("arrived", "stopped") else EXIT_STUCK)
+        return code[-1]
 
-    return asyncio.run(main())
+    code: list[int] = []
+    try:
+        return asyncio.run(main())
+    except KeyboardInterrupt:
+        # A Ctrl-C while asyncio starts the loop or tears it down (before or after the handlers above): the same
+        # stop request, not exit 130; the run's own code when it had ended.
+        return code[-1] if code else EXIT_OK
 
 
 def _cmd_check(args: argparse.Namespace) -> int:

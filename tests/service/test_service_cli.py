@@ -47,7 +47,9 @@ def test_run_refuses_bad_overrides(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_run_dry_run_process_stops_cleanly_on_sigint(tmp_path: Path) -> None:
-    result = tmp_path / "result.json"
+    """Two Ctrl-C in quick succession stop it as one does (exit 0, not 130); --result-json's directory is created
+    (as --tlog's is), so the result is not lost at exit."""
+    result = tmp_path / "not" / "yet" / "result.json"
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -75,7 +77,8 @@ def test_run_dry_run_process_stops_cleanly_on_sigint(tmp_path: Path) -> None:
             if "service.start" in line:
                 break
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=20) == 0
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0, proc.stderr.read()
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -154,3 +157,16 @@ def test_a_startup_error_is_said_once(capsys: pytest.CaptureFixture[str]) -> Non
     assert len(lines) == 1, err  # not also as an ERROR log line
     assert lines[0].startswith(f"apf-companion: cannot open MAVLink endpoint udpin:127.0.0.1:{port}: ")
     assert "service.open_failed" not in err
+
+
+@pytest.mark.parametrize("where", ["file_as_dir", "dir"])
+def test_a_result_json_path_that_cannot_be_written_fails_at_start(
+    where: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "plain").write_text("")
+    path = tmp_path / "plain" / "result.json" if where == "file_as_dir" else tmp_path
+    argv = ["run", "--connect", "udpin:127.0.0.1:0", "--dry-run", "--result-json", str(path)]
+    assert main(argv) == 1  # before anything opens: no run to lose
+    err = capsys.readouterr().err
+    assert err.startswith(f"apf-companion: --result-json {path}: cannot write the result there (")
+    assert "Traceback" not in err and "service.start" not in err
