@@ -96,6 +96,16 @@ MIN_GAP_FRACTION = 0.8  # jitter margin: a pose stream at the cycle rate trigger
 TIMER_PERIODS = 1.25  # a timer cycle when no pose triggered one for this many periods
 NO_HEARTBEAT_WARN_S = 5.0  # no autopilot HEARTBEAT this long after start: a WARNING saying what to check [s]
 NO_HEARTBEAT_REPEAT_S = 60.0  # ... repeated this often while still nothing is heard [s]
+DRY_RUN_NO_POSE_WARN_S = 5.0  # dry run, autopilot heard, no LOCAL_POSITION_NED this long after start: one WARNING [s]
+DRY_RUN_NO_POSE_AFTER_HEARD_S = 2.0  # ... and at least this long after its first HEARTBEAT [s]
+# ArduPilot's stream groups (GCS_MAVLink, STREAM_POSITION_msgs: LOCAL_POSITION_NED; STREAM_EXTRA1_msgs: ATTITUDE);
+# PX4 streams per MAVLink instance mode (MAV_n_MODE) or the `mavlink stream` shell command.
+DRY_RUN_NO_POSE_HINT = (
+    "dry run sends no stream requests (SET_MESSAGE_INTERVAL): have the autopilot stream LOCAL_POSITION_NED and "
+    "ATTITUDE itself (ArduPilot SRn_POSITION and SRn_EXTRA1 for the port's MAVLink channel n, e.g. SR1_POSITION = "
+    "10; PX4 MAV_n_MODE Onboard, or `mavlink stream -d <port> -s LOCAL_POSITION_NED -r 20`), or run a ground "
+    "station that asks for them"
+)
 
 
 class ServiceClock:
@@ -830,8 +840,8 @@ def _log_setpoint(out: CycleOutput, sp: Setpoint, *, dry_run: bool) -> None:
 
 def _status_due(svc: CompanionService) -> Callable[[float], float]:
     """The status task's schedule: the reporter's, and the warning while the autopilot is silent."""
-    warning = NoHeartbeatWarning(svc)
-    return lambda now: min(svc.reporter.due(now), warning.due(now))
+    warning, no_pose = NoHeartbeatWarning(svc), DryRunNoPoseWarning(svc)
+    return lambda now: min(svc.reporter.due(now), warning.due(now), no_pose.due(now))
 
 
 class NoHeartbeatWarning:
@@ -848,6 +858,33 @@ class NoHeartbeatWarning:
         if now_s >= self.warn_at_s:
             self.warn_at_s = now_s + NO_HEARTBEAT_REPEAT_S
             _warn_no_heartbeat(self.svc)
+        return self.warn_at_s
+
+
+class DryRunNoPoseWarning:
+    """A dry run asks for no streams, and an autopilot that streams nothing unasked (ArduPilot's default) leaves it
+    HOLDING with "no pose yet": one WARNING saying so (``DRY_RUN_NO_POSE_HINT``), ``DRY_RUN_NO_POSE_WARN_S`` after
+    the start and ``DRY_RUN_NO_POSE_AFTER_HEARD_S`` after the first HEARTBEAT, when no LOCAL_POSITION_NED came.
+    Without a HEARTBEAT ``NoHeartbeatWarning`` speaks. ``due`` fits ``CompanionService._periodic``."""
+
+    def __init__(self, svc: CompanionService) -> None:
+        self.svc = svc
+        self.warn_at_s = svc.clock.now() + DRY_RUN_NO_POSE_WARN_S if svc.config.dry_run else math.inf
+        self.heard_at_s: float | None = None
+
+    def due(self, now_s: float) -> float:
+        if self.warn_at_s == math.inf or self.svc.perception.counters.poses > 0:
+            self.warn_at_s = math.inf
+            return math.inf
+        if not self.svc.handlers.heard:
+            return now_s + 1.0
+        if self.heard_at_s is None:
+            self.heard_at_s = now_s
+            self.warn_at_s = max(self.warn_at_s, now_s + DRY_RUN_NO_POSE_AFTER_HEARD_S)
+        if now_s >= self.warn_at_s:
+            self.warn_at_s = math.inf
+            extra = {"connect": self.svc.config.link.connect, "waited_s": round(now_s, 1), "hint": DRY_RUN_NO_POSE_HINT}
+            log.warning("dry_run.no_pose", extra=extra)
         return self.warn_at_s
 
 

@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 
 import pytest
 
 from apf_companion.config import config_from_mapping
 from apf_companion.links import MavlinkLink
 from apf_companion.service import CompanionService
-from tests.conftest import HANG_S, free_port, until
+from sim.vehicle import SimConfig, Simulator
+from sim.world import World
+from tests.conftest import HANG_S, SimulatorClock, free_port, until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -54,3 +57,33 @@ async def test_refused_tcp_connection_is_a_warning_with_a_hint(caplog: pytest.Lo
         assert len(_warnings(caplog, "mavlink.tcp_connect_failed")) == 1
     finally:
         await link.aclose()
+
+
+async def test_a_dry_run_without_poses_says_why(caplog: pytest.LogCaptureFixture) -> None:
+    """The bundled simulator streams nothing unasked, as a default ArduCopter: a dry run (no stream requests) gets
+    HEARTBEATs but no LOCAL_POSITION_NED, and says once what to set instead of holding in silence."""
+    caplog.set_level(logging.INFO)
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = config_from_mapping({"link": {"connect": f"udpin:127.0.0.1:{port}"}, "dry_run": True})
+    sim = await Simulator.start(
+        SimConfig(links=[f"udpout:127.0.0.1:{port}"], profile="ardupilot", world=World.empty(), speedup=4.0, seed=1)
+    )
+    clock = SimulatorClock(4.0)
+    try:
+        svc = await CompanionService.open(cfg, clock=clock)
+        clock.follow(sim)
+        task = asyncio.create_task(svc.run())
+        try:
+            await until(lambda: _warnings(caplog, "dry_run.no_pose"), HANG_S, "the dry-run no-pose warning")
+            assert svc.handlers.heard and svc.perception.counters.poses == 0
+            t_warned = clock.now()
+            await until(lambda: clock.now() >= t_warned + 3.0, HANG_S, "3 s more")
+        finally:
+            svc.stop()
+            result = await task
+    finally:
+        await sim.aclose()
+    (rec,) = _warnings(caplog, "dry_run.no_pose")  # once
+    assert "SRn_POSITION" in rec.hint and "MAV_n_MODE" in rec.hint  # type: ignore[attr-defined]
+    assert not _warnings(caplog, "link.no_heartbeat")
+    assert result.counters["setpoints_sent"] == 0
