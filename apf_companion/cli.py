@@ -221,8 +221,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     Exit codes: 0 = stopped or arrived (SIGINT / SIGTERM, any number of them), 1 = error (also a --result-json
     path that cannot be written, said at start; with exit_when_done also a goal given at start that was refused,
     e.g. beyond goal.max_altitude_m or goal.max_distance_m), 2 = configuration error, 3 = stuck / timeout / link lost
-    (only with exit_when_done), 130 = interrupted while Python was still starting (before the configuration was
-    read).
+    (only with exit_when_done), 130 = interrupted before the event loop ran (imports, reading the config).
     """
     from apf_companion.builders import signing_setup
     from apf_companion.heap import freeze_startup_heap
@@ -245,14 +244,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return EXIT_ERROR
 
     async def main() -> int:
-        # SIGINT / SIGTERM ask the service to stop, however many arrive and whenever: while it opens too (then it
-        # stops as soon as it runs), so a second Ctrl-C is no KeyboardInterrupt (exit 130) but the same request.
-        stop_requested = False
+        # SIGINT / SIGTERM ask the service to stop, however many arrive and whenever: while it opens, the opening
+        # is abandoned (exit 0: stopped); a second Ctrl-C is no KeyboardInterrupt (exit 130) but the same request.
         service: list[CompanionService] = []
+        opening = asyncio.create_task(CompanionService.open(cfg, route=route, result_path=result_path))
 
         def request_stop() -> None:
-            nonlocal stop_requested
-            stop_requested = True
+            opening.cancel()  # no-op once it is open
             for s in service:
                 s.stop()
 
@@ -260,15 +258,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, request_stop)
         try:
-            svc = await CompanionService.open(cfg, route=route, result_path=result_path)
+            svc = await opening
+        except asyncio.CancelledError:
+            return EXIT_OK
         except ApfCompanionError as err:
             # Said once, on stderr (journald keeps it too); the log line only for --log-level DEBUG.
             log.debug("service.open_failed", extra={"error": str(err)})
             print(f"apf-companion: {err}", file=sys.stderr)
             return EXIT_ERROR
         service.append(svc)
-        if stop_requested:
-            svc.stop()
         scheduling = request_realtime(cfg.cycle.realtime_priority)  # best effort (apf_companion/realtime.py)
         frozen = freeze_startup_heap()  # no full collection of the startup heap mid-flight (apf_companion/heap.py)
         log.info(
@@ -340,9 +338,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _setup_logging(args.log_level, args.log_format)
     try:
-        return int(args.func(args))
+        code = int(args.func(args))
     except KeyboardInterrupt:
         return 130
+    if argv is None:  # the process's own command line: it ends now
+        # A Ctrl-C after the run's loop has closed (a quick second one) would kill it by SIGINT (status -2 / 130)
+        # during the interpreter's exit, and the run's exit code would be lost.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return code
 
 
 if __name__ == "__main__":
