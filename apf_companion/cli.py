@@ -306,7 +306,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.config)
-        route = initial_route(cfg, build_planner(cfg))
+        planner = build_planner(cfg)
+        route = initial_route(cfg, planner)
         signing_setup(cfg)  # the key file's mode and contents, the timestamp file
     except ConfigError as err:
         print(f"{args.config}: {err}", file=sys.stderr)
@@ -326,6 +327,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
         return value
 
     out = plain(cfg)
+    # The planner's parameters in effect (preset, then [planner.params], then dim), not only the overrides.
+    out["planner"]["params"] = plain(planner.params)
     out["route_waypoints_ned_m"] = None if route is None else route.to_json_list()
     print(json.dumps(out, indent=2))
     print(f"{args.config}: OK", file=sys.stderr)

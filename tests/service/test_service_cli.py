@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -14,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from apf_companion.cli import build_parser, main
-from apf_companion.planning import ALL_PLANNER_NAMES, DEFAULT_PLANNER
+from apf_companion.planning import ALL_PLANNER_NAMES, DEFAULT_PLANNER, PlannerParams
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -23,6 +24,19 @@ def test_check_config_ok_prints_effective_config(capsys: pytest.CaptureFixture[s
     assert main(["check-config", str(REPO / "deploy" / "apf-companion.toml")]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["cycle"]["rate_hz"] == 10.0 and out["autopilot"]["profile"] == "ardupilot"
+
+
+def test_check_config_prints_the_planner_parameters_in_effect(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not only the overrides: the preset's values with the overrides applied, every PlannerParams field."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[planner]\npreset = "paper"\n[planner.params]\nrho_l_m = 0.5\n')
+    assert main(["check-config", str(cfg)]) == 0
+    params = json.loads(capsys.readouterr().out)["planner"]["params"]
+    expected = dataclasses.replace(PlannerParams.from_preset("paper"), rho_l_m=0.5)
+    assert set(params) == {f.name for f in dataclasses.fields(PlannerParams)}
+    assert params["rho_l_m"] == 0.5 and params["step_m"] == expected.step_m and params["dim"] == 2
 
 
 def test_check_config_names_the_bad_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
