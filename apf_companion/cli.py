@@ -224,9 +224,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     (only with exit_when_done), 130 = interrupted before the event loop ran (imports, reading the config).
     """
     from apf_companion.builders import signing_setup
-    from apf_companion.heap import freeze_startup_heap
-    from apf_companion.realtime import request_realtime
-    from apf_companion.service import CompanionService, build_planner
+    from apf_companion.service import build_planner
 
     try:
         cfg, route = _effective_config(args)
@@ -243,59 +241,75 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"apf-companion: --result-json {why}", file=sys.stderr)
         return EXIT_ERROR
 
-    async def main() -> int:
-        # SIGINT / SIGTERM ask the service to stop, however many arrive and whenever: while it opens, the opening
-        # is abandoned (exit 0: stopped); a second Ctrl-C is no KeyboardInterrupt (exit 130) but the same request.
-        service: list[CompanionService] = []
-        opening = asyncio.create_task(CompanionService.open(cfg, route=route, result_path=result_path))
-
-        def request_stop() -> None:
-            opening.cancel()  # no-op once it is open
-            for s in service:
-                s.stop()
-
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, request_stop)
-        try:
-            svc = await opening
-        except asyncio.CancelledError:
-            return EXIT_OK
-        except ApfCompanionError as err:
-            # Said once, on stderr (journald keeps it too); the log line only for --log-level DEBUG.
-            log.debug("service.open_failed", extra={"error": str(err)})
-            print(f"apf-companion: {err}", file=sys.stderr)
-            return EXIT_ERROR
-        service.append(svc)
-        scheduling = request_realtime(cfg.cycle.realtime_priority)  # best effort (apf_companion/realtime.py)
-        frozen = freeze_startup_heap()  # no full collection of the startup heap mid-flight (apf_companion/heap.py)
-        log.info(
-            "service.start",
-            extra={
-                "connect": cfg.link.connect,
-                "planner": cfg.planner.name,
-                "profile": cfg.autopilot.profile.value,
-                "rate_hz": cfg.cycle.rate_hz,
-                "dry_run": cfg.dry_run,
-                "scheduling": scheduling.describe(),
-                "gc_frozen": frozen,
-            },
-        )
-        result = await svc.run()
-        log.info("service.end", extra={"outcome": result.outcome, "steps": result.steps})
-        if result.outcome == "error":
-            code.append(EXIT_ERROR)
-        else:
-            code.append(EXIT_OK if result.outcome in ("arrived", "stopped") else EXIT_STUCK)
-        return code[-1]
-
-    code: list[int] = []
+    code: list[int] = []  # the run's exit code once it has ended
     try:
-        return asyncio.run(main())
+        return asyncio.run(_serve(cfg, route, result_path, code))
     except KeyboardInterrupt:
         # A Ctrl-C while asyncio starts the loop or tears it down (before or after the handlers above): the same
         # stop request, not exit 130; the run's own code when it had ended.
         return code[-1] if code else EXIT_OK
+
+
+async def _serve(cfg: ServiceConfig, route: Route | None, result_path: Path | None, code: list[int]) -> int:
+    """Open the service, run it to its end, and return (and append to ``code``) the exit code. SIGINT / SIGTERM ask
+    it to stop, however many arrive and whenever: while it opens, the opening is abandoned (exit 0: stopped); a
+    second Ctrl-C is no KeyboardInterrupt (exit 130) but the same request."""
+    from apf_companion.service import CompanionService
+
+    service: list[CompanionService] = []
+    opening = asyncio.create_task(CompanionService.open(cfg, route=route, result_path=result_path))
+
+    def request_stop() -> None:
+        opening.cancel()  # no-op once it is open
+        for s in service:
+            s.stop()
+
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, request_stop)
+    try:
+        svc = await opening
+    except asyncio.CancelledError:
+        return EXIT_OK
+    except ApfCompanionError as err:
+        # Said once, on stderr (journald keeps it too); the log line only for --log-level DEBUG.
+        log.debug("service.open_failed", extra={"error": str(err)})
+        print(f"apf-companion: {err}", file=sys.stderr)
+        return EXIT_ERROR
+    service.append(svc)
+    _log_start(cfg)
+    result = await svc.run()
+    log.info("service.end", extra={"outcome": result.outcome, "steps": result.steps})
+    code.append(_exit_code(result.outcome))
+    return code[-1]
+
+
+def _log_start(cfg: ServiceConfig) -> None:
+    """Best-effort real-time scheduling and the frozen startup heap, then the ``service.start`` line."""
+    from apf_companion.heap import freeze_startup_heap
+    from apf_companion.realtime import request_realtime
+
+    scheduling = request_realtime(cfg.cycle.realtime_priority)  # best effort (apf_companion/realtime.py)
+    frozen = freeze_startup_heap()  # no full collection of the startup heap mid-flight (apf_companion/heap.py)
+    log.info(
+        "service.start",
+        extra={
+            "connect": cfg.link.connect,
+            "planner": cfg.planner.name,
+            "profile": cfg.autopilot.profile.value,
+            "rate_hz": cfg.cycle.rate_hz,
+            "dry_run": cfg.dry_run,
+            "scheduling": scheduling.describe(),
+            "gc_frozen": frozen,
+        },
+    )
+
+
+def _exit_code(outcome: str) -> int:
+    """A run's outcome as the process's exit code (``_cmd_run``'s docstring)."""
+    if outcome == "error":
+        return EXIT_ERROR
+    return EXIT_OK if outcome in ("arrived", "stopped") else EXIT_STUCK
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
