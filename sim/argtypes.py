@@ -7,7 +7,7 @@ import argparse
 import math
 from collections.abc import Callable
 
-__all__ = ["int_from", "number_in"]
+__all__ = ["int_from", "number_in", "param_assignment"]
 
 
 def number_in(lo: float, hi: float, *, lo_open: bool = False, what: str = "") -> Callable[[str], float]:
@@ -44,3 +44,18 @@ def int_from(lo: int, hi: int | None = None) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def param_assignment(text: str) -> str:
+    """An argparse type: an autopilot parameter override ``NAME=VALUE`` with a finite number, as ``NAME=VALUE`` with
+    the name upper-cased (``apf-sim vehicle --param``, ``apf-sim fly --vehicle-param``; the name and its range are
+    the vehicle's parameter table's to check)."""
+    name, sep, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not sep or not name.strip() or not math.isfinite(number):
+        msg = f"must be NAME=VALUE with a finite number VALUE, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return f"{name.strip().upper()}={value.strip()}"

@@ -32,7 +32,7 @@ from apf_companion.planning import (
     in_keepout,
     inside_area,
 )
-from sim.argtypes import int_from, number_in
+from sim.argtypes import int_from, number_in, param_assignment
 from sim.fly import (
     HEARTBEAT_FLOOR_S,
     PAPER_GOAL,
@@ -98,20 +98,6 @@ def _obstacles(text: str) -> str:
         )
         raise argparse.ArgumentTypeError(msg)
     return ",".join(items)
-
-
-def _vehicle_param(text: str) -> str:
-    """``--vehicle-param NAME=VALUE`` with a finite number (the name and its range are checked per profile by
-    :func:`vehicle_params`)."""
-    name, sep, value = text.partition("=")
-    try:
-        number = float(value)
-    except ValueError:
-        number = math.nan
-    if not sep or not name.strip() or not math.isfinite(number):
-        msg = f"must be NAME=VALUE with a finite number VALUE, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return f"{name.strip().upper()}={value.strip()}"
 
 
 def _noise_spec() -> ParamSpec:
@@ -192,7 +178,7 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--vehicle-param",
         action="append",
-        type=_vehicle_param,
+        type=param_assignment,
         default=[],
         metavar="NAME=VALUE",
         help="a parameter of the simulated autopilot (apf-sim vehicle --param), e.g. FENCE_MARGIN=0.5 (ArduPilot's "
@@ -342,8 +328,7 @@ def route_problem(opt: FlyOptions, world: World | None, radius_m: float) -> str 
             gap = f"lies inside {kind} {i}" if clearance < 0 else f"is {clearance:.2f} m from {kind} {i}"
             return (
                 f"--start (north {north:g} m, east {east:g} m) {gap} of world {world.name}, within the vehicle's "
-                "collision "
-                f"radius SIM_VEH_RADIUS = {radius_m:g} m: the flight would end in a collision at once"
+                f"collision radius SIM_VEH_RADIUS = {radius_m:g} m: the flight would end in a collision at once"
             )
     return None
 

@@ -18,7 +18,7 @@ from apf_companion.cli import add_log_level_option
 from apf_companion.errors import ApfCompanionError, ConfigError
 from apf_companion.links import load_signing_key
 from apf_companion.planning import FlyingArea, KeepOuts
-from sim.argtypes import int_from, number_in
+from sim.argtypes import int_from, number_in, param_assignment
 from sim.vehicle.config import HomeConfig, SpawnConfig
 from sim.vehicle.sensor import SENSOR_MESSAGES, RangeSensorConfig
 from sim.vehicle.sensor_only import SENSOR_COMPID, SensorOnlyConfig, SensorSimulator
@@ -87,7 +87,9 @@ def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: 
     v.add_argument("--result-json", type=Path, help="write the flight result here on exit and on a crash")
     v.add_argument("--duration", type=float, help="stop after this many simulated seconds")
     v.add_argument("--exit-on-crash", action="store_true", help="stop when the vehicle crashes")
-    v.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="parameter override")
+    v.add_argument(
+        "--param", action="append", type=param_assignment, default=[], metavar="NAME=VALUE", help="parameter override"
+    )
     v.add_argument(
         "--actuation-noise",
         type=float,
@@ -230,14 +232,8 @@ def _zenoh(args: argparse.Namespace) -> ZenohOutput | None:
 
 
 def _params(items: list[str]) -> dict[str, float]:
-    out = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep:
-            msg = f"--param must be NAME=VALUE, got {item!r}"
-            raise ApfCompanionError(msg)
-        out[name.strip().upper()] = float(value)
-    return out
+    """``--param`` overrides, each already checked by ``param_assignment``."""
+    return {name: float(value) for name, _, value in (item.partition("=") for item in items)}
 
 
 def _install_signals(stop: asyncio.Event) -> None:

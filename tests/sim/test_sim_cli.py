@@ -124,3 +124,12 @@ def test_sensor_flags_are_checked_at_parsing_by_their_names(
 def test_sensor_min_range_must_be_below_its_range(capsys: pytest.CaptureFixture[str]) -> None:
     assert main([*_SENSOR, "--min-range", "9"]) == 2
     assert capsys.readouterr().err == "apf-sim sensor: --min-range (9 m) must be less than --range (8 m)\n"
+
+
+@pytest.mark.parametrize("item", ["FENCE_MARGIN=abc", "FENCE_MARGIN", "=1", "FENCE_MARGIN=nan"])
+def test_vehicle_param_is_checked_at_parsing_as_flys(item: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """``apf-sim vehicle --param`` takes the same NAME=VALUE check as ``apf-sim fly --vehicle-param``."""
+    with pytest.raises(SystemExit) as exc:
+        main(["vehicle", "--param", item])
+    assert exc.value.code == 2
+    assert f"argument --param: must be NAME=VALUE with a finite number VALUE, got {item!r}" in capsys.readouterr().err
