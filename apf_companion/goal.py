@@ -30,7 +30,7 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.errors import ConfigError, ProtocolError
-from apf_companion.planning.area import FlyingArea, KeepOuts, area_text, in_keepout, inside_area
+from apf_companion.planning.area import FlyingArea, KeepOuts, area_text, zone_conflict
 
 __all__ = [
     "EARTH_RADIUS_M",
@@ -291,22 +291,14 @@ def route_outside_limits(
     keep-out zones ``keepouts_ne_m`` (bapf-nav would give up at once). 0 / None = no limit. A mistyped or hostile
     goal (the fuzz sent DO_REPOSITION z = -8576 m) is refused, not flown."""
     wp = route.waypoints_ned_m
-    if area_ne_m is not None:
-        out = ~inside_area(area_ne_m, wp[:, 0], wp[:, 1])
-        if out.any():
-            i = int(np.flatnonzero(out)[0])
-            return (
-                f"waypoint {i} (north {wp[i, 0]:g} m, east {wp[i, 1]:g} m) lies outside the flying area "
-                f"planner.params.nav_area_ne_m = {area_text(area_ne_m)}"
-            )
-    for k, zone in enumerate(keepouts_ne_m):
-        inside = np.flatnonzero(in_keepout((zone,), wp[:, 0], wp[:, 1]))
-        if inside.size:
-            i = int(inside[0])
-            return (
-                f"waypoint {i} (north {wp[i, 0]:g} m, east {wp[i, 1]:g} m) lies in keep-out zone {k} "
-                f"(planner.params.nav_keepout_ne_m)"
-            )
+    conflict = zone_conflict(area_ne_m, keepouts_ne_m, wp[:, 0], wp[:, 1])
+    if conflict is not None:
+        i = conflict.index
+        point = f"waypoint {i} (north {wp[i, 0]:g} m, east {wp[i, 1]:g} m)"
+        if conflict.keepout is None:
+            assert area_ne_m is not None  # only an area leaves a point outside
+            return f"{point} lies outside the flying area planner.params.nav_area_ne_m = {area_text(area_ne_m)}"
+        return f"{point} lies in keep-out zone {conflict.keepout} (planner.params.nav_keepout_ne_m)"
     if fence.home_circle is not None:
         north, east, radius = fence.home_circle
         far = np.flatnonzero(np.hypot(wp[:, 0] - north, wp[:, 1] - east) > radius)

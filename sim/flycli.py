@@ -29,8 +29,7 @@ from apf_companion.planning import (
     FlyingArea,
     KeepOuts,
     area_text,
-    in_keepout,
-    inside_area,
+    zone_conflict,
 )
 from sim.argtypes import int_from, number_in, param_assignment
 from sim.fly import (
@@ -311,15 +310,18 @@ def route_problem(opt: FlyOptions, world: World | None, radius_m: float) -> str 
     vehicle's collision radius ``radius_m`` (SIM_VEH_RADIUS): the simulator would end the flight in a collision at
     once."""
     where = f"world {opt.world}" if opt.world is not None else "the world"
-    for flag, (north, east) in (("--start", opt.start_ne_m), ("--goal", opt.goal_ne_m)):
-        point = f"{flag} (north {north:g} m, east {east:g} m)"
-        if opt.area_ne_m is not None and not inside_area(opt.area_ne_m, north, east):
+    points = (("--start", opt.start_ne_m), ("--goal", opt.goal_ne_m))
+    conflict = zone_conflict(opt.area_ne_m, opt.keepouts_ne_m, *zip(*(ne for _, ne in points), strict=True))
+    if conflict is not None:
+        flag, (n, e) = points[conflict.index]
+        point = f"{flag} (north {n:g} m, east {e:g} m)"
+        if conflict.keepout is None:
+            assert opt.area_ne_m is not None  # only an area leaves a point outside
             return (
                 f"{point} lies outside the flying area of {where}, area_ne_m = {area_text(opt.area_ne_m)}: "
                 "pick a point inside it, or fly without the area (--no-area)"
             )
-        if in_keepout(opt.keepouts_ne_m, north, east):
-            return f"{point} lies in a keep-out zone of {where}: pick a point outside it, or --no-area"
+        return f"{point} lies in a keep-out zone of {where}: pick a point outside it, or --no-area"
     if world is not None:
         i, clearance = world.nearest_obstacle(opt.start_ne_m)
         if clearance < radius_m:

@@ -20,6 +20,7 @@ from apf_companion.planning.area import (
     FlyingArea,
     KeepOuts,
     PolygonNE,
+    ZoneConflict,
     area_bounds,
     area_polygon,
     area_text,
@@ -27,6 +28,7 @@ from apf_companion.planning.area import (
     inside_area,
     is_polygon,
     polygon_problem,
+    zone_conflict,
 )
 from apf_companion.planning.bapf import BapfPlanner
 from apf_companion.planning.bapfnav import BapfNavPlanner
@@ -89,6 +91,7 @@ __all__ = [
     "Preset",
     "RandomWalkRule",
     "StatefulPlanner",
+    "ZoneConflict",
     "agent_potential",
     "area_bounds",
     "area_polygon",
@@ -107,4 +110,5 @@ __all__ = [
     "polygon_problem",
     "target_potential",
     "total_obstacle_potential",
+    "zone_conflict",
 ]

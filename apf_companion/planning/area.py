@@ -16,6 +16,7 @@ outside.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -25,6 +26,7 @@ __all__ = [
     "FlyingArea",
     "KeepOuts",
     "PolygonNE",
+    "ZoneConflict",
     "area_bounds",
     "area_polygon",
     "area_text",
@@ -36,6 +38,7 @@ __all__ = [
     "near_edges",
     "outside_zones",
     "polygon_problem",
+    "zone_conflict",
     "zones_block_line",
     "zones_bound_lines",
 ]
@@ -132,6 +135,33 @@ def outside_zones(
     if area is not None:
         out |= ~inside_area(area, north_m, east_m)
     return out
+
+
+@dataclass(frozen=True)
+class ZoneConflict:
+    """The first of some points that lies outside the flying area or in a keep-out zone (``zone_conflict``)."""
+
+    index: int  #: which point
+    keepout: int | None  #: the keep-out zone it lies in; None: it lies outside the area
+
+
+def zone_conflict(
+    area: FlyingArea | None, keepouts: KeepOuts, north_m: npt.ArrayLike, east_m: npt.ArrayLike
+) -> ZoneConflict | None:
+    """The first point (1-D ``north_m``, ``east_m``) outside the area, else the first in a keep-out zone (zones in
+    order), else None. One rule for the service's goal check (``goal.route_outside_limits``), the world files' start
+    and goal (``sim.world``) and ``apf-sim fly``'s (``sim.flycli``); each words it for its own source."""
+    north = np.atleast_1d(np.asarray(north_m, dtype=np.float64))
+    east = np.atleast_1d(np.asarray(east_m, dtype=np.float64))
+    if area is not None:
+        out = np.flatnonzero(~inside_area(area, north, east))
+        if out.size:
+            return ZoneConflict(index=int(out[0]), keepout=None)
+    for k, zone in enumerate(keepouts):
+        inside = np.flatnonzero(in_keepout((zone,), north, east))
+        if inside.size:
+            return ZoneConflict(index=int(inside[0]), keepout=k)
+    return None
 
 
 def in_keepout(keepouts: KeepOuts, north_m: npt.ArrayLike, east_m: npt.ArrayLike) -> BoolArray:

@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.errors import ConfigError
-from apf_companion.planning import FlyingArea, KeepOuts, PolygonNE, area_text, in_keepout, inside_area, polygon_problem
+from apf_companion.planning import FlyingArea, KeepOuts, PolygonNE, area_text, polygon_problem, zone_conflict
 from sim.world import sensing
 from sim.world.sensing import closest_point_on_segments
 
@@ -74,12 +74,8 @@ class World:
     def __post_init__(self) -> None:
         if self.area_ne_m is not None:
             object.__setattr__(self, "area_ne_m", _area(self.area_ne_m))
-            self._check_in_area(self.area_ne_m)
         object.__setattr__(self, "keepouts_ne_m", tuple(_keepout(z) for z in self.keepouts_ne_m))
-        for key, point in (("start_ne_m", self.start_ne_m), ("goal_ne_m", self.goal_ne_m)):
-            if point is not None and in_keepout(self.keepouts_ne_m, point[0], point[1]):
-                msg = f"world: {key} = {[float(v) for v in point]} lies in a keep-out zone"
-                raise ConfigError(msg)
+        self._check_zones()
         circles = _as_array(self.circles_ne_m, (2,), "circles_ne_m")
         n = circles.shape[0]
         radii = np.broadcast_to(np.asarray(self.circle_radii_m, dtype=np.float64), (n,)).copy()
@@ -107,12 +103,22 @@ class World:
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
 
-    def _check_in_area(self, area: FlyingArea) -> None:
-        """The start and the goal lie in the flying area (bapf-nav gives up at once on a goal outside it)."""
-        for key, point in (("start_ne_m", self.start_ne_m), ("goal_ne_m", self.goal_ne_m)):
-            if point is not None and not inside_area(area, point[0], point[1]):
-                msg = f"world: {key} = {[float(v) for v in point]} lies outside area_ne_m = {area_text(area)}"
-                raise ConfigError(msg)
+    def _check_zones(self) -> None:
+        """The start and the goal lie in the flying area and in no keep-out zone (bapf-nav gives up at once on a
+        goal there; ``planning.zone_conflict``, the service's rule)."""
+        points = [(key, p) for key, p in (("start_ne_m", self.start_ne_m), ("goal_ne_m", self.goal_ne_m)) if p]
+        if not points:
+            return
+        north, east = zip(*(p for _, p in points), strict=True)
+        conflict = zone_conflict(self.area_ne_m, self.keepouts_ne_m, north, east)
+        if conflict is None:
+            return
+        key, point = points[conflict.index]
+        if conflict.keepout is not None or self.area_ne_m is None:
+            where = "in a keep-out zone"
+        else:
+            where = f"outside area_ne_m = {area_text(self.area_ne_m)}"
+        raise ConfigError(f"world: {key} = {[float(v) for v in point]} lies {where}")
 
     # ------------------------------------------------------------------------------------------- builders
     @classmethod

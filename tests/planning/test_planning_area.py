@@ -11,7 +11,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from apf_companion.planning import area_bounds, area_polygon, area_text, inside_area, polygon_problem
+from apf_companion.planning import (
+    ZoneConflict,
+    area_bounds,
+    area_polygon,
+    area_text,
+    inside_area,
+    polygon_problem,
+    zone_conflict,
+)
 from apf_companion.planning.area import (
     KeepOuts,
     _dist2_to_segment,
@@ -192,3 +200,16 @@ def test_an_edge_just_beyond_a_grid_is_near_its_border_cells(side: str) -> None:
     border = {"north": near[-1, :], "south": near[0, :], "east": near[:, -1], "west": near[:, 0]}[side]
     assert border.all() and near.sum() == border.size
     assert inside_area(square, north, east).all()
+
+
+def test_zone_conflict_names_the_first_point_outside_the_area_then_the_first_in_a_keep_out_zone() -> None:
+    """One rule for the service's goal check, the world files and ``apf-sim fly``: the area first, then the zones in
+    order; non-finite points lie outside an area and in no zone."""
+    area = (0.0, 0.0, 10.0, 10.0)
+    zones = (((2.0, 2.0), (4.0, 2.0), (4.0, 4.0), (2.0, 4.0)), ((6.0, 6.0), (8.0, 6.0), (8.0, 8.0), (6.0, 8.0)))
+    assert zone_conflict(area, zones, [1.0, 5.0], [1.0, 9.0]) is None
+    assert zone_conflict(area, zones, [7.0, 3.0, 11.0], [7.0, 3.0, 0.0]) == ZoneConflict(index=2, keepout=None)
+    assert zone_conflict(area, zones, [1.0, 7.0, 3.0], [1.0, 7.0, 3.0]) == ZoneConflict(index=2, keepout=0)
+    assert zone_conflict(None, zones, [7.0], [7.0]) == ZoneConflict(index=0, keepout=1)
+    assert zone_conflict(None, zones, [math.nan], [3.0]) is None
+    assert zone_conflict(area, (), 5.0, math.inf) == ZoneConflict(index=0, keepout=None)
