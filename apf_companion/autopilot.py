@@ -37,6 +37,7 @@ __all__ = [
     "Px4MainMode",
     "Px4Mode",
     "TypeMask",
+    "guided_mode_name",
 ]
 
 
@@ -45,6 +46,12 @@ class Autopilot(enum.Enum):
 
     ARDUPILOT = "ardupilot"
     PX4 = "px4"
+
+
+def guided_mode_name(profile: Autopilot) -> str:
+    """The name of the mode in which ``profile`` flies a companion's setpoints, as its ground stations show it:
+    ArduCopter GUIDED (``mode.h``), PX4 OFFBOARD (``px4_custom_mode.h``)."""
+    return "GUIDED" if profile is Autopilot.ARDUPILOT else "OFFBOARD"
 
 
 class CopterMode(enum.IntEnum):

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from apf_companion.adopt import AdoptParams
+from apf_companion.autopilot import guided_mode_name
 from apf_companion.config import ServiceConfig, did_you_mean
 from apf_companion.errors import ConfigError
 from apf_companion.fence import FenceArea
@@ -154,6 +155,8 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
             window_s=config.safety.caution_window_s,
         ),
         resume_after_link_lost=config.safety.resume_after_link_lost,
+        takeover=config.autopilot.takeover,
+        guided_mode=guided_mode_name(config.autopilot.profile),
     )
 
 

@@ -8,9 +8,13 @@ younger than ``ranges_max_age_s``); nothing re-sends an old setpoint.
 States (docs/service.md has the diagram):
 
 - IDLE: no goal (or the pilot took the vehicle out of GUIDED/OFFBOARD). Sends nothing.
-- NAVIGATING: a goal and fresh inputs. Before the autopilot is in GUIDED/OFFBOARD it streams holds at the
-  current position (PX4 needs setpoints before it accepts OFFBOARD); then runs the planner every cycle and
-  sends its next point with velocity feed-forward.
+- WAITING_FOR_PILOT: a goal, ``autopilot.takeover`` off and the autopilot not (yet) in GUIDED / OFFBOARD: the
+  pilot has to switch (the reason names the mode). While the pose is fresh it streams holds at the current
+  position (``SetpointKind.PRESTREAM``: PX4 accepts OFFBOARD only while setpoints stream; ArduCopter ignores
+  setpoints outside GUIDED), runs no planner step, and goes NAVIGATING at the HEARTBEAT that shows the mode.
+- NAVIGATING: a goal and fresh inputs. Before the autopilot is in GUIDED/OFFBOARD (the service takes over:
+  ``autopilot.takeover``) it streams holds at the current position (PX4 needs setpoints before it accepts
+  OFFBOARD); then runs the planner every cycle and sends its next point with velocity feed-forward.
 - HOLDING: pose or ranges stale. In the first HOLDING cycle it commands a hold at the last known position;
   after that it keeps commanding that hold only while the pose is fresh (ranges stale), and falls silent when
   the pose is stale too (the autopilot's position hold / OFFBOARD-loss failsafe acts). Fresh inputs -> back to
@@ -71,6 +75,7 @@ class State(enum.Enum):
     """Service states (reported in STATUSTEXT, HEARTBEAT.system_status and the zenoh status)."""
 
     IDLE = "IDLE"
+    WAITING_FOR_PILOT = "WAITING_FOR_PILOT"
     NAVIGATING = "NAVIGATING"
     ARRIVED = "ARRIVED"
     HOLDING = "HOLDING"
@@ -154,6 +159,10 @@ class NavigatorParams:
         resume_after_link_lost: LINK_LOST keeps the goal; when the heartbeat returns with the autopilot still in
             GUIDED / OFFBOARD the service holds, then navigates on once the inputs are fresh. False: the goal is
             dropped (IDLE once the link is back; motion only after a new goal).
+        takeover: The service switches the autopilot to GUIDED / OFFBOARD itself (``autopilot.takeover``); the
+            navigator streams holds meanwhile, NAVIGATING. False: a goal waits in WAITING_FOR_PILOT until the
+            autopilot's HEARTBEAT shows that mode.
+        guided_mode: The name of that mode, for the pilot ("GUIDED" ArduPilot, "OFFBOARD" PX4).
     """
 
     dim: int = 2
@@ -179,6 +188,8 @@ class NavigatorParams:
     tracking_clearance_m: float = 0.0
     caution: CautionParams = dataclasses.field(default_factory=CautionParams)
     resume_after_link_lost: bool = True
+    takeover: bool = True
+    guided_mode: str = "GUIDED"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -237,6 +248,7 @@ class _Counters:
     envelope_warnings: int = 0  # the reported velocity could carry the vehicle inside it before it can stop
     shortened_setpoints: int = 0  # navigation setpoints shortened for a lossy link (``caution`` < 1)
     unconfirmed_pose_cycles: int = 0  # braked or silent: the pose gate's anchor is not confirmed yet
+    prestream_setpoints: int = 0  # holds streamed before GUIDED / OFFBOARD (taking over, waiting for the pilot)
 
     def decision(self, reason: str) -> None:
         """Count a planner decision by its ``Decision`` name."""
@@ -479,6 +491,7 @@ class _Legs:
 
 
 _HOLD_STATES = (State.HOLDING, State.ARRIVED, State.STUCK)
+_WANTS_POSE = (State.NAVIGATING, State.HOLDING, State.WAITING_FOR_PILOT)  # a goal without a pose: HOLDING, saying so
 _ENGAGED_STATES = (State.NAVIGATING, State.HOLDING, State.ARRIVED, State.STUCK)
 _DECISION_COUNTERS = {Decision.GREEDY: "greedy", Decision.RANDOM_WALK: "random_walk"}
 
@@ -586,7 +599,7 @@ class Recovery:
         elif nav.engaged and nav.mode_ok:
             nav._change(now_s, State.HOLDING, "autopilot heartbeat back, guided: resuming when inputs are fresh")
         else:
-            nav._change(now_s, State.NAVIGATING, "autopilot heartbeat back: taking over again for the goal")
+            nav._go(now_s, "autopilot heartbeat back: taking over again for the goal")
 
 
 def _planner_give_up(planner: object) -> str:
@@ -671,6 +684,8 @@ class Navigator:
         self.mode_ok = mode_ok
         if mode_ok and self.route is not None:
             self.engaged = True
+            if self.state is State.WAITING_FOR_PILOT:
+                self._change(now_s, State.NAVIGATING, f"in {self.params.guided_mode}, flying to the goal")
 
     def set_route(self, route: Route, now_s: float) -> bool:
         """A new goal or route replaces the active one. Refused (False) while the link is lost."""
@@ -684,7 +699,7 @@ class Navigator:
         self._steps.target = None
         self._hold.reset()
         self.engaged = self.mode_ok
-        self._change(now_s, State.NAVIGATING, f"new goal from {route.source}: {route.to_json_list()[-1]}")
+        self._go(now_s, f"new goal from {route.source}: {route.to_json_list()[-1]}")
         return True
 
     def goal_waits_for_check(self, now_s: float) -> bool:
@@ -761,6 +776,7 @@ class Navigator:
             out = _HANDLERS[self.state](self, inp)
         if out.setpoint is not None:
             self.counters.setpoints += 1
+            self.counters.prestream_setpoints += out.setpoint.kind is SetpointKind.PRESTREAM
         changes = tuple(self._pending)
         self._pending.clear()
         out = dataclasses.replace(out, state=self.state, changes=changes, caution=self._steps.caution)
@@ -796,7 +812,7 @@ class Navigator:
         if self.route is None and self.pose is not None and self.state is State.HOLDING and not self.goal_waits:
             return self.recovery.goalless_hold(inp)  # restarted mid-flight (``Recovery.restart_hold``)
         if self.route is None or self.pose is None:
-            if (self.route is not None or self.goal_waits) and self.state in (State.NAVIGATING, State.HOLDING):
+            if (self.route is not None or self.goal_waits) and self.state in _WANTS_POSE:
                 self._enter_hold_state(inp.now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
             return self._silent(inp)
         if self.suspended:
@@ -812,10 +828,32 @@ class Navigator:
         """IDLE (and LINK_LOST, left in ``cycle`` once the link is back): no goal, nothing to send."""
         return self._silent(inp)
 
+    def _on_waiting(self, inp: _Inputs) -> CycleOutput:
+        """WAITING_FOR_PILOT (``autopilot_heartbeat`` goes NAVIGATING when the HEARTBEAT shows GUIDED / OFFBOARD).
+
+        With a fresh pose, a hold at the current position each cycle, as while taking over. PX4 enters OFFBOARD
+        only while setpoints stream: NAVIGATION_STATE_OFFBOARD requires the offboard signal
+        (src/modules/commander/ModeUtil/mode_requirements.cpp), which counts as lost unless the last
+        offboard_control_mode is younger than COM_OF_LOSS_T (.../HealthAndArmingChecks/checks/offboardCheck.cpp);
+        src/modules/mavlink/mavlink_receiver.cpp publishes one for every setpoint and uses the setpoint itself only
+        in OFFBOARD. ArduCopter drops setpoints outside GUIDED (ArduCopter/GCS_MAVLink_Copter.cpp
+        ``handle_message_set_position_target_local_ned``: not ``in_guided_mode()``, return). So whichever hold is
+        in force at the switch keeps the vehicle about where it was. No planner step and no leg yet: a "keep
+        altitude" goal keeps the altitude of the switch. Silent with a stale pose."""
+        blocked = self._blocked(inp)
+        if blocked is not None:
+            return blocked
+        if not inp.pose_ok:
+            return self._silent(inp)
+        assert self.pose is not None
+        return self._out(inp, hold(self.pose.pos_ned_m, SetpointKind.PRESTREAM), self._distance_to_goal())
+
     def _on_navigating(self, inp: _Inputs) -> CycleOutput:
         blocked = self._blocked(inp)
         if blocked is not None:
             return blocked
+        if self._pilot_must_switch():
+            return self._wait_for_pilot(inp)
         if not (inp.pose_ok and inp.ranges_ok):
             return self._hold_stale(inp)
         return self._fly(inp)
@@ -824,6 +862,8 @@ class Navigator:
         blocked = self._blocked(inp)
         if blocked is not None:
             return blocked
+        if self._pilot_must_switch():
+            return self._wait_for_pilot(inp)  # e.g. the goal came before the first pose: now the pilot is asked
         if not (inp.pose_ok and inp.ranges_ok):
             return self._hold_stale(inp)
         if self.recovery.holding(inp.now_s):
@@ -898,7 +938,30 @@ class Navigator:
             sp = self._steps.setpoint(pos, target, speed, obstacles)
         return self._out(inp, sp, dist, decision=reason, n_obstacles=n)
 
+    def _wait_for_pilot(self, inp: _Inputs) -> CycleOutput:
+        self._steps.target = None
+        self._hold.reset()  # a hold point of HOLDING is not where the pilot will have flown it by the switch
+        self._change(inp.now_s, State.WAITING_FOR_PILOT, self._switch_reason())
+        return self._on_waiting(inp)
+
     # ---- helpers -----------------------------------------------------------------------------------------------
+    def _pilot_must_switch(self) -> bool:
+        """A goal the service may not take over for (``takeover`` off) and the autopilot not seen in its mode."""
+        return not self.params.takeover and self.route is not None and not self.engaged
+
+    def _switch_reason(self) -> str:
+        return f"switch to {self.params.guided_mode} to fly"  # "APF WAITING_FOR_PILOT: ..." fits one STATUSTEXT
+
+    def _go(self, now_s: float, reason: str) -> None:
+        """NAVIGATING for the goal (``reason``), or WAITING_FOR_PILOT when the pilot has to switch the mode first
+        (HOLDING without a pose yet: PX4 would refuse OFFBOARD without the hold stream, and nothing can be flown)."""
+        if self._pilot_must_switch() and self.pose is None:
+            self._change(now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
+        elif self._pilot_must_switch():
+            self._change(now_s, State.WAITING_FOR_PILOT, self._switch_reason())
+        else:
+            self._change(now_s, State.NAVIGATING, reason)
+
     def _change(self, now_s: float, new: State, reason: str) -> None:
         if new is self.state and (new is not State.HOLDING or _repeats(self._said, reason, now_s)):
             return  # HOLDING says why now: a new cause is announced (at most every REASON_REPEAT_S)
@@ -924,6 +987,7 @@ class Navigator:
 _HANDLERS: dict[State, Callable[[Navigator, _Inputs], CycleOutput]] = {
     State.IDLE: Navigator._on_idle,
     State.LINK_LOST: Navigator._on_idle,  # left in ``cycle`` as soon as the link is alive
+    State.WAITING_FOR_PILOT: Navigator._on_waiting,
     State.NAVIGATING: Navigator._on_navigating,
     State.HOLDING: Navigator._on_holding,
     State.ARRIVED: Navigator._on_done,

@@ -63,6 +63,7 @@ _SEVERITY: dict[State, int] = {
     State.STUCK: mavlink.MAV_SEVERITY_WARNING,
     State.LINK_LOST: mavlink.MAV_SEVERITY_CRITICAL,
     State.ARRIVED: mavlink.MAV_SEVERITY_NOTICE,
+    State.WAITING_FOR_PILOT: mavlink.MAV_SEVERITY_NOTICE,  # the pilot has to act, nothing is wrong
 }
 
 STATUSTEXT_MAX = 50  # characters in one STATUSTEXT (no chunking needed at that length; longer: outbox chunks)
@@ -75,7 +76,7 @@ def severity_for(state: State) -> int:
 
 def system_status_for(state: State, *, healthy_inputs: bool) -> int:
     """HEARTBEAT.system_status: ACTIVE when in control with fresh inputs, CRITICAL when it had to hold or give
-    up, STANDBY when idle (nothing to do)."""
+    up, STANDBY when idle (nothing to do) or waiting for the pilot to switch to GUIDED / OFFBOARD (not in control)."""
     if state in (State.HOLDING, State.STUCK, State.LINK_LOST):
         return int(mavlink.MAV_STATE_CRITICAL)
     if state in (State.NAVIGATING, State.ARRIVED):

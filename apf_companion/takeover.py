@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.autopilot import Autopilot
+from apf_companion.autopilot import Autopilot, guided_mode_name
 
 __all__ = [
     "COMMAND_RETRY_S",
@@ -284,7 +284,7 @@ class TakeoverController:
 
     def _what(self) -> str:
         if self.phase in (Phase.MODE, Phase.MODE_BEFORE_ARM):
-            return "GUIDED" if self._ardupilot else "OFFBOARD"
+            return guided_mode_name(self.params.profile)
         return str(self.phase.value)
 
     def _condition(self, now_s: float, inp: TakeoverInputs) -> bool:
