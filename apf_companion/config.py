@@ -170,7 +170,9 @@ class AutopilotConfig:
 
     Attributes:
         profile: "ardupilot" (GUIDED) or "px4" (OFFBOARD).
-        takeover: Switch the autopilot to GUIDED / OFFBOARD when a goal arrives. False: wait for the pilot.
+        takeover: Switch the autopilot to GUIDED / OFFBOARD when a goal arrives. False: the pilot switches; until
+            then the state is WAITING_FOR_PILOT ("switch to GUIDED to fly", one STATUSTEXT), the service streams a
+            hold at the current position (PX4 accepts OFFBOARD only with a setpoint stream) and plans nothing.
         arm: Arm the vehicle (simulated flights only; off by default).
         takeoff_alt_m: With ``arm``: take off to this height above home before navigating [m]; 0 = no takeoff.
         mode_timeout_s: Give up a mode switch (or arming) not confirmed by HEARTBEAT.custom_mode within this, once
