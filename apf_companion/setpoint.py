@@ -42,7 +42,8 @@ class SetpointKind(enum.Enum):
     HOLD = "hold"
     """Stay at a point with zero velocity (HOLDING, ARRIVED, STUCK, local minimum)."""
     PRESTREAM = "prestream"
-    """Hold at the current position while taking over (PX4 wants setpoints before OFFBOARD)."""
+    """Hold at the current position while taking over or waiting for the pilot's switch (PX4 wants setpoints
+    before OFFBOARD; ArduCopter ignores them outside GUIDED). Never a planner step, not flight time."""
     BRAKE = "brake"
     """Zero velocity, position ignored (``MASK_VELOCITY``): stop wherever the vehicle is, while the pose is not
     confirmed (docs/hardening.md): no position in it, so no spoofed position can pull the vehicle anywhere."""
