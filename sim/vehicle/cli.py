@@ -85,7 +85,7 @@ def _register_vehicle(subparsers: argparse._SubParsersAction) -> None:  # type: 
     v.add_argument("--seed", type=int, default=0, help="seed for noise (and for --paper-field unless --field-seed)")
     v.add_argument("--tlog", type=Path, help="record every frame in and out (.tlog)")
     v.add_argument("--result-json", type=Path, help="write the flight result here on exit and on a crash")
-    v.add_argument("--duration", type=float, help="stop after this many simulated seconds")
+    v.add_argument("--duration", type=float, help="stop after this many simulated seconds (within one physics step)")
     v.add_argument("--exit-on-crash", action="store_true", help="stop when the vehicle crashes")
     v.add_argument(
         "--param", action="append", type=param_assignment, default=[], metavar="NAME=VALUE", help="parameter override"
@@ -271,6 +271,7 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
         signing_key=None if args.signing_key is None else load_signing_key(args.signing_key),
         fence=fence,
         fence_keepouts=fence_keepouts,
+        duration_s=args.duration,
     )
     stop = asyncio.Event()
     _install_signals(stop)
@@ -285,7 +286,7 @@ async def _vehicle_main(args: argparse.Namespace) -> int:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(0.05):
                     await stop.wait()
-            if args.duration is not None and sim.t_s >= args.duration:
+            if sim.finished.is_set():  # --duration: the simulator stopped its physics there
                 break
             if args.exit_on_crash and sim.vehicle.crashed:
                 break

@@ -110,6 +110,8 @@ class SimConfig:
         signing_key: MAVLink 2 signing key (32 bytes, ``apf_companion.links.load_signing_key``): every link signs
             its frames (link id = link index, timestamp from the wall clock, as ArduPilot with a GPS fix) and
             drops frames not signed with it, except the profile's ``UNSIGNED_ACCEPTED``; None = signing off.
+        duration_s: stop the physics at the first step at or after this many simulated seconds since boot and set
+            ``Simulator.finished`` (the links stay open until ``aclose``); None = run until ``aclose`` [s].
     """
 
     links: Sequence[str] = ()
@@ -132,6 +134,7 @@ class SimConfig:
     signing_key: bytes | None = None
     fence: FlyingArea | None = None
     fence_keepouts: KeepOuts = ()
+    duration_s: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "links", tuple(self.links))
@@ -157,6 +160,9 @@ class SimConfig:
                 raise ConfigError(msg) from err
         if not (self.speedup > 0):
             msg = f"speedup must be > 0 (inf = as fast as possible), got {self.speedup}"
+            raise ConfigError(msg)
+        if self.duration_s is not None and not (0.0 < self.duration_s < math.inf):
+            msg = f"duration must be a finite number of simulated seconds > 0, got {self.duration_s}"
             raise ConfigError(msg)
 
     def _params(self) -> dict[str, float]:
@@ -278,6 +284,8 @@ class Simulator:
         self.error: BaseException | None = None
         self.wall_time_s = 0.0
         self.lag_resets = 0
+        #: Set when the simulated time reached ``cfg.duration_s`` (the physics stopped there).
+        self.finished = asyncio.Event()
 
     # ------------------------------------------------------------------------------------------- lifecycle
     @classmethod
@@ -427,14 +435,20 @@ class Simulator:
         wall0 = loop.time()
         sim0 = engine.t_s
         started = wall0
+        # The physics stops at the first step at or after duration_s (t_s is steps * dt; the tolerance only
+        # absorbs its rounding), so the duration is honoured within one step at any speed-up; the owner, which
+        # polls ``finished``, may notice it later in wall time but no further simulated time passes.
+        end_s = math.inf if self.cfg.duration_s is None else self.cfg.duration_s - 1e-9 * dt
         try:
             if math.isinf(speedup):
-                while True:
+                while engine.t_s < end_s:
                     for _ in range(STEPS_PER_YIELD):
                         engine.step()
+                        if engine.t_s >= end_s:
+                            break
                     self.wall_time_s = loop.time() - started
                     await asyncio.sleep(0)
-            while True:
+            while engine.t_s < end_s:
                 now = loop.time()
                 due = sim0 + (now - wall0) * speedup
                 behind = due - engine.t_s
@@ -455,5 +469,6 @@ class Simulator:
                     continue
                 next_wall = wall0 + (engine.t_s + dt - sim0) / speedup
                 await asyncio.sleep(max(0.0, next_wall - loop.time()))
+            self.finished.set()
         finally:
             self.wall_time_s = loop.time() - started

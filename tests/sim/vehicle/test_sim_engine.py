@@ -20,7 +20,7 @@ from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY, 
 from apf_companion.errors import ConfigError
 from apf_companion.links import MavlinkLink
 from apf_companion.perception import euler_yaw_rate_rad_s
-from sim.vehicle import Dynamics, EngineConfig, SimConfig, SpawnConfig, VehicleEngine
+from sim.vehicle import Dynamics, EngineConfig, SimConfig, Simulator, SpawnConfig, VehicleEngine
 from sim.vehicle.geo import latlon_to_ne
 from sim.vehicle.telemetry import build
 from sim.world import World, load_world
@@ -241,6 +241,21 @@ async def test_cli_writes_result_on_sigterm(tmp_path: Path) -> None:
     assert (tmp_path / "sim.tlog").stat().st_size > 0
 
 
+@pytest.mark.parametrize("speedup", [math.inf, 20.0])
+async def test_the_simulator_stops_its_physics_at_its_duration(speedup: float) -> None:
+    """``SimConfig.duration_s``: the clock stops at the first physics step at or after it (0.255 s at 40 Hz: the
+    11th step, 0.275 s), however long its owner takes to notice ``finished``."""
+    link = f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
+    cfg = SimConfig(links=[link], speedup=speedup, physics_rate_hz=40.0, duration_s=0.255)
+    async with await Simulator.start(cfg) as sim:
+        async with asyncio.timeout(HANG_S):
+            await sim.finished.wait()
+        assert sim.t_s == pytest.approx(0.275) and sim.error is None
+    assert sim.result()["sim_time_s"] == pytest.approx(0.275)  # closed: its clock ended where it stopped
+    with pytest.raises(ConfigError, match="duration"):
+        SimConfig(duration_s=math.nan)
+
+
 async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
     result = tmp_path / "r.json"
     port = free_port(socket.SOCK_DGRAM)
@@ -254,7 +269,9 @@ async def test_cli_duration_and_bad_arguments(tmp_path: Path) -> None:
         _, err = await proc.communicate()
     assert proc.returncode == 0, err.decode()
     res = json.loads(result.read_text())
-    assert res["sim_time_s"] >= 3.0 and res["on_ground"] and res["speedup"] is None
+    # --duration is simulated time, honoured within one physics step (100 Hz) even as fast as the CPU allows: it
+    # ran 30 s, the simulated time of the CLI's 50 ms polling, when the CLI stopped the simulator.
+    assert 3.0 <= res["sim_time_s"] <= 3.0 + 0.01 and res["on_ground"] and res["speedup"] is None
     assert res["params"]["SIM_POS_NOISE"] == 0.1 and res["params"]["GUID_TIMEOUT"] == 3.0
     bad = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "sim.vehicle.cli", "vehicle", "--param", "GUID_TIMEOUT=99", "--duration", "1",
