@@ -1,7 +1,7 @@
 """How and when a run ends: the outcome rules and the one owner of the flight's times.
 
-``CompanionService`` asks ``FlightEnd`` each cycle (with ``exit_when_done``) whether the flight is over, and at
-the end for the outcome and the flight time of its ``ServiceResult``.
+``CompanionService`` asks ``FlightEnd`` each cycle whether the flight is over (with ``exit_when_done`` that ends
+the run), and at the end for the outcome and the flight time of its ``ServiceResult``.
 """
 
 from __future__ import annotations
@@ -40,31 +40,43 @@ def outcome_now(navigator: Navigator, *, goals: int, flown_s: float | None, max_
 
 
 class FlightEnd:
-    """When the current goal was set and navigation began, and how and when the run ended (service seconds)."""
+    """When the current flight began navigating and when and how it ended, and the run's outcome (service seconds).
+
+    A flight is one goal flown to its end: from its first navigation setpoint to the state that ended it (arrived,
+    stuck, link lost with the goal dropped, the goal dropped, or ``max_s`` of flight). A goal that replaces the goal
+    of a flight still under way continues that flight; a goal after a flight has ended starts a new one.
+    """
 
     def __init__(self) -> None:
         self._first_nav_s: float | None = None
         self._goal_s: float | None = None
         self._end_s: float | None = None
-        self.outcome: Outcome | None = None
+        self.ended: Outcome | None = None  # how the current flight ended; None while under way (or none yet)
+        self.outcome: Outcome | None = None  # the run's outcome, once something decided it
 
     def goal_set(self, now: float) -> None:
-        """A new goal: the flight is not over (whatever ended the last one)."""
-        self.outcome = None
+        """A new goal: the flight goes on, or a new one begins if the last one had ended (not once the run's
+        outcome is decided: the run is ending and its last flight stands)."""
+        if self.outcome is not None:
+            return
+        if self._end_s is not None:
+            self._first_nav_s = None  # the ended flight's time is not the new one's
+        self.ended = None
         self._end_s = None
         self._goal_s = now
 
     def navigating(self, now: float) -> None:
-        """A navigation setpoint went out: the flight time counts from the first one."""
+        """A navigation setpoint went out: the flight time counts from the flight's first one."""
         if self._first_nav_s is None:
             self._first_nav_s = now
 
     def flown_s(self, now: float) -> float | None:
         return None if self._first_nav_s is None else now - self._first_nav_s
 
-    def check(self, now: float, navigator: Navigator, *, goals: int, max_s: float) -> bool:
-        """Whether the flight ended just now (``outcome_now``); an ended flight stays ended until a new goal."""
-        if self.outcome is not None:
+    def check(self, now: float, navigator: Navigator, *, goals: int, max_s: float, ends_run: bool = True) -> bool:
+        """Whether the flight ended just now (``outcome_now``); an ended flight stays ended until a new goal. Its
+        end stops the flight time; with ``ends_run`` (``exit_when_done``) its outcome is also the run's."""
+        if self.ended is not None:
             return False
         flown = self.flown_s(now)
         if flown is None and self._goal_s is not None:
@@ -72,10 +84,13 @@ class FlightEnd:
         outcome = outcome_now(navigator, goals=goals, flown_s=flown, max_s=max_s)
         if outcome is None:
             return False
-        self.outcome, self._end_s = outcome, now
+        self.ended, self._end_s = outcome, now
+        if ends_run:
+            self.outcome = outcome
         return True
 
     def final(self, now: float) -> tuple[Outcome, float]:
-        """The run's outcome (STOPPED if nothing ended it) and its flight time [s] at ``now`` or at its end."""
+        """The run's outcome (STOPPED if nothing decided it) and the last flight's time [s]: to its end, or to
+        ``now`` (the run's end) if it had none; 0 if it never navigated."""
         end = self._end_s if self._end_s is not None else now
         return self.outcome or Outcome.STOPPED, max(0.0, self.flown_s(end) or 0.0)

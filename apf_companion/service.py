@@ -134,7 +134,10 @@ class ServiceResult:
         outcome: "arrived", "stuck", "timeout", "link_lost", "stopped" or "error".
         state: The navigator state at the end.
         steps: Planner steps taken.
-        flight_time_s: Vehicle seconds from the first navigation setpoint to the end (0 if none).
+        flight_time_s: Vehicle seconds of the last flight: from its first navigation setpoint to the state that
+            ended it (arrived, stuck, timeout, link lost, goal dropped), or to the end of the run if it was
+            stopped before one; 0 if it never navigated. A goal replacing one still being flown continues the
+            flight (``apf_companion.flightend.FlightEnd``).
         latency_ms_p50, latency_ms_p99: Sensor-to-setpoint latency over the run [ms].
         gc: The garbage collector's pauses over the run (``heap.GcSummary``), None if it did not run.
         counters: Service and navigator counters.
@@ -542,10 +545,10 @@ class CompanionService:
         return out
 
     def _check_done(self, now: float) -> None:
-        if not self.config.exit_when_done:
-            return
-        goals, max_s = self.counters.goals, self.config.max_flight_s
-        if self.flight.check(now, self.navigator, goals=goals, max_s=max_s):
+        """Note the end of a flight (its flight time stops there); with ``exit_when_done`` it ends the run."""
+        exits = self.config.exit_when_done
+        max_s = self.config.max_flight_s if exits else 0.0
+        if self.flight.check(now, self.navigator, goals=self.counters.goals, max_s=max_s, ends_run=exits) and exits:
             self._stop.set()
 
     async def _periodic(self, task: str, due: Callable[[float], float], retry_s: float) -> None:

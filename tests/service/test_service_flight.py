@@ -25,7 +25,7 @@ from apf_companion.perception import GoalCommand, encode_goal_json
 from apf_companion.service import CompanionService
 from sim.vehicle import SimConfig, Simulator, SpawnConfig, ZenohOutput
 from sim.world import World, paper_field
-from tests.conftest import HANG_S, SimulatorClock, free_port, until, until_sim_time
+from tests.conftest import HANG_S, SimulatorClock, counter_advances, free_port, until, until_sim_time
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -166,6 +166,9 @@ async def test_ardupilot_takeover_confirmed_from_heartbeat() -> None:
         await wait_state(svc, {State.ARRIVED}, 120.0)
         assert sim.vehicle.custom_mode == CopterMode.GUIDED
         assert svc.navigator.engaged and svc.reporter.counters.mode_requests >= 1
+        flown_s = svc.result().flight_time_s
+        await counter_advances(lambda: svc.navigator.counters.cycles, 20, "cycles holding at the goal")
+    assert 0.0 < flown_s == svc.result().flight_time_s  # the flight ended at the arrival, not when the run did
 
 
 async def test_px4_offboard_after_prestream() -> None:
