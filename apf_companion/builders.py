@@ -306,6 +306,44 @@ def has_zones(planner: object) -> bool:
     return flying_area(planner) is not None or bool(keepout_zones(planner))
 
 
+def fence_not_read(config: ServiceConfig, planner: object) -> str | None:
+    """Why the service does not read the autopilot's fence as the flying area (``planner.fence_area``), or None
+    when it does (with a link that sends: ``service._fence_reader``)."""
+    if not isinstance(planner, BapfNavPlanner):
+        return f"only bapf-nav plans over the autopilot's fence; {config.planner.name} does not read it"
+    if not config.planner.fence_area:
+        return "planner.fence_area is false: the fence is not read"
+    if has_zones(planner):
+        return "planner.params gives nav_area_ne_m or nav_keepout_ne_m: the config's zones win, the fence is not read"
+    if config.dry_run:
+        return "a dry run sends nothing: the fence is not read"
+    return None
+
+
+#: PlannerParams fields that one planner alone reads, by name prefix: nav_* only bapf-nav's modules
+#: (apf_companion/planning/bapfnav.py, nav*.py), br_* only bendyruler.py, capf_* only capf.py.
+_OWN_PARAMS: tuple[tuple[str, PlannerName], ...] = (
+    ("nav_", PlannerName.BAPF_NAV),
+    ("br_", PlannerName.BENDYRULER),
+    ("capf_", PlannerName.CAPF),
+)
+
+
+def settings_not_used(config: ServiceConfig, planner: object) -> dict[str, str]:
+    """The settings ``check-config`` prints that this configuration does not use, each with why: the fence
+    settings (``fence_not_read``) and other planners' own parameters (``planner.params.nav_*``, ...)."""
+    out: dict[str, str] = {}
+    why = fence_not_read(config, planner)
+    if why is not None:
+        if config.planner.fence_area:  # false is in effect: it is what keeps the fence unread
+            out["planner.fence_area"] = why
+        out["planner.fence_poll_s"] = why
+    for prefix, owner in _OWN_PARAMS:
+        if config.planner.name != owner:
+            out[f"planner.params.{prefix}*"] = f"{owner}'s parameters; {config.planner.name} does not read them"
+    return out
+
+
 @dataclass(frozen=True, slots=True)
 class SigningSetup:
     """MAVLink 2 signing on the autopilot link: the link's parameters and where its timestamp is kept."""

@@ -314,8 +314,9 @@ def _exit_code(outcome: str) -> int:
 
 def _cmd_check(args: argparse.Namespace) -> int:
     """Validate a config file (keys, types, ranges, planner parameters, route file); print the effective
-    configuration as JSON. Exit 0 if valid, 2 with the offending key otherwise."""
-    from apf_companion.builders import signing_setup
+    configuration as JSON, with ``not_used``: the settings it does not read, and why. Exit 0 if valid, 2 with the
+    offending key otherwise."""
+    from apf_companion.builders import settings_not_used, signing_setup
     from apf_companion.service import build_planner, initial_route
 
     try:
@@ -344,6 +345,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
     # The planner's parameters in effect (preset, then [planner.params], then dim), not only the overrides.
     out["planner"]["params"] = plain(planner.params)
     out["route_waypoints_ned_m"] = None if route is None else route.to_json_list()
+    # Printed in full as above, but not read with this planner (or config): said, with why.
+    out["not_used"] = settings_not_used(cfg, planner)
     print(json.dumps(out, indent=2))
     print(f"{args.config}: OK", file=sys.stderr)
     return EXIT_OK

@@ -213,11 +213,11 @@ class PlannerConfig:
         random_walk_budget: Consecutive cycles without a greedy move (random walk or local minimum) after
             which the service gives up: STUCK.
         progress_timeout_s: No new best distance to the goal (by 0.1 m) for this long -> STUCK [s].
-        fence_area: bapf-nav with no flying area and no keep-out zone in params (nav_area_ne_m,
-            nav_keepout_ne_m): read the autopilot's fence at start, and plan over its inclusion zones (their
-            intersection, or union with ArduPilot's FENCE_OPTIONS) and round its exclusion zones once it is read,
-            with its parameters: the edges kept FENCE_MARGIN away, its circle round home, ceiling and floor
-            (docs/service.md, "The autopilot's fence" and "The autopilot's fence parameters").
+        fence_area: bapf-nav (the other planners never read the fence) with no flying area and no keep-out zone
+            in params (nav_area_ne_m, nav_keepout_ne_m): read the autopilot's fence at start, and plan over its
+            inclusion zones (their intersection, or union with ArduPilot's FENCE_OPTIONS) and round its exclusion
+            zones once it is read, with its parameters: the edges kept FENCE_MARGIN away, its circle round home,
+            ceiling and floor (docs/service.md, "The autopilot's fence" and "The autopilot's fence parameters").
         fence_poll_s: With ``fence_area``: read the fence again this long after each read, so a fence changed
             on the ground station in flight is planned over [s]; sooner when the autopilot's fence id changes
             (PX4); 0 = read once at start.

@@ -44,6 +44,7 @@ from apf_companion.builders import (
     build_outbox,
     build_planner,
     config_with_fence,
+    fence_not_read,
     flying_area,
     forwarder_params,
     handler_params,
@@ -744,8 +745,7 @@ def _fence_reader(svc: CompanionService) -> FenceReader | None:
     """The fence download when ``planner.fence_area`` asks for it: bapf-nav, no area and no keep-out zones in the
     config (the config's own zones win), a link."""
     config = svc.config
-    wanted = config.planner.fence_area and isinstance(svc.planner, BapfNavPlanner)
-    if not wanted or has_zones(svc.planner) or svc.outbox.silent:  # the config's own zones win
+    if fence_not_read(config, svc.planner) is not None or svc.outbox.silent:  # e.g. the config's own zones win
         return None
     lc = config.link
     params = FenceReaderParams(

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -37,6 +38,45 @@ def test_check_config_prints_the_planner_parameters_in_effect(
     expected = dataclasses.replace(PlannerParams.from_preset("paper"), rho_l_m=0.5)
     assert set(params) == {f.name for f in dataclasses.fields(PlannerParams)}
     assert params["rho_l_m"] == 0.5 and params["step_m"] == expected.step_m and params["dim"] == 2
+
+
+def _not_used(tmp_path: Path, capsys: pytest.CaptureFixture[str], toml: str) -> tuple[dict[str, Any], dict[str, str]]:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(toml)
+    assert main(["check-config", str(cfg)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    return out["planner"], out["not_used"]
+
+
+@pytest.mark.parametrize("planner", [p for p in ALL_PLANNER_NAMES if p != "bapf-nav"])
+def test_check_config_says_the_fence_settings_are_not_used_by_planners_that_ignore_the_fence(
+    planner: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Only bapf-nav plans over the autopilot's fence (service._fence_reader): for the paper's planners and
+    bendyruler check-config printed fence_area = true as if the fence would be read."""
+    section, not_used = _not_used(tmp_path, capsys, f'[planner]\nname = "{planner}"\nfence_area = true\n')
+    assert section["fence_area"] is True and section["fence_poll_s"] == 5.0  # what the file says, printed
+    why = f"only bapf-nav plans over the autopilot's fence; {planner} does not read it"
+    assert not_used["planner.fence_area"] == why and not_used["planner.fence_poll_s"] == why
+    assert not_used["planner.params.nav_*"] == f"bapf-nav's parameters; {planner} does not read them"
+    assert ("planner.params.br_*" in not_used) is (planner != "bendyruler")
+    assert ("planner.params.capf_*" in not_used) is (planner != "capf")
+
+
+def test_check_config_says_when_bapf_nav_does_not_read_the_fence(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, not_used = _not_used(tmp_path, capsys, "")  # the default: bapf-nav reads the fence
+    assert not any(k.startswith(("planner.fence", "planner.params.nav_")) for k in not_used)
+    assert set(not_used) == {"planner.params.br_*", "planner.params.capf_*"}
+    area = "[planner.params]\nnav_area_ne_m = [-5.0, -5.0, 30.0, 30.0]\n"
+    _, not_used = _not_used(tmp_path, capsys, area)
+    assert "the config's zones win" in not_used["planner.fence_area"] and "planner.fence_poll_s" in not_used
+    _, not_used = _not_used(tmp_path, capsys, "[planner]\nfence_area = false\n")
+    assert "planner.fence_area" not in not_used  # false is the setting in effect
+    assert not_used["planner.fence_poll_s"] == "planner.fence_area is false: the fence is not read"
+    _, not_used = _not_used(tmp_path, capsys, "dry_run = true\n")
+    assert "dry run" in not_used["planner.fence_area"]
 
 
 def test_check_config_names_the_bad_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
