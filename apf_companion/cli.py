@@ -270,11 +270,13 @@ async def _serve(cfg: ServiceConfig, route: Route | None, result_path: Path | No
     try:
         svc = await opening
     except asyncio.CancelledError:
+        _write_unopened(result_path, "stopped", None)
         return EXIT_OK
     except ApfCompanionError as err:
         # Said once, on stderr (journald keeps it too); the log line only for --log-level DEBUG.
         log.debug("service.open_failed", extra={"error": str(err)})
         print(f"apf-companion: {err}", file=sys.stderr)
+        _write_unopened(result_path, "error", str(err))
         return EXIT_ERROR
     service.append(svc)
     _log_start(cfg)
@@ -282,6 +284,15 @@ async def _serve(cfg: ServiceConfig, route: Route | None, result_path: Path | No
     log.info("service.end", extra={"outcome": result.outcome, "steps": result.steps})
     code.append(_exit_code(result.outcome))
     return code[-1]
+
+
+def _write_unopened(path: Path | None, outcome: str, error: str | None) -> None:
+    """``--result-json`` of a run that ended while the service was opening (stopped, or an error such as a zenoh
+    router that was never reached): written too, so a script reading it learns why."""
+    from apf_companion.service import ServiceResult
+
+    if path is not None:
+        path.write_text(ServiceResult.unopened(outcome, error=error).to_json() + "\n", encoding="utf-8")
 
 
 def _log_start(cfg: ServiceConfig) -> None:

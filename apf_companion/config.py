@@ -421,6 +421,10 @@ class ZenohSection:
         goal_key: Key of the goal command topic (JSON ``apf.goal/1``).
         status_key: Key the status JSON is published on.
         status_rate_hz: Status publications per second [Hz].
+        router_wait_s: Client mode: how long to keep trying to reach the router at start (a doubling backoff of
+            0.5 to 5 s, one WARNING ``zenoh.router_unreachable`` at the first failure, then at most every 30 s)
+            before the service stops with an error (exit 1; systemd's ``Restart=on-failure`` starts it again);
+            0 = one attempt [s].
     """
 
     enabled: bool = False
@@ -432,6 +436,7 @@ class ZenohSection:
     goal_key: str = "apf/cmd/goal"
     status_key: str = "apf/status"
     status_rate_hz: float = 5.0
+    router_wait_s: float = 60.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -447,6 +452,7 @@ class ZenohSection:
             if not value or value.startswith("/") or value.endswith("/"):
                 raise _fail(f"zenoh.{key}", "a key expression like 'apf/status' (no leading/trailing /)", value)
         _check_range("zenoh.status_rate_hz", self.status_rate_hz, 0.1, 50.0)
+        _check_range("zenoh.router_wait_s", self.router_wait_s, 0.0, 3600.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

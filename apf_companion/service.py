@@ -159,6 +159,20 @@ class ServiceResult:
         return json.dumps(dataclasses.asdict(self), indent=2, allow_nan=False)
 
     @classmethod
+    def unopened(cls, outcome: str, *, error: str | None) -> ServiceResult:
+        """The result of a run that ended while the service was opening its links (nothing flown or counted)."""
+        idle = State.IDLE.value
+        return cls(
+            outcome=outcome,
+            state=idle,
+            steps=0,
+            flight_time_s=0.0,
+            latency_ms_p50=None,
+            latency_ms_p99=None,
+            error=error,
+        )
+
+    @classmethod
     def of(
         cls,
         outcome: str,
@@ -898,7 +912,8 @@ async def _open_zenoh(config: ServiceConfig) -> Any:
     zc = config.zenoh
     config_file = str(config.resolve(zc.config_file)) if zc.config_file else None
     link = await open_with_retry(
-        ZenohConfig(mode=zc.mode, connect=zc.connect, listen=zc.listen, config_file=config_file)
+        ZenohConfig(mode=zc.mode, connect=zc.connect, listen=zc.listen, config_file=config_file),
+        total_s=zc.router_wait_s,
     )
     try:
         if config.sensors.zenoh:

@@ -59,6 +59,7 @@ __all__ = [
     "ZenohSample",
     "ZenohSubscription",
     "open_with_retry",
+    "zenoh_error_text",
 ]
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,15 @@ def _check_endpoint(endpoint: str, *, name: str, allow_port_zero: bool) -> None:
     if not low <= port <= 65535:
         msg = f"zenoh {name} endpoint {endpoint!r}: port must be in {low}..65535"
         raise ConfigError(msg)
+
+
+# zenoh's error texts end each cause with the Rust source line that raised it (" at /root/.cargo/.../x.rs:447.").
+_RUST_LOCATION_RE = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """A zenoh error's message without the Rust source locations zenoh appends to each cause."""
+    return _RUST_LOCATION_RE.sub("", str(err)).strip()
 
 
 # Keys a config_file may not set: ZenohConfig owns them. Values as zenoh.Config().get_json reports the defaults.
@@ -157,6 +167,16 @@ class ZenohConfig:
             raise ConfigError(msg)
         if self.config_file is not None:
             _load_config_file(self.config_file)
+
+    def describe(self) -> str:
+        """The settings for a message: ``mode client, connect tcp/127.0.0.1:7447`` (no Python repr)."""
+        parts = [f"mode {self.mode}"]
+        for name, endpoints in (("connect", self.connect), ("listen", self.listen)):
+            if endpoints:
+                parts.append(f"{name} {', '.join(endpoints)}")
+        if self.config_file is not None:
+            parts.append(f"config_file {self.config_file}")
+        return ", ".join(parts)
 
     def to_zenoh(self) -> zenoh.Config:
         """The equivalent ``zenoh.Config`` (``config_file`` first, then mode, endpoints, scouting off)."""
@@ -355,10 +375,10 @@ class ZenohLink:
             async with asyncio.timeout(timeout):
                 session = await asyncio.to_thread(zenoh.open, conf)
         except TimeoutError as err:
-            msg = f"zenoh session did not open within {timeout} s ({cfg})"
+            msg = f"zenoh session did not open within {timeout} s ({cfg.describe()})"
             raise LinkTimeout(msg) from err
         except zenoh.ZError as err:
-            msg = f"zenoh session failed to open ({cfg}): {err}"
+            msg = f"zenoh session failed to open ({cfg.describe()}): {zenoh_error_text(err)}"
             raise LinkError(msg) from err
         log.info("zenoh.open", extra={"mode": cfg.mode, "connect": cfg.connect, "listen": cfg.listen})
         return cls(session, cfg, loop)
@@ -476,34 +496,59 @@ class ZenohLink:
 
 CLIENT_RETRY_MIN_S = 0.5  # first wait after a failed client open [s]
 CLIENT_RETRY_MAX_S = 5.0  # the backoff doubles up to this [s]
-CLIENT_RETRY_TOTAL_S = 60.0  # give up (LinkError) after waiting this long in all [s]
+CLIENT_RETRY_TOTAL_S = 60.0  # give up (LinkError) after this long in all [s] (the service: zenoh.router_wait_s)
+CLIENT_RETRY_WARN_S = 30.0  # a failed attempt is a WARNING at most this often (the first always), else DEBUG [s]
+ROUTER_HINT = (
+    "is zenohd (or another zenoh router) running and listening there (with TLS: do the certificates match)? "
+    "--log-level DEBUG shows zenoh's error for each attempt"
+)
 
 
-async def open_with_retry(cfg: ZenohConfig, *, total_s: float = CLIENT_RETRY_TOTAL_S) -> ZenohLink:
+async def open_with_retry(
+    cfg: ZenohConfig, *, total_s: float = CLIENT_RETRY_TOTAL_S, warn_every_s: float = CLIENT_RETRY_WARN_S
+) -> ZenohLink:
     """``ZenohLink.open``; in client mode a router that is not up yet (zenoh refuses at once) is retried with a
-    doubling backoff (``CLIENT_RETRY_MIN_S`` .. ``CLIENT_RETRY_MAX_S``), each failure logged at WARNING, for at
-    most ``total_s``. Peer and router modes are not retried (their failures are configuration errors, e.g. a
-    listen port in use).
+    doubling backoff (``CLIENT_RETRY_MIN_S`` .. ``CLIENT_RETRY_MAX_S``) until ``total_s`` have passed since the
+    first attempt, the last one at ``total_s`` (0 = one attempt). The first failure is one WARNING
+    ``zenoh.router_unreachable`` naming the router and what happens next; later ones repeat it (with the count of
+    attempts) at most every ``warn_every_s``, and are DEBUG lines (``zenoh.router_retry``, with zenoh's error) in
+    between. Peer and router modes are not retried (their failures are configuration errors, e.g. a listen port
+    in use).
 
     Raises:
-        LinkError: the last failure, once ``total_s`` has been waited.
+        LinkError: the router was not reached within ``total_s`` (one line: the router, the time, the attempts);
+            in peer or router mode, the failure of the one attempt.
     """
-    waited_s, backoff_s = 0.0, CLIENT_RETRY_MIN_S
+    loop = asyncio.get_running_loop()
+    router = ", ".join(cfg.connect)
+    start_s = loop.time()
+    warn_at_s, backoff_s, attempts = start_s, CLIENT_RETRY_MIN_S, 0
     while True:
         try:
             return await ZenohLink.open(cfg)
         except LinkError as err:
-            if cfg.mode != "client" or waited_s + backoff_s > total_s:
+            if cfg.mode != "client":
                 raise
-            log.warning(
-                "zenoh.router_unreachable",
-                extra={
-                    "connect": list(cfg.connect),
-                    "error": str(err),
-                    "retry_s": backoff_s,
-                    "hint": "is zenohd (or the router) running and listening at these endpoints?",
-                },
-            )
-            await asyncio.sleep(backoff_s)
-            waited_s += backoff_s
+            attempts += 1
+            waited_s = loop.time() - start_s
+            log.debug("zenoh.router_retry", extra={"router": router, "attempts": attempts, "error": str(err)})
+            if waited_s >= total_s:
+                msg = (
+                    f"zenoh router at {router} unreachable: gave up after {waited_s:.1f} s and {attempts} "
+                    f"attempt{'s' if attempts > 1 else ''} (zenoh.router_wait_s = {total_s:g}); {ROUTER_HINT}"
+                )
+                raise LinkError(msg) from err
+            if loop.time() >= warn_at_s:
+                warn_at_s = loop.time() + warn_every_s
+                log.warning(
+                    "zenoh.router_unreachable",
+                    extra={
+                        "router": router,
+                        "attempts": attempts,
+                        "waited_s": round(waited_s, 1),
+                        "then": f"retrying for up to {total_s:g} s in all, then giving up (the service exits 1)",
+                        "hint": ROUTER_HINT,
+                    },
+                )
+            await asyncio.sleep(min(backoff_s, total_s - waited_s))  # the last attempt at total_s
             backoff_s = min(2.0 * backoff_s, CLIENT_RETRY_MAX_S)

@@ -10,9 +10,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import math
 import socket
 from collections.abc import AsyncIterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,6 +29,7 @@ from apf_companion.links.zenoh import (
     ZenohSample,
     ZenohSubscription,
     open_with_retry,
+    zenoh_error_text,
 )
 from apf_companion.perception import (
     GoalCommand,
@@ -352,10 +355,28 @@ async def test_peer_connects_to_a_late_listener() -> None:
         await early.aclose()
 
 
+def _no_internals(text: str) -> None:
+    """No Python repr of the config, no Rust source location from zenoh's error chain."""
+    assert "ZenohConfig(" not in text and ".rs:" not in text and ".cargo" not in text, text
+
+
+def test_zenoh_error_text_drops_the_rust_source_locations() -> None:
+    raw = (
+        "Can not create a new TCP link bound to tcp/127.0.0.1:9: [127.0.0.1:9: Connection refused (os error 111) "
+        "at /root/.cargo/git/checkouts/zenoh-9c599d5ef3e0480e/cc83980/io/zenoh-link-commons/src/tcp.rs:105.] at "
+        "/root/.cargo/git/checkouts/zenoh-9c599d5ef3e0480e/cc83980/io/zenoh-link-commons/src/tcp.rs:133."
+    )
+    assert zenoh_error_text(ValueError(raw)) == (
+        "Can not create a new TCP link bound to tcp/127.0.0.1:9: [127.0.0.1:9: Connection refused (os error 111)]"
+    )
+
+
 async def test_client_without_router_fails_at_open() -> None:
     port = free_port()
-    with pytest.raises(LinkError, match="failed to open"):
+    with pytest.raises(LinkError, match="failed to open") as err:
         await ZenohLink.open(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)), timeout=HANG_S)
+    assert f"(mode client, connect tcp/127.0.0.1:{port}): " in str(err.value)
+    _no_internals(str(err.value))
 
 
 async def test_client_retries_a_router_that_is_not_up_yet(caplog: pytest.LogCaptureFixture) -> None:
@@ -376,10 +397,49 @@ async def test_client_retries_a_router_that_is_not_up_yet(caplog: pytest.LogCapt
         if router is not None:
             await router.aclose()
     warning = next(r for r in caplog.records if r.getMessage() == "zenoh.router_unreachable")
-    assert warning.levelname == "WARNING" and warning.connect == [endpoint]  # type: ignore[attr-defined]
+    assert warning.levelname == "WARNING" and warning.router == endpoint  # type: ignore[attr-defined]
 
 
 async def test_client_retry_is_bounded() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cfg = ZenohConfig(mode="client", connect=(endpoint,))
+    with pytest.raises(LinkError) as err:
+        await open_with_retry(cfg, total_s=1.0)  # at 0, 0.5 and 1.0 s (the last wait cut to the bound)
+    assert str(err.value).startswith(f"zenoh router at {endpoint} unreachable: gave up after 1.")
+    assert "3 attempts (zenoh.router_wait_s = 1); is zenohd" in str(err.value)
+    _no_internals(str(err.value))
+
+
+def _record_text(record: logging.LogRecord) -> str:
+    return " ".join([record.getMessage(), *(str(v) for v in vars(record).values())])
+
+
+async def test_an_unreachable_router_is_one_clear_warning_not_one_per_attempt(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The bug: every attempt (14 in 60 s) was a WARNING carrying the config's Python repr and zenoh's Rust
+    source paths. Now: one WARNING naming the router and what happens next, the attempts at DEBUG, one error."""
+    caplog.set_level(logging.DEBUG, logger="apf_companion.links.zenoh")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with pytest.raises(LinkError) as err:
+        await open_with_retry(ZenohConfig(mode="client", connect=(endpoint,)), total_s=1.5)
+    ours = [r for r in caplog.records if r.name == "apf_companion.links.zenoh"]
+    warnings = [r for r in ours if r.levelno >= logging.WARNING]
+    assert [w.getMessage() for w in warnings] == ["zenoh.router_unreachable"]
+    warning: Any = warnings[0]
+    assert warning.router == endpoint and warning.attempts == 1 and "up to 1.5 s" in warning.then
+    retries = [r for r in ours if r.getMessage() == "zenoh.router_retry"]
+    assert len(retries) >= 3 and f"and {len(retries)} attempts" in str(err.value)  # at 0, 0.5, 1.5 s at least
+    for text in [str(err.value), *(_record_text(r) for r in caplog.records)]:
+        _no_internals(text)
+
+
+async def test_the_warning_repeats_with_the_count_of_attempts(caplog: pytest.LogCaptureFixture) -> None:
+    """Rate-limited, not silenced: at most once per ``warn_every_s`` (here 0: every attempt), with the count."""
     cfg = ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{free_port()}",))
-    with pytest.raises(LinkError, match="Unable to connect"):
-        await open_with_retry(cfg, total_s=1.0)  # 0.5 s, then the next wait (1 s) would pass the bound
+    with pytest.raises(LinkError):
+        await open_with_retry(cfg, total_s=1.0, warn_every_s=0.0)  # at 0, 0.5 and 1.0 s
+    warnings: list[Any] = [r for r in caplog.records if r.getMessage() == "zenoh.router_unreachable"]
+    assert [w.attempts for w in warnings] == [1, 2]  # the attempt at the bound ends it: an error, not a warning
+    with pytest.raises(LinkError):
+        await open_with_retry(cfg, total_s=0.0)  # one attempt

@@ -17,6 +17,7 @@ import pytest
 
 from apf_companion.cli import build_parser, main
 from apf_companion.planning import ALL_PLANNER_NAMES, DEFAULT_PLANNER, PlannerParams
+from tests.conftest import HANG_S, free_port
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -201,16 +202,72 @@ def test_run_help_lists_every_registered_planner(
     assert {"bapf-nav", "bendyruler", "cr-bapf*"} <= set(ALL_PLANNER_NAMES)
 
 
-def test_a_startup_error_is_said_once(capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_startup_error_is_said_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    result = tmp_path / "result.json"
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
-        assert main(["run", "--connect", f"udpin:127.0.0.1:{port}", "--dry-run"]) == 1
+        argv = ["run", "--connect", f"udpin:127.0.0.1:{port}", "--dry-run", "--result-json", str(result)]
+        assert main(argv) == 1
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if "cannot open MAVLink endpoint" in line]
     assert len(lines) == 1, err  # not also as an ERROR log line
     assert lines[0].startswith(f"apf-companion: cannot open MAVLink endpoint udpin:127.0.0.1:{port}: ")
     assert "service.open_failed" not in err
+    rec = json.loads(result.read_text())  # the run ended while opening: its result is written all the same
+    assert rec["outcome"] == "error" and f"apf-companion: {rec['error']}" == lines[0] and rec["steps"] == 0
+
+
+def test_an_unreachable_zenoh_router_is_said_plainly_and_the_result_written(tmp_path: Path) -> None:
+    """The bug: with the zenoh router down, `run` logged a WARNING per attempt (14 in 60 s) carrying a Python repr
+    and zenoh's Rust source paths, and its final error wrote no --result-json. A real process (zenoh's own
+    logging would write to its stdout; RUST_LOG set, as a user debugging it might) and a real zenoh client."""
+    router = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    cfg = tmp_path / "zenoh.toml"
+    cfg.write_text(
+        f'[link]\nconnect = "udpin:127.0.0.1:0"\n[zenoh]\nenabled = true\nmode = "client"\n'
+        f'connect = ["{router}"]\nrouter_wait_s = 1.5\n'
+    )
+    result = tmp_path / "result.json"
+    argv = [sys.executable, "-m", "apf_companion", "run", "--config", str(cfg), "--result-json", str(result)]
+    env = os.environ | {"OPENBLAS_NUM_THREADS": "1", "RUST_LOG": "debug"}
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=HANG_S, check=False)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert [line for line in lines if "WARNING" in line or "ERROR" in line] == [
+        next(line for line in lines if "zenoh.router_unreachable" in line)
+    ]  # one warning, whatever the attempts
+    assert f"router={router} attempts=1 " in lines[0] and "then giving up (the service exits 1)" in lines[0]
+    said = f"apf-companion: zenoh router at {router} unreachable: gave up after 1."
+    assert lines[-1].startswith(said) and len(lines) == 2, proc.stderr
+    for text in (proc.stdout, proc.stderr):
+        assert "ZenohConfig(" not in text and ".rs:" not in text and "zenoh::" not in text, text
+    rec = json.loads(result.read_text())
+    assert rec["outcome"] == "error" and f"apf-companion: {rec['error']}" == lines[-1]
+
+
+def test_a_stop_while_waiting_for_the_zenoh_router_ends_the_run_with_its_result(tmp_path: Path) -> None:
+    """SIGTERM while the service waits for its router (router_wait_s 60 s): stopped at once, exit 0, the result
+    written (outcome stopped), not left for the wait to run out."""
+    cfg = tmp_path / "zenoh.toml"
+    cfg.write_text(
+        f'[link]\nconnect = "udpin:127.0.0.1:0"\n[zenoh]\nenabled = true\nmode = "client"\n'
+        f'connect = ["tcp/127.0.0.1:{free_port()}"]\n'
+    )
+    result = tmp_path / "result.json"
+    argv = [sys.executable, "-m", "apf_companion", "run", "--config", str(cfg), "--result-json", str(result)]
+    proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, env=os.environ | {"OPENBLAS_NUM_THREADS": "1"})
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()  # blocks until the first failed attempt is said
+        assert "zenoh.router_unreachable" in line, line
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=HANG_S) == 0, proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    rec = json.loads(result.read_text())
+    assert rec["outcome"] == "stopped" and rec["error"] is None and rec["steps"] == 0
 
 
 @pytest.mark.parametrize("where", ["file_as_dir", "dir"])
