@@ -18,6 +18,7 @@ from apf_companion.errors import ConfigError
 from apf_companion.fence import FenceArea
 from apf_companion.forwarder import ForwarderParams
 from apf_companion.goal import Route, load_route, route_outside_limits
+from apf_companion.goaladmission import AdmissionParams
 from apf_companion.handlers import COMMAND_MESSAGES, HandlerParams
 from apf_companion.linkquality import CautionParams
 from apf_companion.links import (
@@ -38,6 +39,7 @@ from apf_companion.takeover import TakeoverParams
 
 __all__ = [
     "SigningSetup",
+    "admission_params",
     "build_navigator",
     "build_outbox",
     "build_planner",
@@ -235,6 +237,13 @@ def handler_params(config: ServiceConfig) -> HandlerParams:
         forwarding=config.sensors.forward_obstacle_distance,
         adopt=AdoptParams(enabled=config.goal.adopt_autopilot_target, tolerance_m=config.goal.adopt_tolerance_m),
         fly_config_goal_after_restart=config.goal.fly_after_restart,
+    )
+
+
+def admission_params(config: ServiceConfig) -> AdmissionParams:
+    g = config.goal
+    return AdmissionParams(
+        max_altitude_m=g.max_altitude_m, max_distance_m=g.max_distance_m, exit_when_done=config.exit_when_done
     )
 
 

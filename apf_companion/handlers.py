@@ -124,7 +124,7 @@ class AutopilotHandlers:
     """Routes decoded records (see the module docstring).
 
     Args:
-        set_route: Starts a goal (the service's; returns whether the navigator accepted it).
+        set_route: Offers a goal to goal admission (``GoalAdmission.admit``; False: refused).
         on_pose: Called with the autopilot's ``time_boot_ms`` when the navigator accepted a new pose (it triggers
             a cycle, and the stream's gaps measure the link's loss).
         route_at_start: Flown once the autopilot is first heard.

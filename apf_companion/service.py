@@ -4,6 +4,8 @@
 
 - ``PerceptionFrontEnd`` (apf_companion.perception): pose history, scan timing and deferral, the obstacle memory.
 - ``Navigator`` (apf_companion.navigator): states, freshness, the planner, setpoints; pure, clock injected.
+- ``GoalAdmission`` (apf_companion.goaladmission): every goal checked against the limits, then flown, held for
+  its check (until the first pose) or refused.
 - ``TakeoverController`` (apf_companion.takeover): GUIDED / OFFBOARD, arm, takeoff, pre-stream; pure.
 - ``AutopilotHandlers`` (apf_companion.handlers): decoded MAVLink records to the part that owns them.
 - ``StatusReporter`` (apf_companion.reporter) and ``Outbox`` (apf_companion.outbox): everything sent.
@@ -40,6 +42,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import Autopilot
 from apf_companion.builders import (
+    admission_params,
     build_navigator,
     build_outbox,
     build_planner,
@@ -63,7 +66,8 @@ from apf_companion.fence import FenceArea, FenceOutcome
 from apf_companion.fencereader import STEP_S, FenceReader, FenceReaderParams
 from apf_companion.flightend import FlightEnd, Outcome
 from apf_companion.forwarder import ObstacleForwarder
-from apf_companion.goal import FenceBounds, GlobalReference, Route, route_check_waits, route_outside_limits
+from apf_companion.goal import GlobalReference, Route
+from apf_companion.goaladmission import GoalAdmission, GoalBounds
 from apf_companion.handlers import AutopilotHandlers
 from apf_companion.heap import GcPauses
 from apf_companion.linkquality import LinkMeter
@@ -287,9 +291,8 @@ class CompanionService:
         self.faults = FaultLog(self.counters)
         self.observers = Observers(self.faults)
         self.navigator = build_navigator(config, self.observers.tap(self.planner), self.perception)
-        self.start_route = route if route is not None else initial_route(config, self.planner)
-        self.held_route: Route | None = None  # a goal not flown until its check can be made (``set_route``)
-        self._goal_error: str | None = None  # exit_when_done: why the goal at start was refused
+        self.flight = FlightEnd()
+        self.admission = _goal_admission(self, route if route is not None else initial_route(config, self.planner))
         self.link_meter = LinkMeter(self.navigator.params.caution)  # pose loss and send failures: caution
         self.outbox = build_outbox(config, link, self.clock.now)
         self.handlers = AutopilotHandlers(
@@ -298,9 +301,9 @@ class CompanionService:
             navigator=self.navigator,
             outbox=self.outbox,
             counters=self.counters,
-            set_route=self.set_route,
+            set_route=self.admission.admit,
             on_pose=self._pose_arrived,
-            route_at_start=self.start_route,
+            route_at_start=self.admission.start_route,
             on_param=lambda rec: self.params.handle(rec),
             on_fence=lambda rec: None if self.fence is None else self.fence.on_record(rec),
         )
@@ -322,7 +325,6 @@ class CompanionService:
         self.reporter.fence = None if self.fence is None else self.fence.summary
         self._stop = asyncio.Event()
         self.trigger = CycleTrigger(self.clock, config.cycle.rate_hz)
-        self.flight = FlightEnd()
         self.observers.add(_open_observers(config, self.clock) if observers is None else observers)  # last: opens
 
     def _drivers(self, config: ServiceConfig) -> tuple[ObstacleForwarder, TakeoverDriver]:
@@ -424,7 +426,7 @@ class CompanionService:
             _sd_notify(self, STOPPING=1, STATUS=f"stopping: {self.flight.outcome or Outcome.STOPPED}")
             pauses.close()  # its summary stays for the result
             await self.aclose()
-        result = self.result(error=error or self._goal_error)
+        result = self.result(error=error or self.admission.error)
         if self.result_path is not None:
             self.result_path.write_text(result.to_json() + "\n", encoding="utf-8")
         return result
@@ -432,76 +434,6 @@ class CompanionService:
     def result(self, *, error: str | None = None) -> ServiceResult:
         outcome, flight = self.flight.final(self.clock.now())
         return ServiceResult.of(outcome, self.navigator, self.reporter, self.link, flight_s=flight, error=error)
-
-    # ---- goals -------------------------------------------------------------------------------------------------
-    def set_route(self, route: Route, now: float) -> bool:
-        """Fly ``route`` (replacing the current goal); False when it is refused or while the link is lost. A goal
-        whose check needs the vehicle's position (``goal.max_distance_m``) before any pose is held, not flown
-        (True: taken), and checked at the first pose (``_pose_arrived``): flown then, or refused."""
-        pose = self.navigator.pose
-        pos = None if pose is None else pose.pos_ned_m
-        gc = self.config.goal
-        why = route_outside_limits(
-            route,
-            pos,
-            max_altitude_m=gc.max_altitude_m,
-            fence=FenceBounds() if self.fence is None else self.fence.bounds,
-            max_distance_m=gc.max_distance_m,
-            area_ne_m=flying_area(self.planner),  # bapf-nav's: goals outside it are refused
-            keepouts_ne_m=keepout_zones(self.planner),
-        )
-        if why is not None:
-            self._refuse(route, why, now)
-            return False
-        wait = route_check_waits(pos, max_distance_m=gc.max_distance_m)
-        if wait is not None:
-            if not self.navigator.goal_waits_for_check(now):  # HOLDING, silent, saying why there is no position
-                self.counters.bad_goals += 1  # the link is lost: refused, as the navigator refuses a goal then
-                return False
-            self.held_route = route
-            log.info("goal.held", extra={"source": route.source, "reason": wait})
-            self.reporter.statustext(mavlink.MAV_SEVERITY_NOTICE, wait)
-            return True
-        self.held_route = None  # a newer goal replaces a held one
-        accepted = self.navigator.set_route(route, now)
-        if accepted:
-            self.counters.goals += 1
-            self.flight.goal_set(now)
-            # Its state change is reported by the next cycle (<= one period), to the status and the observers alike.
-            log.info("goal.set", extra={"source": route.source, "waypoints_ned_m": route.to_json_list()})
-        else:
-            self.counters.bad_goals += 1
-        return accepted
-
-    def _refuse(self, route: Route, why: str, now: float, *, told: bool = False) -> None:
-        """``route`` is refused: counted and logged. A goal nobody is waiting on an answer for (the goal at start,
-        a held goal, ``told``) is said in a STATUSTEXT; with ``exit_when_done`` a refused goal at start ends the
-        run with outcome "error" (nothing else will come)."""
-        self.counters.bad_goals += 1
-        log.warning("goal.refused", extra={"source": route.source, "reason": why})
-        if told or route is self.start_route or route is self.held_route:
-            self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, f"goal refused: {why}")
-        if route is self.held_route:
-            self.held_route = None
-            if self.navigator.goal_waits:
-                self.navigator.clear_route(now, f"goal refused: {why}")  # IDLE, said by the next cycle
-        if route is self.start_route and self.config.exit_when_done:
-            self._goal_error = f"the goal at start was refused: {why}"
-            self.flight.outcome = Outcome.ERROR
-            self._stop.set()
-
-    def recheck_goal(self, now: float) -> None:
-        """The fence's bounds came (or changed): a goal taken before them (flown or held) that lies outside them
-        (above the ceiling, below the floor, outside the circle round home) is refused and dropped (IDLE)."""
-        route = self.navigator.route if self.held_route is None else self.held_route
-        if route is None or self.fence is None:
-            return
-        why = route_outside_limits(route, None, max_altitude_m=0.0, max_distance_m=0.0, fence=self.fence.bounds)
-        if why is None:
-            return
-        self._refuse(route, why, now, told=True)
-        if route is self.navigator.route:
-            self.navigator.clear_route(now, f"goal refused: {why}")
 
     # ---- tasks -------------------------------------------------------------------------------------------------
     async def _rx(self) -> None:
@@ -523,11 +455,7 @@ class CompanionService:
     def _pose_arrived(self, time_boot_ms: int) -> None:
         self.link_meter.pose(time_boot_ms)
         self.trigger.pose_arrived(time.perf_counter())
-        if self.held_route is not None:  # its check needed a position: now it can be made
-            now = self.clock.now()
-            if not self.set_route(self.held_route, now) and self.navigator.goal_waits:
-                self.held_route = None  # the navigator refused it (link lost): not flown
-                self.navigator.clear_route(now, "goal dropped: the autopilot link was lost")
+        self.admission.pose_arrived(self.clock.now())  # a held goal's check needed a position
 
     async def _cycle_loop(self) -> None:
         async for now, trigger in self.trigger.cycles():
@@ -649,7 +577,7 @@ class TakeoverDriver:
 
 
 class ZenohInputs:
-    """Scans (to perception) and goals (to ``set_route``) from zenoh."""
+    """Scans (to perception) and goals (to goal admission) from zenoh."""
 
     def __init__(self, zenoh: Any, section: ZenohSection, service: CompanionService) -> None:
         self.zenoh = zenoh
@@ -678,7 +606,7 @@ class ZenohInputs:
             log.info("goal.rejected", extra={"source": "zenoh", "error": str(err)})
             return
         p = goal.pos_ned_m
-        self.service.set_route(Route.point(float(p[0]), float(p[1]), float(p[2]), source="zenoh"), now)
+        self.service.admission.admit(Route.point(float(p[0]), float(p[1]), float(p[2]), source="zenoh"), now)
 
 
 def _open_observers(config: ServiceConfig, clock: ServiceClock) -> list[CycleObserver]:
@@ -736,6 +664,25 @@ async def _open_mavlink(config: ServiceConfig) -> tuple[MavlinkLink, TimestampKe
     return link, keeper
 
 
+def _goal_admission(svc: CompanionService, start_route: Route | None) -> GoalAdmission:
+    """Goal admission with the bounds in effect at each check: the fence read so far, the planner in service."""
+
+    def bounds() -> GoalBounds:
+        fence = None if svc.fence is None else svc.fence.bounds
+        return GoalBounds(fence=fence, area_ne_m=flying_area(svc.planner), keepouts_ne_m=keepout_zones(svc.planner))
+
+    return GoalAdmission(
+        admission_params(svc.config),
+        navigator=svc.navigator,
+        bounds=bounds,
+        counters=svc.counters,
+        flight=svc.flight,
+        statustext=lambda severity, text: svc.reporter.statustext(severity, text),
+        end_run=svc.stop,
+        start_route=start_route,
+    )
+
+
 def _param_server(svc: CompanionService) -> ParamServer:
     """The service's parameter server: an accepted PARAM_SET's config and planner (apf_companion.params) go into
     service at once. Input handling and cycles share one event loop, so that is between two cycles."""
@@ -790,8 +737,8 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
     fence changed: a new fence replaces the old one's zones; a fence removed, or one that is not used, takes them
     out of service (the autopilot no longer enforces the old one). A fence that is not used is logged and said in
     a STATUSTEXT (the ground station's user set it up); no fence at the first read is only logged. A goal taken
-    before these bounds were known is checked against them (``recheck_goal``)."""
-    svc.recheck_goal(svc.clock.now())
+    before these bounds were known is checked against them (``GoalAdmission.recheck``)."""
+    svc.admission.recheck(svc.clock.now())
     in_service = has_zones(svc.planner)
     if area.outcome is FenceOutcome.USED:
         try:

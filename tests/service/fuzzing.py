@@ -537,7 +537,7 @@ async def _feed(
             if svc.navigator.state in (State.IDLE, State.ARRIVED, State.STUCK) and svc.handlers.heard:
                 goal += 1  # keep it flying: a fresh goal (a pilot's mode change or an arrival ended the last)
                 n, e = GOALS_NE_M[goal % len(GOALS_NE_M)]
-                if svc.set_route(Route.point(n, e, ALT_DOWN_M, source="fuzz"), svc.clock.now()):
+                if svc.admission.admit(Route.point(n, e, ALT_DOWN_M, source="fuzz"), svc.clock.now()):
                     report.goals_given += 1
             if progress is not None and i % 10_000 == 10_000 - 1:
                 report.wall_s = time.perf_counter() - t0

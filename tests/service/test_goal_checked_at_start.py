@@ -58,12 +58,12 @@ def test_a_far_goal_at_start_is_held_until_the_first_pose_then_refused() -> None
     svc, clock = _service(route)
     _heartbeat(svc, clock)
     assert svc.navigator.route is None  # not flown: nothing to check it with
-    assert svc.held_route is route and svc.counters.goals == 0 and svc.counters.bad_goals == 0
+    assert svc.admission.held_route is route and svc.counters.goals == 0 and svc.counters.bad_goals == 0
     out = svc.run_cycle(clock.t)
     assert out.state is State.HOLDING and out.setpoint is None  # holding, silent, saying why
     _pose(svc, clock)
     assert svc.counters.bad_goals == 1 and svc.counters.goals == 0
-    assert svc.held_route is None and svc.navigator.route is None and svc.navigator.state is State.IDLE
+    assert svc.admission.held_route is None and svc.navigator.route is None and svc.navigator.state is State.IDLE
     out = svc.run_cycle(clock.t)
     assert out.setpoint is None and any("goal refused" in c.reason for c in out.changes)
     _pose(svc, clock)
@@ -74,17 +74,17 @@ def test_a_near_goal_at_start_is_flown_at_the_first_pose() -> None:
     route = Route.point(30.0, 0.0, -5.0, source="cli")
     svc, clock = _service(route)
     _heartbeat(svc, clock)
-    assert svc.held_route is route and svc.navigator.route is None
+    assert svc.admission.held_route is route and svc.navigator.route is None
     _pose(svc, clock)
     assert svc.navigator.route is route and svc.navigator.state is State.NAVIGATING
-    assert svc.counters.goals == 1 and svc.counters.bad_goals == 0 and svc.held_route is None
+    assert svc.counters.goals == 1 and svc.counters.bad_goals == 0 and svc.admission.held_route is None
 
 
 def test_without_a_distance_limit_the_goal_at_start_is_flown_at_once() -> None:
     route = Route.point(3000.0, 0.0, -5.0, source="cli")
     svc, clock = _service(route, goal={"max_distance_m": 0.0})
     _heartbeat(svc, clock)
-    assert svc.navigator.route is route and svc.held_route is None
+    assert svc.navigator.route is route and svc.admission.held_route is None
 
 
 def test_a_refused_goal_at_start_ends_an_exit_when_done_run_with_an_error() -> None:
@@ -113,7 +113,7 @@ def test_a_refused_goal_at_start_without_exit_when_done_leaves_the_service_idle(
 
 
 class _ReadFence:
-    """A fence reader whose first read has ended (only what ``recheck_goal`` reads)."""
+    """A fence reader whose first read has ended (only what ``GoalAdmission.recheck`` reads)."""
 
     def __init__(self, bounds: FenceBounds) -> None:
         self.bounds = bounds
@@ -126,15 +126,15 @@ def test_a_goal_taken_before_the_fence_was_read_is_dropped_when_it_lies_above_th
     _pose(svc, clock)
     assert svc.navigator.route is route  # flown: no fence known yet
     svc.fence = _ReadFence(FenceBounds(ceiling_m=30.0))  # type: ignore[assignment]
-    svc.recheck_goal(clock.t)
+    svc.admission.recheck(clock.t)
     assert svc.navigator.route is None and svc.counters.bad_goals == 1
     assert any(c.new is State.IDLE and "fence's ceiling" in c.reason for c in svc.navigator.drain_changes())
-    svc.recheck_goal(clock.t)  # nothing left to refuse
+    svc.admission.recheck(clock.t)  # nothing left to refuse
     assert svc.counters.bad_goals == 1
 
 
 def test_a_goal_that_would_wait_is_refused_while_no_autopilot_is_heard() -> None:
     """As the navigator refuses a goal with the link lost: counted, not held (zenoh goals before any HEARTBEAT)."""
     svc, clock = _service(Route.point(1.0, 0.0, -5.0, source="cli"))
-    assert not svc.set_route(Route.point(5.0, 5.0, -5.0, source="zenoh"), clock.t)
-    assert svc.counters.bad_goals == 1 and svc.held_route is None and svc.navigator.state is State.IDLE
+    assert not svc.admission.admit(Route.point(5.0, 5.0, -5.0, source="zenoh"), clock.t)
+    assert svc.counters.bad_goals == 1 and svc.admission.held_route is None and svc.navigator.state is State.IDLE

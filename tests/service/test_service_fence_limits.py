@@ -43,10 +43,11 @@ async def test_arducopters_default_fence_parameters_shape_the_area_and_the_goals
         assert math.hypot(north, east) < 0.05 and radius == pytest.approx(298.6)  # home: the local origin
         now = svc.clock.now()
         refused = svc.counters.bad_goals
-        assert not svc.set_route(Route.point(*YARD.goal_ne_m, -99.0, source="test"), now)  # above the ceiling
-        assert not svc.set_route(Route.point(-3.0, 0.0, -5.0, source="test"), now)  # in the margin: outside the area
+        assert not svc.admission.admit(Route.point(*YARD.goal_ne_m, -99.0, source="test"), now)  # above the ceiling
+        in_margin = Route.point(-3.0, 0.0, -5.0, source="test")
+        assert not svc.admission.admit(in_margin, now)  # in the margin: outside the area
         assert svc.counters.bad_goals == refused + 2
-        assert svc.set_route(Route.point(*YARD.goal_ne_m, -5.0, source="test"), now)
+        assert svc.admission.admit(Route.point(*YARD.goal_ne_m, -5.0, source="test"), now)
         status = svc.reporter.status_dict(svc.clock.now())["fence"]
         assert status["limits"] == "FENCE_MARGIN 2 m, circle of 300 m round home, ceiling 100 m"
         assert status["ceiling_m"] == 98.0
@@ -117,10 +118,10 @@ async def test_px4s_circle_round_home_is_the_area_and_refuses_goals_beyond_it() 
         assert isinstance(area, tuple) and len(area) == 32
         assert fence.result is not None and fence.result.note.startswith("inclusion circle of 32 vertices")
         now = svc.clock.now()
-        assert not svc.set_route(Route.point(41.0, 0.0, -5.0, source="test"), now)
-        assert svc.set_route(Route.point(39.0, 0.0, -5.0, source="test"), now)
+        assert not svc.admission.admit(Route.point(41.0, 0.0, -5.0, source="test"), now)
+        assert svc.admission.admit(Route.point(39.0, 0.0, -5.0, source="test"), now)
         sim.engine.params.set("GF_ACTION", 0.0)
         await until(lambda: fence.bounds.home_circle is None, HANG_S, "the circle out of service")
         assert svc.planner.params.nav_area_ne_m is None
         assert fence.limits is not None and "GF_ACTION 0 (none): no circle round home" in str(fence.summary())
-        assert svc.set_route(Route.point(41.0, 0.0, -5.0, source="test"), svc.clock.now())
+        assert svc.admission.admit(Route.point(41.0, 0.0, -5.0, source="test"), svc.clock.now())

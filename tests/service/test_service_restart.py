@@ -90,7 +90,7 @@ async def test_a_restarted_service_holds_instead_of_resuming_the_config_goal() -
         assert math.dist(sim.vehicle.pos_ned_m[:2].tolist(), held_at) < 1.0  # the vehicle stays where it was
         assert math.hypot(*sim.vehicle.vel_ned_m_s[:2]) < 0.1
         # A goal sent now is fresh: flown.
-        assert svc.set_route(Route.point(*GOAL_NE_M, -5.0, source="gcs"), svc.clock.now())
+        assert svc.admission.admit(Route.point(*GOAL_NE_M, -5.0, source="gcs"), svc.clock.now())
         await until(lambda: svc.navigator.counters.planner_steps > 5, what="flying the fresh goal")
         assert svc.navigator.state is State.NAVIGATING
 

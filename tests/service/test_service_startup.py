@@ -158,7 +158,7 @@ async def test_a_goal_at_start_beyond_max_distance_is_checked_at_the_first_pose_
     )
     route = Route.point(3000.0, 0.0, -5.0, source="cli")  # goal.max_distance_m: 2000 m by default
     sim_cfg: dict[str, Any] = {"spawn": SpawnConfig(airborne=True, alt_m=5.0, mode="GUIDED")}
-    caplog.set_level(logging.INFO, logger="apf_companion.service")
+    caplog.set_level(logging.INFO, logger="apf_companion.goaladmission")
     async with service_and_vehicle(cfg, route, **sim_cfg) as (svc, sim, _spy):
         await until(lambda: svc.result().outcome == "error", HANG_S, "error outcome")
         assert svc.navigator.pose is not None
