@@ -30,8 +30,8 @@ _OUTCOME_OF_STATE = {State.ARRIVED: Outcome.ARRIVED, State.STUCK: Outcome.STUCK,
 def outcome_now(navigator: Navigator, *, goals: int, flown_s: float | None, max_s: float) -> Outcome | None:
     """How the flight ended, if it has: a final state, a dropped goal, or ``max_s`` of flight (0 = no limit)."""
     outcome = _OUTCOME_OF_STATE.get(navigator.state)
-    if outcome is Outcome.LINK_LOST and navigator.route is not None:
-        outcome = None  # the goal is kept: the flight goes on when the heartbeat returns
+    if outcome is Outcome.LINK_LOST and navigator.has_goal:
+        outcome = None  # the goal (flown or held) is kept: the flight goes on when the heartbeat returns
     if outcome is None and navigator.state is State.IDLE and goals > 0 and navigator.route is None:
         outcome = Outcome.ERROR  # the goal was dropped: takeover failed or the pilot took over
     if outcome is None and max_s > 0 and flown_s is not None and flown_s > max_s:

@@ -92,13 +92,13 @@ class GoalAdmission:
         self.statustext = statustext
         self.end_run = end_run
         self.start_route = start_route
-        self.held_route: Route | None = None  # a goal not flown until its check can be made (``admit``)
         self.error: str | None = None  # exit_when_done: why the goal at start was refused
 
     def admit(self, route: Route, now: float) -> bool:
         """Fly ``route`` (replacing the current goal); False when it is refused or while the link is lost. A goal
         whose check needs the vehicle's position (``goal.max_distance_m``) before any pose is held, not flown
-        (True: taken), and checked at the first pose (``pose_arrived``): flown then, or refused."""
+        (True: taken; the navigator keeps it, ``Navigator.held``, and a lost link keeps or drops it as a flown
+        goal), and checked at the first pose (``pose_arrived``): flown then, or refused."""
         pose = self.navigator.pose
         pos = None if pose is None else pose.pos_ned_m
         p, b = self.params, self.bounds()
@@ -116,15 +116,13 @@ class GoalAdmission:
             return False
         wait = route_check_waits(pos, max_distance_m=p.max_distance_m)
         if wait is not None:
-            if not self.navigator.goal_waits_for_check(now):  # HOLDING, silent, saying why there is no position
+            if not self.navigator.hold_goal(route, now):  # HOLDING, silent, saying why there is no position
                 self.counters.bad_goals += 1  # the link is lost: refused, as the navigator refuses a goal then
                 return False
-            self.held_route = route
             log.info("goal.held", extra={"source": route.source, "reason": wait})
             self.statustext(mavlink.MAV_SEVERITY_NOTICE, wait)
             return True
-        self.held_route = None  # a newer goal replaces a held one
-        accepted = self.navigator.set_route(route, now)
+        accepted = self.navigator.set_route(route, now)  # replaces a held goal too
         if accepted:
             self.counters.goals += 1
             self.flight.goal_set(now)
@@ -135,17 +133,17 @@ class GoalAdmission:
         return accepted
 
     def pose_arrived(self, now: float) -> None:
-        """A new pose: a held goal's check can be made now (flown or refused)."""
-        if self.held_route is None:
-            return
-        if not self.admit(self.held_route, now) and self.navigator.goal_waits:
-            self.held_route = None  # the navigator refused it (link lost): not flown
-            self.navigator.clear_route(now, "goal dropped: the autopilot link was lost")
+        """A new pose: a held goal's check can be made now (flown or refused). Not while the link is lost: the
+        navigator keeps or drops the held goal then (``resume_after_link_lost``), and the first pose after the
+        link is back checks a kept one."""
+        held = self.navigator.held
+        if held is not None and self.navigator.accepts_goals(now):
+            self.admit(held, now)
 
     def recheck(self, now: float) -> None:
         """The fence's bounds came (or changed): a goal taken before them (flown or held) that lies outside them
         (above the ceiling, below the floor, outside the circle round home) is refused and dropped (IDLE)."""
-        route = self.navigator.route if self.held_route is None else self.held_route
+        route = self.navigator.route if self.navigator.held is None else self.navigator.held
         fence = self.bounds().fence
         if route is None or fence is None:
             return
@@ -162,12 +160,11 @@ class GoalAdmission:
         run with outcome "error" (nothing else will come)."""
         self.counters.bad_goals += 1
         log.warning("goal.refused", extra={"source": route.source, "reason": why})
-        if told or route is self.start_route or route is self.held_route:
+        held = route is self.navigator.held
+        if told or route is self.start_route or held:
             self.statustext(mavlink.MAV_SEVERITY_WARNING, f"goal refused: {why}")
-        if route is self.held_route:
-            self.held_route = None
-            if self.navigator.goal_waits:
-                self.navigator.clear_route(now, f"goal refused: {why}")  # IDLE, said by the next cycle
+        if held:
+            self.navigator.clear_route(now, f"goal refused: {why}")  # IDLE, said by the next cycle
         if route is self.start_route and self.params.exit_when_done:
             self.error = f"the goal at start was refused: {why}"
             self.flight.outcome = Outcome.ERROR

@@ -26,7 +26,10 @@ States (docs/service.md has the diagram):
   never drops it): when the heartbeat returns, the autopilot's mode is checked first: still GUIDED / OFFBOARD ->
   HOLDING, and NAVIGATING once the inputs are fresh; another mode (the pilot or a failsafe took over) -> the goal
   is dropped (IDLE). With ``resume_after_link_lost`` false the goal is dropped at once and motion only resumes
-  after a new goal (IDLE once the link is back).
+  after a new goal (IDLE once the link is back). A goal held for its check (``held``) follows the same rule.
+
+The goal is one of: none, ``held`` (taken, not flown until the service can check it: ``hold_goal``) or ``route``
+(flown: ``set_route``); never both.
 
 Each state has one handler (``_HANDLERS``, keyed by ``State``). The navigator reads the configuration only as a
 frozen ``NavigatorParams`` and the obstacles only through ``ObstacleView`` (the perception front end writes them).
@@ -579,11 +582,12 @@ class Recovery:
         return CycleOutput(t_s=inp.now_s, state=nav.state, setpoint=sp, nearest_obstacle_m=inp.nearest_m)
 
     def link_dead(self, now_s: float) -> None:
-        """No heartbeat: silence. The goal is kept (``resume_after_link_lost``), the step and hold forgotten."""
+        """No heartbeat: silence. The goal (flown or held) is kept (``resume_after_link_lost``), the step and hold
+        forgotten."""
         nav = self.nav
         if nav._last_hb_s is None or nav.state is State.LINK_LOST:
             return
-        if nav.params.resume_after_link_lost and nav.route is not None:
+        if nav.params.resume_after_link_lost and nav.has_goal:
             nav._steps.target = None
             nav._hold.reset()
             nav._change(now_s, State.LINK_LOST, "autopilot heartbeat lost: stopped sending, goal kept")
@@ -594,7 +598,10 @@ class Recovery:
         """The heartbeat is back; its mode was checked in ``autopilot_heartbeat`` (a mode not ours while engaged
         dropped the goal). Hold first: ``_on_holding`` navigates on once the inputs are fresh."""
         nav = self.nav
-        if nav.route is None:
+        if nav.held is not None:  # never flown: the service checks it at the next pose
+            reason = _no_pose_reason(nav.ekf_ready) if nav.pose is None else "goal checked at the next pose"
+            nav._change(now_s, State.HOLDING, f"autopilot heartbeat back: {reason}")
+        elif nav.route is None:
             nav._change(now_s, State.IDLE, "autopilot heartbeat back: send a new goal to fly")
         elif nav.engaged and nav.mode_ok:
             nav._change(now_s, State.HOLDING, "autopilot heartbeat back, guided: resuming when inputs are fresh")
@@ -654,7 +661,7 @@ class Navigator:
         self.engaged = False  # the autopilot has been seen in GUIDED/OFFBOARD for this route
         self.mode_ok = False  # latest HEARTBEAT: autopilot is in GUIDED/OFFBOARD
         self.suspended = False  # the service is busy with arming/takeoff: no setpoints
-        self.goal_waits = False  # the service holds a goal it cannot check yet (``goal_waits_for_check``)
+        self.held: Route | None = None  # a goal taken but not flown until it can be checked (``hold_goal``)
         self.ekf_ready: bool | None = None  # EKF_STATUS_REPORT has a horizontal position (None = not reported)
         self._said: tuple[str, float] = ("", -math.inf)  # the last reason announced, and when
         self.last_output: CycleOutput | None = None
@@ -688,12 +695,12 @@ class Navigator:
                 self._change(now_s, State.NAVIGATING, f"in {self.params.guided_mode}, flying to the goal")
 
     def set_route(self, route: Route, now_s: float) -> bool:
-        """A new goal or route replaces the active one. Refused (False) while the link is lost."""
-        if self.state is State.LINK_LOST or not self.link_alive(now_s):
+        """A new goal or route replaces the active (or held) one. Refused (False) while the link is lost."""
+        if not self.accepts_goals(now_s):
             return False
         self.counters.goals += 1
         self.route = route
-        self.goal_waits = False
+        self.held = None
         _reset_planner(self.planner)
         self._legs.leg = None
         self._steps.target = None
@@ -702,15 +709,26 @@ class Navigator:
         self._go(now_s, f"new goal from {route.source}: {route.to_json_list()[-1]}")
         return True
 
-    def goal_waits_for_check(self, now_s: float) -> bool:
-        """The service holds a goal it cannot check yet (no position for ``goal.max_distance_m``): HOLDING, silent,
-        saying why there is no position, until ``set_route`` (checked: flown) or ``clear_route`` (refused).
-        Refused (False) while the link is lost, as ``set_route`` would refuse the goal."""
-        if self.state is State.LINK_LOST or not self.link_alive(now_s):
+    def hold_goal(self, route: Route, now_s: float) -> bool:
+        """Take ``route`` (replacing the active or held goal) without flying it: the service cannot check it yet (no
+        position for ``goal.max_distance_m``). HOLDING, silent, saying why there is no position, until
+        ``set_route`` (checked: flown) or ``clear_route`` (refused); a lost link keeps or drops it as a flown goal
+        (``resume_after_link_lost``). Refused (False) while the link is lost, as ``set_route`` would refuse it."""
+        if not self.accepts_goals(now_s):
             return False
-        self.goal_waits = True
+        self.route, self.held = None, route  # one goal (a flown one has a pose: it is not held, in practice)
+        self._legs.leg = None
         self._enter_hold_state(now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
         return True
+
+    def accepts_goals(self, now_s: float) -> bool:
+        """A goal can be taken now: the link is alive and LINK_LOST has been left."""
+        return self.state is not State.LINK_LOST and self.link_alive(now_s)
+
+    @property
+    def has_goal(self) -> bool:
+        """A goal is flown (``route``) or held for its check (``held``)."""
+        return self.route is not None or self.held is not None
 
     def drain_changes(self) -> list[StateChange]:
         """State changes recorded outside ``cycle`` (``set_route``, heartbeats), oldest first; clears them."""
@@ -809,10 +827,11 @@ class Navigator:
 
     def _blocked(self, inp: _Inputs) -> CycleOutput | None:
         """Silence when there is no goal or pose (NAVIGATING -> HOLDING without a pose), or while suspended."""
-        if self.route is None and self.pose is not None and self.state is State.HOLDING and not self.goal_waits:
+        if self.route is None and self.held is None and self.pose is not None and self.state is State.HOLDING:
             return self.recovery.goalless_hold(inp)  # restarted mid-flight (``Recovery.restart_hold``)
         if self.route is None or self.pose is None:
-            if (self.route is not None or self.goal_waits) and self.state in _WANTS_POSE:
+            # Held: the service checks the goal at the next pose (one may have come while the link was lost).
+            if self.has_goal and self.pose is None and self.state in _WANTS_POSE:
                 self._enter_hold_state(inp.now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
             return self._silent(inp)
         if self.suspended:
@@ -971,7 +990,7 @@ class Navigator:
 
     def _drop_route(self, now_s: float, new: State, reason: str) -> None:
         self.route = None
-        self.goal_waits = False
+        self.held = None
         self._legs.leg = None
         self.engaged = False
         self._hold.anchor = None

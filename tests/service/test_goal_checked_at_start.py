@@ -58,12 +58,12 @@ def test_a_far_goal_at_start_is_held_until_the_first_pose_then_refused() -> None
     svc, clock = _service(route)
     _heartbeat(svc, clock)
     assert svc.navigator.route is None  # not flown: nothing to check it with
-    assert svc.admission.held_route is route and svc.counters.goals == 0 and svc.counters.bad_goals == 0
+    assert svc.navigator.held is route and svc.counters.goals == 0 and svc.counters.bad_goals == 0
     out = svc.run_cycle(clock.t)
     assert out.state is State.HOLDING and out.setpoint is None  # holding, silent, saying why
     _pose(svc, clock)
     assert svc.counters.bad_goals == 1 and svc.counters.goals == 0
-    assert svc.admission.held_route is None and svc.navigator.route is None and svc.navigator.state is State.IDLE
+    assert svc.navigator.held is None and svc.navigator.route is None and svc.navigator.state is State.IDLE
     out = svc.run_cycle(clock.t)
     assert out.setpoint is None and any("goal refused" in c.reason for c in out.changes)
     _pose(svc, clock)
@@ -74,17 +74,17 @@ def test_a_near_goal_at_start_is_flown_at_the_first_pose() -> None:
     route = Route.point(30.0, 0.0, -5.0, source="cli")
     svc, clock = _service(route)
     _heartbeat(svc, clock)
-    assert svc.admission.held_route is route and svc.navigator.route is None
+    assert svc.navigator.held is route and svc.navigator.route is None
     _pose(svc, clock)
     assert svc.navigator.route is route and svc.navigator.state is State.NAVIGATING
-    assert svc.counters.goals == 1 and svc.counters.bad_goals == 0 and svc.admission.held_route is None
+    assert svc.counters.goals == 1 and svc.counters.bad_goals == 0 and svc.navigator.held is None
 
 
 def test_without_a_distance_limit_the_goal_at_start_is_flown_at_once() -> None:
     route = Route.point(3000.0, 0.0, -5.0, source="cli")
     svc, clock = _service(route, goal={"max_distance_m": 0.0})
     _heartbeat(svc, clock)
-    assert svc.navigator.route is route and svc.admission.held_route is None
+    assert svc.navigator.route is route and svc.navigator.held is None
 
 
 def test_a_refused_goal_at_start_ends_an_exit_when_done_run_with_an_error() -> None:
@@ -137,4 +137,67 @@ def test_a_goal_that_would_wait_is_refused_while_no_autopilot_is_heard() -> None
     """As the navigator refuses a goal with the link lost: counted, not held (zenoh goals before any HEARTBEAT)."""
     svc, clock = _service(Route.point(1.0, 0.0, -5.0, source="cli"))
     assert not svc.admission.admit(Route.point(5.0, 5.0, -5.0, source="zenoh"), clock.t)
-    assert svc.counters.bad_goals == 1 and svc.admission.held_route is None and svc.navigator.state is State.IDLE
+    assert svc.counters.bad_goals == 1 and svc.navigator.held is None and svc.navigator.state is State.IDLE
+
+
+def _lose_link(svc: CompanionService, clock: FakeClock) -> list[str]:
+    """No HEARTBEAT for longer than link.heartbeat_timeout_s (3 s): the cycle enters LINK_LOST. Its reasons."""
+    clock.t += 4.0
+    out = svc.run_cycle(clock.t)
+    assert out.state is State.LINK_LOST and out.setpoint is None
+    return [c.reason for c in out.changes]
+
+
+def test_a_held_goal_is_dropped_at_link_loss_without_resume_after_link_lost() -> None:
+    """The bug: the goal held for its check (no pose yet) outlived a link loss in the service and was flown at the
+    first pose after the link came back, although ``resume_after_link_lost = false`` drops a flown goal then."""
+    route = Route.point(30.0, 0.0, -5.0, source="cli")
+    svc, clock = _service(route, safety={"resume_after_link_lost": False})
+    _heartbeat(svc, clock)
+    assert svc.run_cycle(clock.t).state is State.HOLDING and svc.navigator.held is route
+    assert _lose_link(svc, clock) == ["autopilot heartbeat lost: stopped sending"]  # as a flown goal's drop
+    assert svc.navigator.held is None and not svc.navigator.has_goal
+    _heartbeat(svc, clock)
+    out = svc.run_cycle(clock.t)
+    assert out.state is State.IDLE and [c.reason for c in out.changes] == [
+        "autopilot heartbeat back: send a new goal to fly"
+    ]
+    _pose(svc, clock)
+    _pose(svc, clock)
+    assert svc.navigator.route is None and svc.navigator.state is State.IDLE  # not flown
+    assert svc.counters.goals == 0 and svc.counters.bad_goals == 0
+
+
+def test_a_held_goal_is_kept_through_a_link_loss_with_resume_after_link_lost() -> None:
+    """As a flown goal: kept while the link is lost (a pose then does not check it), checked at the first pose
+    once the link is back, and flown."""
+    route = Route.point(30.0, 0.0, -5.0, source="cli")
+    svc, clock = _service(route)
+    _heartbeat(svc, clock)
+    svc.run_cycle(clock.t)
+    assert _lose_link(svc, clock) == ["autopilot heartbeat lost: stopped sending, goal kept"]
+    _pose(svc, clock)  # a pose while no HEARTBEAT comes: the goal waits for the link
+    assert svc.navigator.held is route and svc.navigator.route is None and svc.counters.bad_goals == 0
+    _heartbeat(svc, clock)
+    out = svc.run_cycle(clock.t)
+    assert out.state is State.HOLDING and out.setpoint is None
+    assert [c.reason for c in out.changes] == ["autopilot heartbeat back: goal checked at the next pose"]
+    _pose(svc, clock)
+    assert svc.navigator.route is route and svc.navigator.held is None and svc.navigator.state is State.NAVIGATING
+    assert svc.counters.goals == 1 and svc.counters.bad_goals == 0
+
+
+def test_a_held_goal_kept_through_a_link_loss_does_not_end_an_exit_when_done_run() -> None:
+    """LINK_LOST with the goal kept is not the end of the flight (``FlightEnd``), for a held goal as a flown one;
+    without ``resume_after_link_lost`` the goal is gone and the run ends with outcome link_lost."""
+    for resume, ended in ((True, False), (False, True)):
+        svc, clock = _service(
+            Route.point(30.0, 0.0, -5.0, source="cli"),
+            exit_when_done=True,
+            safety={"resume_after_link_lost": resume},
+        )
+        _heartbeat(svc, clock)
+        svc.run_cycle(clock.t)
+        _lose_link(svc, clock)
+        assert svc._stop.is_set() is ended
+        assert svc.result().outcome == ("link_lost" if ended else "stopped")
