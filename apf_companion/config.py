@@ -63,6 +63,7 @@ RATE_RANGE_HZ: tuple[float, float] = (1.0, 50.0)  # cycle.rate_hz
 MAX_AGE_RANGE_S: tuple[float, float] = (0.02, 10.0)  # cycle.pose_max_age_s and cycle.ranges_max_age_s
 TIME_SCALE_RANGE: tuple[float, float] = (0.1, 100.0)  # cycle.time_scale
 MAX_FLIGHT_RANGE_S: tuple[float, float] = (0.0, 86400.0)  # max_flight_s
+MAX_LINK_LOST_RANGE_S: tuple[float, float] = (0.0, 86400.0)  # max_link_lost_s
 
 
 def _fail(key: str, allowed: str, value: object) -> ConfigError:
@@ -589,14 +590,20 @@ class ServiceConfig:
         dry_run: Plan and log only; send nothing on any link.
         exit_when_done: Exit when the flight ends (ARRIVED at the last waypoint, or STUCK): for scripted
             simulated flights (``apf-sim fly``).
-        max_flight_s: With ``exit_when_done``: give up (exit, outcome timeout) after this many vehicle
-            seconds of flight (from the first navigation setpoint; from the goal when navigation never started:
-            a run stuck waiting for position, ranges or the takeover ends too); 0 = no limit [s].
+        max_flight_s: With ``exit_when_done``: give up (exit, outcome timeout, or link_lost when it comes in
+            LINK_LOST) after this many vehicle seconds of flight (from the first navigation setpoint; from the goal
+            when navigation never started: a run stuck waiting for position, ranges or the takeover ends too);
+            0 = no limit [s].
+        max_link_lost_s: With ``exit_when_done``: no autopilot HEARTBEAT for this long (counted from the last one,
+            so it includes ``link.heartbeat_timeout_s``) ends the run with outcome link_lost (exit code 3), also
+            while the goal is kept for the heartbeat's return (``safety.resume_after_link_lost``); 0 = wait for
+            ever [s].
     """
 
     dry_run: bool = False
     exit_when_done: bool = False
     max_flight_s: float = 0.0
+    max_link_lost_s: float = 60.0
     link: LinkConfig = field(default_factory=LinkConfig)
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
@@ -612,6 +619,9 @@ class ServiceConfig:
 
     def __post_init__(self) -> None:
         _check_range("max_flight_s", self.max_flight_s, *MAX_FLIGHT_RANGE_S)
+        _check_range("max_link_lost_s", self.max_link_lost_s, *MAX_LINK_LOST_RANGE_S)
+        if 0.0 < self.max_link_lost_s < self.link.heartbeat_timeout_s:
+            raise _fail("max_link_lost_s", "0 or at least link.heartbeat_timeout_s", self.max_link_lost_s)
         if self.sensors.zenoh and not self.zenoh.enabled:
             raise _fail("sensors.zenoh", "false unless zenoh.enabled is true", True)
         lc = self.link
@@ -643,7 +653,7 @@ _SECTIONS: dict[str, type[Any]] = {
     "safety": SafetyConfig,
     "visualisation": VisualisationConfig,
 }
-_TOP_LEVEL = ("dry_run", "exit_when_done", "max_flight_s")
+_TOP_LEVEL = ("dry_run", "exit_when_done", "max_flight_s", "max_link_lost_s")
 
 
 def did_you_mean(key: str, choices: Iterable[str]) -> str:
@@ -763,7 +773,7 @@ def config_from_mapping(data: Mapping[str, Any], *, base_dir: Path | None = None
             if key in _SECTIONS:
                 kwargs[key] = _build_section(key, _SECTIONS[key], value, errors)
             elif key in _TOP_LEVEL:
-                ann = "float" if key == "max_flight_s" else "bool"
+                ann = "bool" if key in ("dry_run", "exit_when_done") else "float"
                 kwargs[key] = _coerce(key, value, ann)
             else:
                 raise _unknown_key(key, [*_SECTIONS, *_TOP_LEVEL])

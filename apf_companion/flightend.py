@@ -27,16 +27,32 @@ class Outcome(enum.StrEnum):
 _OUTCOME_OF_STATE = {State.ARRIVED: Outcome.ARRIVED, State.STUCK: Outcome.STUCK, State.LINK_LOST: Outcome.LINK_LOST}
 
 
-def outcome_now(navigator: Navigator, *, goals: int, flown_s: float | None, max_s: float) -> Outcome | None:
-    """How the flight ended, if it has: a final state, a dropped goal, or ``max_s`` of flight (0 = no limit)."""
-    outcome = _OUTCOME_OF_STATE.get(navigator.state)
-    if outcome is Outcome.LINK_LOST and navigator.has_goal:
+def outcome_now(
+    navigator: Navigator,
+    *,
+    goals: int,
+    flown_s: float | None,
+    max_s: float,
+    lost_s: float | None = None,
+    max_lost_s: float = 0.0,
+) -> Outcome | None:
+    """How the flight ended, if it has: a final state, a dropped goal, ``max_s`` of flight, or ``max_lost_s`` with
+    no autopilot HEARTBEAT (``lost_s``: since the last one) in LINK_LOST with the goal kept (0 = no limit)."""
+    state = navigator.state
+    outcome = _OUTCOME_OF_STATE.get(state)
+    if outcome is Outcome.LINK_LOST and navigator.has_goal and not _over(lost_s, max_lost_s):
         outcome = None  # the goal (flown or held) is kept: the flight goes on when the heartbeat returns
-    if outcome is None and navigator.state is State.IDLE and goals > 0 and navigator.route is None:
+    if outcome is None and state is State.IDLE and goals > 0 and navigator.route is None:
         outcome = Outcome.ERROR  # the goal was dropped: takeover failed or the pilot took over
-    if outcome is None and max_s > 0 and flown_s is not None and flown_s > max_s:
-        outcome = Outcome.TIMEOUT
+    if outcome is None and _over(flown_s, max_s):
+        # Out of time with the autopilot unheard: the lost link, not the flight, is why it did not arrive.
+        outcome = Outcome.LINK_LOST if state is State.LINK_LOST else Outcome.TIMEOUT
     return outcome
+
+
+def _over(elapsed_s: float | None, limit_s: float) -> bool:
+    """``elapsed_s`` is known and beyond ``limit_s`` (0 = no limit)."""
+    return limit_s > 0 and elapsed_s is not None and elapsed_s > limit_s
 
 
 class FlightEnd:
@@ -73,7 +89,16 @@ class FlightEnd:
     def flown_s(self, now: float) -> float | None:
         return None if self._first_nav_s is None else now - self._first_nav_s
 
-    def check(self, now: float, navigator: Navigator, *, goals: int, max_s: float, ends_run: bool = True) -> bool:
+    def check(
+        self,
+        now: float,
+        navigator: Navigator,
+        *,
+        goals: int,
+        max_s: float,
+        max_lost_s: float = 0.0,
+        ends_run: bool = True,
+    ) -> bool:
         """Whether the flight ended just now (``outcome_now``); an ended flight stays ended until a new goal. Its
         end stops the flight time; with ``ends_run`` (``exit_when_done``) its outcome is also the run's."""
         if self.ended is not None:
@@ -81,7 +106,8 @@ class FlightEnd:
         flown = self.flown_s(now)
         if flown is None and self._goal_s is not None:
             flown = now - self._goal_s  # never navigated (no position, no ranges, no takeover): time since the goal
-        outcome = outcome_now(navigator, goals=goals, flown_s=flown, max_s=max_s)
+        lost = navigator.heartbeat_age_s(now)
+        outcome = outcome_now(navigator, goals=goals, flown_s=flown, max_s=max_s, lost_s=lost, max_lost_s=max_lost_s)
         if outcome is None:
             return False
         self.ended, self._end_s = outcome, now

@@ -753,6 +753,10 @@ class Navigator:
     def link_alive(self, now_s: float) -> bool:
         return self._last_hb_s is not None and now_s - self._last_hb_s <= self.params.heartbeat_timeout_s
 
+    def heartbeat_age_s(self, now_s: float) -> float | None:
+        """Time since the last autopilot HEARTBEAT [s]; None before the first."""
+        return None if self._last_hb_s is None else now_s - self._last_hb_s
+
     def pose_fresh(self, now_s: float) -> bool:
         return self.pose is not None and now_s - self.pose.t_s <= self.params.pose_max_age_s
 

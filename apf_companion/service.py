@@ -101,6 +101,7 @@ MIN_GAP_FRACTION = 0.8  # jitter margin: a pose stream at the cycle rate trigger
 TIMER_PERIODS = 1.25  # a timer cycle when no pose triggered one for this many periods
 NO_HEARTBEAT_WARN_S = 5.0  # no autopilot HEARTBEAT this long after start: a WARNING saying what to check [s]
 NO_HEARTBEAT_REPEAT_S = 60.0  # ... repeated this often while still nothing is heard [s]
+LINK_LOST_REPEAT_S = 15.0  # while LINK_LOST: a WARNING this often saying for how long [s]
 DRY_RUN_NO_POSE_WARN_S = 5.0  # dry run, autopilot heard, no LOCAL_POSITION_NED this long after start: one WARNING [s]
 DRY_RUN_NO_POSE_AFTER_HEARD_S = 2.0  # ... and at least this long after its first HEARTBEAT [s]
 # ArduPilot's stream groups (GCS_MAVLink, STREAM_POSITION_msgs: LOCAL_POSITION_NED; STREAM_EXTRA1_msgs: ATTITUDE);
@@ -489,9 +490,13 @@ class CompanionService:
 
     def _check_done(self, now: float) -> None:
         """Note the end of a flight (its flight time stops there); with ``exit_when_done`` it ends the run."""
-        exits = self.config.exit_when_done
-        max_s = self.config.max_flight_s if exits else 0.0
-        if self.flight.check(now, self.navigator, goals=self.counters.goals, max_s=max_s, ends_run=exits) and exits:
+        cfg = self.config
+        exits = cfg.exit_when_done
+        # Without exit_when_done the limits do not apply: the service waits for its autopilot and its goal for ever.
+        limits = {"max_s": cfg.max_flight_s, "max_lost_s": cfg.max_link_lost_s} if exits else {"max_s": 0.0}
+        if self.flight.check(now, self.navigator, goals=self.counters.goals, ends_run=exits, **limits) and exits:
+            if self.flight.outcome is Outcome.LINK_LOST:
+                _log_link_lost(self, now, ends_run=True)
             self._stop.set()
 
     async def _periodic(self, task: str, due: Callable[[float], float], retry_s: float) -> None:
@@ -803,9 +808,46 @@ def _log_setpoint(out: CycleOutput, sp: Setpoint, *, dry_run: bool) -> None:
 
 
 def _status_due(svc: CompanionService) -> Callable[[float], float]:
-    """The status task's schedule: the reporter's, and the warning while the autopilot is silent."""
-    warning, no_pose = NoHeartbeatWarning(svc), DryRunNoPoseWarning(svc)
-    return lambda now: min(svc.reporter.due(now), warning.due(now), no_pose.due(now))
+    """The status task's schedule: the reporter's, and the warnings while the autopilot is silent."""
+    warning, no_pose, lost = NoHeartbeatWarning(svc), DryRunNoPoseWarning(svc), LinkLostLog(svc)
+    return lambda now: min(svc.reporter.due(now), warning.due(now), no_pose.due(now), lost.due(now))
+
+
+def _log_link_lost(svc: CompanionService, now_s: float, *, ends_run: bool = False) -> None:
+    """One WARNING while LINK_LOST: how long no autopilot HEARTBEAT came, whether the goal waits for its return,
+    and (``exit_when_done``) after how long the run ends; ``ends_run``: it ends now (outcome link_lost)."""
+    nav, cfg = svc.navigator, svc.config
+    lost_s = nav.heartbeat_age_s(now_s)
+    extra: dict[str, Any] = {
+        "lost_s": None if lost_s is None else round(lost_s, 1),
+        "goal": "kept" if nav.has_goal else "none",
+        "connect": cfg.link.connect,
+        "ends_run": ends_run,
+    }
+    if cfg.exit_when_done and cfg.max_link_lost_s > 0:
+        extra["max_link_lost_s"] = cfg.max_link_lost_s
+    log.warning("link.lost", extra=extra)
+
+
+class LinkLostLog:
+    """While LINK_LOST (after the ``state.change`` line): a WARNING every ``LINK_LOST_REPEAT_S`` saying how long
+    (``_log_link_lost``), so that a log that goes quiet is not read as a hung service. ``due`` fits
+    ``CompanionService._periodic``."""
+
+    def __init__(self, svc: CompanionService) -> None:
+        self.svc = svc
+        self.next_s = math.inf  # the next line, while LINK_LOST
+
+    def due(self, now_s: float) -> float:
+        if self.svc.navigator.state is not State.LINK_LOST:
+            self.next_s = math.inf
+            return now_s + 1.0  # look again in a second (the status task wakes at 1 Hz for the HEARTBEAT anyway)
+        if self.next_s == math.inf:
+            self.next_s = now_s + LINK_LOST_REPEAT_S
+        elif now_s >= self.next_s:
+            self.next_s = now_s + LINK_LOST_REPEAT_S
+            _log_link_lost(self.svc, now_s)
+        return self.next_s
 
 
 class NoHeartbeatWarning:

@@ -89,7 +89,7 @@ def test_the_generated_reference_lists_every_key_of_every_section() -> None:
         assert f"### `[{section}]`" in page
         for f in dataclasses.fields(cls):  # type: ignore[arg-type]
             assert f"| `{section}.{f.name}` |" in page, f"{section}.{f.name} missing from the configuration page"
-    for top in ("dry_run", "exit_when_done", "max_flight_s"):
+    for top in ("dry_run", "exit_when_done", "max_flight_s", "max_link_lost_s"):
         assert f"| `{top}` |" in page
 
 

@@ -55,6 +55,9 @@ def test_deploy_example_loads_and_builds_its_planner() -> None:
         ({"goal": {"north_m": 1.0}}, r"goal\.north_m/goal\.east_m"),
         ({"cycle": {"rate_hz": "fast"}}, r"cycle\.rate_hz must be a number"),
         ({"dry_run": "yes"}, r"dry_run must be true or false"),
+        ({"max_link_lost_s": -1.0}, r"max_link_lost_s must be in \[0\.0, 86400\.0\]"),
+        ({"max_link_lost_s": "long"}, r"max_link_lost_s must be a number"),
+        ({"max_link_lost_s": 2.0}, r"max_link_lost_s must be 0 or at least link\.heartbeat_timeout_s, got 2\.0"),
     ],
 )
 def test_bad_values_name_the_key(table: dict[str, object], match: str) -> None:
