@@ -60,7 +60,7 @@ class Rig:
 
     def fly(self, north_m: float) -> float:
         """Set a goal ``north_m`` ahead and cycle until ARRIVED; returns the time of arrival."""
-        assert self.svc.set_route(Route.point(north_m, 0.0, -5.0, source="test"), self.clock.t)
+        assert self.svc.admission.admit(Route.point(north_m, 0.0, -5.0, source="test"), self.clock.t)
         for _ in range(400):
             if self.cycle() is State.ARRIVED:
                 return self.clock.t
@@ -88,7 +88,7 @@ def test_flight_time_ends_at_arrival_not_when_the_service_is_stopped() -> None:
 
 def test_flight_time_of_a_run_stopped_mid_flight_runs_to_the_stop() -> None:
     rig = Rig()
-    assert rig.svc.set_route(Route.point(30.0, 0.0, -5.0, source="test"), rig.clock.t)
+    assert rig.svc.admission.admit(Route.point(30.0, 0.0, -5.0, source="test"), rig.clock.t)
     rig.hold(2.0)
     assert rig.svc.navigator.state is State.NAVIGATING and rig.first_nav_s is not None
     assert rig.svc.result().flight_time_s == pytest.approx(rig.clock.t - rig.first_nav_s)

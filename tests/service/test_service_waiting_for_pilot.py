@@ -202,7 +202,7 @@ async def test_the_wire_says_waiting_once_then_navigating_after_the_switch() -> 
     cfg = fast_config(autopilot={"takeover": False})
     async with rig(cfg) as (svc, ap):
         await within(svc.clock.now, lambda: svc.navigator.pose is not None, 5.0, "a pose")
-        assert svc.set_route(Route.point(3.0, 0.0, -5.0, source="test"), svc.clock.now())
+        assert svc.admission.admit(Route.point(3.0, 0.0, -5.0, source="test"), svc.clock.now())
         await within(svc.clock.now, lambda: svc.navigator.counters.prestream_setpoints >= 20, 10.0, "holds streamed")
         heartbeats = len(ap.of_type("HEARTBEAT"))
         await within(svc.clock.now, lambda: len(ap.of_type("HEARTBEAT")) > heartbeats, 3.0, "a HEARTBEAT")
