@@ -321,17 +321,25 @@ class StatusReporter:
         }
 
     def _goal_dict(self) -> dict[str, Any] | None:
+        """The goal taken (flown, or held for its check: ``held``): the waypoint being flown to, or before its first
+        leg starts (no pose yet, waiting for the pilot or the takeover) the route's first waypoint, ``leg`` null and
+        a "keep the altitude" ``down_m`` null (JSON has no NaN)."""
         nav = self.navigator
-        target, route = nav.active_target_ned_m, nav.route
-        if target is None or route is None:
+        route = nav.route if nav.route is not None else nav.held
+        if route is None:
             return None
+        target = nav.active_target_ned_m if nav.route is not None else None
+        leg = nav.leg_index if target is not None else None
+        point = route.waypoints_ned_m[0] if target is None else target
+        north, east, down = (float(v) for v in point)
         return {
-            "north_m": float(target[0]),
-            "east_m": float(target[1]),
-            "down_m": float(target[2]),
-            "leg": nav.leg_index,
+            "north_m": north,
+            "east_m": east,
+            "down_m": down if math.isfinite(down) else None,
+            "leg": leg,
             "legs": len(route),
             "source": route.source,
+            "held": nav.held is not None,
         }
 
     def cycle_sent(self, out: CycleOutput, trigger_wall_s: float | None, now_wall_s: float) -> None:

@@ -5,7 +5,8 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
 
     {"schema": "apf.status/1", "t_s": 12.3, "state": "NAVIGATING", "reason": "...",
      "pose": {"north_m": 1.0, "east_m": 2.0, "down_m": -5.0, "yaw_deg": 45.0, "age_s": 0.04} | null,
-     "goal": {"north_m": 22.0, "east_m": 22.0, "down_m": -5.0, "leg": 0, "legs": 1, "source": "cli"} | null,
+     "goal": {"north_m": 22.0, "east_m": 22.0, "down_m": -5.0 | null, "leg": 0 | null, "legs": 1, "source": "cli",
+              "held": false} | null,
      "distance_to_goal_m": 9.1 | null, "nearest_obstacle_m": 1.7 | null, "n_obstacles": 31,
      "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null,
      "gc": {"collections": 12, "full": 0, "max_pause_ms": 0.3, "frozen": 55906} | null, "decision": "GREEDY" | null,
@@ -15,6 +16,9 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
      "rejected": {"APF_RJPOSE": 0, "APF_RJSCAN": 0, "APF_RJLINK": 0, "APF_RJSIGN": 0,
                   "APF_ERRORS": 0}}
 
+``goal`` is the goal taken: the waypoint being flown to, or, before its first leg starts (no pose yet, waiting
+for the takeover or the pilot's switch), the route's first waypoint with ``leg`` null and ``down_m`` null for "keep
+the altitude"; ``held`` is true while the goal waits for a position to be checked (``goal.max_distance_m``).
 ``gc`` is the garbage collector since the run started (apf_companion/heap.py): collections, how many were full,
 the longest pause, and how many startup objects are frozen out of every collection. ``fence`` is the autopilot's
 fence as read for bapf-nav's flying area (apf_companion/fencereader.py; null when the service does not read it):

@@ -201,3 +201,23 @@ def test_a_held_goal_kept_through_a_link_loss_does_not_end_an_exit_when_done_run
         _lose_link(svc, clock)
         assert svc._stop.is_set() is ended
         assert svc.result().outcome == ("link_lost" if ended else "stopped")
+
+
+def test_the_status_shows_a_goal_held_for_its_check_and_one_not_yet_flown() -> None:
+    """The status said ``"goal": null`` while a goal was held, or taken but not flown yet (its first leg starts with a
+    pose): a ground station or zenoh client could not see what the vehicle was about to fly to."""
+    route = Route.point(30.0, 4.0, float("nan"), source="cli")  # NaN down: keep the altitude
+    svc, clock = _service(route)
+    assert svc.reporter.status_dict(clock.t)["goal"] is None
+    _heartbeat(svc, clock)
+    goal = svc.reporter.status_dict(clock.t)["goal"]
+    assert goal == {
+        "north_m": 30.0, "east_m": 4.0, "down_m": None, "leg": None, "legs": 1, "source": "cli", "held": True
+    }  # fmt: skip
+    _pose(svc, clock)
+    svc.run_cycle(clock.t)
+    assert svc.navigator.route is route and svc.navigator.leg_index is None  # the takeover first: no leg yet
+    goal = svc.reporter.status_dict(clock.t)["goal"]
+    assert goal == {
+        "north_m": 30.0, "east_m": 4.0, "down_m": None, "leg": None, "legs": 1, "source": "cli", "held": False
+    }  # fmt: skip
