@@ -574,9 +574,10 @@ class TakeoverDriver:
             self.navigator.resume()
         elif kind is ActionKind.FAILED:
             log.warning("takeover.failed", extra={"error": action.reason})
-            if action.drop_goal:
-                self.navigator.resume()
-                self.navigator.clear_route(now, f"takeover failed: {action.reason}")  # reported by the next cycle
+            self.navigator.resume()
+            self.navigator.clear_route(now, f"takeover failed: {action.reason}")  # reported by the next cycle
+        elif kind is ActionKind.ABANDONED:
+            log.info("takeover.abandoned", extra={"reason": action.reason})  # the new goal's takeover follows
         else:
             log.info(f"takeover.{kind.value}", extra={"profile": profile.value, "down_m": action.value})
 

@@ -79,7 +79,8 @@ class ActionKind(enum.Enum):
     STARTED = "started"
     AIRBORNE = "airborne"  # ``value``: the target down [m]
     DONE = "done"
-    FAILED = "failed"  # ``reason``; ``drop_goal``: the goal it worked for is still active, drop it
+    FAILED = "failed"  # ``reason``: the goal it worked for is dropped
+    ABANDONED = "abandoned"  # ``reason``: the goal it worked for was replaced or dropped; the next goal starts anew
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,7 +88,6 @@ class Action:
     kind: ActionKind
     value: float = math.nan
     reason: str = ""
-    drop_goal: bool = False
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -202,10 +202,11 @@ class TakeoverController:
             if self._condition(now_s, inp):
                 self._advance(now_s, inp, acts)
                 continue
-            if inp.route is not self._route:
-                self._fail(f"{self._what()}: goal replaced", inp, acts)
+            if inp.route is not self._route:  # not a failure: a new goal starts its own takeover
+                why = "goal replaced" if inp.route is not None else "goal dropped"
+                self._stop(ActionKind.ABANDONED, f"{self._what()}: {why}", acts)
             elif now_s > self._deadline_s and self._enough_evidence(now_s, inp):
-                self._fail(f"{self._what()} not confirmed within {self._timeout_s():.1f} s", inp, acts)
+                self._stop(ActionKind.FAILED, f"{self._what()} not confirmed within {self._timeout_s():.1f} s", acts)
             else:
                 resend = self._command(inp)
                 if resend is not None and now_s >= self._next_send_s:
@@ -358,7 +359,8 @@ class TakeoverController:
             self._suspended = False
             acts.append(Action(ActionKind.RESUME))
 
-    def _fail(self, reason: str, inp: TakeoverInputs, acts: list[Action]) -> None:
+    def _stop(self, kind: ActionKind, reason: str, acts: list[Action]) -> None:
+        """End the takeover: FAILED (the service drops the goal) or ABANDONED (its goal is gone already)."""
         self._resume(acts)
         self.phase = Phase.IDLE
-        acts.append(Action(ActionKind.FAILED, reason=reason, drop_goal=inp.route is self._route))
+        acts.append(Action(kind, reason=reason))
