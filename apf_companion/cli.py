@@ -221,9 +221,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     Exit codes: 0 = stopped or arrived (SIGINT / SIGTERM, any number of them), 1 = error (also a --result-json
     path that cannot be written, said at start; with exit_when_done also a goal given at start that was refused,
     e.g. beyond goal.max_altitude_m or goal.max_distance_m), 2 = configuration error, 3 (only with exit_when_done) =
-    stuck, timeout (max_flight_s) or link lost (no autopilot HEARTBEAT for max_link_lost_s, 60 s by default, or the
-    goal dropped at LINK_LOST with resume_after_link_lost = false), 130 = interrupted before the event loop ran
-    (imports, reading the config).
+    stuck, timeout (max_flight_s) or link lost (no autopilot HEARTBEAT for max_link_lost_s, 60 s by default, also
+    from the start when none ever came, or the goal dropped at LINK_LOST with resume_after_link_lost = false),
+    130 = interrupted before the event loop ran (imports, reading the config).
     """
     from apf_companion.builders import signing_setup
     from apf_companion.service import build_planner

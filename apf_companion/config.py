@@ -595,9 +595,9 @@ class ServiceConfig:
             when navigation never started: a run stuck waiting for position, ranges or the takeover ends too);
             0 = no limit [s].
         max_link_lost_s: With ``exit_when_done``: no autopilot HEARTBEAT for this long (counted from the last one,
-            so it includes ``link.heartbeat_timeout_s``) ends the run with outcome link_lost (exit code 3), also
-            while the goal is kept for the heartbeat's return (``safety.resume_after_link_lost``); 0 = wait for
-            ever [s].
+            so it includes ``link.heartbeat_timeout_s``, or from the start when the autopilot was never heard) ends
+            the run with outcome link_lost (exit code 3), also while the goal is kept for the heartbeat's return
+            (``safety.resume_after_link_lost``); 0 = wait for ever [s].
     """
 
     dry_run: bool = False

@@ -35,10 +35,14 @@ def outcome_now(
     max_s: float,
     lost_s: float | None = None,
     max_lost_s: float = 0.0,
+    never_heard: bool = False,
 ) -> Outcome | None:
     """How the flight ended, if it has: a final state, a dropped goal, ``max_s`` of flight, or ``max_lost_s`` with
-    no autopilot HEARTBEAT (``lost_s``: since the last one) in LINK_LOST with the goal kept (0 = no limit)."""
+    no autopilot HEARTBEAT (``lost_s``: since the last one, or since the start when it was ``never_heard``) in
+    LINK_LOST with the goal kept, or before the autopilot was ever heard (0 = no limit)."""
     state = navigator.state
+    if never_heard and _over(lost_s, max_lost_s):
+        return Outcome.LINK_LOST  # no autopilot at all (a wrong address, a cable): nothing else will happen
     outcome = _OUTCOME_OF_STATE.get(state)
     if outcome is Outcome.LINK_LOST and navigator.has_goal and not _over(lost_s, max_lost_s):
         outcome = None  # the goal (flown or held) is kept: the flight goes on when the heartbeat returns
@@ -63,7 +67,8 @@ class FlightEnd:
     of a flight still under way continues that flight; a goal after a flight has ended starts a new one.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, start_s: float = 0.0) -> None:
+        self._start_s = start_s  # the run's start: an autopilot never heard is lost since then
         self._first_nav_s: float | None = None
         self._goal_s: float | None = None
         self._end_s: float | None = None
@@ -107,7 +112,11 @@ class FlightEnd:
         if flown is None and self._goal_s is not None:
             flown = now - self._goal_s  # never navigated (no position, no ranges, no takeover): time since the goal
         lost = navigator.heartbeat_age_s(now)
-        outcome = outcome_now(navigator, goals=goals, flown_s=flown, max_s=max_s, lost_s=lost, max_lost_s=max_lost_s)
+        never = lost is None
+        lost = now - self._start_s if lost is None else lost
+        outcome = outcome_now(
+            navigator, goals=goals, flown_s=flown, max_s=max_s, lost_s=lost, max_lost_s=max_lost_s, never_heard=never
+        )
         if outcome is None:
             return False
         self.ended, self._end_s = outcome, now

@@ -292,7 +292,7 @@ class CompanionService:
         self.faults = FaultLog(self.counters)
         self.observers = Observers(self.faults)
         self.navigator = build_navigator(config, self.observers.tap(self.planner), self.perception)
-        self.flight = FlightEnd()
+        self.flight = FlightEnd(self.clock.now())
         self.admission = _goal_admission(self, route if route is not None else initial_route(config, self.planner))
         self.link_meter = LinkMeter(self.navigator.params.caution)  # pose loss and send failures: caution
         self.outbox = build_outbox(config, link, self.clock.now)

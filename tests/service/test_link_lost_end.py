@@ -237,3 +237,21 @@ def test_a_stopped_vehicle_ends_an_exit_when_done_run_with_exit_code_3(tmp_path:
     assert rec["outcome"] == "link_lost" and rec["state"] == "LINK_LOST"
     lost = [e for e in events if e.get("event") == "link.lost"]
     assert lost and lost[-1]["ends_run"] is True and lost[-1]["lost_s"] > 3.0 and lost[-1]["goal"] == "kept"
+
+
+def test_exit_when_done_ends_the_run_when_the_autopilot_is_never_heard() -> None:
+    """A wrong address or a dead autopilot: no HEARTBEAT ever came, so no goal was taken and a scripted run waited
+    for ever. ``max_link_lost_s`` counts from the start then; without ``exit_when_done`` the service waits."""
+    svc, clock = _service(exit_when_done=True, max_link_lost_s=20.0)
+    start = clock.t
+    assert _cycle_at(svc, clock, start + 19.9) is State.IDLE and not svc._stop.is_set()
+    _cycle_at(svc, clock, start + 20.1)
+    assert svc._stop.is_set() and svc.result().outcome == "link_lost"
+    assert _exit_code(svc.result().outcome) == EXIT_STUCK
+    waits, wclock = _service(max_link_lost_s=20.0)
+    _cycle_at(waits, wclock, wclock.t + 3600.0)
+    assert not waits._stop.is_set() and waits.result().outcome == "stopped"
+    heard, hclock = _service(exit_when_done=True, max_link_lost_s=20.0)
+    hclock.t += 19.0
+    _heartbeat(heard, hclock)  # heard at last: the limit counts from the last HEARTBEAT again
+    assert _cycle_at(heard, hclock, hclock.t + 2.0) is not State.LINK_LOST and not heard._stop.is_set()
