@@ -418,7 +418,8 @@ class ZenohSection:
         config_file: zenoh JSON5 file for TLS certificates / authentication (``deploy/zenoh-companion-tls.json5``),
             relative to this config's directory; it may not set mode, endpoints or multicast scouting. "" = none.
         sensor_key: Key of the range topic (JSON ``apf.range_scan/1`` or ROS 2 LaserScan CDR, told apart by
-            the sample's encoding).
+            the sample's encoding when it is application/json or application/cdr, else by the payload's first byte:
+            ROS 2 bridges publish with the default zenoh/bytes). Matched exactly (no wildcards).
         goal_key: Key of the goal command topic (JSON ``apf.goal/1``).
         status_key: Key the status JSON is published on.
         status_rate_hz: Status publications per second [Hz].

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from apf_companion.errors import ConfigError, ProtocolError
-from apf_companion.perception.cdr import decode_laserscan_cdr
 from apf_companion.perception.geometry import (
     return_spread_m,
     scan_bearings_ned_rad,
@@ -45,8 +44,8 @@ from apf_companion.perception.mavlink_ranges import (
     scan_from_obstacle_distance,
 )
 from apf_companion.perception.memory import ObstacleMemory
+from apf_companion.perception.payload import decode_scan_payload
 from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
-from apf_companion.perception.schema import decode_scan_json
 from apf_companion.perception.sectors import SectorFreshness
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
@@ -282,13 +281,14 @@ class PerceptionFrontEnd:
         self.sectors.note(np.arctan2(rel[:, 1], rel[:, 0]), t)
         self._remember(points, t, self._sensor_id("mavlink:obstacle_distance_3d"))
 
-    def on_scan_payload(self, encoding: str, payload: bytes, now_s: float) -> None:
-        """A zenoh scan: ROS 2 LaserScan CDR, or ``apf.range_scan/1`` JSON (stamped with boot time, if given)."""
+    def on_scan_payload(self, encoding: str | None, payload: bytes, now_s: float) -> None:
+        """A zenoh scan: ROS 2 LaserScan CDR, or ``apf.range_scan/1`` JSON (stamped with boot time, if given).
+
+        ``decode_scan_payload`` picks the decoder: from the encoding when it names JSON or CDR, else from the
+        payload's first bytes (zenoh-bridge-ros2dds and rmw_zenoh publish with the default ``zenoh/bytes``)."""
 
         def decode() -> RangeScan:
-            if "cdr" in encoding:
-                return decode_laserscan_cdr(payload, t_s=now_s)
-            scan = decode_scan_json(payload, t_s=now_s)
+            scan = decode_scan_payload(payload, encoding, t_s=now_s)
             if scan.time_boot_ms is not None:
                 scan = dataclasses.replace(scan, t_s=self.scan_time(scan.time_boot_ms, now_s))
             return scan

@@ -292,7 +292,13 @@ def test_payload_dispatch() -> None:
     assert decode_scan_payload(cdr, "application/cdr", t_s=0.0).source.startswith("zenoh:laserscan")
     assert decode_scan_payload(js, "zenoh/bytes", t_s=0.0).source == "zenoh:json"
     assert decode_scan_payload(cdr, None, t_s=0.0).source.startswith("zenoh:laserscan")
-    with pytest.raises(ProtocolError):
+    # No format in the encoding: the content decides (zenoh-bridge-ros2dds and rmw_zenoh set none).
+    for encoding in ("zenoh/bytes", "application/octet-stream", "text/json"):
+        assert decode_scan_payload(cdr, encoding, t_s=0.0).source.startswith("zenoh:laserscan")
+        assert decode_scan_payload(b" \n" + js, encoding, t_s=0.0).source == "zenoh:json"
+    with pytest.raises(ProtocolError, match="neither"):
         decode_scan_payload(b"\x12\x34garbage", "zenoh/bytes", t_s=0.0)
+    with pytest.raises(ProtocolError, match="encapsulation 0007"):  # XCDR2: named by the CDR decoder
+        decode_scan_payload(b"\x00\x07" + cdr[2:], "zenoh/bytes", t_s=0.0)
     with pytest.raises(ProtocolError):
         decode_scan_payload(cdr, "application/json", t_s=0.0)
