@@ -47,6 +47,7 @@ __all__ = [
     "DistanceSensorLike",
     "ObstacleDistance3dLike",
     "ObstacleDistanceLike",
+    "obstacle_distance_element_count",
     "points_from_obstacle_distance_3d",
     "scan_from_distance_sensor",
     "scan_from_obstacle_distance",
@@ -224,11 +225,22 @@ def _obstacle_distance_frame(frame: int, frame_override: ScanFrame | None) -> Sc
     return scan_frame
 
 
+def obstacle_distance_element_count(increment_deg: float) -> int:
+    """How many OBSTACLE_DISTANCE elements ArduPilot reads for this increment: ``360 / |increment|`` rounded to
+    the nearest integer (halves up), at most 72.
+
+    ArduPilot ``libraries/AP_Proximity/AP_Proximity_MAV.cpp`` ``handle_obstacle_distance_msg``:
+    ``total_distances = MIN(((360.0f / fabsf(increment)) + 0.5f), 72)``, a float stored into a uint8_t
+    (truncated). Computed in float32 as there, so a ratio on a half rounds the same way.
+    """
+    with np.errstate(divide="ignore", over="ignore"):  # a subnormal increment is 0 in float32: inf, then 72
+        ratio = np.float32(360.0) / np.abs(np.float32(increment_deg)) + np.float32(0.5)
+    return int(min(ratio, np.float32(MAX_OBSTACLE_DISTANCE_ELEMENTS)))
+
+
 def _obstacle_distance_elements(distances: Sequence[int], increment_deg: float) -> npt.NDArray[np.int64]:
-    """The ``min(72, floor(360 / |increment|))`` elements that are read (ArduPilot's rule) [cm]."""
-    # The epsilon keeps 360/7.2 = 50 and the like from flooring to one less through float error.
-    ratio = 360.0 / abs(increment_deg)  # may be inf for a subnormal increment
-    n = MAX_OBSTACLE_DISTANCE_ELEMENTS if ratio >= MAX_OBSTACLE_DISTANCE_ELEMENTS else math.floor(ratio + 1e-6)
+    """The elements that are read (``obstacle_distance_element_count``) [cm]."""
+    n = obstacle_distance_element_count(increment_deg)
     distances_cm = np.asarray(distances, dtype=np.int64)[:n]
     if distances_cm.size < n:
         msg_text = f"OBSTACLE_DISTANCE: {distances_cm.size} distances, expected at least {n}"
@@ -248,8 +260,9 @@ def scan_from_obstacle_distance(
     Element ``i`` lies at bearing ``angle_offset + i * increment`` degrees, clockwise, from the frame's
     zero: the vehicle's forward axis for BODY_FRD (12) and LOCAL_FRD (20), north for GLOBAL* and
     LOCAL_NED (1). ``increment_f`` is used when non-zero, else ``increment``; a negative ``increment_f``
-    runs counter-clockwise, as the spec allows. The number of elements read is
-    ``min(72, floor(360 / |increment|))`` (ArduPilot's rule); later elements are not used and not counted.
+    runs counter-clockwise, as the spec allows. The number of elements read is ``360 / |increment|`` rounded
+    (halves up), at most 72, as ArduPilot reads them (``obstacle_distance_element_count``); later elements are
+    not used and not counted.
     The scan's ``time_boot_ms`` is ``time_usec // 1000`` when that fits a uint32 (time since boot), else None.
 
     Parameters

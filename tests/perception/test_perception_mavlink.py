@@ -86,10 +86,18 @@ def test_increment_f_wins_over_increment_and_sets_element_count() -> None:
 
 
 def test_fewer_elements_when_360_over_increment_is_small() -> None:
-    # 45 deg -> 8 elements; 7 deg -> floor(51.4) = 51; 7.2 deg -> exactly 50 (no float flooring to 49).
+    # ArduPilot's count (AP_Proximity_MAV.cpp): 360 / |inc| + 0.5 truncated, at most 72.
+    # 45 deg -> 8 elements; 7 deg -> 51.4 -> 51; 7.2 deg -> exactly 50.
     assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment=45), t_s=0)) == 8
     assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment=7), t_s=0)) == 51
     assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=7.2), t_s=0)) == 50
+    # Rounded, not floored: 50.70 -> 51 and 71.9986 -> 72 (flooring read 50 and 71).
+    assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=7.1), t_s=0)) == 51
+    assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=5.0001), t_s=0)) == 72
+    assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=-7.1), t_s=0)) == 51
+    # 360 deg: 1.5 -> 1 element; 250 deg: 1.94 -> 1.
+    assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=360.0), t_s=0)) == 1
+    assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=250.0), t_s=0)) == 1
     # A small increment never reads more than the 72 elements the message has.
     assert len(scan_from_obstacle_distance(obstacle_distance([100] * 72, increment_f=2.0), t_s=0)) == 72
     # A subnormal increment (360 / inc overflows to inf) still reads 72.
