@@ -10,19 +10,28 @@ Reads three messages (field names as in the MAVLink XML):
 - OBSTACLE_DISTANCE_3D (11037, ardupilotmega): one point ``x, y, z`` [m] in ``frame``,
   ``min_distance``/``max_distance`` [m].
 
-Range classification (OBSTACLE_DISTANCE and DISTANCE_SENSOR alike), in this order:
+Range classification (OBSTACLE_DISTANCE and DISTANCE_SENSOR alike but for the free limit), in this order:
 
-==========================  ==========  =====================================================
-reading (cm)                stored as   counted as
-==========================  ==========  =====================================================
-UINT16_MAX (65535)          NaN         unknown (spec: "unknown / not used")
-> max_distance              +inf        free (spec: max_distance + 1 = "no obstacle")
-0                           NaN         invalid, unless ``zero_is_obstacle=True`` (then 0 m)
-< min_distance              NaN         invalid
-otherwise                   cm / 100    valid (an obstacle)
-==========================  ==========  =====================================================
+===================================  ==========  =====================================================
+reading (cm)                         stored as   counted as
+===================================  ==========  =====================================================
+UINT16_MAX (65535)                   NaN         unknown (spec: "unknown / not used")
+OBSTACLE_DISTANCE: > max_distance    +inf        free (spec: max_distance + 1 = "no obstacle")
+DISTANCE_SENSOR: >= max_distance     +inf        free (ArduPilot's "this face is empty", below)
+0                                    NaN         invalid, unless ``zero_is_obstacle=True`` (then 0 m)
+< min_distance                       NaN         invalid
+otherwise                            cm / 100    valid (an obstacle)
+===================================  ==========  =====================================================
 
 ArduPilot drops 0 (AP_Proximity_MAV), so 0 is invalid by default although the spec calls it "touching".
+
+A DISTANCE_SENSOR reading of exactly ``max_distance`` is free, not an obstacle at the limit: ArduPilot's proximity
+library reports a face that was valid and is now empty that way. ``GCS_Common.cpp`` ``send_proximity`` sends
+``dist_array.distance[i]`` with ``max_distance = distance_max_m() * 100`` for every face ever valid, and
+``AP_Proximity_Boundary_3D::get_layer_distances`` (called by ``AP_Proximity::get_horizontal_distances``) fills an
+invalid face with that same ``distance_max``; so a face emptied in flight (ids 10-17, e.g. id 12 with
+``current_distance = max_distance = 500``) would otherwise stay a phantom obstacle at the sensor's full range.
+Rangefinders that saturate report their maximum for "nothing seen" too.
 Malformed messages raise ``ProtocolError`` (the caller counts them) and never produce a scan.
 """
 
@@ -161,12 +170,13 @@ def wrap_angle_rad(angle_rad: FloatArray) -> FloatArray:
 
 
 def _classify_cm(
-    distances_cm: npt.NDArray[np.int64], min_cm: int, max_cm: int, *, zero_is_obstacle: bool
+    distances_cm: npt.NDArray[np.int64], min_cm: int, free_from_cm: int, *, zero_is_obstacle: bool
 ) -> tuple[FloatArray, SectorCounts]:
-    """Ranges [m] and counts for uint16 centimetre readings (table in the module docstring)."""
+    """Ranges [m] and counts for uint16 centimetre readings (table in the module docstring); readings of
+    ``free_from_cm`` or more are free (OBSTACLE_DISTANCE: max_distance + 1; DISTANCE_SENSOR: max_distance)."""
     d = distances_cm
     unknown = d == UINT16_MAX
-    free = ~unknown & (d > max_cm)
+    free = ~unknown & (d >= free_from_cm)
     # 0 is below any min_distance except 0, so it is tested on its own.
     zero_bad = (d == 0) & (not zero_is_obstacle)
     zero_ok = (d == 0) & zero_is_obstacle
@@ -292,7 +302,7 @@ def scan_from_obstacle_distance(
 
     distances_cm = _obstacle_distance_elements(msg.distances, increment_deg)
     n = distances_cm.size
-    ranges_m, counts = _classify_cm(distances_cm, min_cm, max_cm, zero_is_obstacle=zero_is_obstacle)
+    ranges_m, counts = _classify_cm(distances_cm, min_cm, max_cm + 1, zero_is_obstacle=zero_is_obstacle)
     bearings_rad = wrap_angle_rad(np.deg2rad(angle_offset_deg + increment_deg * np.arange(n, dtype=np.float64)))
     time_ms = int(msg.time_usec) // 1000
     return RangeScan(
@@ -336,7 +346,9 @@ def scan_from_distance_sensor(msg: DistanceSensorLike, *, t_s: float, zero_is_ob
     ROTATION_CUSTOM (100) takes the bearing of the sensor's x axis rotated by ``quaternion`` when that beam is
     within 30 deg of horizontal. Every other defined orientation (PITCH_90 up, PITCH_270 down, rolled
     mounts) is not a horizontal beam: the result is an EMPTY scan (length 0, all counts 0), not an error,
-    because a downward rangefinder on the link is normal. Readings are classified as in the module table.
+    because a downward rangefinder on the link is normal. Readings are classified as in the module table: a
+    ``current_distance`` of ``max_distance`` or more is free out to ``max_distance`` (ArduPilot reports an emptied
+    proximity face so), not an obstacle.
 
     Raises
     ------
@@ -370,7 +382,7 @@ def scan_from_distance_sensor(msg: DistanceSensorLike, *, t_s: float, zero_is_ob
         )
     ranges_m, counts = _classify_cm(
         np.array([int(msg.current_distance)], dtype=np.int64), min_cm, max_cm, zero_is_obstacle=zero_is_obstacle
-    )
+    )  # free from max_distance itself: ArduPilot's emptied proximity face (module docstring)
     return RangeScan(
         t_s=t_s,
         frame=ScanFrame.BODY_FRD,

@@ -229,6 +229,10 @@ def test_distance_sensor_yaw_orientations(orientation: int) -> None:
 
 def test_distance_sensor_special_values() -> None:
     assert scan_from_distance_sensor(distance_sensor(801, 0), t_s=0).ranges_m[0] == math.inf
+    # Exactly max_distance (800 cm) is free too: ArduPilot's emptied proximity face (GCS_Common.cpp send_proximity).
+    at_max = scan_from_distance_sensor(distance_sensor(800, 0), t_s=0)
+    assert (at_max.ranges_m[0], at_max.counts) == (math.inf, SectorCounts(free=1))
+    assert scan_from_distance_sensor(distance_sensor(799, 0), t_s=0).ranges_m[0] == pytest.approx(7.99)
     assert scan_from_distance_sensor(distance_sensor(U16, 0), t_s=0).counts == SectorCounts(unknown=1)
     assert scan_from_distance_sensor(distance_sensor(5, 0), t_s=0).counts == SectorCounts(invalid=1)
     assert scan_from_distance_sensor(distance_sensor(0, 0), t_s=0).counts == SectorCounts(invalid=1)
