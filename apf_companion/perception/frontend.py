@@ -12,7 +12,9 @@ one: at 20 Hz telemetry and 1 m/s that is up to 5 cm of obstacle position (measu
 the vehicle were 4-5 cm off (median) with the previous pose, 1.4-2.4 cm interpolated, in the sweep's graze
 flights).
 
-Bad input is counted in ``counters`` and never raises out of the ``on_*`` methods.
+Bad input is counted in ``counters`` and never raises out of the ``on_*`` methods. A rejected scan is also logged
+(``ranges.bad`` at WARNING, naming the source and the decoder's error): the first one at once, then at most one line
+per ``BAD_SCAN_LOG_INTERVAL_S`` of the service clock, carrying how many were not logged since the previous line.
 """
 
 from __future__ import annotations
@@ -46,10 +48,12 @@ from apf_companion.perception.mavlink_ranges import (
 from apf_companion.perception.memory import ObstacleMemory
 from apf_companion.perception.payload import decode_scan_payload
 from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
+from apf_companion.perception.ratelog import RateLimitedWarning
 from apf_companion.perception.sectors import SectorFreshness
 from apf_companion.perception.types import FloatArray, Pose, RangeScan
 
 __all__ = [
+    "BAD_SCAN_LOG_INTERVAL_S",
     "MAX_SENSOR_IDS",
     "SCAN_DEFER_MAX",
     "SCAN_DEFER_S",
@@ -69,6 +73,8 @@ MAX_HEADING_AGE_S = 1.0  # a pose this far from every ATTITUDE (the stream stopp
 POSE_HISTORY_LEN = 200  # poses kept to place scans (10 s at 20 Hz)
 STAMP_PLAUSIBLE_S = 5.0  # a stamp older than this (or in the future) is on another clock: use receive time
 UNIX_USEC = 10**15  # OBSTACLE_DISTANCE.time_usec at or above this is UNIX time, not time since boot
+# A sensor sending only bad scans (10-50 Hz) must not fill the journal, but the user must see why bad_scans counts.
+BAD_SCAN_LOG_INTERVAL_S = 10.0  # at most one ranges.bad WARNING per this long (service clock) [s]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -138,6 +144,7 @@ class PerceptionFrontEnd:
         self.gate = PoseGate(params.pose_limits)
         self.sectors = SectorFreshness(params.sectors, params.sector_max_age_s)
         self._sensor_ids: dict[str, int] = {}
+        self.bad_scan_log = RateLimitedWarning(log, "ranges.bad", BAD_SCAN_LOG_INTERVAL_S)
         self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
         self._ranges_t_s: float | None = None
@@ -258,11 +265,13 @@ class PerceptionFrontEnd:
     def on_obstacle_distance(self, msg: ObstacleDistanceLike, now_s: float) -> None:
         usec = msg.time_usec
         boot_ms = usec // 1000 if usec < UNIX_USEC else None  # UNIX-epoch stamps: use receive time
-        self._decoded("OBSTACLE_DISTANCE", lambda: scan_from_obstacle_distance(msg, t_s=self.scan_time(boot_ms, now_s)))
+        self._decoded(
+            "OBSTACLE_DISTANCE", now_s, lambda: scan_from_obstacle_distance(msg, t_s=self.scan_time(boot_ms, now_s))
+        )
 
     def on_distance_sensor(self, msg: DistanceSensorLike, now_s: float) -> None:
         t_s = self.scan_time(msg.time_boot_ms, now_s)
-        self._decoded("DISTANCE_SENSOR", lambda: scan_from_distance_sensor(msg, t_s=t_s))
+        self._decoded("DISTANCE_SENSOR", now_s, lambda: scan_from_distance_sensor(msg, t_s=t_s))
 
     def on_obstacle_distance_3d(self, msg: ObstacleDistance3dLike, now_s: float) -> None:
         """One obstacle point, placed with the pose at its time (no deferral: it is a point, not a scan)."""
@@ -274,7 +283,7 @@ class PerceptionFrontEnd:
         try:
             points = points_from_obstacle_distance_3d(msg, pose)
         except ProtocolError as err:
-            self._bad("OBSTACLE_DISTANCE_3D", err)
+            self._bad("OBSTACLE_DISTANCE_3D", err, now_s)
             return
         self.counters.scans += 1
         rel = np.asarray(points, dtype=np.float64).reshape(-1, 3) - pose.pos_ned_m
@@ -293,7 +302,7 @@ class PerceptionFrontEnd:
                 scan = dataclasses.replace(scan, t_s=self.scan_time(scan.time_boot_ms, now_s))
             return scan
 
-        self._decoded("zenoh", decode, errors=(ProtocolError, ConfigError))
+        self._decoded("zenoh", now_s, decode, errors=(ProtocolError, ConfigError))
 
     def on_scan(self, scan: RangeScan) -> None:
         """Place a decoded scan with the pose at its measurement time (or let it wait for the next pose)."""
@@ -306,19 +315,21 @@ class PerceptionFrontEnd:
     def _decoded(
         self,
         source: str,
+        now_s: float,
         decode: Callable[[], RangeScan],
         errors: tuple[type[Exception], ...] = (ProtocolError,),
     ) -> None:
         try:
             scan = decode()
         except errors as err:
-            self._bad(source, err)
+            self._bad(source, err, now_s)
             return
         self.on_scan(scan)
 
-    def _bad(self, source: str, err: Exception) -> None:
+    def _bad(self, source: str, err: Exception, now_s: float) -> None:
+        """A scan the decoder refused at ``now_s``: counted, and logged (rate-limited) with why."""
         self.counters.bad_scans += 1
-        log.debug("ranges.bad", extra={"source": source, "error": str(err)})
+        self.bad_scan_log.note(now_s, source=source, error=str(err))
 
     def _place_deferred(self) -> None:
         """Place the waiting scans, oldest first, up to the first one still newer than the newest pose."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import logging
 import math
 from pathlib import Path
 
@@ -12,7 +13,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.links.messages import ObstacleDistance, ObstacleDistance3d, Source
 from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, RangeScan, ScanFrame, encode_laserscan_cdr
-from apf_companion.perception.frontend import MAX_SENSOR_IDS
+from apf_companion.perception.frontend import BAD_SCAN_LOG_INTERVAL_S, MAX_SENSOR_IDS
 
 ROOT = Path(__file__).resolve().parents[2]
 SRC = Source(1, 1)
@@ -94,6 +95,38 @@ def test_a_malformed_scan_is_counted_and_changes_nothing() -> None:
     p.on_obstacle_distance(_scan(1_000_000, 300, frame=mavlink.MAV_FRAME_GLOBAL_INT + 100), 10.0)
     p.on_scan_payload("application/json", b"{not json", 10.0)
     assert p.counters.bad_scans == 2 and len(p) == 0 and p.ranges_t_s is None
+
+
+def _bad_scan_lines(caplog: pytest.LogCaptureFixture) -> list[tuple[str, str, int]]:
+    return [
+        (r.source, r.error, r.unlogged)  # type: ignore[attr-defined]
+        for r in caplog.records
+        if r.getMessage() == "ranges.bad" and r.levelno == logging.WARNING
+    ]
+
+
+def test_rejected_scans_are_logged_at_warning_rate_limited_on_the_service_clock(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The service runs at INFO: a bad scan must say why at WARNING, the first at once, then at most one line per
+    BAD_SCAN_LOG_INTERVAL_S (of the clock the caller passes) with the count not logged meanwhile."""
+    caplog.set_level(logging.INFO, logger="apf_companion.perception.frontend")
+    p = front()
+    bad_frame = _scan(1_000_000, 300, frame=mavlink.MAV_FRAME_GLOBAL_INT + 100)
+    p.on_scan_payload("application/json", b"{not json", 10.0)
+    [(source, error, unlogged)] = _bad_scan_lines(caplog)
+    assert (source, unlogged) == ("zenoh", 0) and "not valid UTF-8 JSON" in error
+    for i in range(5):  # a flood within the interval: counted, not logged
+        p.on_obstacle_distance(bad_frame, 10.0 + i)
+    p.on_scan_payload("application/json", b"{not json", 10.0 + BAD_SCAN_LOG_INTERVAL_S - 1e-3)
+    assert len(_bad_scan_lines(caplog)) == 1 and p.counters.bad_scans == 7
+    p.on_obstacle_distance(bad_frame, 10.0 + BAD_SCAN_LOG_INTERVAL_S)  # the interval is over: the next is logged
+    lines = _bad_scan_lines(caplog)
+    assert len(lines) == 2
+    assert lines[1][0] == "OBSTACLE_DISTANCE" and "frame=105 is not supported" in lines[1][1]
+    assert lines[1][2] == 6  # the six since the first line
+    p.on_obstacle_distance(bad_frame, 10.0 + 1.5 * BAD_SCAN_LOG_INTERVAL_S)
+    assert len(_bad_scan_lines(caplog)) == 2 and p.bad_scan_log.unlogged == 1
 
 
 def test_an_obstacle_point_3d_is_placed_with_the_pose_at_its_time() -> None:
