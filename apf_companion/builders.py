@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,7 +33,7 @@ from apf_companion.links import (
 from apf_companion.links.messages import Source
 from apf_companion.navigator import Navigator, NavigatorParams, ObstacleView
 from apf_companion.outbox import Outbox
-from apf_companion.perception import PerceptionParams, PoseLimits
+from apf_companion.perception import PerceptionParams, PoseLimits, ScanFrame
 from apf_companion.planning import BapfNavPlanner, FlyingArea, KeepOuts, PlannerName, PlannerParams, get_planner
 from apf_companion.reporter import ReporterParams
 from apf_companion.takeover import TakeoverParams
@@ -195,6 +196,9 @@ def perception_params(config: ServiceConfig) -> PerceptionParams:
         surface_fill_spacing_m=s.surface_fill_spacing_m,
         surface_fill_max_gap_m=s.surface_fill_max_gap_m,
         surface_fill_line_tol_m=s.surface_fill_line_tol_m,
+        obstacle_distance_frame=ScanFrame.BODY_FRD if s.obstacle_distance_frame == "body_frd" else None,
+        obstacle_distance_mount_yaw_rad=math.radians(s.obstacle_distance_mount_yaw_deg),
+        laserscan_mount_yaw_rad=math.radians(s.laserscan_mount_yaw_deg),
         pose_limits=PoseLimits(
             max_speed_m_s=z.max_speed_m_s,
             max_accel_m_s2=z.max_accel_m_s2,

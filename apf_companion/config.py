@@ -31,6 +31,7 @@ __all__ = [
     "HEARTBEAT_TIMEOUT_RANGE_S",
     "MAX_AGE_RANGE_S",
     "MAX_FLIGHT_RANGE_S",
+    "OBSTACLE_DISTANCE_FRAMES",
     "PLANNER_PRESETS",
     "RATE_RANGE_HZ",
     "TAKEOFF_ALT_RANGE_M",
@@ -64,6 +65,7 @@ MAX_AGE_RANGE_S: tuple[float, float] = (0.02, 10.0)  # cycle.pose_max_age_s and 
 TIME_SCALE_RANGE: tuple[float, float] = (0.1, 100.0)  # cycle.time_scale
 MAX_FLIGHT_RANGE_S: tuple[float, float] = (0.0, 86400.0)  # max_flight_s
 MAX_LINK_LOST_RANGE_S: tuple[float, float] = (0.0, 86400.0)  # max_link_lost_s
+OBSTACLE_DISTANCE_FRAMES: tuple[str, ...] = ("as_sent", "body_frd")  # sensors.obstacle_distance_frame
 
 
 def _fail(key: str, allowed: str, value: object) -> ConfigError:
@@ -368,6 +370,17 @@ class SensorsConfig:
             library (PRX1_TYPE = 2) and the ground station's proximity view. While on, the autopilot's own
             DISTANCE_SENSOR echo of its proximity sectors (ids 10-18) is not read back.
         forward_rate_hz: OBSTACLE_DISTANCE messages per second when forwarding [Hz].
+        obstacle_distance_frame: How OBSTACLE_DISTANCE's ``frame`` is read. "as_sent": as the spec says (BODY_FRD 12 and
+            LOCAL_FRD 20 count from the nose; 0 = MAV_FRAME_GLOBAL, the other GLOBAL* and LOCAL_NED 1 from north, as
+            PX4 reads them). "body_frd": every frame counts from the nose, as ArduPilot reads them
+            (AP_Proximity_MAV.cpp ignores ``frame``): for sensor scripts written for ArduPilot, which leave frame at
+            0. A frame-0 message read as sent is counted (``obstacle_distance_frame_global``) and logged once.
+        obstacle_distance_mount_yaw_deg: Added to every OBSTACLE_DISTANCE bearing read from the nose: the sensor's
+            forward axis, clockwise from the vehicle's nose seen from above (180 = facing the tail). ArduPilot's
+            PRX1_YAW_CORR: set the same value the autopilot uses. Not applied to north-aligned frames [deg].
+        laserscan_mount_yaw_deg: The zenoh LaserScan sensor's forward axis (its x), clockwise from the vehicle's nose
+            seen from above (180 = facing the tail). The sensor must be level with z up. ``apf.range_scan/1`` JSON
+            states its own frame and is not turned [deg].
     """
 
     mavlink: bool = True
@@ -384,8 +397,15 @@ class SensorsConfig:
     mavlink_sources: tuple[str, ...] = ()
     forward_obstacle_distance: bool = False
     forward_rate_hz: float = 10.0
+    obstacle_distance_frame: str = "as_sent"
+    obstacle_distance_mount_yaw_deg: float = 0.0
+    laserscan_mount_yaw_deg: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.obstacle_distance_frame not in OBSTACLE_DISTANCE_FRAMES:
+            raise _fail("sensors.obstacle_distance_frame", "'as_sent' or 'body_frd'", self.obstacle_distance_frame)
+        _check_range("sensors.obstacle_distance_mount_yaw_deg", self.obstacle_distance_mount_yaw_deg, -180.0, 180.0)
+        _check_range("sensors.laserscan_mount_yaw_deg", self.laserscan_mount_yaw_deg, -180.0, 180.0)
         _check_range("sensors.memory_expiry_s", self.memory_expiry_s, 0.1, 3600.0)
         _check_range("sensors.merge_radius_m", self.merge_radius_m, 0.0, 5.0)
         if not isinstance(self.max_points, int) or not 10 <= self.max_points <= 1_000_000:

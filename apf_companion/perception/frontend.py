@@ -38,6 +38,7 @@ from apf_companion.perception.geometry import (
 from apf_companion.perception.heading import HeadingTrack
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
+    MAV_FRAME_GLOBAL,
     DistanceSensorLike,
     ObstacleDistance3dLike,
     ObstacleDistanceLike,
@@ -50,7 +51,7 @@ from apf_companion.perception.payload import decode_scan_payload
 from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
 from apf_companion.perception.ratelog import RateLimitedWarning
 from apf_companion.perception.sectors import SectorFreshness
-from apf_companion.perception.types import FloatArray, Pose, RangeScan
+from apf_companion.perception.types import FloatArray, Pose, RangeScan, ScanFrame
 
 __all__ = [
     "BAD_SCAN_LOG_INTERVAL_S",
@@ -94,9 +95,17 @@ class PerceptionParams:
     surface_fill_spacing_m: float = 0.2
     surface_fill_max_gap_m: float = 1.5
     surface_fill_line_tol_m: float = 0.05
+    # How OBSTACLE_DISTANCE.frame is read: None = as sent; ScanFrame.BODY_FRD = every frame from the nose (ArduPilot)
+    obstacle_distance_frame: ScanFrame | None = None
+    obstacle_distance_mount_yaw_rad: float = 0.0  # added to OBSTACLE_DISTANCE bearings read from the nose [rad]
+    laserscan_mount_yaw_rad: float = 0.0  # a zenoh LaserScan sensor's forward axis in body FRD [rad]
 
     def __post_init__(self) -> None:
         # Checked here, not at the first scan: the on_* methods must not raise.
+        for name in ("obstacle_distance_mount_yaw_rad", "laserscan_mount_yaw_rad"):
+            if not math.isfinite(getattr(self, name)):
+                msg = f"{name} must be finite, got {getattr(self, name)}"
+                raise ConfigError(msg)
         fill = (self.surface_fill_spacing_m, self.surface_fill_max_gap_m, self.surface_fill_line_tol_m)
         if not all(math.isfinite(v) for v in fill) or min(fill[:2]) <= 0.0 or fill[2] < 0.0:
             msg = f"surface fill spacing/max gap must be finite and > 0, line tolerance >= 0, got {fill}"
@@ -125,6 +134,7 @@ class PerceptionCounters:
     scans_without_pose: int = 0
     scans_deferred_too_long: int = 0  # placed with the newest pose: more than SCAN_DEFER_MAX scans waited
     clears_refused: int = 0  # a scan saw through a point another sensor saw: not cleared
+    obstacle_distance_frame_global: int = 0  # OBSTACLE_DISTANCE with frame 0 read north-aligned (as sent)
 
 
 class PerceptionFrontEnd:
@@ -263,11 +273,39 @@ class PerceptionFrontEnd:
 
     # ---- scans ---------------------------------------------------------------------------------------------
     def on_obstacle_distance(self, msg: ObstacleDistanceLike, now_s: float) -> None:
+        """An OBSTACLE_DISTANCE, its frame read as ``params.obstacle_distance_frame`` says, turned by the mount."""
         usec = msg.time_usec
         boot_ms = usec // 1000 if usec < UNIX_USEC else None  # UNIX-epoch stamps: use receive time
-        self._decoded(
-            "OBSTACLE_DISTANCE", now_s, lambda: scan_from_obstacle_distance(msg, t_s=self.scan_time(boot_ms, now_s))
-        )
+        p = self.params
+        if p.obstacle_distance_frame is None and msg.frame == MAV_FRAME_GLOBAL:
+            self._frame_global()
+
+        def decode() -> RangeScan:
+            return scan_from_obstacle_distance(
+                msg,
+                t_s=self.scan_time(boot_ms, now_s),
+                frame_override=p.obstacle_distance_frame,
+                mount_yaw_rad=p.obstacle_distance_mount_yaw_rad,
+            )
+
+        self._decoded("OBSTACLE_DISTANCE", now_s, decode)
+
+    def _frame_global(self) -> None:
+        """OBSTACLE_DISTANCE frame 0 read as sent: correct per the spec (MAV_FRAME_GLOBAL is north-aligned), but
+        what a sensor script written for ArduPilot sends for a body-mounted sensor (ArduPilot ignores the frame,
+        AP_Proximity_MAV.cpp), whose obstacles would then turn with the vehicle's heading. Counted; said once."""
+        self.counters.obstacle_distance_frame_global += 1
+        if self.counters.obstacle_distance_frame_global == 1:
+            log.warning(
+                "ranges.frame_global",
+                extra={
+                    "hint": "OBSTACLE_DISTANCE with frame 0 (MAV_FRAME_GLOBAL) is read north-aligned, as the spec "
+                    "says; ArduPilot ignores the frame and reads it from the nose. If the sensor is body-mounted "
+                    'set sensors.obstacle_distance_frame = "body_frd"; to keep reading it north-aligned and '
+                    "silence this, have the sender use frame 1 (LOCAL_NED)",
+                    "key": "sensors.obstacle_distance_frame",
+                },
+            )
 
     def on_distance_sensor(self, msg: DistanceSensorLike, now_s: float) -> None:
         t_s = self.scan_time(msg.time_boot_ms, now_s)
@@ -297,7 +335,7 @@ class PerceptionFrontEnd:
         payload's first bytes (zenoh-bridge-ros2dds and rmw_zenoh publish with the default ``zenoh/bytes``)."""
 
         def decode() -> RangeScan:
-            scan = decode_scan_payload(payload, encoding, t_s=now_s)
+            scan = decode_scan_payload(payload, encoding, t_s=now_s, mount_yaw_rad=self.params.laserscan_mount_yaw_rad)
             if scan.time_boot_ms is not None:
                 scan = dataclasses.replace(scan, t_s=self.scan_time(scan.time_boot_ms, now_s))
             return scan

@@ -50,6 +50,7 @@ from apf_companion.perception.types import FloatArray, Pose, RangeScan, ScanFram
 
 __all__ = [
     "BODY_FRAMES",
+    "MAV_FRAME_GLOBAL",
     "MAX_OBSTACLE_DISTANCE_ELEMENTS",
     "NORTH_ALIGNED_FRAMES",
     "UINT16_MAX",
@@ -67,7 +68,7 @@ UINT16_MAX = 65535
 MAX_OBSTACLE_DISTANCE_ELEMENTS = 72
 
 # MAV_FRAME values.
-_MAV_FRAME_GLOBAL: int = mavlink.MAV_FRAME_GLOBAL
+MAV_FRAME_GLOBAL: int = mavlink.MAV_FRAME_GLOBAL  # 0: north-aligned per the spec; what ArduPilot scripts send
 _MAV_FRAME_LOCAL_NED: int = mavlink.MAV_FRAME_LOCAL_NED
 _MAV_FRAME_GLOBAL_RELATIVE_ALT: int = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT
 _MAV_FRAME_GLOBAL_INT: int = mavlink.MAV_FRAME_GLOBAL_INT
@@ -80,7 +81,7 @@ _MAV_FRAME_LOCAL_FRD: int = mavlink.MAV_FRAME_LOCAL_FRD
 
 NORTH_ALIGNED_FRAMES = frozenset(
     {
-        _MAV_FRAME_GLOBAL,
+        MAV_FRAME_GLOBAL,
         _MAV_FRAME_LOCAL_NED,
         _MAV_FRAME_GLOBAL_RELATIVE_ALT,
         _MAV_FRAME_GLOBAL_INT,
@@ -264,6 +265,7 @@ def scan_from_obstacle_distance(
     t_s: float,
     zero_is_obstacle: bool = False,
     frame_override: ScanFrame | None = None,
+    mount_yaw_rad: float = 0.0,
 ) -> RangeScan:
     """Read an OBSTACLE_DISTANCE message into a ``RangeScan``.
 
@@ -285,8 +287,13 @@ def scan_from_obstacle_distance(
         Treat a 0 cm reading as an obstacle touching the sensor (the spec's meaning) instead of invalid.
     frame_override:
         Use this frame whatever ``frame`` says. ``ScanFrame.BODY_FRD`` reproduces ArduPilot, which ignores
-        ``frame``, for senders known to fill it wrongly (e.g. older mavros sending 0 for a body-mounted
-        sensor).
+        ``frame``, for senders known to fill it wrongly (e.g. sensor scripts written for ArduPilot, or older
+        mavros, sending 0 for a body-mounted sensor). The service sets it from ``sensors.obstacle_distance_frame``.
+    mount_yaw_rad:
+        Added to every bearing when the scan is read from the nose (BODY_FRD): the sensor's forward axis,
+        clockwise from the vehicle's nose, as ArduPilot's PRX1_YAW_CORR (``AP_Proximity_MAV.cpp``:
+        ``yaw_correction = wrap_360(param_yaw_offset + angle_offset)``). Not applied to north-aligned frames.
+        The service sets it from ``sensors.obstacle_distance_mount_yaw_deg``.
 
     Raises
     ------
@@ -303,7 +310,9 @@ def scan_from_obstacle_distance(
     distances_cm = _obstacle_distance_elements(msg.distances, increment_deg)
     n = distances_cm.size
     ranges_m, counts = _classify_cm(distances_cm, min_cm, max_cm + 1, zero_is_obstacle=zero_is_obstacle)
-    bearings_rad = wrap_angle_rad(np.deg2rad(angle_offset_deg + increment_deg * np.arange(n, dtype=np.float64)))
+    yaw_rad = mount_yaw_rad if scan_frame is ScanFrame.BODY_FRD else 0.0  # a north-aligned scan has no mount
+    degrees = angle_offset_deg + increment_deg * np.arange(n, dtype=np.float64)
+    bearings_rad = wrap_angle_rad(np.deg2rad(degrees) + yaw_rad)
     time_ms = int(msg.time_usec) // 1000
     return RangeScan(
         t_s=t_s,

@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import logging
+import math
 from typing import Any
 
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.links.messages import DistanceSensor, decode
-from apf_companion.perception import PerceptionFrontEnd, PerceptionParams
+from apf_companion.builders import perception_params
+from apf_companion.config import config_from_mapping
+from apf_companion.errors import ConfigError
+from apf_companion.links.messages import DistanceSensor, ObstacleDistance, decode
+from apf_companion.perception import PerceptionFrontEnd, PerceptionParams, RangeScan, ScanFrame, encode_laserscan_cdr
 
 TX = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
 
@@ -22,12 +27,36 @@ def _record(msg: Any) -> Any:
     return decode(parsed[0])
 
 
-def _front(**kw: Any) -> PerceptionFrontEnd:
-    """A front end with one pose: the origin, facing north (time_boot_ms 1000 at service time 10 s)."""
-    p = PerceptionFrontEnd(PerceptionParams(**kw))
-    p.on_attitude(0.0, time_boot_ms=1000)
+def _front(*, yaw_deg: float = 0.0, **kw: Any) -> PerceptionFrontEnd:
+    """A front end with one pose: the origin, heading ``yaw_deg`` (time_boot_ms 1000 at service time 10 s)."""
+    return _placed(PerceptionFrontEnd(PerceptionParams(**kw)), yaw_deg)
+
+
+def _configured(yaw_deg: float = 0.0, **sensors: Any) -> PerceptionFrontEnd:
+    """A front end built as the service builds it from a ``[sensors]`` table, with the pose of ``_front``."""
+    return _placed(PerceptionFrontEnd(perception_params(config_from_mapping({"sensors": sensors}))), yaw_deg)
+
+
+def _placed(p: PerceptionFrontEnd, yaw_deg: float) -> PerceptionFrontEnd:
+    p.on_attitude(math.radians(yaw_deg), time_boot_ms=1000)
     p.on_local_position(1000, (0.0, 0.0, -5.0), 10.0)
     return p
+
+
+def _ahead(cm: int, frame: int = mavlink.MAV_FRAME_BODY_FRD) -> ObstacleDistance:
+    """OBSTACLE_DISTANCE with only element 0 (the sensor's forward direction) measured, ``cm`` away."""
+    distances = [cm] + [65535] * 71
+    msg = mavlink.MAVLink_obstacle_distance_message(
+        1_000_000, mavlink.MAV_DISTANCE_SENSOR_LASER, distances, 5, 20, 1000, 5.0, 0.0, frame
+    )
+    rec = _record(msg)
+    assert isinstance(rec, ObstacleDistance)
+    return rec
+
+
+def _ne(p: PerceptionFrontEnd) -> list[list[float]]:
+    """The remembered points' north/east [m], rounded to the centimetre."""
+    return np.round(p.points(10.0)[:, :2], 2).tolist()  # type: ignore[no-any-return]
 
 
 def _proximity_face(face: int, current_cm: int, max_cm: int = 500) -> DistanceSensor:
@@ -48,3 +77,97 @@ def test_an_emptied_proximity_face_is_free_space_not_an_obstacle_at_its_range() 
     p.on_distance_sensor(_proximity_face(2, 500), 10.0)
     assert p.points(10.0).shape == (0, 3)  # seen through and cleared; no phantom at 5 m
     assert (p.counters.scans, p.counters.bad_scans) == (2, 0)
+
+
+@pytest.mark.parametrize(
+    ("mount_deg", "expected_ne"),
+    [(0.0, [[3.0, 0.0]]), (90.0, [[0.0, 3.0]]), (180.0, [[-3.0, 0.0]]), (-90.0, [[0.0, -3.0]])],
+)
+def test_a_turned_obstacle_distance_sensor_places_its_points_where_it_looks(
+    mount_deg: float, expected_ne: list[list[float]]
+) -> None:
+    """sensors.obstacle_distance_mount_yaw_deg (ArduPilot's PRX1_YAW_CORR): a sensor facing right sees its element 0
+    on the right; one facing the tail, behind. Without it, a rear-facing lidar's obstacles are mirrored in front."""
+    p = _configured(obstacle_distance_mount_yaw_deg=mount_deg)
+    p.on_obstacle_distance(_ahead(300), 10.0)
+    assert _ne(p) == expected_ne
+
+
+def test_the_mount_yaw_turns_with_the_vehicle_and_not_a_north_aligned_scan() -> None:
+    p = _configured(yaw_deg=90.0, obstacle_distance_mount_yaw_deg=90.0)  # facing east, sensor to the right: south
+    p.on_obstacle_distance(_ahead(300), 10.0)
+    assert _ne(p) == [[-3.0, 0.0]]
+    q = _configured(yaw_deg=90.0, obstacle_distance_mount_yaw_deg=90.0)
+    q.on_obstacle_distance(_ahead(300, frame=mavlink.MAV_FRAME_LOCAL_NED), 10.0)  # element 0 is north
+    assert _ne(q) == [[3.0, 0.0]]
+
+
+@pytest.mark.parametrize(("mount_deg", "expected_ne"), [(0.0, [[3.0, 0.0]]), (180.0, [[-3.0, 0.0]])])
+def test_a_turned_laserscan_places_its_points_where_it_looks(mount_deg: float, expected_ne: list[list[float]]) -> None:
+    """sensors.laserscan_mount_yaw_deg: a lidar mounted facing the tail sees its 0-angle beam behind the vehicle."""
+    beam = RangeScan(
+        t_s=0.0,
+        frame=ScanFrame.BODY_FRD,
+        bearings_rad=np.array([0.0]),
+        ranges_m=np.array([3.0]),
+        range_min_m=0.1,
+        range_max_m=12.0,
+    )
+    p = _configured(laserscan_mount_yaw_deg=mount_deg)
+    p.on_scan_payload("zenoh/bytes", encode_laserscan_cdr(beam, frame_id="laser"), 10.0)
+    assert _ne(p) == expected_ne
+
+
+def test_frame_0_is_north_aligned_as_sent_and_from_the_nose_with_the_override() -> None:
+    """MAV_FRAME_GLOBAL (0) is north-aligned per common.xml; ArduPilot ignores the frame (AP_Proximity_MAV.cpp),
+    so scripts written for it send 0 for a body-mounted sensor. Vehicle facing east, element 0 at 3 m."""
+    as_sent = _configured(yaw_deg=90.0)
+    as_sent.on_obstacle_distance(_ahead(300, frame=mavlink.MAV_FRAME_GLOBAL), 10.0)
+    assert _ne(as_sent) == [[3.0, 0.0]]  # north, whatever the heading
+    body = _configured(yaw_deg=90.0, obstacle_distance_frame="body_frd", obstacle_distance_mount_yaw_deg=180.0)
+    body.on_obstacle_distance(_ahead(300, frame=mavlink.MAV_FRAME_GLOBAL), 10.0)
+    assert _ne(body) == [[0.0, -3.0]]  # from the nose (east), turned by the mount (west)
+    # The override reads any frame from the nose, as ArduPilot does; an unknown one too.
+    body.on_obstacle_distance(_ahead(400, frame=mavlink.MAV_FRAME_GLOBAL_INT + 100), 10.0)
+    assert body.counters.bad_scans == 0
+
+
+def _frame_warnings(caplog: pytest.LogCaptureFixture) -> list[logging.LogRecord]:
+    return [r for r in caplog.records if r.getMessage() == "ranges.frame_global" and r.levelno == logging.WARNING]
+
+
+def test_frame_0_read_as_sent_is_counted_and_said_once_naming_the_key(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, logger="apf_companion.perception.frontend")
+    p = _configured()
+    p.on_obstacle_distance(_ahead(300, frame=mavlink.MAV_FRAME_BODY_FRD), 10.0)
+    assert _frame_warnings(caplog) == [] and p.counters.obstacle_distance_frame_global == 0
+    for _ in range(3):
+        p.on_obstacle_distance(_ahead(300, frame=mavlink.MAV_FRAME_GLOBAL), 10.0)
+    [warning] = _frame_warnings(caplog)
+    assert warning.key == "sensors.obstacle_distance_frame"  # type: ignore[attr-defined]
+    assert 'obstacle_distance_frame = "body_frd"' in warning.hint  # type: ignore[attr-defined]
+    assert p.counters.obstacle_distance_frame_global == 3
+    # With the override set, frame 0 is what the user asked for: not counted, not said.
+    caplog.clear()
+    q = _configured(obstacle_distance_frame="body_frd")
+    q.on_obstacle_distance(_ahead(300, frame=mavlink.MAV_FRAME_GLOBAL), 10.0)
+    assert _frame_warnings(caplog) == [] and q.counters.obstacle_distance_frame_global == 0
+
+
+@pytest.mark.parametrize(
+    ("sensors", "match"),
+    [
+        ({"obstacle_distance_frame": "north"}, r"sensors\.obstacle_distance_frame must be 'as_sent' or 'body_frd'"),
+        ({"obstacle_distance_mount_yaw_deg": 270.0}, r"sensors\.obstacle_distance_mount_yaw_deg must be in"),
+        ({"laserscan_mount_yaw_deg": math.nan}, r"sensors\.laserscan_mount_yaw_deg must be in"),
+        ({"laserscan_mount_yaw_deg": "rear"}, r"sensors\.laserscan_mount_yaw_deg must be a number"),
+    ],
+)
+def test_bad_mount_settings_name_the_key(sensors: dict[str, Any], match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        config_from_mapping({"sensors": sensors})
+
+
+def test_the_front_end_refuses_a_non_finite_mount() -> None:
+    with pytest.raises(ConfigError, match="laserscan_mount_yaw_rad"):
+        PerceptionParams(laserscan_mount_yaw_rad=math.inf)
