@@ -21,6 +21,7 @@ from apf_companion.perception.geometry import scan_bearings_ned_rad, scan_to_poi
 from apf_companion.perception.heading import HeadingTrack, euler_yaw_rate_rad_s
 from apf_companion.perception.history import PoseHistory
 from apf_companion.perception.mavlink_ranges import (
+    obstacle_distance_element_count,
     points_from_obstacle_distance_3d,
     scan_from_distance_sensor,
     scan_from_obstacle_distance,
@@ -69,6 +70,7 @@ __all__ = [
     "encode_scan_json",
     "euler_yaw_rate_rad_s",
     "laserscan_to_scan",
+    "obstacle_distance_element_count",
     "obstacle_sectors_cm",
     "parse_laserscan_cdr",
     "points_from_obstacle_distance_3d",

@@ -32,6 +32,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.perception import obstacle_distance_element_count
 from sim.vehicle.params import ParamTable
 
 __all__ = ["PROXIMITY_TIMEOUT_S", "Proximity", "ProximityStatus"]
@@ -43,7 +44,6 @@ FACES = 8  # PROXIMITY_MAX_DIRECTION: horizontal faces of 45 deg
 FACE_DEG = 45.0
 SENSOR_ID_START = 10  # AP_Proximity.h PROXIMITY_SENSOR_ID_START
 UINT16_MAX = 65535
-OBSTACLE_DISTANCE_LEN = 72
 SENSOR_BIT = int(mavlink.MAV_SYS_STATUS_SENSOR_PROXIMITY)
 
 
@@ -103,7 +103,7 @@ class Proximity:
         increment = float(msg.increment_f) if msg.increment_f != 0 else float(msg.increment)
         if increment == 0 or not math.isfinite(increment):
             return  # "invalid increment"
-        n = min(round(360.0 / abs(increment)), OBSTACLE_DISTANCE_LEN)
+        n = obstacle_distance_element_count(increment)  # ArduPilot's rule, halves up (AP_Proximity_MAV.cpp)
         min_cm, max_cm = int(msg.min_distance), int(msg.max_distance)
         self.min_m, self.max_m = min_cm * 0.01, max_cm * 0.01
         self.last_update_s = t_s

@@ -76,6 +76,19 @@ def test_obstacle_distance_faces_orientation_and_yaw_correction() -> None:
     assert prx.status(1.0 + PROXIMITY_TIMEOUT_S + 1e-6) is ProximityStatus.NO_DATA
 
 
+def test_obstacle_distance_reads_as_many_elements_as_arducopter_halves_rounded_up() -> None:
+    """AP_Proximity_MAV.cpp reads MIN(360 / |increment| + 0.5, 72) elements: at 16 deg, 22.5 -> 23, so element 22
+    (352 deg, face 0) counts. Python's round() gave 22 (a half to even) and dropped it; the simulator now uses the
+    service's rule (``apf_companion.perception.obstacle_distance_element_count``)."""
+    mav = m.MAVLink(None)
+    distances = [FREE] * 72
+    distances[22] = 300
+    msg = mav.obstacle_distance_encode(0, m.MAV_DISTANCE_SENSOR_LASER, distances, 16, 20, 800, 16.0, 0.0, 12)
+    prx = Proximity(2, 0, 0)
+    prx.on_obstacle_distance(msg, t_s=1.0)
+    assert prx.faces_m[0] == 3.0
+
+
 async def test_prx1_type_takes_effect_after_reboot_and_reports_distance_sensors() -> None:
     spawn = SpawnConfig(yaw_deg=30.0)
     async with simulator_with_client(profile="ardupilot", spawn=spawn, speedup=2.0) as (sim, gcs):
