@@ -226,11 +226,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     130 = interrupted before the event loop ran (imports, reading the config).
     """
     from apf_companion.builders import signing_setup
-    from apf_companion.service import build_planner
+    from apf_companion.service import build_planner, initial_route
 
     try:
         cfg, route = _effective_config(args)
-        build_planner(cfg)  # validate planner parameters before opening anything
+        planner = build_planner(cfg)  # validate planner parameters before opening anything
+        # The config's goal or route file too, as check-config does: a configuration error is exit 2, which the
+        # systemd unit does not restart (RestartPreventExitStatus=2); found later, in CompanionService.open, it
+        # was exit 1 and restarted until the start limit.
+        route = route if route is not None else initial_route(cfg, planner)
         signing_setup(cfg)  # a key file others can read is refused here (exit 2)
     except ConfigError as err:
         print(f"apf-companion: config error: {err}", file=sys.stderr)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -107,6 +108,37 @@ def test_the_service_unit_uses_notify_and_the_watchdog() -> None:
 
 def test_config_errors_are_not_restarted() -> None:
     assert _settings("apf-companion.service")["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
+
+
+def test_no_start_command_fails_around_the_restart_rule() -> None:
+    """RestartPreventExitStatus= applies to the main process only, and Restart=on-failure also restarts after a
+    failing ExecStartPre= / ExecStartPost= (systemd.service(5)): a config check there was restarted until the start
+    limit. So the unit has none that can fail (a "-" prefix ignores the failure); `run` checks its config itself."""
+    s = _settings("apf-companion.service")
+    can_fail = [v for key in ("ExecStartPre", "ExecStartPost") for v in s.get(key, []) if not v.startswith("-")]
+    assert can_fail == []
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ('[link]\nconnectt = "udpin:127.0.0.1:14540"\n', "unknown config key 'link.connectt'"),
+        ('[goal]\nroute = "no-such-route.toml"\n', "cannot read route file"),
+        ('[planner]\nname = "bapf-nav"\n[planner.params]\nrho_l_m = -1.0\n', "rho_l_m"),
+    ],
+    ids=["unknown-key", "route-file", "planner-parameter"],
+)
+def test_the_units_command_exits_with_a_status_it_does_not_restart(config: str, message: str, tmp_path: Path) -> None:
+    """The unit's own ExecStart with a bad config: the exit status is in RestartPreventExitStatus (a route file
+    that could not be read was exit 1 before, restarted), said on stderr (the journal), before any socket opens."""
+    s = _settings("apf-companion.service")
+    argv = shlex.split(s["ExecStart"][0].replace("/opt/apf-companion/venv", str(VENV)))
+    path = tmp_path / "apf-companion.toml"
+    path.write_text(config)
+    argv[argv.index("--config") + 1] = str(path)
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
+    assert str(result.returncode) in s["RestartPreventExitStatus"][0].split(), result.stderr
+    assert message in result.stderr
 
 
 def _install(*args: str) -> subprocess.CompletedProcess[str]:
