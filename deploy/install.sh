@@ -31,7 +31,8 @@ destdir="${DESTDIR:-}"
 python="${PYTHON:-python3}"
 dry_run=0 uninstall=0 purge=0 with_mavproxy=0 no_venv=0 wheel=""
 
-usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; exit "${1:-0}"; }
+# The comment block after the shebang, up to the first line that is not a comment.
+usage() { awk 'NR == 1 { next } !/^#/ { exit } { sub(/^# ?/, ""); print }' "$0"; exit "${1:-0}"; }
 while [[ $# -gt 0 ]]; do
     case $1 in
         --dry-run) dry_run=1 ;;

@@ -5,6 +5,7 @@ and rate under 3 in ``systemd-analyze security``;
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import re
 import shlex
 import shutil
@@ -187,6 +188,19 @@ def test_staged_install_keeps_config_and_uninstalls(tmp_path: Path) -> None:
     purged = _install("--destdir", str(root), "--uninstall", "--purge")
     assert purged.returncode == 0, purged.stderr
     assert not (root / "etc/apf-companion").exists()
+
+
+def test_install_help_prints_the_comment_block_only() -> None:
+    """--help prints the script's leading comment block without its "# " and stops there (it printed a fixed line
+    range that ended with `set -euo pipefail`)."""
+    result = _install("--help")
+    assert (result.returncode, result.stderr) == (0, "")
+    lines = INSTALL.read_text().splitlines()[1:]
+    block = [re.sub(r"^# ?", "", line) for line in itertools.takewhile(lambda line: line.startswith("#"), lines)]
+    assert result.stdout.splitlines() == block
+    assert block[0].startswith("Install apf-companion as a sandboxed systemd service")
+    assert "--no-venv" in block[-1]
+    assert "set -euo pipefail" not in result.stdout
 
 
 @pytest.mark.parametrize(
