@@ -4,6 +4,7 @@ and rate under 3 in ``systemd-analyze security``;
 
 from __future__ import annotations
 
+import configparser
 import dataclasses
 import itertools
 import re
@@ -140,6 +141,17 @@ def test_the_units_command_exits_with_a_status_it_does_not_restart(config: str, 
     result = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
     assert str(result.returncode) in s["RestartPreventExitStatus"][0].split(), result.stderr
     assert message in result.stderr
+
+
+def test_the_mavlink_router_sample_opens_no_tcp_server() -> None:
+    """mavlink-router's TCP server (all interfaces, vehicle control) is off: TcpServerPort = 0, since an absent key
+    means 5760 (its examples/config.sample); the service's endpoint is UDP to localhost."""
+    conf = configparser.ConfigParser()
+    conf.read_string((DEPLOY / "mavlink-router.conf").read_text())
+    assert conf["General"]["TcpServerPort"] == "0"
+    service = conf["UdpEndpoint apf-companion"]
+    assert (service["Mode"], service["Address"], service["Port"]) == ("Normal", "127.0.0.1", "14540")
+    assert not [s for s in conf.sections() if s.lower().startswith("tcpendpoint")]
 
 
 def _install(*args: str) -> subprocess.CompletedProcess[str]:
