@@ -61,6 +61,7 @@ from apf_companion.links.messages import (
 from apf_companion.navigator import Navigator
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd, euler_yaw_rate_rad_s
+from apf_companion.perception.ratelog import RateLimitedWarning
 from apf_companion.reporter import ServiceCounters
 from apf_companion.streams import StreamKeeper, wanted_streams
 
@@ -88,6 +89,7 @@ DEG_E7 = 1e-7
 MM = 1e-3
 # ArduCopter position_ok() (system.cpp ekf_has_absolute_position / _relative_position): a horizontal position, not
 # the constant-position mode the EKF is in before it has one
+SLOW_STREAMS_LOG_INTERVAL_S = 60.0  # ``streams.slow``: the first at once, then at most one line a minute
 EKF_POSITION_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS | mavlink.EKF_POS_HORIZ_REL
 _STREAM_OF = {
     LocalPositionNed: mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
@@ -168,6 +170,7 @@ class AutopilotHandlers:
         self.streams = StreamKeeper(
             wanted_streams(params.profile, params.telemetry_rate_hz, targets=params.adopt.enabled)
         )
+        self._slow_log = RateLimitedWarning(log, "streams.slow", SLOW_STREAMS_LOG_INTERVAL_S)
         self.ekf_flags: int | None = None  # latest EKF_STATUS_REPORT.flags; None: the autopilot sends none
         self.acks: dict[int, tuple[int, float]] = {}  # command -> (result, service time) of its latest ACK to us
 
@@ -242,6 +245,8 @@ class AutopilotHandlers:
         rates = self.streams.due(now_s)
         if rates:
             self.outbox.request_streams(rates)
+            if self.streams.last_slow:
+                self._streams_slow(now_s)
         if first:
             route, self._route_at_start = self._route_at_start, None
             restarted = self._restarted_mid_flight(route) if at_start else None
@@ -249,6 +254,19 @@ class AutopilotHandlers:
                 self.navigator.recovery.restart_hold(now_s, restarted)
             elif route is not None:
                 self._set_route(route, now_s)
+
+    def _streams_slow(self, now_s: float) -> None:
+        """Asked again for streams that arrived too slowly: counted, and said (rate-limited) with the likely cause."""
+        self.counters.slow_streams += 1
+        slow = {
+            _message_name(i): f"{hz:.1f} of {self.streams.rates_hz[i]:g} Hz" for i, hz in self.streams.last_slow.items()
+        }
+        self._slow_log.note(
+            now_s,
+            streams=slow,
+            hint="something on this link lowered the rates, e.g. a ground station's REQUEST_DATA_STREAM through the "
+            "same router; asked again. ArduPilot: SERIALn_OPTIONS bit 12 makes the port ignore such requests",
+        )
 
     def _restarted_mid_flight(self, route: Route | None) -> str | None:
         """At the first HEARTBEAT: the vehicle is already flying (armed) in GUIDED / OFFBOARD, so this process was
@@ -437,3 +455,9 @@ _AUTOPILOT: dict[type[Any], Callable[[AutopilotHandlers, Any, float], None]] = {
     SysStatus: AutopilotHandlers._on_fence,
 }
 """One handler per record type from the autopilot (commands from it are not for us: ignored)."""
+
+
+def _message_name(msg_id: int) -> str:
+    """A message's name from pymavlink's dialect (its id where the dialect has none)."""
+    entry = mavlink.mavlink_map.get(msg_id)
+    return str(entry.msgname) if entry is not None else str(msg_id)

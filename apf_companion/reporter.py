@@ -73,6 +73,7 @@ class ServiceCounters:
     rejected_ranges: int = 0  # range messages from neither the autopilot nor a [sensors] mavlink_sources id
     proximity_echoes_ignored: int = 0  # forwarding: the autopilot's DISTANCE_SENSOR echo of our own sectors
     forward_skipped: int = 0  # forwarding: no OBSTACLE_DISTANCE sent (no fresh pose or heading)
+    slow_streams: int = 0  # streams asked for again because a message arrived too slowly (``streams.slow``)
 
 
 class FaultLog:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as m
 
 from apf_companion.autopilot import CopterMode, Px4MainMode, Px4Mode
 from apf_companion.config import ServiceConfig, config_from_mapping
@@ -320,3 +321,19 @@ async def test_3d_planner_climbs_and_avoids() -> None:
     assert not res["collided"]
     final = res["final_pos_ned_m"]
     assert math.dist(final, (22.0, 22.0, -8.0)) <= 0.7 + 0.3  # 3D arrival radius
+
+
+async def test_a_pose_stream_slowed_on_the_link_is_asked_for_again() -> None:
+    """A ground station on the companion's link sends REQUEST_DATA_STREAM POSITION at 2 Hz (MAVProxy's default is
+    4 Hz): the simulated ArduCopter then sends LOCAL_POSITION_NED at 2 Hz on that link (GCS_Common.cpp
+    handle_request_data_stream). The pose still arrives, so before session 28 nothing asked again and the service
+    planned on a 2 Hz pose; now it notices within a rate window and asks for its 20 Hz again."""
+    lpos = m.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+    async with flight(World.empty(), service_config()) as (svc, sim):
+        telemetry = sim.engine.telemetry
+        await until(lambda: svc.handlers.streams.measured_hz.get(lpos, 0.0) > 15.0, HANG_S, "the pose at 20 Hz")
+        telemetry.set_data_stream(0, m.MAV_DATA_STREAM_POSITION, 2.0, sim.engine.t_s)  # the GCS's request
+        assert telemetry.interval_us(0, lpos) == 500_000
+        await until(lambda: svc.counters.slow_streams >= 1, HANG_S * 4, "the slow pose noticed")
+        await until(lambda: telemetry.interval_us(0, lpos) == 50_000, HANG_S, "the pose asked for at 20 Hz again")
+        await until(lambda: svc.handlers.streams.measured_hz.get(lpos, 0.0) > 15.0, HANG_S * 4, "the pose at 20 Hz")
