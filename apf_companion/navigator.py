@@ -38,25 +38,40 @@ frozen ``NavigatorParams`` and the obstacles only through ``ObstacleView`` (the 
 from __future__ import annotations
 
 import dataclasses
-import enum
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
-from apf_companion.envelope import BrakingEnvelope
 from apf_companion.goal import Route
-from apf_companion.linkquality import CLEAN_LINK, CautionParams, LinkQuality, caution_scale
+from apf_companion.linkquality import CLEAN_LINK, LinkQuality, caution_scale
+from apf_companion.navigation.legs import Leg, Legs
+from apf_companion.navigation.model import (
+    ENGAGED_STATES,
+    HOLD_STATES,
+    WANTS_POSE,
+    Counters,
+    CycleInputs,
+    CycleOutput,
+    Decision,
+    DecisionLike,
+    FloatArray,
+    NavigatorParams,
+    ObstacleView,
+    PlannerLike,
+    State,
+    StateChange,
+)
+from apf_companion.navigation.tracking import HoldPoint, StepTracker, shortened
 from apf_companion.perception import Pose
 from apf_companion.planning import GiveUp
-from apf_companion.setpoint import Setpoint, SetpointKind, brake, hold, navigate, silent_safe_velocity
+from apf_companion.setpoint import Setpoint, SetpointKind, brake, hold
 
 __all__ = [
     "CycleOutput",
     "Decision",
+    "DecisionLike",
     "Navigator",
     "NavigatorParams",
     "ObstacleView",
@@ -68,435 +83,7 @@ __all__ = [
     "shortened",
 ]
 
-FloatArray = npt.NDArray[np.float64]
-PROGRESS_EPS_M = 0.1  # a new best distance to the goal must beat the old by this much to count as progress
 REASON_REPEAT_S = 1.0  # a changed HOLDING reason is announced at most this often (a flapping cause cannot flood)
-SLOW_FRACTION = 0.2  # feed-forward speed next to an obstacle, as a fraction of cruise
-
-
-class State(enum.Enum):
-    """Service states (reported in STATUSTEXT, HEARTBEAT.system_status and the zenoh status)."""
-
-    IDLE = "IDLE"
-    WAITING_FOR_PILOT = "WAITING_FOR_PILOT"
-    NAVIGATING = "NAVIGATING"
-    ARRIVED = "ARRIVED"
-    HOLDING = "HOLDING"
-    STUCK = "STUCK"
-    LINK_LOST = "LINK_LOST"
-
-
-class Decision(enum.Enum):
-    """What a cycle decided about the next step (``CycleOutput.decision``; the planner's own reasons plus
-    TRACKING, still flying to the previous bacteria point)."""
-
-    GREEDY = "GREEDY"
-    RANDOM_WALK = "RANDOM_WALK"
-    LOCAL_MINIMUM = "LOCAL_MINIMUM"
-    #: The planner gave up (bapf-nav: no way on the remembered map, no progress for its patience, or a goal
-    #: outside its flying area; the STUCK reason says which, ``planning.GiveUp``).
-    GAVE_UP = "GAVE_UP"
-    TRACKING = "TRACKING"
-
-
-class ObstacleView(Protocol):
-    """What the navigator reads of the obstacle memory; the perception front end
-    (apf_companion.perception.PerceptionFrontEnd) is its one writer."""
-
-    def points(self, now_s: float) -> FloatArray: ...
-
-    @property
-    def ranges_t_s(self) -> float | None: ...
-
-    def direction_fresh(self, bearing_ned_rad: float, now_s: float) -> bool: ...
-
-
-class DecisionLike(Protocol):
-    @property
-    def next_point_m(self) -> FloatArray | None: ...
-
-    @property
-    def reason(self) -> enum.Enum: ...
-
-
-class PlannerLike(Protocol):
-    """One step of a planner (apf_companion.planning.Planner)."""
-
-    def step(
-        self, position_m: FloatArray, target_m: FloatArray, obstacles_m: FloatArray, rng: np.random.Generator
-    ) -> DecisionLike: ...
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class NavigatorParams:
-    """Everything the navigator reads of the configuration (built by ``apf_companion.builders.navigator_params``).
-
-    Attributes:
-        dim: 2 (north, east; altitude held) or 3.
-        heartbeat_timeout_s: No autopilot HEARTBEAT for this long = LINK_LOST [s].
-        pose_max_age_s, ranges_max_age_s: Freshness limits of the inputs [s].
-        require_ranges: False = fly without range data (ranges always count as fresh).
-        arrival_radius_m: Within this of a waypoint it is reached [m].
-        replan_radius_m: Within this of a bacteria point the next step is planned from it [m].
-        cruise_speed_m_s: Feed-forward speed along a step [m/s].
-        max_range_m: Obstacle points beyond this (+ 1 m) are not given to the planner [m].
-        random_walk_budget: Non-greedy decisions in a row before STUCK.
-        progress_timeout_s: No progress for this long = STUCK [s].
-        dry_run: Nothing moves the vehicle along the plan: plan from the pose every cycle.
-        step_m: The planner's step (bacteria ring radius) [m].
-        target_guard_m: A bacteria point being flown to is dropped (and the planner re-run) once a remembered
-            obstacle lies closer than this to it; the planner's rho_l for CR-BAPF / CR-BAPF*, 0 = no check.
-        clearance_m: The clearance the planner keeps (its rho_l). Within ``clearance_m + 2 step_m`` of a
-            remembered obstacle the feed-forward speed falls linearly to ``SLOW_FRACTION`` of cruise at
-            ``clearance_m``, so the vehicle turns at the bacteria points there without swinging wide (0 = off).
-        reset_hold_s: After a position reset (``position_reset``) hold this long before navigating [s].
-        silent_horizon_s, silent_drift_m: Safe when silent: the last setpoint's feed-forward may carry the vehicle
-            at most ``silent_drift_m`` past its position over ``silent_horizon_s`` (GUID_TIMEOUT), never towards a
-            remembered obstacle (``apf_companion.setpoint.silent_safe_velocity``).
-        brake_accel_m_s2, brake_latency_s, tracking_clearance_m: The braking envelope
-            (``apf_companion.envelope``): the feed-forward never exceeds the speed that can still stop
-            ``tracking_clearance_m`` short of a remembered point along the step; cycles whose reported velocity
-            could carry the vehicle closer than that are counted (``envelope_warnings``). 0 = off.
-        caution: Fewer setpoints, more caution: on a lossy link (``apf_companion.linkquality``) each setpoint
-            reaches a fraction of a step ahead and its feed-forward speed and silent drift shrink by that fraction.
-        resume_after_link_lost: LINK_LOST keeps the goal; when the heartbeat returns with the autopilot still in
-            GUIDED / OFFBOARD the service holds, then navigates on once the inputs are fresh. False: the goal is
-            dropped (IDLE once the link is back; motion only after a new goal).
-        takeover: The service switches the autopilot to GUIDED / OFFBOARD itself (``autopilot.takeover``); the
-            navigator streams holds meanwhile, NAVIGATING. False: a goal waits in WAITING_FOR_PILOT until the
-            autopilot's HEARTBEAT shows that mode.
-        guided_mode: The name of that mode, for the pilot ("GUIDED" ArduPilot, "OFFBOARD" PX4).
-    """
-
-    dim: int = 2
-    heartbeat_timeout_s: float = 3.0
-    pose_max_age_s: float = 0.5
-    ranges_max_age_s: float = 0.5
-    require_ranges: bool = True
-    arrival_radius_m: float = 0.7
-    replan_radius_m: float = 0.1
-    cruise_speed_m_s: float = 1.0
-    max_range_m: float = 8.0
-    random_walk_budget: int = 100
-    progress_timeout_s: float = 60.0
-    dry_run: bool = False
-    step_m: float = 0.4
-    target_guard_m: float = 0.0
-    clearance_m: float = 0.0
-    reset_hold_s: float = 2.0
-    silent_horizon_s: float = 3.0
-    silent_drift_m: float = 1.0
-    brake_accel_m_s2: float = 0.0
-    brake_latency_s: float = 0.5
-    tracking_clearance_m: float = 0.0
-    caution: CautionParams = dataclasses.field(default_factory=CautionParams)
-    resume_after_link_lost: bool = True
-    takeover: bool = True
-    guided_mode: str = "GUIDED"
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class StateChange:
-    """One transition, with a human reason (it becomes a STATUSTEXT)."""
-
-    t_s: float
-    old: State
-    new: State
-    reason: str
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class CycleOutput:
-    """Everything one cycle decided.
-
-    Attributes:
-        t_s: Cycle time (service clock) [s].
-        state: State after the cycle.
-        setpoint: The setpoint to send now, or None (send nothing).
-        changes: Transitions in this cycle, oldest first.
-        decision: The planner's reason name ("GREEDY", "RANDOM_WALK", "LOCAL_MINIMUM") if it ran, "TRACKING"
-            while it flies on to the previous bacteria point (``Decision`` values).
-        distance_to_goal_m: Distance to the active waypoint (horizontal in 2D), if a goal and pose exist.
-        nearest_obstacle_m: Distance to the nearest remembered obstacle point, if any.
-        n_obstacles: Remembered obstacle points used this cycle.
-        caution: The step fraction the link quality allowed (1 = a clean link; ``linkquality.caution_scale``).
-    """
-
-    t_s: float
-    state: State
-    setpoint: Setpoint | None
-    changes: tuple[StateChange, ...] = ()
-    decision: str | None = None
-    distance_to_goal_m: float | None = None
-    nearest_obstacle_m: float | None = None
-    n_obstacles: int = 0
-    caution: float = 1.0
-
-
-@dataclass(slots=True)
-class _Counters:
-    cycles: int = 0
-    setpoints: int = 0
-    planner_steps: int = 0
-    greedy: int = 0
-    random_walk: int = 0
-    local_minimum: int = 0
-    stale_pose_cycles: int = 0
-    stale_range_cycles: int = 0
-    rejected_poses: int = 0
-    goals: int = 0
-    dropped_targets: int = 0
-    unknown_direction_holds: int = 0  # a step towards a sector without recent ranges: held instead
-    envelope_caps: int = 0  # feed-forward cut to the speed that can still stop short of the tracking clearance
-    envelope_warnings: int = 0  # the reported velocity could carry the vehicle inside it before it can stop
-    shortened_setpoints: int = 0  # navigation setpoints shortened for a lossy link (``caution`` < 1)
-    unconfirmed_pose_cycles: int = 0  # braked or silent: the pose gate's anchor is not confirmed yet
-    prestream_setpoints: int = 0  # holds streamed before GUIDED / OFFBOARD (taking over, waiting for the pilot)
-
-    def decision(self, reason: str) -> None:
-        """Count a planner decision by its ``Decision`` name."""
-        if reason == Decision.GREEDY.value:
-            self.greedy += 1
-        elif reason == Decision.RANDOM_WALK.value:
-            self.random_walk += 1
-        else:
-            self.local_minimum += 1
-
-
-@dataclass(slots=True)
-class _Leg:
-    index: int
-    target_ned_m: FloatArray  # (3,), down resolved
-    best_dist_m: float = math.inf
-    best_t_s: float = 0.0
-    streak: int = 0  # consecutive non-greedy decisions
-
-
-@dataclass(frozen=True, slots=True)
-class _Inputs:
-    """What one cycle sees: the time, the remembered obstacles and the freshness of the inputs."""
-
-    now_s: float
-    points: FloatArray
-    nearest_m: float | None
-    pose_ok: bool
-    ranges_ok: bool
-
-
-def _into_unknown(view: ObstacleView, sp: Setpoint | None, pos: FloatArray, now_s: float) -> bool:
-    """``sp`` steps towards an azimuth sector without recent ranges (``ObstacleView.direction_fresh``)."""
-    if sp is None or sp.kind is not SetpointKind.NAVIGATE:
-        return False
-    d = np.asarray(sp.pos_ned_m) - pos
-    return math.hypot(d[0], d[1]) >= 1e-9 and not view.direction_fresh(math.atan2(d[1], d[0]), now_s)
-
-
-def shortened(pos: FloatArray, target: FloatArray, *, fraction: float, step_m: float, dim: int) -> FloatArray:
-    """``target``, or the point ``fraction`` of a step (``step_m``) from ``pos`` on the way to it when it is further
-    (horizontally in 2D; the target's altitude is kept). A target more than a step away (the vehicle lags behind
-    its bacteria point) is shortened to ``fraction`` of the way. ``fraction`` 1 returns ``target``."""
-    d = target[:dim] - pos[:dim]
-    gap = float(np.sqrt(d @ d))
-    reach_m = fraction * max(gap, step_m)
-    if gap <= reach_m:
-        return target
-    aim = target.copy()
-    aim[:dim] = pos[:dim] + d * (reach_m / gap)
-    return aim
-
-
-class _StepTracker:
-    """The bacteria point being flown to, and the feed-forward speed towards it."""
-
-    def __init__(self, params: NavigatorParams, counters: _Counters) -> None:
-        self.p = params
-        self.counters = counters
-        self.target: FloatArray | None = None
-        self.target_t_s = 0.0
-        self.envelope = BrakingEnvelope(
-            accel_m_s2=params.brake_accel_m_s2,
-            latency_s=params.brake_latency_s,
-            clearance_m=params.tracking_clearance_m,
-            dim=params.dim,
-        )
-        self.caution = 1.0  # this cycle's ``caution_scale``: the step, speed and silent drift fraction
-
-    def set(self, target: FloatArray, now_s: float) -> None:
-        self.target = target
-        self.target_t_s = now_s
-
-    def track(self, pos: FloatArray, obstacles: FloatArray, now_s: float, nearest_m: float | None) -> Setpoint | None:
-        """Keep flying to the current bacteria point until within ``replan_radius_m`` of it.
-
-        The point is re-validated every cycle against the fresh obstacle memory (at least ``target_guard_m``
-        from every point), the vehicle must still be near the step (within two steps of it) and must get there
-        in time (three steps at the approach speed, at least 1 s); otherwise it is dropped and the planner runs
-        from the pose. Returns the setpoint, or None to plan now.
-        """
-        p = self.p
-        target = self.target
-        if p.dry_run:
-            self.target = None  # nothing moves the vehicle along the plan: plan from the pose each cycle
-            return None
-        if target is None:
-            return None
-        d = pos[: p.dim] - target[: p.dim]
-        gap = float(np.sqrt(d @ d))
-        if gap <= p.replan_radius_m:
-            return None  # reached: plan from it
-        # In time: three steps at the speed flown here (cruise, or the slower speed near obstacles).
-        too_long = now_s - self.target_t_s > max(1.0, 3.0 * p.step_m / self.approach_speed(p.step_m, nearest_m))
-        if gap > 2.0 * p.step_m or too_long or not self._clear(target, obstacles):
-            self.target = None
-            self.counters.dropped_targets += 1
-            return None
-        return self.setpoint(pos, target, self.approach_speed(gap, nearest_m), obstacles)
-
-    def setpoint(self, pos: FloatArray, target: FloatArray, speed_m_s: float, obstacles: FloatArray) -> Setpoint:
-        """Fly towards ``target`` at ``speed_m_s``, with the feed-forward cut to what can still stop short of the
-        tracking clearance (``BrakingEnvelope``) and to what is safe if nothing follows.
-
-        On a lossy link (``caution`` < 1) the setpoint's position is only that fraction of a step ahead on the
-        way to ``target`` (``shortened``) and the silent drift allowed shrinks by the same fraction.
-        """
-        p = self.p
-        cap = self.envelope.speed_cap_m_s(pos, target - pos, obstacles)
-        if cap < speed_m_s:
-            self.counters.envelope_caps += 1
-            speed_m_s = cap
-        self.counters.shortened_setpoints += self.caution < 1.0
-        aim = shortened(pos, target, fraction=self.caution, step_m=p.step_m, dim=p.dim)
-        sp = navigate(pos, aim, cruise_speed_m_s=speed_m_s, dim=p.dim)
-        vel = silent_safe_velocity(
-            aim,
-            sp.vel_ned_m_s,
-            obstacles,
-            horizon_s=p.silent_horizon_s,
-            max_drift_m=p.silent_drift_m * self.caution,
-            clearance_m=p.clearance_m,
-            dim=p.dim,
-        )
-        return dataclasses.replace(sp, vel_ned_m_s=vel)
-
-    def watch(self, out: CycleOutput, pose: Pose, obstacles: FloatArray) -> None:
-        """Where the vehicle can be, not where the setpoint is: count the cycles whose reported velocity, followed
-        by this setpoint, could carry the vehicle inside the tracking clearance before it can stop
-        (``envelope_warnings``, in the status). Only counted: overriding the plan with a brake made the paper
-        planners pass closer on the simulator's ArduCopter controller (docs/hardening.md, "Tracking margin")."""
-        sp = out.setpoint
-        if sp is None or sp.kind is not SetpointKind.NAVIGATE:
-            return
-        pos = np.asarray(pose.pos_ned_m, dtype=np.float64)
-        if self.envelope.breaches(pos, pose.vel_ned_m_s, np.asarray(sp.vel_ned_m_s), obstacles):
-            self.counters.envelope_warnings += 1
-
-    def known_direction(self, out: CycleOutput, pos: FloatArray, view: ObstacleView) -> CycleOutput:
-        """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle."""
-        if not _into_unknown(view, out.setpoint, pos, out.t_s):
-            return out
-        self.counters.unknown_direction_holds += 1
-        self.target = None
-        return dataclasses.replace(out, setpoint=hold(pos))
-
-    def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
-        """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower
-        near obstacles (``clearance_m``): a vehicle that reaches a bacteria point at speed swings on along its old
-        heading when the next step turns, towards the obstacle it is turning away from."""
-        p = self.p
-        speed = p.cruise_speed_m_s * self.caution * min(1.0, gap_m / p.step_m)
-        if p.clearance_m > 0.0 and nearest_m is not None:
-            span = 2.0 * p.step_m
-            frac = min(1.0, max(0.0, (nearest_m - p.clearance_m) / span))
-            speed *= SLOW_FRACTION + (1.0 - SLOW_FRACTION) * frac
-        return speed
-
-    def _clear(self, point: FloatArray, obstacles: FloatArray) -> bool:
-        guard = self.p.target_guard_m
-        if guard <= 0.0 or obstacles.shape[0] == 0:
-            return True
-        d = obstacles[:, : self.p.dim] - point[: self.p.dim]
-        return bool(np.min(np.einsum("ij,ij->i", d, d)) >= guard**2)
-
-
-class _Hold:
-    """The point held in HOLDING / ARRIVED / STUCK: fixed on the first holding cycle."""
-
-    def __init__(self) -> None:
-        self.anchor: FloatArray | None = None
-        self.sent = False
-
-    def reset(self) -> None:
-        self.anchor = None
-        self.sent = False
-
-    def setpoint(self, pose: Pose | None, *, pose_fresh: bool) -> Setpoint | None:
-        """Hold at the anchor: always once (the first cycle in a holding state), then only with a fresh pose."""
-        if self.anchor is None:
-            if pose is None:
-                return None
-            self.anchor = np.array(pose.pos_ned_m, dtype=np.float64)
-            self.sent = False
-        if pose_fresh or not self.sent:
-            self.sent = True
-            return hold(self.anchor)
-        return None
-
-
-class _Legs:
-    """The route's legs: which waypoint is flown to, and the progress towards it (for the give-up rules)."""
-
-    def __init__(self, params: NavigatorParams, steps: _StepTracker) -> None:
-        self.p = params
-        self.steps = steps
-        self.leg: _Leg | None = None
-
-    def distance(self, a: FloatArray, b: FloatArray) -> float:
-        d = a[: self.p.dim] - b[: self.p.dim]
-        return float(np.sqrt(d @ d))
-
-    def provisional_distance(self, route: Route, pos: FloatArray) -> float:
-        """Distance to the active waypoint; before the leg starts (it is fixed only once the autopilot is engaged,
-        so a takeoff in between sets the altitude that is kept) to the first waypoint at the current altitude."""
-        if self.leg is not None:
-            return self.distance(pos, self.leg.target_ned_m)
-        first = route.waypoints_ned_m[0]
-        return self.distance(pos, np.where(np.isnan(first), pos, first))
-
-    def current(self, route: Route, pos: FloatArray, now_s: float) -> tuple[_Leg | None, float]:
-        """The leg to fly and the distance to its waypoint; (None, distance) once the last one is reached."""
-        leg = self.leg if self.leg is not None else self._start(route, 0, pos, now_s)
-        dist = self.distance(pos, leg.target_ned_m)
-        while dist <= self.p.arrival_radius_m:
-            if leg.index + 1 >= len(route):
-                return None, dist
-            leg = self._start(route, leg.index + 1, pos, now_s)
-            dist = self.distance(pos, leg.target_ned_m)
-        # Progress bookkeeping (time-based give-up, docs/paper/notes.md decision 7).
-        if dist < leg.best_dist_m - PROGRESS_EPS_M or math.isinf(leg.best_dist_m):
-            leg.best_dist_m = dist
-            leg.best_t_s = now_s
-        return leg, dist
-
-    def _start(self, route: Route, index: int, pos: FloatArray, now_s: float) -> _Leg:
-        target = np.array(route.waypoints_ned_m[index], dtype=np.float64)
-        if math.isnan(target[2]):
-            target[2] = pos[2]  # keep the altitude this leg starts at
-        self.leg = _Leg(index=index, target_ned_m=target, best_t_s=now_s)
-        self.steps.target = None
-        return self.leg
-
-    def give_up(self, leg: _Leg, now_s: float) -> str | None:
-        if leg.streak > self.p.random_walk_budget:
-            return f"stuck: no greedy move for {leg.streak} cycles"
-        if now_s - leg.best_t_s > self.p.progress_timeout_s:
-            return f"stuck: no progress for {now_s - leg.best_t_s:.0f} s"
-        return None
-
-
-_HOLD_STATES = (State.HOLDING, State.ARRIVED, State.STUCK)
-_WANTS_POSE = (State.NAVIGATING, State.HOLDING, State.WAITING_FOR_PILOT)  # a goal without a pose: HOLDING, saying so
-_ENGAGED_STATES = (State.NAVIGATING, State.HOLDING, State.ARRIVED, State.STUCK)
-_DECISION_COUNTERS = {Decision.GREEDY: "greedy", Decision.RANDOM_WALK: "random_walk"}
 
 
 def _nearest_m(points: FloatArray, pos: FloatArray, dim: int) -> float | None:
@@ -528,7 +115,7 @@ def _repeats(said: tuple[str, float], reason: str, now_s: float) -> bool:
     return reason == said[0] or now_s - said[1] < REASON_REPEAT_S
 
 
-def _stale_reason(inp: _Inputs, *, ranges_seen: bool) -> str:
+def _stale_reason(inp: CycleInputs, *, ranges_seen: bool) -> str:
     ranges = "ranges stale" if ranges_seen else "no ranges yet"
     if not inp.pose_ok:
         return f"pose stale, {ranges}: holding position" if not inp.ranges_ok else "pose stale: holding position"
@@ -543,7 +130,7 @@ class Recovery:
         self.hold_until_s = -math.inf  # a position reset holds until then
         self.pose_confirmed = True  # the pose gate's anchor is confirmed (set by the handler on every pose)
 
-    def brake(self, inp: _Inputs) -> CycleOutput:
+    def brake(self, inp: CycleInputs) -> CycleOutput:
         """The pose is not confirmed (docs/hardening.md): while flying for a goal (engaged), stop where the vehicle
         is, with no position in the setpoint; silence before that (nothing was commanded yet) and once the pose is
         stale. No hold point, step or arrival is taken from an unconfirmed pose."""
@@ -574,7 +161,7 @@ class Recovery:
         nav._hold.reset()
         nav._change(now_s, State.HOLDING, reason)
 
-    def goalless_hold(self, inp: _Inputs) -> CycleOutput:
+    def goalless_hold(self, inp: CycleInputs) -> CycleOutput:
         nav = self.nav
         if not self.pose_confirmed:
             return self.brake(inp)
@@ -655,7 +242,7 @@ class Navigator:
         self.rng = rng
         self.dim = params.dim
         self.state = State.IDLE
-        self.counters = _Counters()
+        self.counters = Counters()
         self.pose: Pose | None = None
         self.route: Route | None = None
         self.engaged = False  # the autopilot has been seen in GUIDED/OFFBOARD for this route
@@ -665,9 +252,9 @@ class Navigator:
         self.ekf_ready: bool | None = None  # EKF_STATUS_REPORT has a horizontal position (None = not reported)
         self._said: tuple[str, float] = ("", -math.inf)  # the last reason announced, and when
         self.last_output: CycleOutput | None = None
-        self._steps = _StepTracker(params, self.counters)
-        self._hold = _Hold()
-        self._legs = _Legs(params, self._steps)
+        self._steps = StepTracker(params, self.counters)
+        self._hold = HoldPoint()
+        self._legs = Legs(params, self._steps)
         self._last_hb_s: float | None = None
         self.recovery = Recovery(self)  # link loss and position resets (``recovery.position_reset``)
         self._pending: list[StateChange] = []
@@ -685,7 +272,7 @@ class Navigator:
     def autopilot_heartbeat(self, now_s: float, *, mode_ok: bool) -> None:
         """An autopilot HEARTBEAT; ``mode_ok`` = its custom_mode is GUIDED (ArduPilot) / OFFBOARD (PX4)."""
         self._last_hb_s = now_s
-        if self.engaged and not mode_ok and (self.state in _ENGAGED_STATES or self.state is State.LINK_LOST):
+        if self.engaged and not mode_ok and (self.state in ENGAGED_STATES or self.state is State.LINK_LOST):
             # The pilot (or a failsafe) took the vehicle: never fight it; wait for a new goal.
             self._drop_route(now_s, State.IDLE, "autopilot left guided control: goal dropped")
         self.mode_ok = mode_ok
@@ -780,7 +367,7 @@ class Navigator:
         return {name: getattr(self.counters, name) for name in self.counters.__dataclass_fields__}
 
     def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
-        """The feed-forward speed towards a bacteria point ``gap_m`` away (see ``_StepTracker``)."""
+        """The feed-forward speed towards a bacteria point ``gap_m`` away (see ``StepTracker``)."""
         return self._steps.approach_speed(gap_m, nearest_m)
 
     # ---- the cycle ---------------------------------------------------------------------------------------------
@@ -805,7 +392,7 @@ class Navigator:
         self.last_output = out
         return out
 
-    def _inputs(self, now_s: float) -> _Inputs:
+    def _inputs(self, now_s: float) -> CycleInputs:
         points = self.obstacles.points(now_s)
         pose_ok = self.pose_fresh(now_s)
         ranges_ok = self.ranges_fresh(now_s)
@@ -814,12 +401,12 @@ class Navigator:
         if not ranges_ok:
             self.counters.stale_range_cycles += 1
         nearest = None if self.pose is None else _nearest_m(points, self.pose.pos_ned_m, self.dim)
-        return _Inputs(now_s, points, nearest, pose_ok, ranges_ok)
+        return CycleInputs(now_s, points, nearest, pose_ok, ranges_ok)
 
-    def _silent(self, inp: _Inputs) -> CycleOutput:
+    def _silent(self, inp: CycleInputs) -> CycleOutput:
         return CycleOutput(t_s=inp.now_s, state=self.state, setpoint=None, nearest_obstacle_m=inp.nearest_m)
 
-    def _out(self, inp: _Inputs, sp: Setpoint | None, dist: float, **kw: Any) -> CycleOutput:
+    def _out(self, inp: CycleInputs, sp: Setpoint | None, dist: float, **kw: Any) -> CycleOutput:
         return CycleOutput(
             t_s=inp.now_s,
             state=self.state,
@@ -829,13 +416,13 @@ class Navigator:
             **kw,
         )
 
-    def _blocked(self, inp: _Inputs) -> CycleOutput | None:
+    def _blocked(self, inp: CycleInputs) -> CycleOutput | None:
         """Silence when there is no goal or pose (NAVIGATING -> HOLDING without a pose), or while suspended."""
         if self.route is None and self.held is None and self.pose is not None and self.state is State.HOLDING:
             return self.recovery.goalless_hold(inp)  # restarted mid-flight (``Recovery.restart_hold``)
         if self.route is None or self.pose is None:
             # Held: the service checks the goal at the next pose (one may have come while the link was lost).
-            if self.has_goal and self.pose is None and self.state in _WANTS_POSE:
+            if self.has_goal and self.pose is None and self.state in WANTS_POSE:
                 self._enter_hold_state(inp.now_s, State.HOLDING, _no_pose_reason(self.ekf_ready))
             return self._silent(inp)
         if self.suspended:
@@ -847,11 +434,11 @@ class Navigator:
         return self._legs.provisional_distance(self.route, self.pose.pos_ned_m)
 
     # ---- one handler per state ---------------------------------------------------------------------------------
-    def _on_idle(self, inp: _Inputs) -> CycleOutput:
+    def _on_idle(self, inp: CycleInputs) -> CycleOutput:
         """IDLE (and LINK_LOST, left in ``cycle`` once the link is back): no goal, nothing to send."""
         return self._silent(inp)
 
-    def _on_waiting(self, inp: _Inputs) -> CycleOutput:
+    def _on_waiting(self, inp: CycleInputs) -> CycleOutput:
         """WAITING_FOR_PILOT (``autopilot_heartbeat`` goes NAVIGATING when the HEARTBEAT shows GUIDED / OFFBOARD).
 
         With a fresh pose, a hold at the current position each cycle, as while taking over. PX4 enters OFFBOARD
@@ -871,7 +458,7 @@ class Navigator:
         assert self.pose is not None
         return self._out(inp, hold(self.pose.pos_ned_m, SetpointKind.PRESTREAM), self._distance_to_goal())
 
-    def _on_navigating(self, inp: _Inputs) -> CycleOutput:
+    def _on_navigating(self, inp: CycleInputs) -> CycleOutput:
         blocked = self._blocked(inp)
         if blocked is not None:
             return blocked
@@ -881,7 +468,7 @@ class Navigator:
             return self._hold_stale(inp)
         return self._fly(inp)
 
-    def _on_holding(self, inp: _Inputs) -> CycleOutput:
+    def _on_holding(self, inp: CycleInputs) -> CycleOutput:
         blocked = self._blocked(inp)
         if blocked is not None:
             return blocked
@@ -895,7 +482,7 @@ class Navigator:
         self._change(inp.now_s, State.NAVIGATING, "inputs fresh again: navigating")
         return self._fly(inp)
 
-    def _on_done(self, inp: _Inputs) -> CycleOutput:
+    def _on_done(self, inp: CycleInputs) -> CycleOutput:
         """ARRIVED and STUCK: hold where the state was entered (while the pose is fresh)."""
         blocked = self._blocked(inp)
         if blocked is not None:
@@ -903,13 +490,13 @@ class Navigator:
         sp = self._hold.setpoint(self.pose, pose_fresh=inp.pose_ok)
         return self._out(inp, sp, self._distance_to_goal())
 
-    def _hold_stale(self, inp: _Inputs) -> CycleOutput:
+    def _hold_stale(self, inp: CycleInputs) -> CycleOutput:
         dist = self._distance_to_goal()
         reason = _stale_reason(inp, ranges_seen=self.obstacles.ranges_t_s is not None)
         self._enter_hold_state(inp.now_s, State.HOLDING, reason)
         return self._out(inp, self._hold.setpoint(self.pose, pose_fresh=inp.pose_ok), dist)
 
-    def _fly(self, inp: _Inputs) -> CycleOutput:
+    def _fly(self, inp: CycleInputs) -> CycleOutput:
         assert self.pose is not None
         pos = np.asarray(self.pose.pos_ned_m, dtype=np.float64)
         if not self.engaged:
@@ -930,7 +517,7 @@ class Navigator:
         self._steps.watch(out, self.pose, obstacles)
         return self._steps.known_direction(out, pos, self.obstacles)
 
-    def _plan(self, inp: _Inputs, pos: FloatArray, leg: _Leg, dist: float, obstacles: FloatArray) -> CycleOutput:
+    def _plan(self, inp: CycleInputs, pos: FloatArray, leg: Leg, dist: float, obstacles: FloatArray) -> CycleOutput:
         """Plan the next step from the bacteria point just reached (the paper's path), else from the pose."""
         origin = pos if self._steps.target is None else self._steps.target
         self._steps.target = None
@@ -961,7 +548,7 @@ class Navigator:
             sp = self._steps.setpoint(pos, target, speed, obstacles)
         return self._out(inp, sp, dist, decision=reason, n_obstacles=n)
 
-    def _wait_for_pilot(self, inp: _Inputs) -> CycleOutput:
+    def _wait_for_pilot(self, inp: CycleInputs) -> CycleOutput:
         self._steps.target = None
         self._hold.reset()  # a hold point of HOLDING is not where the pilot will have flown it by the switch
         self._change(inp.now_s, State.WAITING_FOR_PILOT, self._switch_reason())
@@ -1002,12 +589,12 @@ class Navigator:
 
     def _enter_hold_state(self, now_s: float, new: State, reason: str) -> None:
         self._steps.target = None
-        if self.state not in _HOLD_STATES or new is not self.state:
+        if self.state not in HOLD_STATES or new is not self.state:
             self._hold.reset()
         self._change(now_s, new, reason)
 
 
-_HANDLERS: dict[State, Callable[[Navigator, _Inputs], CycleOutput]] = {
+_HANDLERS: dict[State, Callable[[Navigator, CycleInputs], CycleOutput]] = {
     State.IDLE: Navigator._on_idle,
     State.LINK_LOST: Navigator._on_idle,  # left in ``cycle`` as soon as the link is alive
     State.WAITING_FOR_PILOT: Navigator._on_waiting,
