@@ -103,6 +103,17 @@ async def counter_advances(read: Callable[[], int], by: int, what: str, hang_s: 
     await until(lambda: read() >= target, hang_s, f"{what}: {by} more")
 
 
+class ManualClock(ServiceClock):
+    """Service time set by the test (``t``, starting at 100 s): socket-free tests drive the service with it."""
+
+    def __init__(self) -> None:
+        super().__init__(1.0)
+        self.t = 100.0
+
+    def now(self) -> float:
+        return self.t
+
+
 class _HasSimTime(Protocol):
     @property
     def t_s(self) -> float: ...

@@ -12,33 +12,25 @@ from apf_companion.config import config_from_mapping
 from apf_companion.goal import FenceBounds, Route, route_check_waits
 from apf_companion.links.messages import Attitude, Heartbeat, LocalPositionNed, Source
 from apf_companion.navigator import State
-from apf_companion.service import CompanionService, ServiceClock
+from apf_companion.service import CompanionService
+from tests.conftest import ManualClock
 
 AP = Source(1, 1)
 HELD = "goal waits for a position to check goal.max_distance_m"
 
 
-class FakeClock(ServiceClock):
-    def __init__(self) -> None:
-        super().__init__(1.0)
-        self.t = 100.0
-
-    def now(self) -> float:
-        return self.t
-
-
-def _service(route: Route, **extra: Any) -> tuple[CompanionService, FakeClock]:
-    clock = FakeClock()
+def _service(route: Route, **extra: Any) -> tuple[CompanionService, ManualClock]:
+    clock = ManualClock()
     cfg = config_from_mapping({"link": {"connect": "udpin:127.0.0.1:0"}, **extra})
     return CompanionService(cfg, route=route, clock=clock), clock
 
 
-def _heartbeat(svc: CompanionService, clock: FakeClock) -> None:
+def _heartbeat(svc: CompanionService, clock: ManualClock) -> None:
     hb = Heartbeat(src=AP, type=m.MAV_TYPE_QUADROTOR, autopilot=3, base_mode=1, custom_mode=4, system_status=3)
     svc.handlers.handle(hb, clock.t)
 
 
-def _pose(svc: CompanionService, clock: FakeClock, north_m: float = 0.0) -> None:
+def _pose(svc: CompanionService, clock: ManualClock, north_m: float = 0.0) -> None:
     clock.t += 0.1
     svc.handlers.handle(Attitude(src=AP, time_boot_ms=int(clock.t * 1000), roll=0.0, pitch=0.0, yaw=0.0), clock.t)
     pose = LocalPositionNed(src=AP, time_boot_ms=int(clock.t * 1000), x=north_m, y=0.0, z=-5.0, vx=0, vy=0, vz=0)
@@ -140,7 +132,7 @@ def test_a_goal_that_would_wait_is_refused_while_no_autopilot_is_heard() -> None
     assert svc.counters.bad_goals == 1 and svc.navigator.held is None and svc.navigator.state is State.IDLE
 
 
-def _lose_link(svc: CompanionService, clock: FakeClock) -> list[str]:
+def _lose_link(svc: CompanionService, clock: ManualClock) -> list[str]:
     """No HEARTBEAT for longer than link.heartbeat_timeout_s (3 s): the cycle enters LINK_LOST. Its reasons."""
     clock.t += 4.0
     out = svc.run_cycle(clock.t)

@@ -27,34 +27,25 @@ from apf_companion.config import config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.links.messages import Attitude, Heartbeat, LocalPositionNed, ObstacleDistance, Source
 from apf_companion.navigator import State
-from apf_companion.service import LINK_LOST_REPEAT_S, CompanionService, LinkLostLog, ServiceClock
-from tests.conftest import free_port
+from apf_companion.service import LINK_LOST_REPEAT_S, CompanionService, LinkLostLog
+from tests.conftest import ManualClock, free_port
 
 AP = Source(1, 1)
 GUIDED = 4
 
 
-class FakeClock(ServiceClock):
-    def __init__(self) -> None:
-        super().__init__(1.0)
-        self.t = 100.0
-
-    def now(self) -> float:
-        return self.t
-
-
-def _service(**extra: Any) -> tuple[CompanionService, FakeClock]:
-    clock = FakeClock()
+def _service(**extra: Any) -> tuple[CompanionService, ManualClock]:
+    clock = ManualClock()
     cfg = config_from_mapping({"link": {"connect": "udpin:127.0.0.1:0"}, **extra})
     return CompanionService(cfg, route=Route.point(30.0, 0.0, -5.0, source="cli"), clock=clock), clock
 
 
-def _heartbeat(svc: CompanionService, clock: FakeClock) -> None:
+def _heartbeat(svc: CompanionService, clock: ManualClock) -> None:
     hb = Heartbeat(src=AP, type=m.MAV_TYPE_QUADROTOR, autopilot=3, base_mode=1, custom_mode=GUIDED, system_status=4)
     svc.handlers.handle(hb, clock.t)
 
 
-def _inputs(svc: CompanionService, clock: FakeClock) -> None:
+def _inputs(svc: CompanionService, clock: ManualClock) -> None:
     """A pose and a free range scan at ``clock.t`` (the autopilot's boot time follows the service clock)."""
     ms = int(clock.t * 1000)
     svc.handlers.handle(Attitude(src=AP, time_boot_ms=ms, roll=0.0, pitch=0.0, yaw=0.0), clock.t)
@@ -67,7 +58,7 @@ def _inputs(svc: CompanionService, clock: FakeClock) -> None:
     svc.handlers.handle(scan, clock.t)
 
 
-def _flying(**extra: Any) -> tuple[CompanionService, FakeClock, float]:
+def _flying(**extra: Any) -> tuple[CompanionService, ManualClock, float]:
     """A service navigating to its goal; the time of the autopilot's last HEARTBEAT."""
     svc, clock = _service(exit_when_done=True, **extra)
     _heartbeat(svc, clock)
@@ -77,7 +68,7 @@ def _flying(**extra: Any) -> tuple[CompanionService, FakeClock, float]:
     return svc, clock, clock.t
 
 
-def _cycle_at(svc: CompanionService, clock: FakeClock, t_s: float) -> State:
+def _cycle_at(svc: CompanionService, clock: ManualClock, t_s: float) -> State:
     clock.t = t_s
     return svc.run_cycle(t_s).state
 

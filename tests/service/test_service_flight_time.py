@@ -13,27 +13,19 @@ from apf_companion.config import config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.links.messages import Attitude, Heartbeat, LocalPositionNed, Source
 from apf_companion.navigator import State
-from apf_companion.service import CompanionService, ServiceClock
+from apf_companion.service import CompanionService
 from apf_companion.setpoint import SetpointKind
+from tests.conftest import ManualClock
 
 AP = Source(1, 1)
 PERIOD_S = 0.1
-
-
-class FakeClock(ServiceClock):
-    def __init__(self) -> None:
-        super().__init__(1.0)
-        self.t = 100.0
-
-    def now(self) -> float:
-        return self.t
 
 
 class Rig:
     """A service in GUIDED with a vehicle that is where the last navigation setpoint put it."""
 
     def __init__(self, **extra: Any) -> None:
-        self.clock = FakeClock()
+        self.clock = ManualClock()
         base = {"link": {"connect": "udpin:127.0.0.1:0"}, "sensors": {"require_ranges": False}}
         cfg = config_from_mapping(base | extra)
         self.svc = CompanionService(cfg, clock=self.clock)

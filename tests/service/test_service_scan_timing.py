@@ -9,18 +9,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from apf_companion.config import ServiceConfig
 from apf_companion.links.messages import decode
-from apf_companion.service import CompanionService, ServiceClock
+from apf_companion.service import CompanionService
+from tests.conftest import ManualClock
 
 UINT16_MAX = 65535
-
-
-class FakeClock(ServiceClock):
-    def __init__(self) -> None:
-        super().__init__(1.0)
-        self.t = 100.0
-
-    def now(self) -> float:
-        return self.t
 
 
 def _msgs() -> mavlink2.MAVLink:
@@ -44,7 +36,7 @@ def _feed(svc: CompanionService, msg: mavlink2.MAVLink_message) -> None:
     svc.handlers.handle(rec, svc.clock.now())
 
 
-def _pose(svc: CompanionService, clock: FakeClock, mav: mavlink2.MAVLink, boot_ms: int, north_m: float) -> None:
+def _pose(svc: CompanionService, clock: ManualClock, mav: mavlink2.MAVLink, boot_ms: int, north_m: float) -> None:
     clock.t = 100.0 + boot_ms / 1000.0
     _feed(svc, _roundtrip(mav, mav.local_position_ned_encode(boot_ms, north_m, 0.0, -5.0, 1.0, 0.0, 0.0)))
 
@@ -59,7 +51,7 @@ def _scan_ahead(mav: mavlink2.MAVLink, boot_ms: int, range_cm: int) -> mavlink2.
 
 
 def test_scan_between_poses_is_placed_with_the_interpolated_pose() -> None:
-    clock = FakeClock()
+    clock = ManualClock()
     svc = CompanionService(ServiceConfig(), clock=clock)
     mav = _msgs()
     clock.t = 100.0
@@ -80,7 +72,7 @@ def test_scan_between_poses_is_placed_with_the_interpolated_pose() -> None:
 
 
 def test_scan_not_newer_than_the_pose_is_placed_at_once_and_a_lost_pose_stream_does_not_hold_scans() -> None:
-    clock = FakeClock()
+    clock = ManualClock()
     svc = CompanionService(ServiceConfig(), clock=clock)
     mav = _msgs()
     _feed(svc, _roundtrip(mav, mav.attitude_encode(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
