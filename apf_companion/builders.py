@@ -247,7 +247,10 @@ def handler_params(config: ServiceConfig) -> HandlerParams:
 def admission_params(config: ServiceConfig) -> AdmissionParams:
     g = config.goal
     return AdmissionParams(
-        max_altitude_m=g.max_altitude_m, max_distance_m=g.max_distance_m, exit_when_done=config.exit_when_done
+        max_altitude_m=g.max_altitude_m,
+        min_altitude_m=g.min_altitude_m,
+        max_distance_m=g.max_distance_m,
+        exit_when_done=config.exit_when_done,
     )
 
 

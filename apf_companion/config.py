@@ -60,6 +60,7 @@ _PLANNER_NAMES = ALL_PLANNER_NAMES
 # flags against these before it starts anything, sim/fly.py).
 HEARTBEAT_TIMEOUT_RANGE_S: tuple[float, float] = (0.5, 60.0)  # link.heartbeat_timeout_s
 TAKEOFF_ALT_RANGE_M: tuple[float, float] = (0.0, 500.0)  # autopilot.takeoff_alt_m
+MIN_ALTITUDE_RANGE_M: tuple[float, float] = (-10_000.0, 10_000.0)  # goal.min_altitude_m (above home)
 RATE_RANGE_HZ: tuple[float, float] = (1.0, 50.0)  # cycle.rate_hz
 MAX_AGE_RANGE_S: tuple[float, float] = (0.02, 10.0)  # cycle.pose_max_age_s and cycle.ranges_max_age_s
 TIME_SCALE_RANGE: tuple[float, float] = (0.1, 100.0)  # cycle.time_scale
@@ -315,6 +316,10 @@ class GoalConfig:
             sent now (DO_REPOSITION, zenoh). A ``--goal`` / ``--route`` on the command line is always flown.
         max_altitude_m: A goal (from any source) more than this above home is refused and counted in
             ``bad_goals`` [m]; 0 = no limit. 120 m: the usual limit for open-category flights.
+        min_altitude_m: ... or one less than this above home (the EKF origin) [m]: 1 m keeps goals off and out of
+            the ground. Negative lets goals lie that far below home (a valley below the take-off point); 0 = not
+            below home; there is no "off". The autopilot's fence floor (FENCE_ALT_MIN), where it has one, counts
+            too: the higher of the two wins. A waypoint that keeps the altitude (down omitted / NaN) passes.
         max_distance_m: ... or one horizontally further than this from the vehicle [m]; 0 = no limit.
     """
 
@@ -326,6 +331,7 @@ class GoalConfig:
     adopt_tolerance_m: float = 1.0
     fly_after_restart: bool = False
     max_altitude_m: float = 120.0
+    min_altitude_m: float = 1.0
     max_distance_m: float = 2000.0
 
     def __post_init__(self) -> None:
@@ -341,6 +347,10 @@ class GoalConfig:
                 _check_range(f"goal.{key}", value, -1e6, 1e6)
         _check_range("goal.adopt_tolerance_m", self.adopt_tolerance_m, 0.1, 50.0)
         _check_range("goal.max_altitude_m", self.max_altitude_m, 0.0, 10_000.0)
+        _check_range("goal.min_altitude_m", self.min_altitude_m, *MIN_ALTITUDE_RANGE_M)
+        if self.max_altitude_m > 0.0 and self.min_altitude_m >= self.max_altitude_m:
+            # else every goal is refused
+            raise _fail("goal.min_altitude_m", "less than goal.max_altitude_m unless that is 0", self.min_altitude_m)
         _check_range("goal.max_distance_m", self.max_distance_m, 0.0, 1e6)
 
 

@@ -280,16 +280,20 @@ def route_outside_limits(
     *,
     max_altitude_m: float,
     max_distance_m: float,
+    min_altitude_m: float | None = None,
     area_ne_m: FlyingArea | None = None,
     keepouts_ne_m: KeepOuts = (),
     fence: FenceBounds = FenceBounds(),
 ) -> str | None:
-    """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home) or
-    outside the autopilot's fence (``fence``: above its ceiling, below its floor, outside its circle round home), or
-    horizontally more than ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet),
-    or outside the planner's flying area ``area_ne_m`` (a rectangle or polygon, ``planning.area``) or in one of its
-    keep-out zones ``keepouts_ne_m`` (bapf-nav would give up at once). 0 / None = no limit. A mistyped or hostile
-    goal (the fuzz sent DO_REPOSITION z = -8576 m) is refused, not flown."""
+    """Why ``route`` is refused, or None: a waypoint more than ``max_altitude_m`` above the EKF origin (home),
+    less than ``min_altitude_m`` above it (negative: that far below it), or outside the autopilot's fence
+    (``fence``: above its ceiling, below its floor, outside its circle round home), or horizontally more than
+    ``max_distance_m`` from the vehicle at ``pos_ned_m`` (local NED; None: not known yet), or outside the planner's
+    flying area ``area_ne_m`` (a rectangle or polygon, ``planning.area``) or in one of its keep-out zones
+    ``keepouts_ne_m`` (bapf-nav would give up at once). ``max_altitude_m`` / ``max_distance_m`` 0 and
+    ``min_altitude_m`` None = no limit; of two ceilings (floors) the lower (higher) one counts. A waypoint that keeps
+    the altitude (NaN down) passes the altitude limits. A mistyped or hostile goal is refused, not flown: the fuzz
+    sent DO_REPOSITION z = -8576 m, a review z = +1000 m (1 km below home)."""
     wp = route.waypoints_ned_m
     conflict = zone_conflict(area_ne_m, keepouts_ne_m, wp[:, 0], wp[:, 1])
     if conflict is not None:
@@ -313,18 +317,27 @@ def route_outside_limits(
         high = np.flatnonzero(np.isfinite(up) & (up > limit))
         if high.size:
             i = int(high[0])
-            return f"waypoint {i} is {up[i]:.0f} m above home ({name} = {limit:g})"
+            return f"waypoint {i} is {_height_text(float(up[i]))} ({name} = {limit:g})"
+    floors = [(min_altitude_m, "goal.min_altitude_m")] if min_altitude_m is not None else []
     if fence.floor_m is not None:
-        low = np.flatnonzero(np.isfinite(up) & (up < fence.floor_m))
+        floors.append((fence.floor_m, "the fence's floor plus its margin"))
+    if floors:
+        floor, name = max(floors, key=lambda f: f[0])  # the stricter floor: a waypoint below the other is below it
+        low = np.flatnonzero(np.isfinite(up) & (up < floor))
         if low.size:
             i = int(low[0])
-            return f"waypoint {i} is {up[i]:.0f} m above home (the fence's floor plus its margin = {fence.floor_m:g})"
+            return f"waypoint {i} is {_height_text(float(up[i]))} ({name} = {floor:g})"
     if max_distance_m > 0.0 and pos_ned_m is not None:
         pos = np.asarray(pos_ned_m, dtype=np.float64)
         far = np.flatnonzero(np.hypot(wp[:, 0] - pos[0], wp[:, 1] - pos[1]) > max_distance_m)
         if far.size:
             return f"waypoint {int(far[0])} is more than goal.max_distance_m = {max_distance_m:g} m away"
     return None
+
+
+def _height_text(up_m: float) -> str:
+    """A height relative to home for a refusal: "6 m above home", "30 m below home", to 0.1 m."""
+    return f"{round(abs(up_m), 1):g} m {'below' if up_m < 0.0 else 'above'} home"
 
 
 def route_check_waits(pos_ned_m: npt.ArrayLike | None, *, max_distance_m: float) -> str | None:

@@ -1,12 +1,13 @@
 """Goal admission: every goal (the goal at start, zenoh, DO_REPOSITION, an adopted autopilot target) is checked here
 before the navigator flies it.
 
-A goal is refused when it lies outside the limits (``goal.max_altitude_m``, the autopilot's fence, bapf-nav's
-flying area and keep-out zones, ``goal.max_distance_m`` from the vehicle: ``goal.route_outside_limits``). A goal
-whose distance check needs the vehicle's position before any pose came (``goal.route_check_waits``) is held, not
-flown, and checked at the first pose; a goal taken before the fence's bounds were known is checked again when
-they come (``recheck``). With ``exit_when_done`` a refused goal at start ends the run with outcome "error"
-(nothing else will come). Pure of I/O: the service wires it (docs/architecture-service.md).
+A goal is refused when it lies outside the limits (``goal.max_altitude_m`` / ``goal.min_altitude_m`` above home,
+the autopilot's fence, bapf-nav's flying area and keep-out zones, ``goal.max_distance_m`` from the vehicle:
+``goal.route_outside_limits``). A goal whose distance check needs the vehicle's position before any pose came
+(``goal.route_check_waits``) is held, not flown, and checked at the first pose; a goal taken before the fence's
+bounds were known is checked again when they come (``recheck``). With ``exit_when_done`` a refused goal at start
+ends the run with outcome "error" (nothing else will come). Pure of I/O: the service wires it
+(docs/architecture-service.md).
 """
 
 from __future__ import annotations
@@ -34,11 +35,14 @@ class AdmissionParams:
 
     Attributes:
         max_altitude_m: ``goal.max_altitude_m``: no waypoint higher above home [m]; 0 = no limit.
+        min_altitude_m: ``goal.min_altitude_m``: no waypoint lower above home [m] (negative: below home); the
+            fence's floor, where it has one, counts too (the higher wins).
         max_distance_m: ``goal.max_distance_m``: no waypoint horizontally farther from the vehicle [m]; 0 = none.
         exit_when_done: A refused goal at start ends the run (outcome "error").
     """
 
     max_altitude_m: float = 120.0
+    min_altitude_m: float = 1.0
     max_distance_m: float = 2000.0
     exit_when_done: bool = False
 
@@ -106,6 +110,7 @@ class GoalAdmission:
             route,
             pos,
             max_altitude_m=p.max_altitude_m,
+            min_altitude_m=p.min_altitude_m,
             fence=FenceBounds() if b.fence is None else b.fence,
             max_distance_m=p.max_distance_m,
             area_ne_m=b.area_ne_m,  # bapf-nav's: goals outside it are refused

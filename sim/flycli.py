@@ -190,13 +190,15 @@ def _add_scenario_options(p: argparse.ArgumentParser) -> None:
 
 def _add_flight_options(p: argparse.ArgumentParser) -> None:
     """How one flight runs and what it writes: height, speed-up, rates, limits, noise, output."""
-    # The service takes off to --alt (autopilot.takeoff_alt_m) and refuses a goal higher than goal.max_altitude_m.
-    alt_hi = min(TAKEOFF_ALT_RANGE_M[1], GoalConfig().max_altitude_m)
+    # The service takes off to --alt (autopilot.takeoff_alt_m) and refuses a goal higher than goal.max_altitude_m
+    # or lower than goal.min_altitude_m.
+    goal = GoalConfig()
+    alt_lo, alt_hi = max(TAKEOFF_ALT_RANGE_M[0], goal.min_altitude_m), min(TAKEOFF_ALT_RANGE_M[1], goal.max_altitude_m)
     p.add_argument(
         "--alt",
-        type=number_in(0.0, alt_hi, lo_open=True, what="m (the service's takeoff height and goal.max_altitude_m)"),
+        type=number_in(alt_lo, alt_hi, what="m (the service's takeoff height, goal.min_altitude_m / max_altitude_m)"),
         default=5.0,
-        help=f"flight height above home, in (0, {alt_hi:g}] m (default 5)",
+        help=f"flight height above home, in [{alt_lo:g}, {alt_hi:g}] m (default 5)",
     )
     lo, hi = SPEEDUP_RANGE
     p.add_argument(

@@ -53,6 +53,9 @@ def test_deploy_example_loads_and_builds_its_planner() -> None:
         ({"zenoh": {"connect": ["udp/127.0.0.1:7447"]}}, r"zenoh\.connect\[\] must be an explicit"),
         ({"sensors": {"zenoh": True}}, r"sensors\.zenoh"),
         ({"goal": {"north_m": 1.0}}, r"goal\.north_m/goal\.east_m"),
+        ({"goal": {"min_altitude_m": -20_000.0}}, r"goal\.min_altitude_m must be in \[-10000\.0, 10000\.0\]"),
+        ({"goal": {"min_altitude_m": math.nan}}, r"goal\.min_altitude_m must be in"),
+        ({"goal": {"min_altitude_m": 120.0}}, r"goal\.min_altitude_m must be less than goal\.max_altitude_m"),
         ({"cycle": {"rate_hz": "fast"}}, r"cycle\.rate_hz must be a number"),
         ({"dry_run": "yes"}, r"dry_run must be true or false"),
         ({"max_link_lost_s": -1.0}, r"max_link_lost_s must be in \[0\.0, 86400\.0\]"),
@@ -63,6 +66,14 @@ def test_deploy_example_loads_and_builds_its_planner() -> None:
 def test_bad_values_name_the_key(table: dict[str, object], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         config_from_mapping(table)
+
+
+def test_the_altitude_floor_defaults_to_1_m_and_may_go_below_home() -> None:
+    """``goal.min_altitude_m``: 1 m above home by default; negative (a valley below the take-off point) and, with
+    ``max_altitude_m`` 0 (no ceiling), any value in its range are valid."""
+    assert ServiceConfig().goal.min_altitude_m == 1.0
+    assert config_from_mapping({"goal": {"min_altitude_m": -300}}).goal.min_altitude_m == -300.0
+    assert config_from_mapping({"goal": {"min_altitude_m": 500.0, "max_altitude_m": 0.0}}).goal.min_altitude_m == 500
 
 
 def test_typo_gets_a_suggestion() -> None:

@@ -451,5 +451,12 @@ def test_the_floor_refuses_goals_below_it_plus_the_margin() -> None:
     ok = route_outside_limits(Route.point(0.0, 0.0, -8.0, source="test"), None, max_altitude_m=0.0,
                               max_distance_m=0.0, fence=bounds)  # fmt: skip
     assert ok is None
+    # goal.min_altitude_m beside it: the higher floor counts, and its name is in the reason
+    low = route_outside_limits(Route.point(0.0, 0.0, -6.0, source="test"), None, max_altitude_m=0.0,
+                               max_distance_m=0.0, min_altitude_m=1.0, fence=bounds)  # fmt: skip
+    assert low == "waypoint 0 is 6 m above home (the fence's floor plus its margin = 7)"
+    low = route_outside_limits(Route.point(0.0, 0.0, -8.0, source="test"), None, max_altitude_m=0.0,
+                               max_distance_m=0.0, min_altitude_m=10.0, fence=bounds)  # fmt: skip
+    assert low == "waypoint 0 is 8 m above home (goal.min_altitude_m = 10)"
     floor_only = _limits(Autopilot.ARDUPILOT, AP_DEFAULTS | {"FENCE_TYPE": 8.0, "FENCE_ALT_MIN": 5.0})
     assert floor_only.enforced and fence_area([], REF, (10.0, 5.0), floor_only).outcome is FenceOutcome.USED

@@ -388,6 +388,32 @@ async def test_a_goal_beyond_the_altitude_or_distance_limit_is_refused() -> None
             assert all(m.z > -10.0 for _, m in ap.setpoints())  # no setpoint went up towards it
 
 
+async def test_a_goal_below_the_altitude_floor_is_refused_one_at_5_m_or_keeping_the_altitude_is_flown() -> None:
+    """A review sent DO_REPOSITION LOCAL_NED z = +30 (30 m below home) and z = +1000: both were ACCEPTED and the
+    second was one setpoint at z = +1000 (only a fence floor, where the autopilot has one, stood in the way). Now
+    ``goal.min_altitude_m`` (1 m above home by default) refuses them like the other limits (TEMPORARILY_REJECTED,
+    ``bad_goals``); a goal 5 m up (the bundled flights') and one keeping the altitude (NaN z) are flown."""
+    async with rig(route=Route.point(30.0, 0.0, -5.0, source="test")) as (svc, ap):
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 5, 10.0, "flying")
+        async with gcs_for(svc) as gcs:
+            for z in (30.0, 1000.0, 0.0):  # 30 m and 1 km below home; on the ground at home: under 1 m
+                bad = svc.counters.bad_goals
+                gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, 30_000, 0, z))
+                ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+                assert (ack.command, ack.result) == (192, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+                assert svc.counters.bad_goals == bad + 1
+                assert svc.navigator.route is not None and svc.navigator.route.source == "test"
+            assert all(m.z < -1.0 for _, m in ap.setpoints() if m.type_mask != MASK_VELOCITY)  # none went down
+            for z, down in ((-5.0, -5.0), (math.nan, math.nan)):
+                gcs.send(gcs.mav.command_int_encode(1, 191, 1, 192, 0, 0, -1, 1, 0, math.nan, 30_000, 0, z))
+                ack = await gcs.recv_match(type="COMMAND_ACK", timeout=3.0)
+                assert (ack.command, ack.result) == (192, mavlink.MAV_RESULT_ACCEPTED)
+                route = svc.navigator.route
+                assert route is not None and route.source == "mavlink:255/190"
+                assert route.waypoints_ned_m[0].tolist() == pytest.approx([3.0, 0.0, down], nan_ok=True)
+            assert svc.counters.bad_goals == 3
+
+
 async def test_a_goal_outside_the_flying_area_is_refused() -> None:
     """With bapf-nav's flying area set (``planner.params.nav_area_ne_m``), a ground station's goal outside it is
     refused and counted (the planner would give up at once); one inside is flown."""
@@ -424,6 +450,20 @@ def test_route_limits() -> None:
     notch = Route(waypoints_ned_m=np.array([[10.0, 5.0, -5.0], [30.0, 5.0, -5.0]]), source="t")
     why = route_outside_limits(notch, None, max_altitude_m=0.0, max_distance_m=0.0, area_ne_m=l_shape)
     assert why is not None and why.startswith("waypoint 1 ") and "[[-10.0, -10.0], [40.0, -10.0]" in why
+
+
+def test_route_altitude_floor() -> None:
+    """``min_altitude_m``: a waypoint lower above home is refused, saying how far below home it is; NaN down
+    (keep the altitude) passes; a negative floor lets goals lie that far below home; None: no floor."""
+    below = Route(waypoints_ned_m=np.array([[0.0, 0.0, -5.0], [3.0, 0.0, 1000.0]]), source="t")
+    why = route_outside_limits(below, None, max_altitude_m=120.0, max_distance_m=0.0, min_altitude_m=1.0)
+    assert why == "waypoint 1 is 1000 m below home (goal.min_altitude_m = 1)"
+    low = Route.point(3.0, 0.0, -0.5, source="t")
+    why = route_outside_limits(low, None, max_altitude_m=120.0, max_distance_m=0.0, min_altitude_m=1.0)
+    assert why == "waypoint 0 is 0.5 m above home (goal.min_altitude_m = 1)"
+    for ok, floor in ((Route.point(3.0, 0.0, -5.0, source="t"), 1.0), (Route.point(3.0, 0.0, None, source="t"), 1.0),
+                      (Route.point(3.0, 0.0, 30.0, source="t"), -50.0), (below, None)):  # fmt: skip
+        assert route_outside_limits(ok, None, max_altitude_m=0.0, max_distance_m=0.0, min_altitude_m=floor) is None
 
 
 async def test_commands_broadcast_to_system_0_are_answered() -> None:

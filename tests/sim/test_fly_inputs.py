@@ -88,9 +88,9 @@ def test_a_service_config_error_shows_its_lines_not_only_the_count(tmp_path: Pat
         (["--trials", "1.5"], "argument --trials: must be an integer >= 1"),
         (["--study-reps", "-1"], "argument --study-reps: must be an integer >= 0"),
         (["--seed", "-1"], "argument --seed: must be an integer >= 0"),
-        (["--alt", "-5"], "argument --alt: must be a number in (0, 120] m (the service's takeoff height and goal"),
-        (["--alt", "0"], "argument --alt: must be a number in (0, 120]"),
-        (["--alt", "121"], "argument --alt: must be a number in (0, 120]"),
+        (["--alt", "-5"], "argument --alt: must be a number in [1, 120] m (the service's takeoff height, goal"),
+        (["--alt", "0.5"], "argument --alt: must be a number in [1, 120]"),  # below goal.min_altitude_m
+        (["--alt", "121"], "argument --alt: must be a number in [1, 120]"),
         (["--rate", "0.5"], "argument --rate: must be a number in [1, 50] Hz (the service's cycle.rate_hz)"),
         (["--max-flight", "0"], "argument --max-flight: must be a number in (0, 86400] simulated s"),
         (["--max-flight", "inf"], "argument --max-flight: must be a number in (0, 86400]"),
@@ -114,12 +114,13 @@ def test_good_flags_still_parse(words: list[str]) -> None:
     assert (args.trials, args.seed, args.alt) == (2, 0, 7.5)
 
 
-def test_the_highest_alt_is_a_goal_the_service_flies(tmp_path: Path) -> None:
-    """--alt is the takeoff height and the goal's: at its top (120 m) the service's config loads, and the goal is
-    not above goal.max_altitude_m (which the service refuses at start)."""
-    config = config_from_mapping(tomllib.loads(_service_toml(FlyOptions(alt_m=120.0), 1, tmp_path / "t")))
-    assert config.autopilot.takeoff_alt_m == 120.0 and config.goal.down_m == -120.0
-    assert -config.goal.down_m <= config.goal.max_altitude_m
+@pytest.mark.parametrize("alt_m", [1.0, 120.0])
+def test_the_lowest_and_highest_alt_are_goals_the_service_flies(alt_m: float, tmp_path: Path) -> None:
+    """--alt is the takeoff height and the goal's: at its ends (1 m, 120 m) the service's config loads, and the goal
+    is neither above goal.max_altitude_m nor below goal.min_altitude_m (which the service refuses at start)."""
+    config = config_from_mapping(tomllib.loads(_service_toml(FlyOptions(alt_m=alt_m), 1, tmp_path / "t")))
+    assert config.autopilot.takeoff_alt_m == alt_m and config.goal.down_m == -alt_m
+    assert config.goal.min_altitude_m <= -config.goal.down_m <= config.goal.max_altitude_m
 
 
 @pytest.mark.parametrize(
