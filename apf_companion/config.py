@@ -120,8 +120,8 @@ class LinkConfig:
         signing_timestamp_file: Where the signing timestamp is kept across restarts (saved every 30 s and at
             exit); "" = the key file's path plus ``.timestamp``.
         require_signed_commands: With a key: act on commands (COMMAND_INT / COMMAND_LONG such as DO_REPOSITION,
-            SET_POSITION_TARGET_*, SET_MODE) only when signed with it; unsigned, wrongly signed or replayed ones
-            are dropped and counted.
+            SET_POSITION_TARGET_*, SET_MODE, PARAM_SET) only when signed with it; unsigned, wrongly signed or
+            replayed ones are dropped and counted. Parameter reads follow ``require_signed_telemetry``.
         require_signed_telemetry: With a key: drop every other message that is not signed with it too (turn on
             when the autopilot signs: ArduPilot does on every channel once it has a key).
     """

@@ -74,14 +74,18 @@ REBOOTING = frozenset({mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT})  # HEA
 RANGE_RECORDS = (ObstacleDistance, DistanceSensor, ObstacleDistance3d)
 # AP_Proximity.h PROXIMITY_SENSOR_ID_START (10): DISTANCE_SENSOR ids of the proximity sectors (8) and upward (+9)
 PROXIMITY_ECHO_IDS = range(10, 10 + 9)
-#: Messages that ask for action (goals, modes): with a signing key they are used only when signed with it
-#: (``link.require_signed_commands``; the link drops the others before any handler sees them).
+#: Messages that ask for action (goals, modes, parameter changes): with a signing key they are used only when signed
+#: with it (``link.require_signed_commands``; the link drops the others before any handler sees them). PARAM_SET
+#: changes the planner's and the navigator's safety parameters (apf_companion.params); until session 28 it was
+#: missing here and an unsigned one set the safety margin to 0. The parameter reads (PARAM_REQUEST_LIST / _READ)
+#: change nothing and answer with values that are no secret (the config's), so they follow the telemetry rule.
 COMMAND_MESSAGES = (
     "COMMAND_INT",
     "COMMAND_LONG",
     "SET_POSITION_TARGET_LOCAL_NED",
     "SET_POSITION_TARGET_GLOBAL_INT",
     "SET_MODE",
+    "PARAM_SET",
 )
 BROADCAST = 0  # target_system / target_component 0: every system / every component (MAVLink routing)
 ParamRecord = ParamRequestList | ParamRequestRead | ParamSet

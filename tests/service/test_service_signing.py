@@ -67,10 +67,22 @@ class Gcs:
 
     def reposition(self, east_m: float) -> bytes:
         """COMMAND_INT DO_REPOSITION to us in LOCAL_NED (x, y in metres * 1e4): (0, east_m, -5)."""
-        msg = self.mav.command_int_encode(
-            1, 191, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, math.nan, 0,
-            int(east_m * 1e4), -5.0,
+        return self._send(
+            self.mav.command_int_encode(
+                1, 191, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, math.nan, 0,
+                int(east_m * 1e4), -5.0,
+            )
         )  # fmt: skip
+
+    def param_set(self, name: str, value: float) -> bytes:
+        """PARAM_SET of one of our REAL32 parameters."""
+        return self._send(self.mav.param_set_encode(1, 191, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32))
+
+    def param_read(self, name: str) -> bytes:
+        """PARAM_REQUEST_READ by name."""
+        return self._send(self.mav.param_request_read_encode(1, 191, name.encode(), -1))
+
+    def _send(self, msg: Any) -> bytes:
         buf = bytes(msg.pack(self.mav))
         self.mav.seq = (self.mav.seq + 1) % 256
         self.link.send_bytes(buf)
@@ -126,6 +138,41 @@ async def test_commands_count_only_when_signed_with_our_key(tmp_path: Path) -> N
         sps = [m for _, m in ap.setpoints()]
         verdicts = {checker.check(bytes(m.get_msgbuf()), 1, 191) for m in sps}
         assert verdicts == {Verdict.SIGNED}
+
+
+async def test_a_parameter_changes_only_when_signed_and_reads_stay_open(tmp_path: Path) -> None:
+    """PARAM_SET changes the planner's safety parameters: with a key and ``require_signed_commands`` (the default) an
+    unsigned one (a review set APF_MARGIN to 0 so) or one signed with another key is dropped, counted in
+    ``signing_rejected`` and unanswered, and the value stays; a signed one is applied and answered. An unsigned
+    PARAM_REQUEST_READ is answered (telemetry rule: it changes nothing)."""
+    async with rig(signed_config(tmp_path)) as (svc, _ap):
+        assert svc.link is not None and svc.link.signing is not None and svc.link.local_address is not None
+        stats = svc.link.signing.stats
+        margin0 = svc.planner.params.safety_margin_m
+        assert margin0 > 0.0
+        await until(lambda: svc.handlers.heard, HANG_S, "the autopilot heard")
+        port = svc.link.local_address[1]
+        link = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+        try:
+            Gcs(link, None).param_set("APF_MARGIN", 0.0)
+            await until(lambda: stats.rejected == 1, HANG_S, "unsigned PARAM_SET dropped")
+            Gcs(link, OTHER_KEY).param_set("APF_MARGIN", 0.0)
+            await until(lambda: stats.rejected == 2 and stats.bad_signature == 1, HANG_S, "wrong key dropped")
+            assert svc.reporter.counters.param_requests == 0 and svc.params.sets == 0  # no handler saw them
+            assert svc.planner.params.safety_margin_m == margin0
+
+            Gcs(link, None).param_read("APF_MARGIN")  # a read: answered unsigned, with the value in force
+            value = await link.recv_match(type="PARAM_VALUE", timeout=HANG_S)
+            assert (value.param_id, value.param_value) == ("APF_MARGIN", pytest.approx(margin0))
+            assert stats.rejected == 2
+
+            Gcs(link, KEY).param_set("APF_MARGIN", 0.2)
+            value = await link.recv_match(type="PARAM_VALUE", timeout=HANG_S)
+            assert (value.param_id, value.param_value) == ("APF_MARGIN", pytest.approx(0.2))
+            assert svc.planner.params.safety_margin_m == pytest.approx(0.2) and svc.params.sets == 1
+            assert svc.reporter.counts()["signing_rejected"] == 2
+        finally:
+            await link.aclose()
 
 
 async def test_unsigned_telemetry_is_dropped_when_signed_telemetry_is_required(tmp_path: Path) -> None:
