@@ -134,7 +134,8 @@ class AutopilotHandlers:
         on_pose: Called with the autopilot's ``time_boot_ms`` when the navigator accepted a new pose (it triggers
             a cycle, and the stream's gaps measure the link's loss).
         route_at_start: Flown once the autopilot is first heard.
-        on_param: Handles a PARAM_* addressed to us (apf_companion.params.ParamServer.handle); None = ignored.
+        on_param: Handles a PARAM_* addressed to us, with the time (apf_companion.params.ParamServer.handle); None =
+            ignored.
         on_fence: Takes the autopilot's MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK, PARAM_VALUE,
             HOME_POSITION and SYS_STATUS (the fence read,
             apf_companion.fencereader.FenceReader.on_record); None = ignored.
@@ -151,7 +152,7 @@ class AutopilotHandlers:
         set_route: Callable[[Route, float], bool],
         on_pose: Callable[[int], None],
         route_at_start: Route | None,
-        on_param: Callable[[ParamRecord], None] | None = None,
+        on_param: Callable[[ParamRecord, float], None] | None = None,
         on_fence: Callable[[FenceRecord], None] | None = None,
     ) -> None:
         self.params = params
@@ -211,7 +212,7 @@ class AutopilotHandlers:
                 self.counters.rejected_ranges += 1
         elif isinstance(rec, ParamRecord) and self._on_param is not None and self._for_us(rec):
             self.counters.param_requests += 1
-            self._on_param(rec)
+            self._on_param(rec, now_s)
         else:
             self.counters.foreign_messages += 1
 

@@ -4,8 +4,12 @@
 validated exactly as the TOML file is: the section's frozen dataclass is rebuilt with the new value (its
 ``__post_init__`` range checks) and the planner is rebuilt from the new config (``build_planner``: the planner's
 own checks). Accepted: the new config and planner replace the running ones (between cycles, ``apply``), the change
-is logged and PARAM_VALUE carries the new value. Refused: PARAM_VALUE carries the old value and a STATUSTEXT says
-why. Nothing is written to the config file: a restart returns to the TOML values.
+is logged and PARAM_VALUE carries the new value. Refused: PARAM_VALUE carries the old value, every time (the ground
+station waits for it and sends the PARAM_SET again without it), and a STATUSTEXT and a WARNING ``param.refused``
+say why: the first at once, then at most one each per ``REFUSED_INTERVAL_S`` of the service clock, saying how many
+refusals in between went unsaid. A review sent 300 refused PARAM_SETs in 0.65 s: 900 STATUSTEXT chunks went
+towards the autopilot (seconds of a 57600-baud link, queued in front of the setpoints) and 300 WARNING lines.
+Nothing is written to the config file: a restart returns to the TOML values.
 
 The protocol follows ArduPilot's ``libraries/GCS_MAVLink/GCS_Param.cpp``:
 
@@ -13,7 +17,8 @@ The protocol follows ArduPilot's ``libraries/GCS_MAVLink/GCS_Param.cpp``:
   ``queued_param_send`` caps a burst at 5 without flow control);
 - PARAM_REQUEST_READ: by ``param_index`` when it is not -1, else by name; an unknown one gets no answer;
 - PARAM_SET: an unknown name gets no answer; the reply is PARAM_VALUE with ``param_index`` -1
-  (``GCS::send_parameter_value``);
+  (``GCS::send_parameter_value``); a refused one gets the old value in it (``handle_param_set``: "send the readonly
+  value" after its STATUSTEXT "Param write denied");
 - integers travel as the float value of the integer (ArduPilot's cast encoding, not PX4's byte-wise one).
 """
 
@@ -36,6 +41,7 @@ from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.links.messages import ParamRequestList, ParamRequestRead, ParamSet
 from apf_companion.outbox import Outbox
+from apf_companion.perception.ratelog import RateLimitedWarning, Throttle
 
 __all__ = ["PARAMS", "ParamServer", "ParamSpec", "config_with", "param_value"]
 
@@ -48,6 +54,10 @@ INT32_MAX = 2**31 - 1
 PLANNER_PARAMS = "planner.params."
 LIST_BURST = 5  # PARAM_VALUEs of a list per burst (GCS_Param.cpp queued_param_send: 5 without flow control)
 LIST_PERIOD_S = 0.02  # between bursts [wall s]: 250 PARAM_VALUE/s, a 24-parameter list in about 0.1 s
+# A refused PARAM_SET's STATUSTEXT and WARNING: at most one each per this long [service s]. A STATUSTEXT is up to
+# 4 chunks (~260 bytes): under 5 % of a 57600-baud link at the most, and a person setting values by hand gets
+# every refusal said.
+REFUSED_INTERVAL_S = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,6 +182,8 @@ class ParamServer:
         self.queue: collections.deque[int] = collections.deque()  # indices of a list request still to send
         self.sets = 0
         self.refused = 0
+        self._refused_log = RateLimitedWarning(log, "param.refused", REFUSED_INTERVAL_S)
+        self._refused_text = Throttle(REFUSED_INTERVAL_S)
         self._wake = asyncio.Event()
 
     async def run(self) -> None:
@@ -182,7 +194,8 @@ class ParamServer:
             while self.send_queued(LIST_BURST):
                 await asyncio.sleep(LIST_PERIOD_S)
 
-    def handle(self, rec: ParamRequestList | ParamRequestRead | ParamSet) -> None:
+    def handle(self, rec: ParamRequestList | ParamRequestRead | ParamSet, now_s: float) -> None:
+        """One request addressed to us, at ``now_s`` on the service clock [s]."""
         if isinstance(rec, ParamRequestList):
             self.queue.clear()  # a new list restarts from index 0 (ArduPilot restarts its queued parameter)
             self.queue.extend(range(len(PARAMS)))
@@ -190,7 +203,7 @@ class ParamServer:
         elif isinstance(rec, ParamRequestRead):
             self._read(rec)
         else:
-            self._set(rec)
+            self._set(rec, now_s)
 
     def send_queued(self, budget: int) -> int:
         """Send up to ``budget`` PARAM_VALUEs of a list request; how many are left."""
@@ -212,7 +225,7 @@ class ParamServer:
         if spec is not None:
             self._send(spec, PARAMS.index(spec))
 
-    def _set(self, rec: ParamSet) -> None:
+    def _set(self, rec: ParamSet, now_s: float) -> None:
         spec = _BY_NAME.get(rec.param_id)
         if spec is None:
             return  # ArduPilot and PX4 stay silent about a parameter they do not have
@@ -221,8 +234,11 @@ class ParamServer:
             config, planner = config_with(self.config, self.planner, spec, rec.param_value)
         except ConfigError as err:
             self.refused += 1
-            log.warning("param.refused", extra={"param": spec.name, "value": rec.param_value, "error": str(err)})
-            self._statustext(mavlink.MAV_SEVERITY_WARNING, f"{spec.name} refused: {err}")
+            self._refused_log.note(now_s, param=spec.name, value=rec.param_value, error=str(err))
+            unsaid = self._refused_text.allow(now_s)
+            if unsaid is not None:
+                more = f" ({unsaid} more refused, not said)" if unsaid else ""  # before the reason: never cut
+                self._statustext(mavlink.MAV_SEVERITY_WARNING, f"{spec.name} refused{more}: {err}")
         else:
             self.sets += 1
             self.config, self.planner = config, planner

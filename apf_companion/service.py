@@ -305,7 +305,7 @@ class CompanionService:
             set_route=self.admission.admit,
             on_pose=self._pose_arrived,
             route_at_start=self.admission.start_route,
-            on_param=lambda rec: self.params.handle(rec),
+            on_param=lambda rec, now_s: self.params.handle(rec, now_s),
             on_fence=lambda rec: None if self.fence is None else self.fence.on_record(rec),
         )
         self.reporter = StatusReporter(

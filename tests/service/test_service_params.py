@@ -3,6 +3,7 @@ UDP while the service flies the scripted autopilot; refused values are echoed ba
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -13,15 +14,17 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.config import config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.links import MavlinkLink
+from apf_companion.links.messages import ParamSet, Source
 from apf_companion.navigator import State
 from apf_companion.observe import PlanTap
-from apf_companion.params import PARAMS, config_with
+from apf_companion.outbox import Outbox
+from apf_companion.params import PARAMS, REFUSED_INTERVAL_S, ParamServer, config_with
 from apf_companion.planning.params import PlannerParams
-from apf_companion.service import CompanionService
+from apf_companion.service import CompanionService, build_planner
 from apf_companion.setpoint import SetpointKind
 from tests.conftest import HANG_S, until, within
 from tests.service.mavproxy import mavproxy_path, mavproxy_session
-from tests.service.test_service_mavlink import fast_config, gcs_for, rig
+from tests.service.test_service_mavlink import TICK_S, fast_config, gcs_for, rig
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -124,14 +127,18 @@ async def test_set_valid_value_is_used_by_the_running_planner() -> None:
 
 
 async def test_refused_value_is_echoed_old_with_a_statustext() -> None:
+    """Each refused value gets the old value back and, a second or more after the last, a STATUSTEXT saying why."""
     async with rig(route=Route.point(20.0, 0.0, -5.0, source="test")) as (svc, ap), gcs_for(svc) as gcs:
         await within(svc.clock.now, lambda: len(ap.setpoints()) > 3, 10.0, "flying")
         old_planner = svc.navigator.planner
         seen: list[Any] = []
+        apart = int(REFUSED_INTERVAL_S / TICK_S) + 1  # autopilot ticks: the service clock follows them
         msg = await set_param(gcs, "APF_CRUISE_SPD", -1.0, seen)  # cycle.cruise_speed_m_s must be in (0, 20]
         assert msg.param_value == pytest.approx(1.0)
+        await ap.ticks_pass(apart)
         msg = await set_param(gcs, "APF_N_BACT", 2.5, seen)  # an integer parameter
         assert msg.param_value == pytest.approx(PlannerParams().n_bacteria)
+        await ap.ticks_pass(apart)
         msg = await set_param(gcs, "APF_RHO_U", math.nan, seen)
         assert msg.param_value == pytest.approx(PlannerParams().rho_u_m)
         texts = [m.text for m in seen if m.get_type() == "STATUSTEXT"]
@@ -146,6 +153,60 @@ async def test_refused_value_is_echoed_old_with_a_statustext() -> None:
         gcs.send(gcs.mav.param_request_read_encode(1, 191, b"APF_STEP", -1))
         msg = (await param_values(gcs, 1))[0]
         assert msg.param_id == "APF_STEP"
+
+
+def test_refusals_are_said_at_once_then_at_most_once_a_second(caplog: pytest.LogCaptureFixture) -> None:
+    """A review sent 300 refused PARAM_SETs (APF_STEP = -1) in 0.65 s: 900 STATUSTEXT chunks towards the autopilot
+    and 300 WARNING lines. Now the first refusal is said at once (STATUSTEXT and WARNING ``param.refused``), then
+    at most one of each per ``REFUSED_INTERVAL_S`` of the service clock, carrying how many went unsaid (the others
+    go to DEBUG). Driven with the service time, socket-free."""
+    cfg = config_from_mapping({})
+    texts: list[str] = []
+    outbox = Outbox(None, dry_run=False, target_system=1, target_component=1, now_s=lambda: 0.0)
+    server = ParamServer(
+        cfg, build_planner(cfg), outbox=outbox, apply=lambda *_: None, statustext=lambda _, t: texts.append(t)
+    )
+    bad = ParamSet(
+        src=Source(255, 190), target_system=1, target_component=191, param_id="APF_STEP", param_value=-1.0,
+        param_type=mavlink.MAV_PARAM_TYPE_REAL32,
+    )  # fmt: skip
+
+    def warnings() -> list[logging.LogRecord]:
+        return [r for r in caplog.records if r.getMessage() == "param.refused" and r.levelno == logging.WARNING]
+
+    caplog.set_level(logging.DEBUG, logger="apf_companion.params")
+    t0 = 100.0
+    for i in range(300):  # 300 in 0.6 s
+        server.handle(bad, t0 + i * 0.002)
+    assert len(texts) == 1 and texts[0].startswith("APF_STEP refused: planner.params")
+    assert len(warnings()) == 1 and warnings()[0].unlogged == 0  # type: ignore[attr-defined]
+    assert sum(r.getMessage() == "param.refused" and r.levelno == logging.DEBUG for r in caplog.records) == 299
+    server.handle(bad, t0 + REFUSED_INTERVAL_S)  # a second after the first: said, with the count
+    assert len(texts) == 2 and texts[1].startswith("APF_STEP refused (299 more refused, not said): planner.params")
+    assert len(warnings()) == 2 and warnings()[1].unlogged == 299  # type: ignore[attr-defined]
+    server.handle(bad, t0 + 1.5 * REFUSED_INTERVAL_S)
+    assert len(texts) == 2 and len(warnings()) == 2 and server.refused == 302
+
+
+async def test_a_flood_of_refused_values_gets_every_answer_and_few_texts() -> None:
+    """Each refused PARAM_SET is answered with the old value (the ground station sends it again without one, as
+    ArduPilot's handle_param_set answers a denied one); STATUSTEXTs about them come at most once a second of the
+    service clock, the first at once."""
+    async with rig(route=Route.point(20.0, 0.0, -5.0, source="test")) as (svc, ap), gcs_for(svc) as gcs:
+        await within(svc.clock.now, lambda: len(ap.setpoints()) > 3, 10.0, "flying")
+
+        def said() -> list[str]:
+            return [m.text for m in ap.of_type("STATUSTEXT") if m.text.startswith("APF_STEP refused")]
+
+        t0 = svc.clock.now()
+        for _ in range(50):
+            gcs.send(gcs.mav.param_set_encode(1, 191, b"APF_STEP", -1.0, mavlink.MAV_PARAM_TYPE_REAL32))
+        values = await param_values(gcs, 50)
+        span_s = svc.clock.now() - t0  # every PARAM_SET was handled within it
+        assert {(v.param_id, round(v.param_value, 6)) for v in values} == {("APF_STEP", PlannerParams().step_m)}
+        await within(svc.clock.now, lambda: bool(said()), 2.0, "the first refusal said")
+        assert svc.params.refused == 50
+        assert 1 <= len(said()) <= 1 + span_s / REFUSED_INTERVAL_S
 
 
 async def test_apf_fence_poll_sets_how_often_the_running_service_reads_the_fence() -> None:
