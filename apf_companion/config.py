@@ -110,7 +110,8 @@ class LinkConfig:
         autopilot_sysid: System id of the autopilot; our heartbeat uses it too (the vehicle's sysid).
         autopilot_compid: Component id of the autopilot (1).
         component_id: Our component id: 191 (MAV_COMP_ID_ONBOARD_COMPUTER) or e.g. 196 (OBSTACLE_AVOIDANCE).
-            Never a ground station's id (190, or anything on a GCS sysid).
+            Never a ground station's id (190, or anything on a GCS sysid), nor ``autopilot_compid``: we send with
+            the autopilot's system id, so the same component id would make our HEARTBEATs and setpoints its own.
         gcs_sysids: Systems allowed to send us commands (COMMAND_INT DO_REPOSITION addressed to us).
         heartbeat_timeout_s: No autopilot HEARTBEAT for this long -> LINK_LOST [s].
         telemetry_rate_hz: Rate requested for LOCAL_POSITION_NED and ATTITUDE (SET_MESSAGE_INTERVAL) [Hz].
@@ -160,6 +161,13 @@ class LinkConfig:
         _check_id("link.component_id", self.component_id)
         if self.component_id == 190:
             raise _fail("link.component_id", "a companion id (191-194, 195, 196 ...), not 190 (GCS)", 190)
+        if self.component_id == self.autopilot_compid:
+            # We send as autopilot_sysid/component_id: the same pair would be the autopilot's HEARTBEAT and setpoints
+            raise _fail(
+                "link.component_id",
+                "different from link.autopilot_compid (we send with the autopilot's system id)",
+                self.component_id,
+            )
         for sysid in self.gcs_sysids:
             _check_id("link.gcs_sysids[]", sysid)
             if sysid == self.autopilot_sysid:

@@ -44,6 +44,9 @@ def test_deploy_example_loads_and_builds_its_planner() -> None:
         ({"cycle": {"pose_max_age_s": 0.0}}, r"cycle\.pose_max_age_s"),
         ({"link": {"component_id": 190}}, r"link\.component_id"),
         ({"link": {"component_id": 300}}, r"link\.component_id must be an integer in \[1, 255\]"),
+        # the autopilot's own ids (we send with its sysid): a review's config passed with component_id = 1
+        ({"link": {"component_id": 1}}, r"link\.component_id must be different from link\.autopilot_compid"),
+        ({"link": {"autopilot_compid": 191}}, r"link\.component_id must be different from link\.autopilot_compid"),
         ({"link": {"gcs_sysids": [1]}}, r"link\.gcs_sysids"),
         ({"autopilot": {"profile": "inav"}}, r"autopilot\.profile must be one of 'ardupilot', 'px4'"),
         ({"autopilot": {"offboard_prestream_s": 0.5}}, r"autopilot\.offboard_prestream_s"),

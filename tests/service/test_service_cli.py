@@ -145,6 +145,22 @@ def test_run_dry_run_process_stops_cleanly_on_sigint(tmp_path: Path) -> None:
     assert rec["gc"]["frozen"] > 10_000
 
 
+def test_check_config_refuses_the_autopilots_own_ids_for_the_companion(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A review's config (``component_id = 1``) passed: the service would have sent HEARTBEAT and setpoints as 1/1,
+    the autopilot's ids (we send with its system id). Another component id with the same autopilot passes."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[link]\ncomponent_id = 1\n")
+    assert main(["check-config", str(bad)]) == 2
+    assert "link.component_id must be different from link.autopilot_compid" in capsys.readouterr().err
+    bad.write_text("[link]\nautopilot_compid = 196\ncomponent_id = 196\n")
+    assert main(["check-config", str(bad)]) == 2
+    assert "link.component_id" in capsys.readouterr().err
+    bad.write_text("[link]\nautopilot_compid = 1\ncomponent_id = 196\n")
+    assert main(["check-config", str(bad)]) == 0
+
+
 def test_check_config_refuses_a_connection_string_run_would_refuse(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
