@@ -12,7 +12,10 @@ Interpretation by ``frame`` (decided here, documented in docs/service.md):
   MAV_FRAME_GLOBAL_RELATIVE_ALT (3), GLOBAL_RELATIVE_ALT_INT (6): ``z`` above home [m]. Converted to local NED
   about the vehicle's latest GLOBAL_POSITION_INT / LOCAL_POSITION_NED pair (flat earth; fine within a few km).
 - Other frames: MAV_RESULT_UNSUPPORTED. No global reference yet: MAV_RESULT_TEMPORARILY_REJECTED.
-  Non-finite or absurd coordinates: MAV_RESULT_DENIED. COMMAND_LONG DO_REPOSITION: MAV_RESULT_COMMAND_INT_ONLY.
+  Coordinates no goal can have (z = +-inf, latitude/longitude out of range, a waypoint more than ``MAX_LOCAL_M``
+  from the origin: ``Route``): MAV_RESULT_DENIED. COMMAND_LONG DO_REPOSITION: MAV_RESULT_COMMAND_INT_ONLY.
+  A goal that is a place but lies outside the limits (``route_outside_limits``, checked by goal admission) is
+  answered TEMPORARILY_REJECTED by the handlers (docs/hardening.md, Goals).
 """
 
 from __future__ import annotations
