@@ -545,7 +545,8 @@ class SafetyConfig:
         max_accel_m_s2: ... or further than the last velocity plus this acceleration allows [m/s^2].
         pose_noise_m: Position noise allowed on top of the motion limits [m].
         max_abs_position_m: A pose coordinate beyond this (from the EKF origin) is rejected [m].
-        pose_time_jump_s: A pose stamped this much further ahead than its receive time allows is rejected [s].
+        pose_time_jump_s: A pose stamped this much further ahead than the receive clock allows (the clock
+            relation tracked over the stream) is rejected; poses stamped ahead gain at most this much in all [s].
         pose_reset_samples: Consistent rejected poses in a row that re-anchor (a real EKF reset).
         reset_hold_s: After a re-anchor, hold this long (and announce it) before navigating [s].
         guid_timeout_s: How long the autopilot keeps following the last setpoint's velocity when the setpoints

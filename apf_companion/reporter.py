@@ -254,7 +254,7 @@ class StatusReporter:
         not sendable."""
         c, p, o = self.counters, self.perception.counters, self.outbox
         pose = p.bad_poses + p.stale_poses + p.out_of_bounds_poses + p.implausible_poses + p.pose_time_jumps
-        pose += p.stale_attitudes + p.bad_attitude_rates
+        pose += p.pose_time_leads + p.pose_conflicts + p.stale_attitudes + p.bad_attitude_rates
         return {
             NVI_REJECTED_POSES: pose,
             NVI_REJECTED_SCANS: p.bad_scans + p.clears_refused,

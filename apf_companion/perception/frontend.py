@@ -75,7 +75,12 @@ POSE_HISTORY_LEN = 200  # poses kept to place scans (10 s at 20 Hz)
 STAMP_PLAUSIBLE_S = 5.0  # a stamp older than this (or in the future) is on another clock: use receive time
 UNIX_USEC = 10**15  # OBSTACLE_DISTANCE.time_usec at or above this is UNIX time, not time since boot
 # A sensor sending only bad scans (10-50 Hz) must not fill the journal, but the user must see why bad_scans counts.
-BAD_SCAN_LOG_INTERVAL_S = 10.0  # at most one ranges.bad WARNING per this long (service clock) [s]
+BAD_SCAN_LOG_INTERVAL_S = 10.0  # at most one ranges.bad (or pose.conflict) WARNING per this long (service clock) [s]
+CONFLICT_HINT = (
+    "two LOCAL_POSITION_NED streams with the autopilot's ids claim different positions for the same time (a spoofed "
+    "stream, or a second source with the same sysid/compid): braking while they disagree; "
+    "link.require_signed_telemetry drops unsigned poses"
+)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -118,10 +123,12 @@ class PerceptionCounters:
 
     poses: int = 0
     bad_poses: int = 0  # NaN / non-finite LOCAL_POSITION_NED or ATTITUDE
-    stale_poses: int = 0  # time_boot_ms not newer than the last one (frozen or reordered)
+    stale_poses: int = 0  # time_boot_ms not newer than the last accepted one (frozen or reordered)
     out_of_bounds_poses: int = 0  # a coordinate beyond [safety] max_abs_position_m
     implausible_poses: int = 0  # further than the vehicle can move since the last pose
-    pose_time_jumps: int = 0  # time_boot_ms forward beyond the receive clock, or far back without reboot evidence
+    pose_time_leads: int = 0  # time_boot_ms ahead of the receive clock (its tracked relation) beyond the tolerance
+    pose_time_jumps: int = 0  # time_boot_ms far back without reboot evidence
+    pose_conflicts: int = 0  # stale, and contradicts the accepted poses of its time: a second stream (brakes)
     pose_resets: int = 0  # re-anchored on a sustained new position / time base (EKF reset, reboot)
     bad_velocities: int = 0  # a reported velocity non-finite or beyond [safety] max_speed_m_s: pose kept, no velocity
     stale_attitudes: int = 0  # an ATTITUDE not newer than the newest (reordered, duplicate): ignored
@@ -155,6 +162,7 @@ class PerceptionFrontEnd:
         self.sectors = SectorFreshness(params.sectors, params.sector_max_age_s)
         self._sensor_ids: dict[str, int] = {}
         self.bad_scan_log = RateLimitedWarning(log, "ranges.bad", BAD_SCAN_LOG_INTERVAL_S)
+        self.conflict_log = RateLimitedWarning(log, "pose.conflict", BAD_SCAN_LOG_INTERVAL_S)
         self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
         self._ranges_t_s: float | None = None
@@ -218,6 +226,8 @@ class PerceptionFrontEnd:
         if yaw_rad is None:
             return None  # no ATTITUDE yet: body-frame ranges could not be placed
         verdict = self.gate.check(time_boot_ms, pos_ned_m, now_s)
+        if verdict is Verdict.CONFLICT:
+            self.conflict_log.note(now_s, hint=CONFLICT_HINT)
         if verdict is Verdict.RESET:
             self._reset(f"position reset to {pos_ned_m[0]:.1f} {pos_ned_m[1]:.1f} {pos_ned_m[2]:.1f}")
         elif verdict is not Verdict.ACCEPT:
@@ -230,7 +240,10 @@ class PerceptionFrontEnd:
         except ConfigError:
             self.counters.bad_poses += 1
             return None
-        self._boot_offset_s = now_s - time_boot_ms / 1000.0
+        last = self.gate.last
+        # The pose's effective time (its stamp, no later than the receive clock allows): a pose stamped ahead does
+        # not move where scans and headings are placed in time.
+        self._boot_offset_s = now_s - (time_boot_ms / 1000.0 if last is None else last.eff_s)
         if self.heading.age_s(time_boot_ms) > MAX_HEADING_AGE_S:
             # The ATTITUDE stream stopped: the navigator still gets the position, but no range is placed with
             # a guessed heading (scans then find no pose, the memory ages, and "ranges stale" holds).
@@ -446,7 +459,9 @@ _REJECTED = {
     Verdict.NON_FINITE: "bad_poses",
     Verdict.OUT_OF_BOUNDS: "out_of_bounds_poses",
     Verdict.STALE: "stale_poses",
+    Verdict.TIME_LEAD: "pose_time_leads",
     Verdict.TIME_JUMP: "pose_time_jumps",
+    Verdict.CONFLICT: "pose_conflicts",
     Verdict.JUMP: "implausible_poses",
 }
 """The counter of each rejecting verdict."""

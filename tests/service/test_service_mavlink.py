@@ -26,7 +26,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from apf_companion.autopilot import MASK_POS_VEL, MASK_VELOCITY, CopterMode
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.goal import Route, route_outside_limits
-from apf_companion.links import MavlinkLink
+from apf_companion.links import MavlinkLink, SigningParams
 from apf_companion.navigator import State
 from apf_companion.service import CompanionService
 from tests.conftest import SimulatorClock, counter_advances, within
@@ -125,14 +125,21 @@ def fast_config(**sections: dict[str, Any]) -> ServiceConfig:
 
 @contextlib.asynccontextmanager
 async def rig(
-    cfg: ServiceConfig | None = None, route: Route | None = None, custom_mode: int = int(CopterMode.LOITER)
+    cfg: ServiceConfig | None = None,
+    route: Route | None = None,
+    custom_mode: int = int(CopterMode.LOITER),
+    *,
+    ap_signing: SigningParams | None = None,
 ) -> AsyncIterator[tuple[CompanionService, ScriptedAutopilot]]:
+    """The service and a scripted autopilot (which signs its frames with ``ap_signing``) over loopback UDP."""
     cfg = cfg or fast_config()
     clock = SimulatorClock(1.0)
     svc = await CompanionService.open(cfg, route=route, clock=clock)
     assert svc.link is not None and svc.link.local_address is not None
     port = svc.link.local_address[1]
-    ap_link = await MavlinkLink.open(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    ap_link = await MavlinkLink.open(
+        f"udpout:127.0.0.1:{port}", source_system=1, source_component=1, signing=ap_signing
+    )
     ap = ScriptedAutopilot(ap_link)
     ap.custom_mode = custom_mode  # the mode of its first HEARTBEAT
     clock.follow(ap)

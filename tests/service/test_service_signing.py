@@ -227,6 +227,36 @@ async def test_the_signing_timestamp_persists_across_a_restart(tmp_path: Path) -
     assert (store.load() or 0) >= ahead + MINUTE
 
 
+async def test_with_signed_telemetry_required_forged_poses_never_reach_the_pose_gate(tmp_path: Path) -> None:
+    """The autopilot signs; unsigned LOCAL_POSITION_NED frames with its ids, injected on its own socket (each
+    stamped 0.95 s after the last and 5 m further east, test_service_pose_time.py's walk), are dropped by the
+    signing check before any handler: the pose gate never sees them (docs/hardening.md "Pose plausibility")."""
+    cfg = signed_config(tmp_path, require_signed_telemetry=True)
+    ap_signing = SigningParams(key=KEY, initial_timestamp=signing_timestamp(time.time()))
+    async with rig(cfg, Route.point(30.0, 0.0, -5.0, source="test"), ap_signing=ap_signing) as (svc, ap):
+        assert svc.link is not None and svc.link.signing is not None
+        stats = svc.link.signing.stats
+        await until(lambda: len(ap.setpoints()) > 20, HANG_S, "flying on signed telemetry")
+        ap.follow_setpoints = False
+        await ap.ticks_pass(3)
+        genuine, c = list(ap.pos), svc.perception.counters
+        rejected0 = stats.rejected
+        counted0 = (c.stale_poses, c.implausible_poses, c.pose_time_leads, c.pose_conflicts, c.pose_resets)
+        forger = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)  # the autopilot's ids, no key
+        stamp = ap.boot_ms()
+        for i in range(1, 11):
+            stamp += 950
+            forged = forger.local_position_ned_encode(stamp, genuine[0], genuine[1] + 5.0 * i, genuine[2], 0, 0, 0)
+            ap.link.send_bytes(bytes(forged.pack(forger)))
+            await ap.ticks_pass(1)
+        await until(lambda: stats.rejected - rejected0 >= 10, HANG_S, "the forged frames dropped")
+        await ap.ticks_pass(5)
+        assert stats.unsigned >= 10 and stats.bad_signature == 0
+        pose = svc.navigator.pose
+        assert pose is not None and math.dist(tuple(pose.pos_ned_m), genuine) < 0.1
+        assert (c.stale_poses, c.implausible_poses, c.pose_time_leads, c.pose_conflicts, c.pose_resets) == counted0
+
+
 # ---- against the bundled simulator ----------------------------------------------------------------------------
 async def _sim_flight(
     cfg: ServiceConfig, sim_key: bytes | None, route: Route, *, unasked_streams: bool | None = None
