@@ -93,6 +93,8 @@ DEG_E7 = 1e-7
 MM = 1e-3
 # ArduCopter position_ok() (system.cpp ekf_has_absolute_position / _relative_position): a horizontal position, not
 # the constant-position mode the EKF is in before it has one
+#: STATUSTEXT when two pose streams with the autopilot's ids disagree (``PoseGate`` CONFLICT): the service brakes.
+POSE_CONFLICT_TEXT = "APF BRAKING: two position streams disagree"
 SLOW_STREAMS_LOG_INTERVAL_S = 60.0  # ``streams.slow``: the first at once, then at most one line a minute
 EKF_POSITION_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS | mavlink.EKF_POS_HORIZ_REL
 _STREAM_OF = {
@@ -139,6 +141,8 @@ class AutopilotHandlers:
         on_fence: Takes the autopilot's MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK, PARAM_VALUE,
             HOME_POSITION and SYS_STATUS (the fence read,
             apf_companion.fencereader.FenceReader.on_record); None = ignored.
+        statustext: Sends a STATUSTEXT (severity, text) as the reporter does (``StatusReporter.statustext``); None =
+            none.
     """
 
     def __init__(
@@ -154,6 +158,7 @@ class AutopilotHandlers:
         route_at_start: Route | None,
         on_param: Callable[[ParamRecord, float], None] | None = None,
         on_fence: Callable[[FenceRecord], None] | None = None,
+        statustext: Callable[[int, str], None] | None = None,
     ) -> None:
         self.params = params
         self.perception = perception
@@ -165,6 +170,7 @@ class AutopilotHandlers:
         self._route_at_start = route_at_start
         self._on_param = on_param
         self._fence_sink = on_fence
+        self._statustext = statustext or (lambda severity, text: None)
         self.heard = False
         self.heartbeats = 0  # autopilot HEARTBEATs heard (the takeover weighs its evidence by them)
         self.custom_mode: int | None = None
@@ -290,6 +296,8 @@ class AutopilotHandlers:
         reset = self.perception.take_reset()
         if reset is not None:
             self.navigator.recovery.position_reset(now_s, reset)
+        if self.perception.take_conflict():  # braking with no state change: say why (the log has the details)
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, POSE_CONFLICT_TEXT)
         self.navigator.recovery.pose_confirmed = self.perception.gate.confirmed
         if pose is not None and self.navigator.update_pose(pose):
             self._on_pose(rec.time_boot_ms)

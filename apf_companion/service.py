@@ -307,6 +307,7 @@ class CompanionService:
             route_at_start=self.admission.start_route,
             on_param=lambda rec, now_s: self.params.handle(rec, now_s),
             on_fence=lambda rec: None if self.fence is None else self.fence.on_record(rec),
+            statustext=lambda severity, text: self.reporter.statustext(severity, text),
         )
         self.reporter = StatusReporter(
             reporter_params(config),

@@ -164,6 +164,7 @@ class PerceptionFrontEnd:
         self.bad_scan_log = RateLimitedWarning(log, "ranges.bad", BAD_SCAN_LOG_INTERVAL_S)
         self.conflict_log = RateLimitedWarning(log, "pose.conflict", BAD_SCAN_LOG_INTERVAL_S)
         self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
+        self.conflict_said = False  # a pose.conflict WARNING was logged; the handler takes it (STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
         self._ranges_t_s: float | None = None
         #: The obstacle points the newest usable scan added, (M, 3) local NED [m] (read by the visualisation).
@@ -226,8 +227,8 @@ class PerceptionFrontEnd:
         if yaw_rad is None:
             return None  # no ATTITUDE yet: body-frame ranges could not be placed
         verdict = self.gate.check(time_boot_ms, pos_ned_m, now_s)
-        if verdict is Verdict.CONFLICT:
-            self.conflict_log.note(now_s, hint=CONFLICT_HINT)
+        if verdict is Verdict.CONFLICT and self.conflict_log.note(now_s, hint=CONFLICT_HINT):
+            self.conflict_said = True  # the handler takes it (``take_conflict``): a STATUSTEXT as often as the log
         if verdict is Verdict.RESET:
             self._reset(f"position reset to {pos_ned_m[0]:.1f} {pos_ned_m[1]:.1f} {pos_ned_m[2]:.1f}")
         elif verdict is not Verdict.ACCEPT:
@@ -276,6 +277,12 @@ class PerceptionFrontEnd:
         """The reason of a re-anchor since the last call, or None."""
         reason, self.reset_reason = self.reset_reason, None
         return reason
+
+    def take_conflict(self) -> bool:
+        """Whether a ``pose.conflict`` WARNING was logged since the last call (at most one per
+        ``BAD_SCAN_LOG_INTERVAL_S``): the pilot is told why the vehicle brakes as often as the log is."""
+        said, self.conflict_said = self.conflict_said, False
+        return said
 
     def scan_time(self, boot_ms: int | None, now_s: float) -> float:
         """Service time of a measurement stamped with autopilot boot time (receive time if unknown)."""

@@ -15,9 +15,11 @@ import math
 from typing import Any
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from apf_companion.autopilot import MASK_VELOCITY
 from apf_companion.goal import Route
+from apf_companion.handlers import POSE_CONFLICT_TEXT
 from apf_companion.navigator import State
 from tests.conftest import within
 from tests.service.test_service_mavlink import ScriptedAutopilot, fast_config, rig
@@ -140,5 +142,9 @@ async def test_a_stream_stamped_ahead_of_the_genuine_one_brakes_and_never_walks_
         assert c.pose_conflicts >= 40 and not svc.perception.gate.confirmed
         brakes = [m for _, m in ap.setpoints()[n0:] if m.type_mask == MASK_VELOCITY]
         assert len(brakes) >= 40 and all(m.vx == m.vy == m.vz == 0.0 for m in brakes)
+        # The pilot is told why the vehicle brakes (no state change says it), once per log interval, not per pose.
+        await ap.ticks_pass(2)
+        said = [m for _, m in ap.received if m.get_type() == "STATUSTEXT" and m.text == POSE_CONFLICT_TEXT]
+        assert len(said) == 1 and said[0].severity == mavlink2.MAV_SEVERITY_WARNING
         await within(svc.clock.now, lambda: svc.perception.gate.confirmed, 5.0, "the genuine stream re-anchors")
         await within(svc.clock.now, lambda: navigator_offset_m(svc, genuine) < 0.5, 5.0, "the genuine pose")
