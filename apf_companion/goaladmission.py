@@ -148,7 +148,7 @@ class GoalAdmission:
     def recheck(self, now: float) -> None:
         """The fence's bounds came (or changed): a goal taken before them (flown or held) that lies outside them
         (above the ceiling, below the floor, outside the circle round home) is refused and dropped (IDLE)."""
-        route = self.navigator.route if self.navigator.held is None else self.navigator.held
+        route = self.navigator.goal.taken
         fence = self.bounds().fence
         if route is None or fence is None:
             return

@@ -326,7 +326,7 @@ class StatusReporter:
         leg starts (no pose yet, waiting for the pilot or the takeover) the route's first waypoint, ``leg`` null and
         a "keep the altitude" ``down_m`` null (JSON has no NaN)."""
         nav = self.navigator
-        route = nav.route if nav.route is not None else nav.held
+        route = nav.goal.taken
         if route is None:
             return None
         target = nav.active_target_ned_m if nav.route is not None else None

@@ -19,7 +19,12 @@ class GoalSlot:
     @property
     def has_goal(self) -> bool:
         """A goal is flown (``route``) or held for its check (``held``)."""
-        return self.route is not None or self.held is not None
+        return self.taken is not None
+
+    @property
+    def taken(self) -> Route | None:
+        """The goal taken: the one flown, or the one held for its check (never both)."""
+        return self.route if self.route is not None else self.held
 
     def fly(self, route: Route, *, engaged: bool) -> None:
         """Fly ``route`` (replacing a flown or held goal); ``engaged``: the autopilot is in its mode already."""
