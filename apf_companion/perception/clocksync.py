@@ -62,5 +62,10 @@ class ClockRelation:
         self._floor_rx_s = rx_s
         self.base_s = min(target, self._floor_s + self.budget_s)
 
+    def latest_stamp_s(self, rx_s: float) -> float:
+        """The latest stamp [s] a pose received at ``rx_s`` can carry under the relation: its effective time is its
+        stamp, but no later than this (perception/plausibility.py, "Time")."""
+        return rx_s + self.base_s
+
     def _rank(self) -> float:
         return heapq.nlargest(min(CLOCK_RANK, len(self._samples)), (o for _, o in self._samples))[-1]

@@ -157,7 +157,7 @@ class PoseGate:
             fix = _Fix(boot_ms, p, now_s, boot_s)
             self.clock.restart([(now_s, fix.offset_s)])  # a new time base: a new relation
             return self._anchor(fix, Verdict.ACCEPT if last is None else Verdict.RESET)
-        fix = _Fix(boot_ms, p, now_s, min(boot_s, now_s + self.clock.base_s))
+        fix = _Fix(boot_ms, p, now_s, min(boot_s, self.clock.latest_stamp_s(now_s)))
         if fix.offset_s > self.clock.base_s + lim.time_jump_s:
             return self._candidate(fix, Verdict.TIME_LEAD)
         verdict = self._versus(last, fix, float(np.linalg.norm(self.vel_m_s)))
@@ -243,7 +243,7 @@ class PoseGate:
         if len(track) >= self.limits.reset_samples and not rivals:
             # Two consistent streams (a spoof beside the real one) are conflicting evidence: neither re-anchors.
             self.clock.restart([(f.rx_s, f.offset_s) for f in track])  # the track may be a new time base
-            fix.eff_s = min(fix.boot_s, fix.rx_s + self.clock.base_s)
+            fix.eff_s = min(fix.boot_s, self.clock.latest_stamp_s(fix.rx_s))
             return self._anchor(fix, Verdict.RESET, agreeing=len(track))
         return verdict
 
