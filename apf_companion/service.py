@@ -296,19 +296,7 @@ class CompanionService:
         self.admission = _goal_admission(self, route if route is not None else initial_route(config, self.planner))
         self.link_meter = LinkMeter(self.navigator.params.caution)  # pose loss and send failures: caution
         self.outbox = build_outbox(config, link, self.clock.now)
-        self.handlers = AutopilotHandlers(
-            handler_params(config),
-            perception=self.perception,
-            navigator=self.navigator,
-            outbox=self.outbox,
-            counters=self.counters,
-            set_route=self.admission.admit,
-            on_pose=self._pose_arrived,
-            route_at_start=self.admission.start_route,
-            on_param=lambda rec, now_s: self.params.handle(rec, now_s),
-            on_fence=lambda rec: None if self.fence is None else self.fence.on_record(rec),
-            statustext=lambda severity, text: self.reporter.statustext(severity, text),
-        )
+        self.handlers = self._autopilot_handlers(config)
         self.reporter = StatusReporter(
             reporter_params(config),
             outbox=self.outbox,
@@ -328,6 +316,26 @@ class CompanionService:
         self._stop = asyncio.Event()
         self.trigger = CycleTrigger(self.clock, config.cycle.rate_hz)
         self.observers.add(_open_observers(config, self.clock) if observers is None else observers)  # last: opens
+
+    def _autopilot_handlers(self, config: ServiceConfig) -> AutopilotHandlers:
+        """Decoded MAVLink records to the parts that own them (the late-bound ones exist by the first record)."""
+        return AutopilotHandlers(
+            handler_params(config),
+            perception=self.perception,
+            navigator=self.navigator,
+            outbox=self.outbox,
+            counters=self.counters,
+            set_route=self.admission.admit,
+            on_pose=self._pose_arrived,
+            route_at_start=self.admission.start_route,
+            on_param=lambda rec, now_s: self.params.handle(rec, now_s),
+            on_fence=lambda rec: None if self.fence is None else self.fence.on_record(rec),
+            statustext=self.statustext,
+        )
+
+    def statustext(self, severity: int, text: str) -> None:
+        """A STATUSTEXT as the reporter sends them (for the parts built before it: handlers, goal admission)."""
+        self.reporter.statustext(severity, text)
 
     def _drivers(self, config: ServiceConfig) -> tuple[ObstacleForwarder, TakeoverDriver]:
         """The parts that send on their own schedule: OBSTACLE_DISTANCE forwarding and the takeover."""
@@ -684,7 +692,7 @@ def _goal_admission(svc: CompanionService, start_route: Route | None) -> GoalAdm
         bounds=bounds,
         counters=svc.counters,
         flight=svc.flight,
-        statustext=lambda severity, text: svc.reporter.statustext(severity, text),
+        statustext=svc.statustext,
         end_run=svc.stop,
         start_route=start_route,
     )
