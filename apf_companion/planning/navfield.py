@@ -28,6 +28,7 @@ are exits, as without an area.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -101,6 +102,9 @@ class NavGrid:
         self.edge_cells = np.flatnonzero(edge)
         edge_i, edge_j = np.divmod(self.edge_cells, self.n)
         self.edge_centres_m = np.stack([(edge_i + 0.5) * self.cell_m, (edge_j + 0.5) * self.cell_m], axis=1)
+        # The same as contiguous columns, for the seeds of every field (``_seeds``).
+        self._edge_north_m = self.edge_centres_m[:, 0].copy()
+        self._edge_east_m = self.edge_centres_m[:, 1].copy()
         src, dst, self._edge_cost = _grid_edges(self.n, self.cell_m)
         # The CSR arrays in scipy's index type (int32: fewer than 2^31 edges at 4096 cells a side), so that the
         # matrix of a field is made without converting them. Row pointers of the cells' rows; the source's row
@@ -258,11 +262,13 @@ class NavGrid:
             goal_slots[: near.size] = near
             goal_values[: near.size] = np.where(blocked[near], np.inf, euclid + 0.0)
             detour = n * h
-        centres = self.edge_centres_m
-        euclid = np.hypot(origin_m[0] + centres[:, 0] - goal_xy_m[0], origin_m[1] + centres[:, 1] - goal_xy_m[1])
         edge_values = self._weights[ne + _GOAL_SLOTS : -1]
-        np.copyto(edge_values, np.where(blocked[self.edge_cells], np.inf, euclid + detour))
-        if not self.exits:
+        if self.exits:
+            north, east = self._edge_north_m, self._edge_east_m
+            euclid = np.hypot(origin_m[0] + north - goal_xy_m[0], origin_m[1] + east - goal_xy_m[1])
+            np.add(euclid, detour, out=edge_values)
+            edge_values[blocked[self.edge_cells]] = np.inf
+        else:
             edge_values[:] = np.inf
         return bool(np.isfinite(self._weights[ne:-1]).any())
 
@@ -314,16 +320,25 @@ class NavGrid:
         out: IntArray = cells[w > 0.0]
         return out
 
-    def sample_many(self, origins_m: FloatArray, dists_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
-        """``sample`` for R fields at once: origins (R, 2), fields (R, n^2), points (R, P, 2) -> (R, P).
+    def sample_many(
+        self, origins_m: FloatArray, dists_m: FloatArray | Sequence[FloatArray], points_xy_m: FloatArray
+    ) -> FloatArray:
+        """``sample`` for R fields at once: origins (R, 2), fields (R, n^2) or R arrays (n^2,), points (R, P, 2)
+        -> (R, P).
 
-        Element for element the same arithmetic as one field at a time, so the values do not depend on R.
+        Element for element the same arithmetic as one field at a time, so the values do not depend on R. Fields
+        given one by one are read where the points need them, not stacked first (a copy of every cell of R fields:
+        most of the cost at the study's R).
         """
         n, h = self.n, self.cell_m
         rel = (points_xy_m - origins_m[:, None, :]) / h - 0.5
-        rows = np.arange(origins_m.shape[0])[None, :, None]
         cells, w = self._corners(rel)
-        val = dists_m[rows, cells]
+        if isinstance(dists_m, np.ndarray):
+            val = dists_m[np.arange(origins_m.shape[0])[None, :, None], cells]
+        elif len(dists_m) == 0:
+            val = np.empty(cells.shape)
+        else:
+            val = np.stack([dist[cells[:, i]] for i, dist in enumerate(dists_m)], axis=1)
         ok = np.isfinite(val) & (w > 0.0)
         term = np.where(ok, w * np.where(ok, val, 0.0), 0.0)
         weight = np.where(ok, w, 0.0)
