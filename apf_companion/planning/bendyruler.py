@@ -48,8 +48,9 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 #: Agents per group of the probe geometry (at least), and obstacles x agents x probes per group (small work
-#: arrays: megabyte temporaries cost page faults on every call).
-_GROUP = 16
+#: arrays: megabyte temporaries cost page faults on every call). Session 29, the study's bendyruler rows at 1000
+#: trials under cProfile: 16 agents -> 2.44 s in ``_margins``, 32 -> 2.30, 64 -> 2.29 (10 000 elements: the same).
+_GROUP = 32
 _GROUP_ELEMENTS = 5_000
 #: Probing stages: ranks [0, 3), [3, 10), [10, 30), then the rest. Most agents find an open probe in the first
 #: stage or two (measured in the study at 70-95 obstacles: 37 % at rank 0, 54 % within 4 ranks, 84 % within 16,

@@ -54,7 +54,7 @@ def near_obstacles(
     rel = obstacles_m - positions_m[:, None, :]
     # Non-finite obstacles give inf or NaN here, never a floating-point error (squares are >= 0; NaN is quiet),
     # and compare False. 2D: the two products written out, einsum's sum bit for bit (one rounding, either order)
-    # and about twice as fast at the study's groups of (16, 95, 2); 3D keeps einsum and its order.
+    # and about twice as fast at the study's groups of (16, 95, 2) (measured then); 3D keeps einsum and its order.
     if dim == 2:
         d2 = rel[:, :, 0] * rel[:, :, 0]
         d2 += rel[:, :, 1] * rel[:, :, 1]
