@@ -102,6 +102,9 @@ class DirectStep:
         self._move_vectors = np.concatenate([offsets_m.T, np.zeros((dim, 1))], axis=1)  # (D, K + 1)
         self._move_v2 = np.concatenate([o2, [_TINY]])  # zero length: t = 0 (the agent's column)
         self._starts = np.concatenate([np.zeros((dim, n_points + 1)), offsets_m.T], axis=1)[:, None, :]
+        # Every segment's vector (D, 2 K + 1) and |v|^2: the moves' columns fixed, the probes' written per step.
+        self._vectors = np.concatenate([self._move_vectors, np.zeros((dim, n_points))], axis=1)
+        self._v2 = np.concatenate([self._move_v2, np.zeros(n_points)])
         #: The geometry of the last step that returned None to enter ESCAPE (``plain_geometry``'s values: the
         #: look-ahead does not change them), None where it had no near obstacle.
         self.trapped: tuple[BoolArray, FloatArray, FloatArray, float] | None = None
@@ -180,9 +183,12 @@ class DirectStep:
             clear_k, clear_0, nearest = self._clearance(dot, r2)  # before _closest_from consumes dot
             swept = _closest_from(dot, _axis_sum(rel_t * rel_t), self._move_v2)
         else:
-            vectors = np.concatenate((self._move_vectors, probes.T), axis=1)
-            v2 = np.concatenate((self._move_v2, einsum("kd,kd->k", probes, probes)))
-            np.maximum(v2, _TINY, out=v2)
+            # The probes' columns of the step's segment vectors and |v|^2, written into the kept buffers (only read
+            # below: the results are new arrays).
+            vectors, v2 = self._vectors, self._v2
+            vectors[:, n + 1 :] = probes.T
+            probe_v2 = einsum("kd,kd->k", probes, probes, out=v2[n + 1 :])
+            np.maximum(probe_v2, _TINY, out=probe_v2)
             dot, d2 = _segments(rel, self._starts, vectors)
             clear_k, clear_0, nearest = self._clearance(dot[:, : n + 1], r2)  # before _closest consumes dot
             swept = _closest(dot, d2, v2)
@@ -223,7 +229,7 @@ class DirectStep:
         """Best passing point with the turn hysteresis (``BapfNavPlanner._choose``); some point passes."""
         best = int(scores.argmin())
         last = tuple(prev_dir[0].tolist())
-        if not any(c != 0.0 for c in last):
+        if not any(last):  # no previous move (a float is false only at +-0.0; NaN counts as a move, as c != 0.0)
             return best
         cos_turn = self._cos_after.get(last)
         if cos_turn is None:  # not a move of this planner's (a state from elsewhere): the batch path's call
