@@ -17,8 +17,9 @@ States (docs/service.md has the diagram):
   OFFBOARD); then runs the planner every cycle and sends its next point with velocity feed-forward.
 - HOLDING: pose or ranges stale. In the first HOLDING cycle it commands a hold at the last known position;
   after that it keeps commanding that hold only while the pose is fresh (ranges stale), and falls silent when
-  the pose is stale too (the autopilot's position hold / OFFBOARD-loss failsafe acts). Fresh inputs -> back to
-  NAVIGATING.
+  the pose is stale too (the autopilot's position hold / OFFBOARD-loss failsafe acts). Falling silent forgets the
+  hold point: a fresh pose with the ranges still stale holds anew at that pose (``HoldPoint``). Fresh inputs ->
+  back to NAVIGATING.
 - ARRIVED: within ``arrival_radius_m`` of the last waypoint: hold where it is (while the pose is fresh).
 - STUCK: the planner found no greedy move for ``random_walk_budget`` cycles in a row, or no progress for
   ``progress_timeout_s``: hold and report. A new goal restarts.

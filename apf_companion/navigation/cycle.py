@@ -123,7 +123,7 @@ class CycleHandlers:
             return self._hold_stale(inp)
         if self.recovery.holding(inp.now_s):
             return self._out(inp, self.hold.setpoint(self.vehicle.pose, pose_fresh=True), self._distance_to_goal())
-        self.hold.anchor = None
+        self.hold.reset()
         self.machine.change(inp.now_s, State.NAVIGATING, "inputs fresh again: navigating")
         return self._fly(inp)
 

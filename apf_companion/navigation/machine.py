@@ -74,7 +74,7 @@ class StateMachine:
     def drop_goal(self, now_s: float, new: State, reason: str) -> None:
         self.goal.drop()
         self.legs.leg = None
-        self.hold.anchor = None
+        self.hold.reset()
         self.change(now_s, new, reason)
 
     def enter_hold(self, now_s: float, new: State, reason: str) -> None:

@@ -154,7 +154,8 @@ class StepTracker:
 
 
 class HoldPoint:
-    """The point held in HOLDING / ARRIVED / STUCK: fixed on the first holding cycle."""
+    """The point held in HOLDING / ARRIVED / STUCK: fixed on the first holding cycle, and again at the first fresh
+    pose after the pose went stale (``setpoint``)."""
 
     def __init__(self) -> None:
         self.anchor: FloatArray | None = None
@@ -165,13 +166,20 @@ class HoldPoint:
         self.sent = False
 
     def setpoint(self, pose: Pose | None, *, pose_fresh: bool) -> Setpoint | None:
-        """Hold at the anchor: always once (the first cycle in a holding state), then only with a fresh pose."""
+        """Hold at the anchor: always once (the first cycle in a holding state, at the last known position), then
+        only with a fresh pose.
+
+        A stale pose after that silences the hold and forgets the anchor: while nothing is sent the vehicle moves on
+        (the last navigation setpoint's feed-forward, the autopilot's own hold, wind), so the next fresh pose fixes
+        the hold anew where the vehicle is. Re-sending the old anchor would fly the vehicle back to it, on ranges
+        that are still stale, for the cycle before navigation resumed from the new pose (the hostile-input review,
+        docs/hardening.md "A silent gap")."""
         if self.anchor is None:
-            if pose is None:
-                return None
+            if pose is None or (self.sent and not pose_fresh):
+                return None  # silenced by a stale pose: wait for a fresh one
             self.anchor = np.array(pose.pos_ned_m, dtype=np.float64)
-            self.sent = False
         if pose_fresh or not self.sent:
             self.sent = True
             return hold(self.anchor)
+        self.anchor = None
         return None

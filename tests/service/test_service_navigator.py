@@ -147,6 +147,74 @@ def test_stale_input_holds_within_one_cycle(what: str) -> None:
     assert nav.cycle(t).state is State.NAVIGATING
 
 
+def _silent_gap(nav: Navigator, t: float, gap_s: float = 2.0) -> float:
+    """Nothing arrives for ``gap_s`` (shorter than the heartbeat timeout): the cycles run on at 10 Hz. Returns the
+    time of the last cycle; the pose and ranges went stale within it, so the hold fell silent."""
+    outs = []
+    for _ in range(round(gap_s / 0.1)):
+        t += 0.1
+        outs.append(nav.cycle(t))
+    assert nav.link_alive(t) and outs[-1].setpoint is None
+    assert any(o.setpoint is not None and o.setpoint.kind is SetpointKind.HOLD for o in outs)
+    return t
+
+
+@pytest.mark.parametrize("before", [State.NAVIGATING, State.ARRIVED])
+def test_after_a_silent_gap_the_first_setpoint_holds_at_the_newest_pose(before: State) -> None:
+    """The hostile-input review: after a 2 s silent gap the first cycle (pose fresh, ranges not yet) sent the hold
+    point fixed before the gap, 1 m behind the vehicle, for one cycle before navigation resumed from the new pose."""
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    goal = 10.0 if before is State.NAVIGATING else 1.0
+    nav.set_route(Route.point(goal, 0.0, -5.0, source="test"), 0.1)
+    t, pos = fly(nav, 0.1, np.array([0.0, 0.0, -5.0]), 5 if before is State.NAVIGATING else 50)
+    if before is State.ARRIVED:
+        assert nav.state is State.ARRIVED
+        t += 0.1
+        feed(nav, t, tuple(pos))
+        assert nav.cycle(t).setpoint is not None  # the arrival's hold point is fixed
+    t = _silent_gap(nav, t)
+    assert nav.state in (State.HOLDING, State.ARRIVED)
+    # The heartbeat and a pose come back first, the vehicle 1 m on from where it was; no ranges yet.
+    t += 0.1
+    moved = (pos[0] + 1.0, pos[1] + 0.3, pos[2])
+    nav.autopilot_heartbeat(t, mode_ok=True)
+    assert nav.update_pose(Pose(t_s=t, pos_ned_m=np.array(moved), yaw_rad=0.0))
+    out = nav.cycle(t)
+    assert out.setpoint is not None and out.setpoint.kind is SetpointKind.HOLD
+    assert out.setpoint.pos_ned_m == pytest.approx(moved)  # where the vehicle is now, not the old hold point
+    t += 0.1
+    nav.update_pose(Pose(t_s=t, pos_ned_m=np.array(moved), yaw_rad=0.0))
+    out = nav.cycle(t)  # ranges still stale: the new hold point is kept while the pose is fresh
+    assert out.setpoint is not None and out.setpoint.pos_ned_m == pytest.approx(moved)
+    if before is State.NAVIGATING:
+        t += 0.1
+        feed(nav, t, moved)  # ranges too: navigation resumes from the newest pose
+        out = nav.cycle(t)
+        assert out.state is State.NAVIGATING and out.setpoint is not None
+        assert out.setpoint.kind is SetpointKind.NAVIGATE
+        assert math.dist(out.setpoint.pos_ned_m[:2], moved[:2]) <= nav.params.step_m + 1e-9
+
+
+def test_a_hold_on_stale_ranges_keeps_its_point_while_the_pose_is_fresh() -> None:
+    """Only a stale pose forgets the hold point: with the pose fresh and the ranges stale it stays where it was
+    fixed, however the pose moves."""
+    nav = make()
+    feed(nav, 0.1, (0, 0, -5))
+    nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.1)
+    t, pos = fly(nav, 0.1, np.array([0.0, 0.0, -5.0]), 3)
+    points = []
+    for k in range(12):  # ranges stop, the pose keeps coming and wanders
+        t += 0.1
+        nav.autopilot_heartbeat(t, mode_ok=True)
+        nav.update_pose(Pose(t_s=t, pos_ned_m=pos + np.array([0.02 * k, 0.0, 0.0]), yaw_rad=0.0))
+        out = nav.cycle(t)
+        if out.state is State.HOLDING:
+            assert out.setpoint is not None
+            points.append(out.setpoint.pos_ned_m)
+    assert len(points) >= 5 and len(set(points)) == 1
+
+
 def test_frozen_pose_timestamp_is_refused() -> None:
     nav = make()
     assert nav.update_pose(Pose(t_s=1.0, pos_ned_m=np.zeros(3), yaw_rad=0.0))

@@ -10,14 +10,21 @@ flight test cuts the service's link mid-flight on the bundled simulator and chec
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
 from apf_companion.goal import Route
-from apf_companion.navigator import State
-from apf_companion.setpoint import SetpointKind, silent_safe_velocity
-from tests.service.test_service_flight import GOAL, flight, service_config, sparse_world
+from apf_companion.linkquality import CLEAN_LINK, LinkQuality
+from apf_companion.navigator import CycleOutput, State
+from apf_companion.service import CompanionService
+from apf_companion.setpoint import Setpoint, SetpointKind, silent_safe_velocity
+from sim.linkfaults import Blackout, LinkFaults, LinkProxy
+from sim.vehicle import SimConfig, Simulator, SpawnConfig
+from sim.world import World
+from tests.conftest import SimulatorClock, until
+from tests.service.test_service_flight import GOAL, SPEEDUP, flight, running, service_config, sparse_world
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -61,3 +68,78 @@ async def test_link_cut_mid_flight_stops_near_the_last_step_target() -> None:
     assert float(np.hypot(*v.vel_ned_m_s[:2])) < 0.1  # stopped
     stop_m = math.dist(v.pos_ned_m[:2].tolist(), last.pos_ned_m[:2])
     assert stop_m <= drift_m + 0.3, (stop_m, last)  # the drift budget plus tracking / braking
+
+
+@dataclass(frozen=True)
+class _Cycle:
+    t_s: float
+    state: State
+    setpoint: Setpoint | None
+    pose_ned_m: tuple[float, float, float] | None  # the navigator's pose at the cycle
+    pose_t_s: float | None
+
+
+async def test_after_a_2_s_blackout_the_first_setpoint_comes_from_the_newest_pose() -> None:
+    """The hostile-input review's finding over real loopback UDP: a 2 s blackout of the link (both ways, through the
+    seeded fault proxy) mid-flight. The cycle the first pose after it triggers (the ranges are not placed yet) sent
+    a hold at the point fixed before the gap, about 1 m behind the vehicle, before navigation resumed from the new
+    pose. Now that first setpoint holds where the vehicle is (or navigates from there)."""
+    cfg = service_config()
+    clock = SimulatorClock(SPEEDUP)
+    svc = await CompanionService.open(cfg, route=Route.point(3.0, 20.0, -5.0, source="test"), clock=clock)
+    assert svc.link is not None and svc.link.local_address is not None
+    blackout = LinkFaults(blackouts=(Blackout(2.0, 0.0, relative=True),))  # from ``start_flight`` on
+    proxy = await LinkProxy.open(
+        blackout, companion_port=svc.link.local_address[1], seed=7, time_scale=SPEEDUP, clock=clock.now
+    )
+    nav = svc.navigator
+    cycle = nav.cycle
+    cycles: list[_Cycle] = []
+
+    def recording(now_s: float, link: LinkQuality = CLEAN_LINK) -> CycleOutput:
+        out = cycle(now_s, link)
+        pose = nav.pose
+        pos = None if pose is None else (float(pose.pos_ned_m[0]), float(pose.pos_ned_m[1]), float(pose.pos_ned_m[2]))
+        cycles.append(_Cycle(now_s, out.state, out.setpoint, pos, None if pose is None else pose.t_s))
+        return out
+
+    nav.cycle = recording  # type: ignore[method-assign]
+    sim = await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{proxy.vehicle_port}"],
+            world=World.empty(),
+            speedup=SPEEDUP,
+            seed=3,
+            spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=True, alt_m=5.0),
+        )
+    )
+    try:
+        async with running(svc, sim):
+            await until(lambda: nav.counters.planner_steps > 10, what="navigating")
+            assert nav.state is State.NAVIGATING
+            proxy.start_flight(1.0)  # the blackout starts now
+            t_cut = clock.now()
+            first = len(cycles)
+            silent = lambda: any(c.setpoint is None for c in cycles[first:])  # noqa: E731
+            await until(silent, what="silent during the blackout")
+            await until(lambda: any(c.setpoint is not None for c in cycles[_after(cycles, first) :]), what="back")
+    finally:
+        await proxy.aclose()
+    gap = cycles[first:]
+    assert any(c.state is State.HOLDING for c in gap)
+    back = next(c for c in cycles[_after(cycles, first) :] if c.setpoint is not None)
+    assert back.t_s >= t_cut + 2.0  # nothing sent from the first silent cycle to the blackout's end
+    assert back.pose_ned_m is not None and back.pose_t_s is not None and back.pose_t_s > t_cut + 1.0  # a new pose
+    sp = back.setpoint
+    assert sp is not None
+    if sp.kind is SetpointKind.HOLD:
+        assert sp.pos_ned_m == pytest.approx(back.pose_ned_m)  # where the vehicle is: not the point before the gap
+    else:
+        assert sp.kind is SetpointKind.NAVIGATE
+        assert math.dist(sp.pos_ned_m[:2], back.pose_ned_m[:2]) <= nav.params.step_m + 1e-9
+
+
+def _after(cycles: list[_Cycle], first: int) -> int:
+    """The index of the first cycle after the first silent one from ``first`` on (len(cycles) if none yet)."""
+    silent = next((i for i in range(first, len(cycles)) if cycles[i].setpoint is None), len(cycles))
+    return silent + 1
