@@ -273,7 +273,8 @@ class CycleConfig:
 
     Attributes:
         rate_hz: Planner cycles per (vehicle) second; each fresh cycle sends one setpoint [Hz].
-        pose_max_age_s: A pose older than this is stale -> HOLDING [s].
+        pose_max_age_s: A pose older than this is stale -> HOLDING: one hold at the last known position, then
+            silence; the first fresh pose after it fixes the hold anew where the vehicle is then [s].
         ranges_max_age_s: Ranges older than this are stale -> HOLDING [s].
         cruise_speed_m_s: Velocity feed-forward along the planned step [m/s].
         arrival_radius_m: Within this distance of the goal -> ARRIVED (the paper's 0.7 m) [m].

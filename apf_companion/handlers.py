@@ -61,7 +61,7 @@ from apf_companion.links.messages import (
 from apf_companion.navigator import Navigator
 from apf_companion.outbox import Outbox
 from apf_companion.perception import PerceptionFrontEnd, euler_yaw_rate_rad_s
-from apf_companion.perception.ratelog import RateLimitedWarning
+from apf_companion.perception.ratelog import RateLimitedLog
 from apf_companion.reporter import ServiceCounters
 from apf_companion.streams import StreamKeeper, wanted_streams
 
@@ -181,7 +181,7 @@ class AutopilotHandlers:
         self.streams = StreamKeeper(
             wanted_streams(params.profile, params.telemetry_rate_hz, targets=params.adopt.enabled)
         )
-        self._slow_log = RateLimitedWarning(log, "streams.slow", SLOW_STREAMS_LOG_INTERVAL_S)
+        self._slow_log = RateLimitedLog(log, "streams.slow", SLOW_STREAMS_LOG_INTERVAL_S)
         self.ekf_flags: int | None = None  # latest EKF_STATUS_REPORT.flags; None: the autopilot sends none
         self.acks: dict[int, tuple[int, float]] = {}  # command -> (result, service time) of its latest ACK to us
 

@@ -2,13 +2,23 @@
 
 ``PARAMS`` is the one table from MAVLink parameter names (at most 16 characters) to config keys. A PARAM_SET is
 validated exactly as the TOML file is: the section's frozen dataclass is rebuilt with the new value (its
-``__post_init__`` range checks) and the planner is rebuilt from the new config (``build_planner``: the planner's
-own checks). Accepted: the new config and planner replace the running ones (between cycles, ``apply``), the change
-is logged and PARAM_VALUE carries the new value. Refused: PARAM_VALUE carries the old value, every time (the ground
-station waits for it and sends the PARAM_SET again without it), and a STATUSTEXT and a WARNING ``param.refused``
-say why: the first at once, then at most one each per ``REFUSED_INTERVAL_S`` of the service clock, saying how many
-refusals in between went unsaid. A review sent 300 refused PARAM_SETs in 0.65 s: 900 STATUSTEXT chunks went
-towards the autopilot (seconds of a 57600-baud link, queued in front of the setpoints) and 300 WARNING lines.
+``__post_init__`` range checks) and the planner's parameters are rebuilt from the new config (``planner_params``:
+the planner's own checks). Refused: PARAM_VALUE carries the old value, every time (the ground station waits for it
+and sends the PARAM_SET again without it), and a STATUSTEXT and a WARNING ``param.refused`` say why: the first at
+once, then at most one each per ``REFUSED_INTERVAL_S`` of the service clock, saying how many refusals in between
+went unsaid. A review sent 300 refused PARAM_SETs in 0.65 s: 900 STATUSTEXT chunks went towards the autopilot
+(seconds of a 57600-baud link, queued in front of the setpoints) and 300 WARNING lines.
+
+Accepted: PARAM_VALUE carries the new value at once, and the change goes into service before the next planning
+cycle (``apply_pending``, which the service calls before every cycle): one planner build for every change accepted
+since the last cycle. A value equal to the one in force changes nothing. Each accepted one is logged (INFO
+``param.set`` with the old and the new value) as the refused ones are: the first at once, then at most one line per
+``SET_LOG_INTERVAL_S`` carrying how many went unlogged (those at DEBUG). Before, every accepted PARAM_SET built the
+planner (bapf-nav: about 1.2 ms, its maps) and logged a line, so a flood of them cost a core and flooded the log.
+ArduPilot's own PARAM_SET also sets the value at once and defers the costly part: ``AP_Param::save``
+(libraries/AP_Param/AP_Param.cpp) queues the storage write for the IO thread and drops a repeat of the parameter at
+the queue's head ("flooding the save queue with one parameter").
+
 Nothing is written to the config file: a restart returns to the TOML values.
 
 The protocol follows ArduPilot's ``libraries/GCS_MAVLink/GCS_Param.cpp``:
@@ -36,12 +46,14 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.builders import build_planner
+from apf_companion.builders import build_planner, planner_params
 from apf_companion.config import ServiceConfig
 from apf_companion.errors import ConfigError
 from apf_companion.links.messages import ParamRequestList, ParamRequestRead, ParamSet
 from apf_companion.outbox import Outbox
-from apf_companion.perception.ratelog import RateLimitedWarning, Throttle
+from apf_companion.perception.ratelog import RateLimitedLog, Throttle
+from apf_companion.planning import PlannerParams
+from apf_companion.reporter import ServiceCounters
 
 __all__ = ["PARAMS", "ParamServer", "ParamSpec", "config_with", "param_value"]
 
@@ -58,6 +70,7 @@ LIST_PERIOD_S = 0.02  # between bursts [wall s]: 250 PARAM_VALUE/s, a 24-paramet
 # 4 chunks (~260 bytes): under 5 % of a 57600-baud link at the most, and a person setting values by hand gets
 # every refusal said.
 REFUSED_INTERVAL_S = 1.0
+SET_LOG_INTERVAL_S = 1.0  # an accepted PARAM_SET's INFO line: at most one per this long [service s]
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,15 +120,16 @@ Perception and link keys need a restart."""
 _BY_NAME = {p.name: p for p in PARAMS}
 
 
-def _current(config: ServiceConfig, planner: Any, spec: ParamSpec) -> Any:
+def _current(config: ServiceConfig, planner: PlannerParams, spec: ParamSpec) -> Any:
     if spec.key.startswith(PLANNER_PARAMS):
-        return getattr(planner.params, spec.key.removeprefix(PLANNER_PARAMS))
+        return getattr(planner, spec.key.removeprefix(PLANNER_PARAMS))
     section, name = spec.key.split(".")
     return getattr(getattr(config, section), name)
 
 
-def param_value(config: ServiceConfig, planner: Any, spec: ParamSpec) -> float:
-    """The value of ``spec`` as PARAM_VALUE carries it (a float; integers and booleans cast)."""
+def param_value(config: ServiceConfig, planner: PlannerParams, spec: ParamSpec) -> float:
+    """The value of ``spec`` as PARAM_VALUE carries it (a float; integers and booleans cast); ``planner``: the
+    planner's parameters (``planner_params(config)``)."""
     return float(_current(config, planner, spec))
 
 
@@ -137,8 +151,11 @@ def _typed(spec: ParamSpec, old: Any, value: float) -> Any:
     return float(str(np.float32(value)))  # the float32 the GCS meant: 0.4, not 0.4000000059604645
 
 
-def config_with(config: ServiceConfig, planner: Any, spec: ParamSpec, value: float) -> tuple[ServiceConfig, Any]:
-    """``config`` with ``spec`` set to ``value``, and the planner built from it, validated as the TOML file is.
+def config_with(
+    config: ServiceConfig, planner: PlannerParams, spec: ParamSpec, value: float
+) -> tuple[ServiceConfig, PlannerParams]:
+    """``config`` with ``spec`` set to ``value``, and the planner's parameters from it, validated as the TOML file is
+    (``planner``: the planner's parameters now). The planner itself is not built (``build_planner``).
 
     Raises:
         ConfigError: the value is refused (the message names the key and the allowed range).
@@ -151,38 +168,52 @@ def config_with(config: ServiceConfig, planner: Any, spec: ParamSpec, value: flo
     else:
         name, field = spec.key.split(".")
         new = dataclasses.replace(config, **{name: dataclasses.replace(getattr(config, name), **{field: typed})})
-    return new, build_planner(new)
+    return new, planner_params(new)
 
 
 class ParamServer:
-    """Answers the parameter protocol for the companion component.
+    """Answers the parameter protocol for the companion component, and puts accepted changes into service.
 
     Args:
-        config: The running configuration (replaced on every accepted PARAM_SET).
-        planner: The running planner.
+        config: The running configuration.
+        planner: The running planner's parameters (``planner_params(config)``).
         outbox: Where PARAM_VALUE goes.
-        apply: Puts an accepted config and its planner into service (the service's; between cycles).
+        apply: Puts a config and its planner into service (the service's; between cycles).
         statustext: Sends a STATUSTEXT (the reporter's), for refused values.
+        counters: The service's counters (``param_sets_coalesced``).
+        build: Builds the planner of a config (``build_planner``).
+
+    ``config`` and ``planner_params`` are the accepted values, those PARAM_VALUE says; they are in service from the
+    next cycle on (``apply_pending``).
     """
 
     def __init__(
         self,
         config: ServiceConfig,
-        planner: Any,
+        planner: PlannerParams,
         *,
         outbox: Outbox,
         apply: Callable[[ServiceConfig, Any], None],
         statustext: Callable[[int, str], None],
+        counters: ServiceCounters,
+        build: Callable[[ServiceConfig], Any] = build_planner,
     ) -> None:
         self.config = config
-        self.planner = planner
+        self.planner_params = planner
         self.outbox = outbox
+        self.counters = counters
         self._apply = apply
+        self._build = build
         self._statustext = statustext
+        self._in_service = (config, planner)
+        self.pending: dict[str, ParamSpec] = {}  # changed by PARAM_SETs accepted since the last ``apply_pending``
+        self._pending_sets = 0  # those PARAM_SETs
         self.queue: collections.deque[int] = collections.deque()  # indices of a list request still to send
         self.sets = 0
         self.refused = 0
-        self._refused_log = RateLimitedWarning(log, "param.refused", REFUSED_INTERVAL_S)
+        self.builds = 0  # planners built for accepted PARAM_SETs
+        self._set_log = RateLimitedLog(log, "param.set", SET_LOG_INTERVAL_S, level=logging.INFO)
+        self._refused_log = RateLimitedLog(log, "param.refused", REFUSED_INTERVAL_S)
         self._refused_text = Throttle(REFUSED_INTERVAL_S)
         self._wake = asyncio.Event()
 
@@ -205,6 +236,28 @@ class ParamServer:
         else:
             self._set(rec, now_s)
 
+    def apply_pending(self) -> bool:
+        """Put the changes of the PARAM_SETs accepted since the last call into service, with one planner build for
+        all of them (the service calls this before every cycle). Returns whether there were any."""
+        if not self.pending:
+            return False
+        try:
+            planner = self._build(self.config)
+        except ConfigError as err:  # not expected: planner_params checked each value, and the planners no more
+            self._undo(err)
+            return False
+        self.builds += 1
+        self.counters.param_sets_coalesced += self._pending_sets - 1
+        self._into_service(self.config, planner)
+        return True
+
+    def taken(self, config: ServiceConfig, planner: Any) -> None:
+        """``config`` (built from ``self.config``: the pending changes are in it) and its planner go into service now,
+        e.g. with the fence's zones; later PARAM_SETs start from it."""
+        self.counters.param_sets_coalesced += self._pending_sets  # in service with this build
+        self.config, self.planner_params = config, planner.params
+        self._into_service(config, planner)
+
     def send_queued(self, budget: int) -> int:
         """Send up to ``budget`` PARAM_VALUEs of a list request; how many are left."""
         for _ in range(min(budget, len(self.queue))):
@@ -212,8 +265,26 @@ class ParamServer:
             self._send(PARAMS[i], i)
         return len(self.queue)
 
+    def _into_service(self, config: ServiceConfig, planner: Any) -> None:
+        self.pending.clear()
+        self._pending_sets = 0
+        self._in_service = (config, planner.params)
+        self._apply(config, planner)
+
+    def _undo(self, err: ConfigError) -> None:
+        """The pending changes could not be built: the values in service stay, and the ground station is told so
+        (PARAM_VALUE with the value in force for each changed parameter, and a STATUSTEXT)."""
+        changed = list(self.pending.values())
+        self.config, self.planner_params = self._in_service
+        self.pending.clear()
+        self._pending_sets = 0
+        log.error("param.not_applied", extra={"params": [s.name for s in changed], "error": str(err)})
+        self._statustext(mavlink.MAV_SEVERITY_WARNING, f"params not applied: {err}")
+        for spec in changed:
+            self._send(spec, -1)
+
     def _send(self, spec: ParamSpec, index: int) -> None:
-        value = param_value(self.config, self.planner, spec)
+        value = param_value(self.config, self.planner_params, spec)
         self.outbox.param_value(spec.name, value, spec.mav_type, len(PARAMS), index)
 
     def _read(self, rec: ParamRequestRead) -> None:
@@ -229,9 +300,9 @@ class ParamServer:
         spec = _BY_NAME.get(rec.param_id)
         if spec is None:
             return  # ArduPilot and PX4 stay silent about a parameter they do not have
-        old = param_value(self.config, self.planner, spec)
+        old = param_value(self.config, self.planner_params, spec)
         try:
-            config, planner = config_with(self.config, self.planner, spec, rec.param_value)
+            config, planner = config_with(self.config, self.planner_params, spec, rec.param_value)
         except ConfigError as err:
             self.refused += 1
             self._refused_log.note(now_s, param=spec.name, value=rec.param_value, error=str(err))
@@ -241,8 +312,12 @@ class ParamServer:
                 self._statustext(mavlink.MAV_SEVERITY_WARNING, f"{spec.name} refused{more}: {err}")
         else:
             self.sets += 1
-            self.config, self.planner = config, planner
-            self._apply(config, planner)
             new = param_value(config, planner, spec)
-            log.info("param.set", extra={"param": spec.name, "key": spec.key, "old": old, "new": new})
+            if new == old:
+                self.counters.param_sets_coalesced += 1  # in force already: nothing to build
+            else:
+                self.config, self.planner_params = config, planner
+                self.pending[spec.name] = spec
+                self._pending_sets += 1
+            self._set_log.note(now_s, param=spec.name, key=spec.key, old=old, new=new)
         self._send(spec, -1)  # the value now in force: the new one, or the old one when refused

@@ -68,6 +68,9 @@ class ServiceCounters:
     bad_goals: int = 0
     commands_for_us: int = 0
     param_requests: int = 0  # PARAM_* from a ground station addressed to us
+    # Accepted PARAM_SETs without a planner build of their own: put into service together with others accepted in
+    # the same cycle (one build before the next cycle, apf_companion.params), or setting the value already in force.
+    param_sets_coalesced: int = 0
     mode_requests: int = 0
     handler_errors: int = 0  # an exception escaped a handler / cycle / report: caught, the task goes on
     rejected_ranges: int = 0  # range messages from neither the autopilot nor a [sensors] mavlink_sources id

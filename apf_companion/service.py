@@ -479,6 +479,7 @@ class CompanionService:
 
     def run_cycle(self, now: float, trigger_wall: float | None = None) -> CycleOutput:
         """One navigator cycle at ``now``: send its setpoint, report its changes, end the run if it is done."""
+        self.params.apply_pending()  # the PARAM_SETs accepted since the last cycle: one planner build for them all
         pose_t_s = None if self.navigator.pose is None else self.navigator.pose.t_s
         out = self.navigator.cycle(now, self.link_meter.quality(now, pose_t_s))
         sp = out.setpoint
@@ -699,13 +700,20 @@ def _goal_admission(svc: CompanionService, start_route: Route | None) -> GoalAdm
 
 
 def _param_server(svc: CompanionService) -> ParamServer:
-    """The service's parameter server: an accepted PARAM_SET's config and planner (apf_companion.params) go into
-    service at once. Input handling and cycles share one event loop, so that is between two cycles."""
+    """The service's parameter server: the PARAM_SETs accepted since the last cycle go into service before the next
+    one (``run_cycle``: ``ParamServer.apply_pending``), with one planner build for them all."""
 
     def apply(config: ServiceConfig, planner: Any) -> None:
         _put_in_service(svc, config, planner)
 
-    return ParamServer(svc.config, svc.planner, outbox=svc.outbox, apply=apply, statustext=svc.reporter.statustext)
+    return ParamServer(
+        svc.config,
+        svc.planner.params,
+        outbox=svc.outbox,
+        apply=apply,
+        statustext=svc.reporter.statustext,
+        counters=svc.counters,
+    )
 
 
 def _put_in_service(svc: CompanionService, config: ServiceConfig, planner: Any) -> None:
@@ -780,11 +788,11 @@ def _use_fence(svc: CompanionService, area: FenceArea) -> None:
 
 def _put_fence_in_service(svc: CompanionService, area: FenceArea) -> None:
     """The config with the fence's zones (none: the config as it was without a fence) and its planner into
-    service; a later PARAM_SET starts from it. ConfigError when the planner refuses the zones."""
-    config = config_with_fence(svc.config, area)
+    service, with the PARAM_SETs accepted since the last cycle; a later PARAM_SET starts from it. ConfigError when
+    the planner refuses the zones."""
+    config = config_with_fence(svc.params.config, area)
     planner = build_planner(config)
-    svc.params.config = config
-    _put_in_service(svc, config, planner)
+    svc.params.taken(config, planner)  # puts it into service (``_put_in_service``)
 
 
 def _warn_no_heartbeat(svc: CompanionService) -> None:

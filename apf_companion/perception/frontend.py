@@ -49,7 +49,7 @@ from apf_companion.perception.mavlink_ranges import (
 from apf_companion.perception.memory import ObstacleMemory
 from apf_companion.perception.payload import decode_scan_payload
 from apf_companion.perception.plausibility import PoseGate, PoseLimits, Verdict
-from apf_companion.perception.ratelog import RateLimitedWarning
+from apf_companion.perception.ratelog import RateLimitedLog
 from apf_companion.perception.sectors import SectorFreshness
 from apf_companion.perception.types import FloatArray, Pose, RangeScan, ScanFrame
 
@@ -161,8 +161,8 @@ class PerceptionFrontEnd:
         self.gate = PoseGate(params.pose_limits)
         self.sectors = SectorFreshness(params.sectors, params.sector_max_age_s)
         self._sensor_ids: dict[str, int] = {}
-        self.bad_scan_log = RateLimitedWarning(log, "ranges.bad", BAD_SCAN_LOG_INTERVAL_S)
-        self.conflict_log = RateLimitedWarning(log, "pose.conflict", BAD_SCAN_LOG_INTERVAL_S)
+        self.bad_scan_log = RateLimitedLog(log, "ranges.bad", BAD_SCAN_LOG_INTERVAL_S)
+        self.conflict_log = RateLimitedLog(log, "pose.conflict", BAD_SCAN_LOG_INTERVAL_S)
         self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self.conflict_said = False  # a pose.conflict WARNING was logged; the handler takes it (STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)

@@ -2,8 +2,8 @@
 
 ``Throttle``: the first occurrence passes at once; after that at most one per ``interval_s`` of the caller's clock
 (the service clock, so tests drive it and simulated time keeps its meaning), and the one that passes carries how
-many were held back since the previous one. ``RateLimitedWarning`` is a WARNING log line so throttled, carrying
-``unlogged``; the occurrences not logged go to DEBUG.
+many were held back since the previous one. ``RateLimitedLog`` is a log line so throttled (WARNING unless told),
+carrying ``unlogged``; the occurrences not logged go to DEBUG.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import logging
 import math
 from typing import Any
 
-__all__ = ["RateLimitedWarning", "Throttle"]
+__all__ = ["RateLimitedLog", "Throttle"]
 
 
 class Throttle:
@@ -38,30 +38,32 @@ class Throttle:
         return held
 
 
-class RateLimitedWarning:
-    """``note(now_s, **extra)`` for each occurrence of ``event``; logs as described in the module docstring."""
+class RateLimitedLog:
+    """``note(now_s, **extra)`` for each occurrence of ``event``; logs at ``level`` (WARNING by default) as described
+    in the module docstring."""
 
-    def __init__(self, logger: logging.Logger, event: str, interval_s: float) -> None:
+    def __init__(self, logger: logging.Logger, event: str, interval_s: float, *, level: int = logging.WARNING) -> None:
         self._log = logger
         self.event = event
+        self.level = level
         self._throttle = Throttle(interval_s)
         self.interval_s = interval_s
 
     @property
     def unlogged(self) -> int:
-        """Occurrences since the last WARNING line that it did not carry."""
+        """Occurrences since the last line at ``level`` that it did not carry."""
         return self._throttle.held
 
     @property
     def lines(self) -> int:
-        """WARNING lines written."""
+        """Lines written at ``level``."""
         return self._throttle.passed
 
     def note(self, now_s: float, **extra: Any) -> bool:
-        """One occurrence at ``now_s`` [s]; True when it was logged at WARNING."""
+        """One occurrence at ``now_s`` [s]; True when it was logged at ``level``."""
         held = self._throttle.allow(now_s)
         if held is None:
             self._log.debug(self.event, extra=extra)
             return False
-        self._log.warning(self.event, extra={**extra, "unlogged": held})
+        self._log.log(self.level, self.event, extra={**extra, "unlogged": held})
         return True

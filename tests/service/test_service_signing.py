@@ -169,7 +169,8 @@ async def test_a_parameter_changes_only_when_signed_and_reads_stay_open(tmp_path
             Gcs(link, KEY).param_set("APF_MARGIN", 0.2)
             value = await link.recv_match(type="PARAM_VALUE", timeout=HANG_S)
             assert (value.param_id, value.param_value) == ("APF_MARGIN", pytest.approx(0.2))
-            assert svc.planner.params.safety_margin_m == pytest.approx(0.2) and svc.params.sets == 1
+            assert svc.params.sets == 1
+            await until(lambda: svc.planner.params.safety_margin_m == 0.2, HANG_S, "in service at the next cycle")
             assert svc.reporter.counts()["signing_rejected"] == 2
         finally:
             await link.aclose()
