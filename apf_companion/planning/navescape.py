@@ -189,9 +189,17 @@ class EscapeMaps:
         blocked = inflated | (old_blocked & ~known) | old_virtual
         memos = [[] if state.field[r] is None else list(state.field[r].memo) for r in rows]
         dist, lost = self._distances(rows, xy, origins, blocked, goals, state, memos)
+        # The loosened cells of the same points, kept with the agent's field (``NavField.loose``).
+        loose_cells = [_kept_loose(state.field[r], keys[i]) for i, r in enumerate(rows)]
         if lost.any():  # closed in: again with the inflation loosened to C - h / 2 (``loose_m``)
             ix = np.flatnonzero(lost)
-            loose = grid.blocked(origins[ix], obs_xy[ix], valid[ix], self.loose_m) | (old_blocked[ix] & ~known[ix])
+            todo = [k for k in ix if loose_cells[k] is None]
+            if todo:
+                fresh = grid.blocked(origins[todo], obs_xy[todo], valid[todo], self.loose_m)
+                for k, cells in zip(todo, fresh, strict=True):
+                    loose_cells[k] = cells
+            loose = np.stack([c for c in (loose_cells[k] for k in ix) if c is not None])  # every one set above
+            loose |= old_blocked[ix] & ~known[ix]
             dist[ix] = _recall(grid, [memos[k] for k in ix], origins[ix], loose | old_virtual[ix], goals[ix])
         for i, r in enumerate(rows):
             state.field[r] = NavField(
@@ -201,6 +209,7 @@ class EscapeMaps:
                 virtual=old_virtual[i],
                 memo=tuple(memos[i][-_MEMO:]),
                 occupancy=(keys[i], inflated[i], known[i]),
+                loose=loose_cells[i],
             )
         state.since_field[rows] = 0
 
@@ -429,6 +438,13 @@ def _occupancy(
     if todo:
         inflated[todo], known[todo] = grid.blocked_within(origins[todo], obs_xy[todo], valid[todo], radii_m)
     return inflated, known, keys
+
+
+def _kept_loose(field: NavField | None, key: bytes) -> BoolArray | None:
+    """The loosened cells kept with ``field`` (``NavField.loose``) when its occupancy had the input ``key``."""
+    if field is None or field.occupancy is None or field.occupancy[0] != key:
+        return None
+    return field.loose
 
 
 def _recall(

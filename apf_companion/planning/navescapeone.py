@@ -194,8 +194,9 @@ class FieldOne:
         origin, old_blocked, old_virtual = self._carry_over(old, xy, goal)
         obs_xy, valid = self._usable(position_m, obstacles_m)
         key = occupancy_key(origin, obs_xy, valid)
+        loose_cells = None
         if old is not None and old.occupancy is not None and old.occupancy[0] == key:
-            inflated, known = old.occupancy[1], old.occupancy[2]
+            inflated, known, loose_cells = old.occupancy[1], old.occupancy[2], old.loose
         else:
             cells = self._grid.blocked_within(origin[None], obs_xy[None], valid[None], self._radii_m)
             inflated, known = cells[0][0], cells[1][0]
@@ -204,7 +205,9 @@ class FieldOne:
         memo = [] if old is None else list(old.memo)
         dist, values = self._distances(xy, origin, blocked, goal, state, memo)
         if values is None:  # closed in: again with the inflation loosened (``EscapeMaps.loose_m``)
-            loose = self._grid.blocked(origin[None], obs_xy[None], valid[None], self._loose_m)[0]
+            if loose_cells is None:  # not kept from a refresh of the same points (``NavField.loose``)
+                loose_cells = self._grid.blocked(origin[None], obs_xy[None], valid[None], self._loose_m)[0]
+            loose = loose_cells
             if old_blocked is not None and old_virtual is not None:
                 loose = loose | (old_blocked & ~known) | old_virtual
             dist = self._recall(memo, origin, loose, goal)
@@ -215,6 +218,7 @@ class FieldOne:
             virtual=np.zeros(self._grid.size, dtype=bool) if old_virtual is None else old_virtual,
             memo=tuple(memo[-_MEMO:]),
             occupancy=(key, inflated, known),
+            loose=loose_cells,
         )
         state.since_field[0] = 0
         return values

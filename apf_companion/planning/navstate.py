@@ -71,6 +71,9 @@ class NavField:
     #: The cells within the clearance and within the reach of the points (``navescape._occupancy``) and their
     #: exact input (corner, points, valid flags): a second refresh from the same points reuses them.
     occupancy: tuple[bytes, npt.NDArray[np.bool_], npt.NDArray[np.bool_]] | None = None
+    #: The cells within ``EscapeMaps.loose_m`` of the same points, once a refresh needed them (closed in), else
+    #: None: a second refresh from the same points reuses them too.
+    loose: npt.NDArray[np.bool_] | None = None
 
 
 @dataclass(slots=True)

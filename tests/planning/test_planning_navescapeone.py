@@ -72,6 +72,9 @@ def _assert_same_state(single: NavState, batch: NavState) -> None:
         assert [key for key, _ in a.memo] == [key for key, _ in b.memo]
         assert a.occupancy is not None and b.occupancy is not None
         assert a.occupancy[0] == b.occupancy[0]
+        assert (a.loose is None) == (b.loose is None)
+        if a.loose is not None and b.loose is not None:
+            assert a.loose.tobytes() == b.loose.tobytes()
 
 
 def _segment(a: tuple[float, float], b: tuple[float, float]) -> np.ndarray:
@@ -224,6 +227,48 @@ def test_repeated_steps_in_thickets_equal_the_batch_path(dim: int) -> None:
         field = state.field[0]
         marked += int(field is not None and bool(field.virtual.any()))
     assert marked >= (1 if dim == 2 else 0)  # in 2D a dead end was marked on the single path (seed 312)
+
+
+@pytest.mark.parametrize("dim", [2])  # in 3D none of these thickets closes the agent in (the slice at its altitude)
+def test_a_second_closed_in_refresh_from_the_same_points_reuses_the_loosened_cells(dim: int) -> None:
+    """Closed in at C (the thicket of the benchmark's scene): the loosened cells (``NavField.loose``) are computed
+    once and a refresh from the same points in the same frame takes them from the field, on both paths; they are
+    the cells a fresh ``NavGrid.blocked`` at ``loose_m`` gives, and the steps stay the batch path's."""
+    params = PlannerParams(dim=dim)
+    found = 0
+    for seed in range(300, 330):
+        rng = np.random.default_rng(seed)
+        n = int(rng.choice([100, 300, 600]))
+        direction = rng.normal(size=(n, dim))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        obstacles = np.maximum(8.0 * rng.random((n, 1)) ** (1.0 / dim), 0.5) * direction
+        target = np.full(dim, 22.0)
+        single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
+        state = batch.initial_state(1)
+        kept: list[tuple[object, object]] = []
+        for _ in range(3):
+            d = single.step(np.zeros(dim), target, obstacles)
+            mask = np.ones((1, n), bool)
+            assert_same_decision(
+                d, batch.step_batch(np.zeros((1, dim)), target[None], obstacles[None], mask, state=state).row(0)
+            )
+            own = single.own_state
+            assert isinstance(own, NavState)
+            _assert_same_state(own, state)
+            a, b = own.field[0], state.field[0]
+            if a is not None and b is not None and a.loose is not None and b.loose is not None:
+                kept.append((a.loose, b.loose))
+        if len(kept) < 2:
+            continue
+        found += 1
+        assert kept[-1][0] is kept[0][0] and kept[-1][1] is kept[0][1]  # reused, not computed again
+        field = state.field[0]
+        grid, loose_m = batch._escape.grid, batch._escape.loose_m
+        valid = np.abs(obstacles[:, 2]) <= params.clearance_m if dim == 3 else np.ones(n, bool)
+        xy = np.where(valid[:, None], obstacles[:, :2], 0.0)
+        fresh = grid.blocked(field.origin_m[None], xy[None], valid[None], loose_m)[0]
+        assert field.loose is not None and field.loose.tobytes() == fresh.tobytes()
+    assert found >= 1
 
 
 def _room(door_from_m: float, door_to_m: float) -> np.ndarray:
