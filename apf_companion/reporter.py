@@ -106,7 +106,8 @@ class ReporterParams:
 
 
 class AutopilotView(Protocol):
-    """What the reporter reads of the autopilot (apf_companion.handlers.AutopilotHandlers owns it)."""
+    """What the reporter reads of the autopilot (apf_companion.handlers.AutopilotHandlers answers it; its part
+    apf_companion.handling.vehicle.AutopilotState owns it)."""
 
     @property
     def armed(self) -> bool: ...

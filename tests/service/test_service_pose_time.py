@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from apf_companion.autopilot import MASK_VELOCITY
 from apf_companion.goal import Route
-from apf_companion.handlers import POSE_CONFLICT_TEXT
+from apf_companion.handling.poses import POSE_CONFLICT_TEXT
 from apf_companion.navigator import State
 from tests.conftest import within
 from tests.service.test_service_mavlink import ScriptedAutopilot, fast_config, rig
