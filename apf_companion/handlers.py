@@ -226,7 +226,6 @@ class AutopilotHandlers:
     def _foreign(self, rec: Record, now_s: float) -> None:
         self.counters.foreign_messages += 1
 
-    # What the others read of the autopilot (its parts own it).
     @property
     def heard(self) -> bool:
         return self._autopilot.heard

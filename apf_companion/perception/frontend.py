@@ -59,7 +59,6 @@ class PerceptionFrontEnd:
     def _pose_added(self) -> None:
         self.scans.place_deferred()  # before the cycle this pose triggers
 
-    # What the navigator reads (ObstacleView), and the forwarder and the visualisation.
     def points(self, now_s: float) -> FloatArray:
         """The remembered obstacle points still valid at ``now_s``, (N, 3) local NED [m]."""
         return self.store.memory.points(now_s)
@@ -93,7 +92,6 @@ class PerceptionFrontEnd:
         """Service time of a measurement stamped with autopilot boot time (receive time if unknown)."""
         return self.poses.scan_time(boot_ms, now_s)
 
-    # Poses (PoseIntake).
     def on_attitude(self, yaw_rad: float, *, time_boot_ms: int | None = None, yaw_rate_rad_s: float = 0.0) -> None:
         """ATTITUDE.yaw [rad] measured at ``time_boot_ms``, with the heading rate [rad/s] (``PoseIntake``)."""
         self.poses.on_attitude(yaw_rad, time_boot_ms=time_boot_ms, yaw_rate_rad_s=yaw_rate_rad_s)
@@ -125,7 +123,6 @@ class PerceptionFrontEnd:
     def gate(self) -> PoseGate:
         return self.poses.gate
 
-    # Scans (ScanIntake).
     def on_obstacle_distance(self, msg: ObstacleDistanceLike, now_s: float) -> None:
         """An OBSTACLE_DISTANCE, its frame read as ``params.obstacle_distance_frame`` says, turned by the mount."""
         self.scans.on_obstacle_distance(msg, now_s)
@@ -154,7 +151,6 @@ class PerceptionFrontEnd:
     def bad_scan_log(self) -> RateLimitedLog:
         return self.scans.bad_scan_log
 
-    # The obstacle store.
     @property
     def memory(self) -> ObstacleMemory:
         return self.store.memory
