@@ -7,6 +7,7 @@ a boxed goal (a growing memory: outdated fields, stall and dead-end refreshes, f
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -200,6 +201,34 @@ def test_non_finite_points_are_ignored_as_on_the_batch_path(dim: int) -> None:
     assert counts["single escape steps"] >= 50
 
 
+def _thicket(seed: int, dim: int) -> np.ndarray:
+    """The step benchmark's scene around an agent at the origin: 100, 300 or 600 points within 8 m (0.5 m at least)."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.choice([100, 300, 600]))
+    direction = rng.normal(size=(n, dim))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    return np.asarray(np.maximum(8.0 * rng.random((n, 1)) ** (1.0 / dim), 0.5) * direction)
+
+
+def _thicket_steps(params: PlannerParams, seed: int) -> Iterator[tuple[NavState, NavState]]:
+    """Three steps from the origin in ``_thicket(seed)`` on both paths (the same decisions and states, checked):
+    the single path's state and the batch path's after each."""
+    dim = params.dim
+    obstacles = _thicket(seed, dim)
+    target, mask = np.full(dim, 22.0), np.ones((1, len(obstacles)), bool)
+    single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
+    state = batch.initial_state(1)
+    for _ in range(3):
+        d = single.step(np.zeros(dim), target, obstacles)
+        assert_same_decision(
+            d, batch.step_batch(np.zeros((1, dim)), target[None], obstacles[None], mask, state=state).row(0)
+        )
+        own = single.own_state
+        assert isinstance(own, NavState)
+        _assert_same_state(own, state)
+        yield own, state
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_repeated_steps_in_thickets_equal_the_batch_path(dim: int) -> None:
     """The benchmark's pattern: steps from one position in a thicket (the stall and dead-end refreshes, the
@@ -207,24 +236,7 @@ def test_repeated_steps_in_thickets_equal_the_batch_path(dim: int) -> None:
     params = PlannerParams(dim=dim)
     marked = 0
     for seed in range(300, 330):
-        rng = np.random.default_rng(seed)
-        n = int(rng.choice([100, 300, 600]))
-        direction = rng.normal(size=(n, dim))
-        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        obstacles = np.maximum(8.0 * rng.random((n, 1)) ** (1.0 / dim), 0.5) * direction
-        target = np.full(dim, 22.0)
-        single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
-        state = batch.initial_state(1)
-        for _ in range(3):
-            d = single.step(np.zeros(dim), target, obstacles)
-            mask = np.ones((1, n), bool)
-            assert_same_decision(
-                d, batch.step_batch(np.zeros((1, dim)), target[None], obstacles[None], mask, state=state).row(0)
-            )
-            own = single.own_state
-            assert isinstance(own, NavState)
-            _assert_same_state(own, state)
-        field = state.field[0]
+        field = list(_thicket_steps(params, seed))[-1][1].field[0]
         marked += int(field is not None and bool(field.virtual.any()))
     assert marked >= (1 if dim == 2 else 0)  # in 2D a dead end was marked on the single path (seed 312)
 
@@ -237,24 +249,8 @@ def test_a_second_closed_in_refresh_from_the_same_points_reuses_the_loosened_cel
     params = PlannerParams(dim=dim)
     found = 0
     for seed in range(300, 330):
-        rng = np.random.default_rng(seed)
-        n = int(rng.choice([100, 300, 600]))
-        direction = rng.normal(size=(n, dim))
-        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        obstacles = np.maximum(8.0 * rng.random((n, 1)) ** (1.0 / dim), 0.5) * direction
-        target = np.full(dim, 22.0)
-        single, batch = BapfNavPlanner(params), BapfNavPlanner(params)
-        state = batch.initial_state(1)
         kept: list[tuple[object, object]] = []
-        for _ in range(3):
-            d = single.step(np.zeros(dim), target, obstacles)
-            mask = np.ones((1, n), bool)
-            assert_same_decision(
-                d, batch.step_batch(np.zeros((1, dim)), target[None], obstacles[None], mask, state=state).row(0)
-            )
-            own = single.own_state
-            assert isinstance(own, NavState)
-            _assert_same_state(own, state)
+        for own, state in _thicket_steps(params, seed):
             a, b = own.field[0], state.field[0]
             if a is not None and b is not None and a.loose is not None and b.loose is not None:
                 kept.append((a.loose, b.loose))
@@ -263,10 +259,9 @@ def test_a_second_closed_in_refresh_from_the_same_points_reuses_the_loosened_cel
         found += 1
         assert kept[-1][0] is kept[0][0] and kept[-1][1] is kept[0][1]  # reused, not computed again
         field = state.field[0]
-        grid, loose_m = batch._escape.grid, batch._escape.loose_m
-        valid = np.abs(obstacles[:, 2]) <= params.clearance_m if dim == 3 else np.ones(n, bool)
-        xy = np.where(valid[:, None], obstacles[:, :2], 0.0)
-        fresh = grid.blocked(field.origin_m[None], xy[None], valid[None], loose_m)[0]
+        escape = BapfNavPlanner(params)._escape
+        xy = _thicket(seed, dim)  # 2D: every point is valid
+        fresh = escape.grid.blocked(field.origin_m[None], xy[None], np.ones((1, len(xy)), bool), escape.loose_m)[0]
         assert field.loose is not None and field.loose.tobytes() == fresh.tobytes()
     assert found >= 1
 

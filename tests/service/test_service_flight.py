@@ -137,6 +137,20 @@ def sparse_world(seed: int, n: int = 12) -> World:
     return paper_field("reference", n, np.random.default_rng(seed))
 
 
+async def airborne_behind(vehicle_port: int) -> Simulator:
+    """The simulator hovering at 5 m over (3, 3) in an empty world, sending to ``vehicle_port`` on loopback (a
+    fault proxy's vehicle side)."""
+    return await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{vehicle_port}"],
+            world=World.empty(),
+            speedup=SPEEDUP,
+            seed=3,
+            spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=True, alt_m=5.0),
+        )
+    )
+
+
 # World 0 is no test of the paper's planners: bapf, a-bapf and cr-bapf pass cylinder 11 at 0.257-0.266 m surface
 # clearance against the 0.25 m vehicle radius, so a few milliseconds of timing decide between ARRIVED and a
 # crash. World 1 leaves them 0.64 m; the product planner keeps its harder worlds 0 and 5 (0.35 and 0.30 m).

@@ -24,10 +24,8 @@ from apf_companion.navigator import CycleOutput, Navigator, shortened
 from apf_companion.service import CompanionService
 from apf_companion.setpoint import SetpointKind
 from sim.linkfaults import LinkFaults, LinkProxy
-from sim.vehicle import SimConfig, Simulator, SpawnConfig
-from sim.world import World
 from tests.conftest import SimulatorClock, until
-from tests.service.test_service_flight import SPEEDUP, running, service_config
+from tests.service.test_service_flight import SPEEDUP, airborne_behind, running, service_config
 from tests.service.test_service_navigator import feed, make
 
 P = CautionParams(min_scale=0.3, full_loss=0.5, ok_age_s=0.2, full_age_s=0.5, window_s=2.0)
@@ -258,15 +256,7 @@ async def _flight_through(faults: LinkFaults) -> AsyncIterator[tuple[CompanionSe
         return out
 
     nav.cycle = recording  # type: ignore[method-assign]
-    sim = await Simulator.start(
-        SimConfig(
-            links=[f"udpout:127.0.0.1:{proxy.vehicle_port}"],
-            world=World.empty(),
-            speedup=SPEEDUP,
-            seed=3,
-            spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=True, alt_m=5.0),
-        )
-    )
+    sim = await airborne_behind(proxy.vehicle_port)
     try:
         async with running(svc, sim):
             yield svc, steps

@@ -21,10 +21,16 @@ from apf_companion.navigator import CycleOutput, State
 from apf_companion.service import CompanionService
 from apf_companion.setpoint import Setpoint, SetpointKind, silent_safe_velocity
 from sim.linkfaults import Blackout, LinkFaults, LinkProxy
-from sim.vehicle import SimConfig, Simulator, SpawnConfig
-from sim.world import World
 from tests.conftest import SimulatorClock, until
-from tests.service.test_service_flight import GOAL, SPEEDUP, flight, running, service_config, sparse_world
+from tests.service.test_service_flight import (
+    GOAL,
+    SPEEDUP,
+    airborne_behind,
+    flight,
+    running,
+    service_config,
+    sparse_world,
+)
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -104,15 +110,7 @@ async def test_after_a_2_s_blackout_the_first_setpoint_comes_from_the_newest_pos
         return out
 
     nav.cycle = recording  # type: ignore[method-assign]
-    sim = await Simulator.start(
-        SimConfig(
-            links=[f"udpout:127.0.0.1:{proxy.vehicle_port}"],
-            world=World.empty(),
-            speedup=SPEEDUP,
-            seed=3,
-            spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=True, alt_m=5.0),
-        )
-    )
+    sim = await airborne_behind(proxy.vehicle_port)
     try:
         async with running(svc, sim):
             await until(lambda: nav.counters.planner_steps > 10, what="navigating")
