@@ -140,6 +140,8 @@ class VehicleEngine:
         self.rtl_alt_m = 0.0
         self.landed_since_s: float | None = None
         self.failsafe = False
+        # PX4: the failsafe mode is the offboard-loss fallback; the user's intended mode is still OFFBOARD
+        self.offboard_fallback = False
         self.custom_mode = self._initial_mode(spawn)
         if spawn.airborne:
             if not spawn.alt_m > 0:
@@ -187,6 +189,7 @@ class VehicleEngine:
         old = self.mode_name()
         self.custom_mode = custom_mode
         self.failsafe = False
+        self.offboard_fallback = False
         self.takeoff_alt_m = None
         self.rtl_phase = 0
         self.guided.timed_out = False

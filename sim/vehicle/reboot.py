@@ -99,6 +99,7 @@ def reboot_engine(v: VehicleEngine) -> None:
     v.takeoff_alt_m = None
     v.rtl_phase = 0
     v.failsafe = False
+    v.offboard_fallback = False
     v.guided = GuidedState()
     v.hold_pos_ned_m = v.state.pos_ned_m.copy()
     v.boot.start(v.t_s)

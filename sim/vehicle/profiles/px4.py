@@ -3,7 +3,9 @@
 HEARTBEAT autopilot PX4, custom_mode = main mode << 16 | sub mode << 24. Switching to OFFBOARD (or arming in it)
 is refused (TEMPORARILY_REJECTED) unless the last setpoint is newer than COM_OF_LOSS_T (``offboardCheck.cpp``); in
 OFFBOARD, no setpoint for COM_OF_LOSS_T (1 s) triggers the failsafe (COM_OBL_RC_ACT; without RC: Hold =
-AUTO.LOITER) and a STATUSTEXT. OFFBOARD can take off from the ground when armed and the setpoint climbs.
+AUTO.LOITER) and a STATUSTEXT; a setpoint after that, with the mode not changed meanwhile, returns to OFFBOARD
+(``failsafe.cpp``: the fallback clears with its condition). OFFBOARD can take off from the ground when armed and
+the setpoint climbs.
 SET_POSITION_TARGET_LOCAL_NED follows ``mavlink_receiver.cpp``: LOCAL_NED or BODY_NED only (BODY_NED ignores the
 position), any combination of position / velocity / acceleration, no FORCE with an acceleration.
 """
@@ -127,6 +129,9 @@ class Px4Profile:
             return self.fail_result
         if v.crashed:
             return self.fail_result
+        # The user's intended mode changes, even to the failsafe's own Hold: a takeover, which ends the failsafe
+        # (failsafe/framework.cpp ``getSelectedAction``: the action becomes a warning, HEARTBEAT no longer CRITICAL)
+        v.offboard_fallback = v.failsafe = False
         v.set_mode(mode.to_custom_mode(), "command")
         return int(mavlink.MAV_RESULT_ACCEPTED)
 
@@ -266,8 +271,15 @@ class Px4Profile:
 
     def check_failsafes(self, v: VehicleEngine) -> None:
         """The geofence (sim.vehicle.fencebreach); OFFBOARD without a setpoint for COM_OF_LOSS_T: the COM_OBL_RC_ACT
-        failsafe."""
+        failsafe, which ends when setpoints come back: PX4 then returns to OFFBOARD by itself unless the mode was
+        changed meanwhile. The offboard loss is a mode fallback (src/modules/commander/failsafe/failsafe.cpp
+        ``checkModeFallback``) that leaves the user's intended mode at OFFBOARD and clears when its condition
+        clears (``ActionOptions`` default ``ClearCondition::WhenConditionClears``, failsafe/framework.h); a mode
+        change by the user is the takeover that ends it (``set_mode`` clears ``offboard_fallback``)."""
         check_fence(v)
+        if v.offboard_fallback and v.armed and self.offboard_ready(v):
+            v.set_mode(PX4_OFFBOARD.to_custom_mode(), "offboard signal back")
+            return
         if v.custom_mode != PX4_OFFBOARD.to_custom_mode():
             return
         last = v.guided.last_t_s
@@ -277,6 +289,7 @@ class Px4Profile:
         v.statustext(mavlink.MAV_SEVERITY_CRITICAL, f"Failsafe: offboard signal lost, {name}")
         v.set_mode(new.to_custom_mode(), "offboard loss")
         v.failsafe = True
+        v.offboard_fallback = True
 
     def spawn_in_air(self, v: VehicleEngine) -> None:
         if v.custom_mode == PX4_OFFBOARD.to_custom_mode():

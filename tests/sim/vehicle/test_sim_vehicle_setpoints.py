@@ -328,6 +328,37 @@ async def test_px4_spawn_in_offboard_needs_the_stream_at_once() -> None:
         assert t_fs == pytest.approx(0.9, abs=2 * sim.engine.dt)
 
 
+async def test_px4_setpoints_after_the_offboard_loss_failsafe_return_to_offboard() -> None:
+    """src/modules/commander/failsafe/failsafe.cpp ``checkModeFallback``: the offboard-loss action is a mode
+    fallback that keeps the user's intended mode (OFFBOARD) and clears with its condition, so a setpoint after the
+    failsafe puts PX4 back into OFFBOARD by itself, with no mode request; the failsafe's CRITICAL ends."""
+    spawn = SpawnConfig(airborne=True, mode="OFFBOARD")
+    async with simulator_with_client(profile="px4", spawn=spawn, speedup=10.0) as (_sim, gcs):
+        await texts_until(gcs, "Failsafe")
+        hb = await gcs.recv_match(type="HEARTBEAT", condition=lambda h: h.custom_mode != 6 << 16, timeout=HANG_S)
+        assert hb.custom_mode == PX4_HOLD.to_custom_mode() and hb.system_status == m.MAV_STATE_CRITICAL
+        sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(0.0, 0.0, -5.0))
+        hb = await gcs.recv_match(type="HEARTBEAT", condition=lambda h: h.custom_mode == 6 << 16, timeout=HANG_S)
+        assert hb.system_status == m.MAV_STATE_ACTIVE
+
+
+async def test_px4_a_mode_change_after_the_offboard_loss_failsafe_keeps_setpoints_from_returning() -> None:
+    """The pilot's mode request ends the fallback (the user's intended mode is no longer OFFBOARD), even one for the
+    failsafe's own Hold: setpoints then leave the vehicle in the pilot's mode."""
+    spawn = SpawnConfig(airborne=True, mode="OFFBOARD")
+    async with simulator_with_client(profile="px4", spawn=spawn, speedup=10.0) as (sim, gcs):
+        await texts_until(gcs, "Failsafe")
+        ack = await command_long(gcs, m.MAV_CMD_DO_SET_MODE, 1, PX4_HOLD.main, PX4_HOLD.sub)
+        assert ack.result == m.MAV_RESULT_ACCEPTED and sim.vehicle.mode == "AUTO.LOITER"
+        before = sim.engine.last_setpoint_t_s  # the spawn's pretend stream
+        sp_local(gcs, m.MAV_FRAME_LOCAL_NED, MASK_POSITION, pos=(0.0, 0.0, -5.0))
+        await wait_for(sim, lambda s: s.engine.last_setpoint_t_s != before)
+        last = sim.engine.last_setpoint_t_s
+        assert last is not None
+        await wait_sim_time(sim, last + 0.5)  # well inside COM_OF_LOSS_T: the offboard signal is there
+        assert sim.vehicle.mode == "AUTO.LOITER"
+
+
 async def test_px4_offboard_takes_off_from_the_ground() -> None:
     async with simulator_with_client(profile="px4", speedup=4.0) as (sim, gcs):
         t0 = sim.t_s
