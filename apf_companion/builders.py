@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from apf_companion.adopt import AdoptParams
-from apf_companion.autopilot import guided_mode_name
+from apf_companion.autopilot import Autopilot, guided_mode_name
 from apf_companion.config import ServiceConfig, did_you_mean
 from apf_companion.errors import ConfigError
 from apf_companion.fence import FenceArea
@@ -173,6 +173,7 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         resume_after_link_lost=config.safety.resume_after_link_lost,
         takeover=config.autopilot.takeover,
         guided_mode=guided_mode_name(config.autopilot.profile),
+        setpoints_end_failsafe=config.autopilot.profile is Autopilot.PX4,
     )
 
 

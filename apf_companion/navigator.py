@@ -155,9 +155,10 @@ class Navigator:
         was accepted."""
         return self.vehicle.update_pose(pose)
 
-    def autopilot_heartbeat(self, now_s: float, *, mode_ok: bool) -> None:
-        """An autopilot HEARTBEAT; ``mode_ok`` = its custom_mode is GUIDED (ArduPilot) / OFFBOARD (PX4)."""
-        self.vehicle.heard(now_s, mode_ok=mode_ok)
+    def autopilot_heartbeat(self, now_s: float, *, mode_ok: bool, failsafe: bool = False) -> None:
+        """An autopilot HEARTBEAT; ``mode_ok`` = its custom_mode is GUIDED (ArduPilot) / OFFBOARD (PX4);
+        ``failsafe`` = its system_status is CRITICAL (PX4 and ArduPilot: a failsafe is active)."""
+        self.vehicle.heard(now_s, mode_ok=mode_ok, failsafe=failsafe)
         self.machine.mode_seen(now_s, mode_ok=mode_ok)
 
     def set_route(self, route: Route, now_s: float) -> bool:

@@ -100,7 +100,8 @@ class AutopilotState:
         self.heartbeats += 1
         self.custom_mode = rec.custom_mode
         self.base_mode = rec.base_mode
-        nav.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok)
+        failsafe = rec.system_status == mavlink.MAV_STATE_CRITICAL
+        nav.autopilot_heartbeat(now_s, mode_ok=self.params.dry_run or self.mode_ok, failsafe=failsafe)
         self._streams.send_due(now_s)
         if first:
             route, self._route_at_start = self._route_at_start, None

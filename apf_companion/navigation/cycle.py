@@ -10,7 +10,7 @@ import numpy as np
 
 from apf_companion.navigation.goalslot import GoalSlot
 from apf_companion.navigation.legs import Leg, Legs
-from apf_companion.navigation.machine import StateMachine
+from apf_companion.navigation.machine import FAILSAFE_WAIT_REASON, StateMachine
 from apf_companion.navigation.model import (
     WANTS_POSE,
     Counters,
@@ -93,10 +93,20 @@ class CycleHandlers:
         in OFFBOARD. ArduCopter drops setpoints outside GUIDED (ArduCopter/GCS_MAVLink_Copter.cpp
         ``handle_message_set_position_target_local_ned``: not ``in_guided_mode()``, return). So whichever hold is
         in force at the switch keeps the vehicle about where it was. No planner step and no leg yet: a "keep
-        altitude" goal keeps the altitude of the switch. Silent with a stale pose."""
+        altitude" goal keeps the altitude of the switch. Silent with a stale pose.
+
+        Silent too on PX4 while its HEARTBEAT reports a failsafe (CRITICAL), saying so: after an offboard-loss
+        failsafe PX4 goes back to OFFBOARD by itself as soon as setpoints come (src/modules/commander/failsafe/
+        failsafe.cpp ``checkModeFallback``: the user's intended mode stays OFFBOARD and the fallback clears with its
+        condition), and the holds would then look like the pilot's switch. The pilot first picks another mode,
+        which ends the failsafe, then OFFBOARD."""
         blocked = self._blocked(inp)
         if blocked is not None:
             return blocked
+        if self.p.setpoints_end_failsafe and self.vehicle.failsafe:
+            self.machine.change(inp.now_s, State.WAITING_FOR_PILOT, FAILSAFE_WAIT_REASON)
+            return self._silent(inp)
+        self.machine.change(inp.now_s, State.WAITING_FOR_PILOT, self.machine.switch_reason())
         if not inp.pose_ok:
             return self._silent(inp)
         pose = self.vehicle.pose

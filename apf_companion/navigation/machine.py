@@ -13,6 +13,9 @@ from apf_companion.navigation.vehicle import VehicleLink
 __all__ = ["REASON_REPEAT_S", "StateMachine"]
 
 REASON_REPEAT_S = 1.0  # a changed HOLDING reason is announced at most this often (a flapping cause cannot flood)
+SAYS_WHY_NOW = frozenset({State.HOLDING, State.WAITING_FOR_PILOT})  # states whose changed reason is announced
+# WAITING_FOR_PILOT on PX4 while a failsafe is active: no holds (they would end it into OFFBOARD); fits a STATUSTEXT
+FAILSAFE_WAIT_REASON = "failsafe: switch mode first"
 
 
 class StateMachine:
@@ -40,8 +43,8 @@ class StateMachine:
         self._pending: list[StateChange] = []
 
     def change(self, now_s: float, new: State, reason: str) -> None:
-        if new is self.state and (new is not State.HOLDING or _repeats(self._said, reason, now_s)):
-            return  # HOLDING says why now: a new cause is announced (at most every REASON_REPEAT_S)
+        if new is self.state and (new not in SAYS_WHY_NOW or _repeats(self._said, reason, now_s)):
+            return  # SAYS_WHY_NOW: a new cause is announced (at most every REASON_REPEAT_S)
         self._pending.append(StateChange(t_s=now_s, old=self.state, new=new, reason=reason))
         self.state = new
         self._said = (reason, now_s)

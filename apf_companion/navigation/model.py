@@ -126,6 +126,11 @@ class NavigatorParams:
             navigator streams holds meanwhile, NAVIGATING. False: a goal waits in WAITING_FOR_PILOT until the
             autopilot's HEARTBEAT shows that mode.
         guided_mode: The name of that mode, for the pilot ("GUIDED" ArduPilot, "OFFBOARD" PX4).
+        setpoints_end_failsafe: The autopilot returns to that mode by itself when setpoints come back after its
+            setpoint-loss failsafe (PX4: the offboard loss is a mode fallback that keeps OFFBOARD as the user's
+            intended mode and clears with its condition, src/modules/commander/failsafe/failsafe.cpp
+            ``checkModeFallback``). WAITING_FOR_PILOT then streams no holds while the autopilot's HEARTBEAT reports
+            a failsafe (system_status CRITICAL): they would put the vehicle back into OFFBOARD with no pilot's switch.
     """
 
     dim: int = 2
@@ -153,6 +158,7 @@ class NavigatorParams:
     resume_after_link_lost: bool = True
     takeover: bool = True
     guided_mode: str = "GUIDED"
+    setpoints_end_failsafe: bool = False
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -24,6 +24,7 @@ class VehicleLink:
         self.pose: Pose | None = None
         self.last_hb_s: float | None = None
         self.mode_ok = False  # latest HEARTBEAT: autopilot is in GUIDED/OFFBOARD
+        self.failsafe = False  # latest HEARTBEAT: system_status CRITICAL (a failsafe of the autopilot is active)
         self.ekf_ready: bool | None = None  # EKF_STATUS_REPORT has a horizontal position (None = not reported)
 
     def update_pose(self, pose: Pose) -> bool:
@@ -35,9 +36,11 @@ class VehicleLink:
         self.pose = pose
         return True
 
-    def heard(self, now_s: float, *, mode_ok: bool) -> None:
-        """An autopilot HEARTBEAT at ``now_s``; ``mode_ok`` = it shows GUIDED (ArduPilot) / OFFBOARD (PX4)."""
+    def heard(self, now_s: float, *, mode_ok: bool, failsafe: bool = False) -> None:
+        """An autopilot HEARTBEAT at ``now_s``; ``mode_ok`` = it shows GUIDED (ArduPilot) / OFFBOARD (PX4);
+        ``failsafe`` = its system_status is CRITICAL."""
         self.last_hb_s = now_s
+        self.failsafe = failsafe
         self.mode_ok = mode_ok
 
     def link_alive(self, now_s: float) -> bool:

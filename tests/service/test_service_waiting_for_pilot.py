@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.autopilot import PX4_OFFBOARD, CopterMode, Px4MainMode, Px4Mode
+from apf_companion.autopilot import MASK_POSITION, PX4_OFFBOARD, CopterMode, Px4MainMode, Px4Mode
 from apf_companion.config import ServiceConfig, config_from_mapping
 from apf_companion.goal import Route
 from apf_companion.links import MavlinkLink
@@ -89,6 +89,39 @@ def test_a_goal_waits_for_the_pilot_then_flies_when_the_mode_is_switched(profile
     assert out.state is State.NAVIGATING and not out.changes
     assert out.setpoint is not None and out.setpoint.kind is SetpointKind.NAVIGATE
     assert nav.counts()["planner_steps"] == 1 and nav.counts()["prestream_setpoints"] == 30
+
+
+@pytest.mark.parametrize("profile", ["ardupilot", "px4"])
+def test_a_px4_failsafe_keeps_the_wait_silent_and_says_so(profile: str) -> None:
+    """PX4 ends an offboard-loss failsafe into OFFBOARD when setpoints come (failsafe.cpp ``checkModeFallback``):
+    while its HEARTBEAT says CRITICAL, no holds; once the pilot's mode change ends the failsafe, the holds. ArduCopter
+    drops setpoints outside GUIDED, so its holds go on."""
+    nav = pilot_nav(profile)
+    nav.autopilot_heartbeat(0.0, mode_ok=False, failsafe=True)
+    nav.update_pose(Pose(t_s=0.0, pos_ned_m=np.array([0.0, 0.0, -5.0]), yaw_rad=0.0))
+    assert nav.set_route(Route.point(10.0, 0.0, -5.0, source="test"), 0.0)
+    changes = nav.drain_changes()
+    sent = 0
+    for k in range(1, 21):  # 2 s in the failsafe
+        t = 0.1 * k
+        nav.autopilot_heartbeat(t, mode_ok=False, failsafe=True)
+        nav.update_pose(Pose(t_s=t, pos_ned_m=np.array([0.0, 0.0, -5.0]), yaw_rad=0.0))
+        out = nav.cycle(t)
+        changes += out.changes
+        sent += out.setpoint is not None
+        assert out.state is State.WAITING_FOR_PILOT
+    reasons = [c.reason for c in changes]
+    if profile == "ardupilot":
+        assert sent == 20 and reasons == ["switch to GUIDED to fly"]
+        return
+    assert sent == 0 and reasons == ["switch to OFFBOARD to fly", "failsafe: switch mode first"]
+    nav.autopilot_heartbeat(2.1, mode_ok=False, failsafe=False)  # the pilot picked Hold: failsafe over
+    nav.update_pose(Pose(t_s=2.1, pos_ned_m=np.array([0.0, 0.0, -5.0]), yaw_rad=0.0))
+    out = nav.cycle(2.1)
+    assert out.setpoint is not None and out.setpoint.kind is SetpointKind.PRESTREAM
+    assert [c.reason for c in out.changes] == ["switch to OFFBOARD to fly"]
+    text = statustext_for(State.WAITING_FOR_PILOT, "failsafe: switch mode first")
+    assert len(text) <= STATUSTEXT_MAX
 
 
 def test_waiting_is_reported_as_standby_and_a_notice() -> None:
@@ -310,3 +343,57 @@ async def test_the_simulated_vehicle_waits_for_the_ground_station_then_flies(pro
     else:
         assert Px4Mode.from_custom_mode(custom_mode).main == Px4MainMode.OFFBOARD
     assert math.dist(res["final_pos_ned_m"][:2], goal[:2]) <= 0.7 + 0.3
+
+
+@pytest.mark.slow
+async def test_px4_after_an_offboard_loss_failsafe_the_wait_streams_nothing_until_the_pilot_picks_a_mode() -> None:
+    """PX4 leaves its offboard-loss failsafe for OFFBOARD by itself once setpoints come back (failsafe.cpp
+    ``checkModeFallback``; the simulator's PX4 profile does too): holds streamed while waiting would have taken the
+    vehicle back into OFFBOARD, and the service would have flown the goal with no pilot's switch. While the
+    HEARTBEAT says CRITICAL the wait is silent and says why; the pilot's Hold ends the failsafe, the holds start,
+    and the pilot's OFFBOARD starts the flight."""
+    svc = await CompanionService.open(_pilot_config("px4"), clock=SimulatorClock(flights.SPEEDUP))
+    gcs = await MavlinkLink.open("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    assert svc.link is not None and svc.link.local_address is not None and gcs.local_address is not None
+    sim = await Simulator.start(
+        SimConfig(
+            links=[f"udpout:127.0.0.1:{svc.link.local_address[1]}", f"udpout:127.0.0.1:{gcs.local_address[1]}"],
+            profile="px4",
+            world=World.empty(),
+            speedup=flights.SPEEDUP,
+            seed=3,
+            spawn=SpawnConfig(pos_ne_m=(3.0, 3.0), airborne=True, alt_m=5.0, mode="LOITER"),
+            sensor=RangeSensorConfig(messages=frozenset({"obstacle_distance"})),
+        )
+    )
+    nav = svc.navigator
+    try:
+        async with running(svc, sim):
+            # a ground station's one setpoint and OFFBOARD, then silence: the offboard-loss failsafe (Hold) 1 s later
+            await gcs.recv_match(type="HEARTBEAT", timeout=HANG_S)
+            frame = mavlink.MAV_FRAME_LOCAL_NED
+            gcs.send(
+                gcs.mav.set_position_target_local_ned_encode(0, 1, 1, frame, MASK_POSITION, 0.0, 0.0, -5.0, *[0.0] * 8)
+            )
+            ack = await command_long(gcs, mavlink.MAV_CMD_DO_SET_MODE, *_set_mode_params("px4"))
+            assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+            await gcs.recv_match(type="STATUSTEXT", condition=lambda t: "Failsafe" in t.text, timeout=HANG_S)
+            failsafe = lambda: sim.vehicle.mode == "AUTO.LOITER" and not nav.mode_ok and nav.pose is not None  # noqa: E731
+            await until(failsafe, what="the failsafe's HEARTBEAT (Hold, CRITICAL) seen, and a pose")
+            assert svc.admission.admit(Route.point(8.0, 3.0, -5.0, source="test"), svc.clock.now())
+            cycles = nav.counters.cycles
+            await until(lambda: nav.counters.cycles >= cycles + 30, what="3 s of waiting")
+            status: dict[str, Any] = svc.reporter.status_dict(svc.clock.now())
+            assert (status["state"], status["reason"]) == ("WAITING_FOR_PILOT", "failsafe: switch mode first")
+            assert nav.counters.prestream_setpoints == nav.counters.setpoints == 0
+            assert sim.vehicle.mode == "AUTO.LOITER"
+            # the pilot picks Hold (ends the failsafe), then OFFBOARD once the holds stream
+            ack = await command_long(gcs, mavlink.MAV_CMD_DO_SET_MODE, 1.0, 4.0, 3.0)
+            assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+            await until(lambda: nav.counters.prestream_setpoints >= 15, what="holds streamed")
+            assert nav.state is State.WAITING_FOR_PILOT and sim.vehicle.mode == "AUTO.LOITER"
+            ack = await command_long(gcs, mavlink.MAV_CMD_DO_SET_MODE, *_set_mode_params("px4"))
+            assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+            await until(lambda: nav.state is State.NAVIGATING, what="NAVIGATING at the pilot's switch")
+    finally:
+        await gcs.aclose()
