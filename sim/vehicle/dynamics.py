@@ -65,6 +65,7 @@ class Limits:
     speed_up_m_s: float = 2.5
     speed_down_m_s: float = 1.5
     accel_h_m_s2: float = 2.5
+    yaw_rate_rad_s: float = MAX_YAW_RATE_RAD_S  # the most the heading turns towards a target yaw [rad/s]
 
 
 @dataclass(slots=True)
@@ -153,7 +154,7 @@ def step_dynamics(
         if state.on_ground and acc[2] >= -1e-6:
             _rest(state)
             return 0.0
-        _yaw_step(state, target, travel_yaw, dt)
+        _yaw_step(state, target, travel_yaw, dt, limits.yaw_rate_rad_s)
         state.on_ground = False
     v += acc * dt
     v[:2] = _limit_norm(v[:2].copy(), max(limits.speed_h_m_s, 0.0) * 1.05)
@@ -210,17 +211,19 @@ def _control_accel(state: VehicleState, target: ControlTarget, limits: Limits) -
     return np.asarray(acc, dtype=np.float64), travel_yaw
 
 
-def _face(state: VehicleState, yaw_goal: float) -> None:
-    state.yaw_rate_rad_s = min(max(KP_YAW * wrap_pi(yaw_goal - state.yaw_rad), -MAX_YAW_RATE_RAD_S), MAX_YAW_RATE_RAD_S)
+def _face(state: VehicleState, yaw_goal: float, max_rate: float) -> None:
+    state.yaw_rate_rad_s = min(max(KP_YAW * wrap_pi(yaw_goal - state.yaw_rad), -max_rate), max_rate)
 
 
-def _yaw_step(state: VehicleState, target: ControlTarget, travel_yaw: float | None, dt: float) -> None:
+def _yaw_step(state: VehicleState, target: ControlTarget, travel_yaw: float | None, dt: float, max_rate: float) -> None:
+    """Turn towards the target's yaw (or yaw rate, or the heading of travel) at most ``max_rate`` [rad/s]; with none
+    of them the heading is kept."""
     if target.yaw_rate_rad_s is not None:
         state.yaw_rate_rad_s = min(max(target.yaw_rate_rad_s, -MAX_YAW_RATE_RAD_S), MAX_YAW_RATE_RAD_S)
     elif target.yaw_rad is not None:
-        _face(state, target.yaw_rad)
+        _face(state, target.yaw_rad, max_rate)
     elif travel_yaw is not None:
-        _face(state, travel_yaw)
+        _face(state, travel_yaw, max_rate)
     else:
         state.yaw_rate_rad_s = 0.0
     state.yaw_rad = wrap_pi(state.yaw_rad + state.yaw_rate_rad_s * dt)

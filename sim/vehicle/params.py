@@ -185,6 +185,9 @@ _PX4 = (
         name="MPC_XY_CRUISE", default=5.0, lo=0.5, hi=20.0, doc="horizontal speed towards a position target [m/s]"
     ),
     ParamSpec(name="MPC_ACC_HOR", default=3.0, lo=2.0, hi=15.0, doc="horizontal acceleration [m/s/s]"),
+    ParamSpec(
+        name="MPC_YAWRAUTO_MAX", default=45.0, lo=5.0, hi=360.0, doc="max yaw rate towards a commanded yaw [deg/s]"
+    ),
     ParamSpec(name="MPC_Z_VEL_MAX_UP", default=3.0, lo=0.5, hi=8.0, doc="climb speed [m/s]"),
     ParamSpec(name="MPC_Z_VEL_MAX_DN", default=1.5, lo=0.5, hi=4.0, doc="descent speed [m/s]"),
     ParamSpec(name="MPC_TKO_SPEED", default=1.5, lo=1.0, hi=5.0, doc="takeoff climb speed [m/s]"),

@@ -142,11 +142,15 @@ class Px4Profile:
 
     # -- limits and speeds
     def limits(self, params: ParamTable) -> Limits:
+        """The MPC_* limits; a commanded yaw is turned to at MPC_YAWRAUTO_MAX (the yaw setpoint's rate limit in
+        autonomous modes, OFFBOARD included: src/modules/mc_pos_control/multicopter_autonomous_params.c, 45 deg/s;
+        the yaw acceleration limit MPC_YAWRAUTO_ACC is not modelled)."""
         return Limits(
             speed_h_m_s=params["MPC_XY_VEL_MAX"],
             speed_up_m_s=params["MPC_Z_VEL_MAX_UP"],
             speed_down_m_s=params["MPC_Z_VEL_MAX_DN"],
             accel_h_m_s2=params["MPC_ACC_HOR"],
+            yaw_rate_rad_s=math.radians(params["MPC_YAWRAUTO_MAX"]),
         )
 
     def cruise_m_s(self, params: ParamTable) -> float:
