@@ -10,6 +10,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
 __all__ = [
     "ACC_IGNORE",
     "COMP_AUTOPILOT",
@@ -127,20 +129,21 @@ PX4_POSCTL = Px4Mode(Px4MainMode.POSCTL)
 
 
 class TypeMask(enum.IntFlag):
-    """POSITION_TARGET_TYPEMASK: each set bit tells the autopilot to IGNORE that field."""
+    """POSITION_TARGET_TYPEMASK: each set bit tells the autopilot to IGNORE that field (pymavlink's dialect
+    constants, common.xml)."""
 
-    X_IGNORE = 1
-    Y_IGNORE = 2
-    Z_IGNORE = 4
-    VX_IGNORE = 8
-    VY_IGNORE = 16
-    VZ_IGNORE = 32
-    AX_IGNORE = 64
-    AY_IGNORE = 128
-    AZ_IGNORE = 256
-    FORCE_SET = 512
-    YAW_IGNORE = 1024
-    YAW_RATE_IGNORE = 2048
+    X_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE
+    Y_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+    Z_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE
+    VX_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE
+    VY_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
+    VZ_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+    AX_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    AY_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    AZ_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+    FORCE_SET = mavlink.POSITION_TARGET_TYPEMASK_FORCE_SET
+    YAW_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+    YAW_RATE_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 
 
 POS_IGNORE = TypeMask.X_IGNORE | TypeMask.Y_IGNORE | TypeMask.Z_IGNORE

@@ -174,6 +174,7 @@ def navigator_params(config: ServiceConfig, planner: Any) -> NavigatorParams:
         takeover=config.autopilot.takeover,
         guided_mode=guided_mode_name(config.autopilot.profile),
         setpoints_end_failsafe=config.autopilot.profile is Autopilot.PX4,
+        yaw_travel=config.autopilot.yaw_travel,
     )
 
 

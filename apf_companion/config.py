@@ -36,6 +36,7 @@ __all__ = [
     "RATE_RANGE_HZ",
     "TAKEOFF_ALT_RANGE_M",
     "TIME_SCALE_RANGE",
+    "YAW_CHOICES",
     "AutopilotConfig",
     "CycleConfig",
     "GoalConfig",
@@ -176,6 +177,10 @@ class LinkConfig:
         _check_range("link.telemetry_rate_hz", self.telemetry_rate_hz, 1.0, 100.0)
 
 
+YAW_CHOICES = ("auto", "travel", "none")
+"""``[autopilot] yaw``'s values (AutopilotConfig)."""
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class AutopilotConfig:
     """``[autopilot]``: which autopilot rules to follow and how far the service may take control.
@@ -193,6 +198,10 @@ class AutopilotConfig:
         ready_timeout_s: Before taking over (mode, arming) wait at most this long for a position (LOCAL_POSITION_NED
             fresh) and, where the autopilot reports it, an EKF with a horizontal position (EKF_STATUS_REPORT); the
             goal is dropped after that. ArduCopter SITL has no position for about 20 s after boot [s].
+        yaw: The heading sent with the setpoints: "travel" (face the step being flown; a step refused towards a
+            sector without recent ranges turns the vehicle there first), "none" (no yaw: the autopilot's own) or
+            "auto" (the default: "travel" on PX4, which otherwise keeps its heading; "none" on ArduPilot, whose
+            GUIDED faces the direction of travel by itself). See docs/service.md, "Heading".
     """
 
     profile: Autopilot = Autopilot.ARDUPILOT
@@ -202,14 +211,24 @@ class AutopilotConfig:
     mode_timeout_s: float = 5.0
     offboard_prestream_s: float = 1.3
     ready_timeout_s: float = 90.0
+    yaw: str = "auto"
 
     def __post_init__(self) -> None:
         if not isinstance(self.profile, Autopilot):
             raise _fail("autopilot.profile", "one of 'ardupilot', 'px4'", self.profile)
+        if self.yaw not in YAW_CHOICES:
+            hint = did_you_mean(str(self.yaw), YAW_CHOICES)
+            allowed = ", ".join(map(repr, YAW_CHOICES))
+            raise ConfigError(f"autopilot.yaw must be one of {allowed}, got {self.yaw!r}{hint}")
         _check_range("autopilot.takeoff_alt_m", self.takeoff_alt_m, *TAKEOFF_ALT_RANGE_M)
         _check_range("autopilot.mode_timeout_s", self.mode_timeout_s, 0.5, 60.0)
         _check_range("autopilot.offboard_prestream_s", self.offboard_prestream_s, 1.0, 10.0, lo_open=True)
         _check_range("autopilot.ready_timeout_s", self.ready_timeout_s, 1.0, 3600.0)
+
+    @property
+    def yaw_travel(self) -> bool:
+        """Whether the setpoints carry the heading of travel (``yaw``, "auto" resolved by ``profile``)."""
+        return self.yaw == "travel" or (self.yaw == "auto" and self.profile is Autopilot.PX4)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

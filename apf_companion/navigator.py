@@ -56,6 +56,7 @@ from apf_companion.goal import Route
 from apf_companion.linkquality import CLEAN_LINK, LinkQuality, caution_scale
 from apf_companion.navigation.cycle import CycleHandlers
 from apf_companion.navigation.goalslot import GoalSlot
+from apf_companion.navigation.heading import Heading
 from apf_companion.navigation.legs import Legs
 from apf_companion.navigation.machine import StateMachine
 from apf_companion.navigation.model import (
@@ -121,6 +122,7 @@ class Navigator:
         self.goal = GoalSlot()
         self._steps = StepTracker(params, self.counters)
         self._hold = HoldPoint()
+        self._heading = Heading()
         self._legs = Legs(params, self._steps)
         steps, hold = self._steps, self._hold
         self.machine = StateMachine(
@@ -228,6 +230,10 @@ class Navigator:
             if self.state is State.LINK_LOST:
                 self.recovery.link_back(now_s)
             out = self._handlers.run(self.vehicle.inputs(now_s))
+            if self._params.yaw_travel:
+                pose = self.vehicle.pose
+                sp = self._heading.apply(out.setpoint, None if pose is None else np.asarray(pose.pos_ned_m))
+                out = dataclasses.replace(out, setpoint=sp)
         if out.setpoint is not None:
             self.counters.setpoints += 1
             self.counters.prestream_setpoints += out.setpoint.kind is SetpointKind.PRESTREAM
@@ -239,6 +245,7 @@ class Navigator:
     def _restart_leg(self) -> None:
         self._legs.leg = None
         self._steps.target = None
+        self._heading.reset()
 
     # What it reports, read by the service, its parts and the tests: each from the part that owns it.
     @property

@@ -4,10 +4,16 @@ Every setpoint is in MAV_FRAME_LOCAL_NED (1): absolute north/east/down from the 
 ArduCopter (GUIDED) and PX4 (OFFBOARD) treat the same way. Navigation setpoints carry the planned point and a
 velocity feed-forward along the step (``MASK_POS_VEL`` 0x0DC0: position and velocity used; acceleration, yaw and
 yaw rate ignored). A hold is the same mask with zero velocity, so the vehicle brakes onto the point.
+
+With a commanded heading (``[autopilot] yaw = "travel"``, the PX4 default: docs/service.md "Heading") a
+navigation or hold setpoint also carries a yaw (``with_yaw``: ``MASK_POS_VEL_YAW``, the yaw bit cleared, yaw rate
+still ignored): PX4 holds its present heading when the yaw is ignored, so a range sensor covering less than 360
+degrees would only ever look where the nose pointed at the takeover.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass
@@ -17,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from apf_companion.autopilot import MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY
+from apf_companion.autopilot import MASK_POS_VEL, MASK_POS_VEL_YAW, MASK_POSITION, MASK_VELOCITY, TypeMask
 
 __all__ = [
     "MAV_FRAME_LOCAL_NED",
@@ -28,10 +34,11 @@ __all__ = [
     "hold",
     "navigate",
     "silent_safe_velocity",
+    "with_yaw",
 ]
 
 MAV_FRAME_LOCAL_NED: int = mavlink.MAV_FRAME_LOCAL_NED
-_VALID_MASKS = frozenset({MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY})
+_VALID_MASKS = frozenset({MASK_POS_VEL, MASK_POSITION, MASK_VELOCITY, MASK_POS_VEL_YAW})
 
 
 class SetpointKind(enum.Enum):
@@ -58,12 +65,15 @@ class Setpoint:
         vel_ned_m_s: Velocity feed-forward, local NED [m/s].
         type_mask: POSITION_TARGET_TYPEMASK ignore bits (one of the named constants).
         kind: Why it is sent.
+        yaw_rad: Heading to turn to, local NED (0 = north, clockwise) [rad]; None = ignored (the yaw bit set: the
+            autopilot's own heading). Given exactly when ``type_mask`` uses the yaw (``MASK_POS_VEL_YAW``).
     """
 
     pos_ned_m: tuple[float, float, float]
     vel_ned_m_s: tuple[float, float, float]
     type_mask: int
     kind: SetpointKind
+    yaw_rad: float | None = None
 
     def __post_init__(self) -> None:
         # Internal invariant: a setpoint with a NaN never reaches the wire.
@@ -72,6 +82,12 @@ class Setpoint:
             raise ValueError(msg)
         if self.type_mask not in _VALID_MASKS:
             msg = f"type_mask {self.type_mask:#06x} is not one of the named masks"
+            raise ValueError(msg)
+        if (self.yaw_rad is None) != bool(self.type_mask & TypeMask.YAW_IGNORE):
+            msg = f"yaw {self.yaw_rad} does not match type_mask {self.type_mask:#06x}"
+            raise ValueError(msg)
+        if self.yaw_rad is not None and not math.isfinite(self.yaw_rad):
+            msg = f"setpoint yaw must be finite: {self.yaw_rad}"
             raise ValueError(msg)
 
 
@@ -83,6 +99,16 @@ def _vec3(v: npt.ArrayLike) -> tuple[float, float, float]:
 def hold(pos_ned_m: npt.ArrayLike, kind: SetpointKind = SetpointKind.HOLD) -> Setpoint:
     """Hold at ``pos_ned_m`` (3,) with zero velocity."""
     return Setpoint(pos_ned_m=_vec3(pos_ned_m), vel_ned_m_s=(0.0, 0.0, 0.0), type_mask=MASK_POS_VEL, kind=kind)
+
+
+def with_yaw(sp: Setpoint, yaw_rad: float) -> Setpoint:
+    """``sp`` (a position + velocity setpoint: navigate or hold) also turning the vehicle to ``yaw_rad`` (local
+    NED, wrapped to [-pi, pi)); the yaw bit of the mask cleared, the yaw rate still ignored."""
+    if sp.type_mask not in (MASK_POS_VEL, MASK_POS_VEL_YAW):
+        msg = f"internal: a yaw on a {sp.kind.value} setpoint (type_mask {sp.type_mask:#06x})"
+        raise AssertionError(msg)
+    yaw = (yaw_rad + math.pi) % (2.0 * math.pi) - math.pi
+    return dataclasses.replace(sp, type_mask=MASK_POS_VEL_YAW, yaw_rad=yaw)
 
 
 def brake() -> Setpoint:
@@ -168,6 +194,6 @@ def encode_setpoint(mav: Any, sp: Setpoint, *, time_boot_ms: int, target_system:
         0.0,
         0.0,
         0.0,
-        0.0,
+        0.0 if sp.yaw_rad is None else sp.yaw_rad,
         0.0,
     )

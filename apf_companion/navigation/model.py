@@ -131,6 +131,9 @@ class NavigatorParams:
             intended mode and clears with its condition, src/modules/commander/failsafe/failsafe.cpp
             ``checkModeFallback``). WAITING_FOR_PILOT then streams no holds while the autopilot's HEARTBEAT reports
             a failsafe (system_status CRITICAL): they would put the vehicle back into OFFBOARD with no pilot's switch.
+        yaw_travel: Command the heading (``[autopilot] yaw`` "travel"; navigation.heading): each navigation and hold
+            setpoint carries the yaw of the step flown, a hold refused towards a sector without ranges the yaw of
+            that direction. False: no yaw (the autopilot's own heading).
     """
 
     dim: int = 2
@@ -159,6 +162,7 @@ class NavigatorParams:
     takeover: bool = True
     guided_mode: str = "GUIDED"
     setpoints_end_failsafe: bool = False
+    yaw_travel: bool = False
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -11,19 +11,23 @@ import numpy as np
 from apf_companion.envelope import BrakingEnvelope
 from apf_companion.navigation.model import Counters, CycleOutput, FloatArray, NavigatorParams, ObstacleView
 from apf_companion.perception import Pose
-from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity
+from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity, with_yaw
 
 __all__ = ["SLOW_FRACTION", "HoldPoint", "StepTracker", "shortened"]
 
 SLOW_FRACTION = 0.2  # feed-forward speed next to an obstacle, as a fraction of cruise
 
 
-def _into_unknown(view: ObstacleView, sp: Setpoint | None, pos: FloatArray, now_s: float) -> bool:
-    """``sp`` steps towards an azimuth sector without recent ranges (``ObstacleView.direction_fresh``)."""
+def _into_unknown(view: ObstacleView, sp: Setpoint | None, pos: FloatArray, now_s: float) -> float | None:
+    """The bearing (local NED [rad]) of ``sp``'s step when it goes towards an azimuth sector without recent ranges
+    (``ObstacleView.direction_fresh``), else None."""
     if sp is None or sp.kind is not SetpointKind.NAVIGATE:
-        return False
+        return None
     d = np.asarray(sp.pos_ned_m) - pos
-    return math.hypot(d[0], d[1]) >= 1e-9 and not view.direction_fresh(math.atan2(d[1], d[0]), now_s)
+    if math.hypot(d[0], d[1]) < 1e-9:
+        return None
+    bearing = math.atan2(d[1], d[0])
+    return None if view.direction_fresh(bearing, now_s) else bearing
 
 
 def shortened(pos: FloatArray, target: FloatArray, *, fraction: float, step_m: float, dim: int) -> FloatArray:
@@ -126,12 +130,16 @@ class StepTracker:
             self.counters.envelope_warnings += 1
 
     def known_direction(self, out: CycleOutput, pos: FloatArray, view: ObstacleView) -> CycleOutput:
-        """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle."""
-        if not _into_unknown(view, out.setpoint, pos, out.t_s):
+        """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle. With a
+        commanded heading (``yaw_travel``) the hold turns the vehicle to that direction, so a sensor covering less
+        than 360 degrees looks there and the step is flown once its sector has fresh ranges."""
+        bearing = _into_unknown(view, out.setpoint, pos, out.t_s)
+        if bearing is None:
             return out
         self.counters.unknown_direction_holds += 1
         self.target = None
-        return dataclasses.replace(out, setpoint=hold(pos))
+        sp = hold(pos)
+        return dataclasses.replace(out, setpoint=with_yaw(sp, bearing) if self.p.yaw_travel else sp)
 
     def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
         """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower

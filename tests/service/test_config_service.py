@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from apf_companion.autopilot import Autopilot
+from apf_companion.builders import navigator_params
 from apf_companion.config import ServiceConfig, config_from_mapping, load_config
 from apf_companion.errors import ConfigError
 from apf_companion.service import build_planner, initial_route
@@ -290,3 +291,31 @@ def test_every_planner_parameter_error_is_reported_at_once() -> None:
     assert text.startswith("3 config errors:"), text
     assert "planner.params.nope" in text and "PlannerParams.step_m" in text and "PlannerParams.n_bacteria" in text
     assert "PlannerParams.rho_" not in text  # rho_l 5 with rho_u 6 is valid together: not blamed
+
+
+@pytest.mark.parametrize(
+    ("profile", "yaw", "travel"),
+    [
+        ("px4", "auto", True),
+        ("ardupilot", "auto", False),
+        ("px4", "none", False),
+        ("ardupilot", "travel", True),
+        ("px4", "travel", True),
+    ],
+)
+def test_autopilot_yaw_resolves_auto_by_profile(profile: str, yaw: str, travel: bool) -> None:
+    cfg = config_from_mapping({"autopilot": {"profile": profile, "yaw": yaw}})
+    assert cfg.autopilot.yaw_travel is travel
+    assert navigator_params(cfg, build_planner(cfg)).yaw_travel is travel
+
+
+def test_autopilot_yaw_defaults_to_auto_and_rejects_typos() -> None:
+    assert ServiceConfig().autopilot.yaw == "auto"
+    with pytest.raises(ConfigError, match=r"autopilot\.yaw must be one of 'auto', 'travel', 'none', got 'travle'; did"):
+        config_from_mapping({"autopilot": {"yaw": "travle"}})
+    with pytest.raises(ConfigError, match=r"autopilot\.yaw must be one of .*got 'None'; did you mean 'none'\?"):
+        config_from_mapping({"autopilot": {"yaw": "None"}})
+    with pytest.raises(ConfigError, match=r"autopilot\.yaw must be a string, got 1"):
+        config_from_mapping({"autopilot": {"yaw": 1}})
+    with pytest.raises(ConfigError, match=r"unknown config key 'autopilot\.yow'; did you mean 'yaw'"):
+        config_from_mapping({"autopilot": {"yow": "none"}})

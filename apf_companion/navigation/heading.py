@@ -1,0 +1,49 @@
+"""The heading commanded with the setpoints (``[autopilot] yaw = "travel"``, the PX4 default): the vehicle faces the
+step it flies, so a range sensor covering less than 360 degrees looks where the vehicle goes.
+
+PX4 holds its present heading when a setpoint's yaw is ignored (src/modules/mc_pos_control/PositionControl/
+PositionControl.cpp ``_yaw_sp`` NAN -> FlightTaskOffboard keeps the current yaw); ArduCopter's GUIDED turns to
+the direction of travel by itself (WP_YAW_BEHAVIOR, ArduCopter/autoyaw.cpp), so there the service sends none.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from apf_companion.navigation.model import FloatArray
+from apf_companion.setpoint import Setpoint, SetpointKind, with_yaw
+
+__all__ = ["MIN_YAW_STEP_M", "Heading"]
+
+MIN_YAW_STEP_M = 0.05
+"""A navigation step shorter than this keeps the last yaw [m]: the bearing of a few centimetres (the vehicle next
+to its bacteria point, position noise) jumps about and would spin the vehicle."""
+
+
+class Heading:
+    """The yaw each setpoint carries: the bearing of the step being flown (NED, ``atan2(east, north)``); a hold
+    that wants a direction (a step refused towards a sector without recent ranges, ``StepTracker.known_direction``)
+    already carries it; any other hold or short step keeps the last commanded yaw. Pre-stream holds and brakes
+    carry none (the autopilot's own heading): before the takeover nothing was commanded, and a brake stops only."""
+
+    def __init__(self) -> None:
+        self.last_rad: float | None = None
+
+    def reset(self) -> None:
+        """Forget the last yaw (a new goal, a restarted leg): the pilot may have turned the vehicle meanwhile."""
+        self.last_rad = None
+
+    def apply(self, sp: Setpoint | None, pos_ned_m: FloatArray | None) -> Setpoint | None:
+        """``sp`` with its yaw (see the class)."""
+        if sp is None or sp.kind in (SetpointKind.PRESTREAM, SetpointKind.BRAKE):
+            return sp
+        if sp.yaw_rad is not None:
+            self.last_rad = sp.yaw_rad
+            return sp
+        if sp.kind is SetpointKind.NAVIGATE and pos_ned_m is not None:
+            d = np.asarray(sp.pos_ned_m, dtype=np.float64)[:2] - np.asarray(pos_ned_m, dtype=np.float64)[:2]
+            if math.hypot(d[0], d[1]) >= MIN_YAW_STEP_M:
+                self.last_rad = math.atan2(d[1], d[0])
+        return sp if self.last_rad is None else with_yaw(sp, self.last_rad)
