@@ -185,12 +185,11 @@ class EscapeMaps:
         if self.params.dim == 3:
             valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
         obs_xy = np.where(valid[..., None], obs[:, :, :2], 0.0)
-        inflated, known, keys = _occupancy(grid, (self.clearance_m, self._reach_m), rows, origins, obs_xy, valid, state)
+        radii = (self.clearance_m, self._reach_m)
+        inflated, known, keys, loose_cells = _occupancy(grid, radii, rows, origins, obs_xy, valid, state)
         blocked = inflated | (old_blocked & ~known) | old_virtual
         memos = [[] if state.field[r] is None else list(state.field[r].memo) for r in rows]
         dist, lost = self._distances(rows, xy, origins, blocked, goals, state, memos)
-        # The loosened cells of the same points, kept with the agent's field (``NavField.loose``).
-        loose_cells = [_kept_loose(state.field[r], keys[i]) for i, r in enumerate(rows)]
         if lost.any():  # closed in: again with the inflation loosened to C - h / 2 (``loose_m``)
             ix = np.flatnonzero(lost)
             todo = [k for k in ix if loose_cells[k] is None]
@@ -421,30 +420,25 @@ def _occupancy(
     obs_xy: FloatArray,
     valid: BoolArray,
     state: NavState,
-) -> tuple[BoolArray, BoolArray, list[bytes]]:
+) -> tuple[BoolArray, BoolArray, list[bytes], list[BoolArray | None]]:
     """Cells within the clearance and within the reach (``radii_m``) of the points known now (R, n^2) each, and
     their exact input per agent; taken from the agent's field (``NavField.occupancy``) when that input is the same
-    (a second refresh in one step: the stall or dead-end rule)."""
+    (a second refresh in one step: the stall or dead-end rule), with the loosened cells the field keeps for that
+    input (``NavField.loose``; None where there are none)."""
     inflated = np.empty((rows.size, grid.size), dtype=bool)
     known = np.empty((rows.size, grid.size), dtype=bool)
     keys = [occupancy_key(origins[i], obs_xy[i], valid[i]) for i in range(rows.size)]
+    loose: list[BoolArray | None] = [None] * rows.size
     todo = []
     for i, r in enumerate(rows):
         f = state.field[r]
         if f is not None and f.occupancy is not None and f.occupancy[0] == keys[i]:
-            inflated[i], known[i] = f.occupancy[1], f.occupancy[2]
+            inflated[i], known[i], loose[i] = f.occupancy[1], f.occupancy[2], f.loose
         else:
             todo.append(i)
     if todo:
         inflated[todo], known[todo] = grid.blocked_within(origins[todo], obs_xy[todo], valid[todo], radii_m)
-    return inflated, known, keys
-
-
-def _kept_loose(field: NavField | None, key: bytes) -> BoolArray | None:
-    """The loosened cells kept with ``field`` (``NavField.loose``) when its occupancy had the input ``key``."""
-    if field is None or field.occupancy is None or field.occupancy[0] != key:
-        return None
-    return field.loose
+    return inflated, known, keys, loose
 
 
 def _recall(
