@@ -34,6 +34,7 @@ __all__ = [
     "hold",
     "navigate",
     "silent_safe_velocity",
+    "step_bearing",
     "with_yaw",
 ]
 
@@ -109,6 +110,16 @@ def with_yaw(sp: Setpoint, yaw_rad: float) -> Setpoint:
         raise AssertionError(msg)
     yaw = (yaw_rad + math.pi) % (2.0 * math.pi) - math.pi
     return dataclasses.replace(sp, type_mask=MASK_POS_VEL_YAW, yaw_rad=yaw)
+
+
+def step_bearing(sp: Setpoint | None, pos_ned_m: npt.ArrayLike, min_m: float) -> float | None:
+    """The horizontal bearing (local NED, ``atan2(east, north)`` [rad]) from ``pos_ned_m`` to a navigation
+    setpoint's point, or None: not a navigation setpoint, or a step shorter than ``min_m``."""
+    if sp is None or sp.kind is not SetpointKind.NAVIGATE:
+        return None
+    pos = np.asarray(pos_ned_m, dtype=np.float64)
+    dn, de = sp.pos_ned_m[0] - float(pos[0]), sp.pos_ned_m[1] - float(pos[1])
+    return math.atan2(de, dn) if math.hypot(dn, de) >= min_m else None
 
 
 def brake() -> Setpoint:

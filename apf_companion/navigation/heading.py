@@ -8,12 +8,8 @@ the direction of travel by itself (WP_YAW_BEHAVIOR, ArduCopter/autoyaw.cpp), so 
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
-
 from apf_companion.navigation.model import FloatArray
-from apf_companion.setpoint import Setpoint, SetpointKind, with_yaw
+from apf_companion.setpoint import Setpoint, SetpointKind, step_bearing, with_yaw
 
 __all__ = ["MIN_YAW_STEP_M", "Heading"]
 
@@ -42,8 +38,7 @@ class Heading:
         if sp.yaw_rad is not None:
             self.last_rad = sp.yaw_rad
             return sp
-        if sp.kind is SetpointKind.NAVIGATE and pos_ned_m is not None:
-            d = np.asarray(sp.pos_ned_m, dtype=np.float64)[:2] - np.asarray(pos_ned_m, dtype=np.float64)[:2]
-            if math.hypot(d[0], d[1]) >= MIN_YAW_STEP_M:
-                self.last_rad = math.atan2(d[1], d[0])
+        bearing = None if pos_ned_m is None else step_bearing(sp, pos_ned_m, MIN_YAW_STEP_M)
+        if bearing is not None:
+            self.last_rad = bearing
         return sp if self.last_rad is None else with_yaw(sp, self.last_rad)

@@ -4,14 +4,21 @@ the point held in a holding state (``HoldPoint``)."""
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
 from apf_companion.envelope import BrakingEnvelope
 from apf_companion.navigation.model import Counters, CycleOutput, FloatArray, NavigatorParams, ObstacleView
 from apf_companion.perception import Pose
-from apf_companion.setpoint import Setpoint, SetpointKind, hold, navigate, silent_safe_velocity, with_yaw
+from apf_companion.setpoint import (
+    Setpoint,
+    SetpointKind,
+    hold,
+    navigate,
+    silent_safe_velocity,
+    step_bearing,
+    with_yaw,
+)
 
 __all__ = ["SLOW_FRACTION", "HoldPoint", "StepTracker", "shortened"]
 
@@ -21,13 +28,8 @@ SLOW_FRACTION = 0.2  # feed-forward speed next to an obstacle, as a fraction of 
 def _into_unknown(view: ObstacleView, sp: Setpoint | None, pos: FloatArray, now_s: float) -> float | None:
     """The bearing (local NED [rad]) of ``sp``'s step when it goes towards an azimuth sector without recent ranges
     (``ObstacleView.direction_fresh``), else None."""
-    if sp is None or sp.kind is not SetpointKind.NAVIGATE:
-        return None
-    d = np.asarray(sp.pos_ned_m) - pos
-    if math.hypot(d[0], d[1]) < 1e-9:
-        return None
-    bearing = math.atan2(d[1], d[0])
-    return None if view.direction_fresh(bearing, now_s) else bearing
+    bearing = step_bearing(sp, pos, 1e-9)
+    return None if bearing is None or view.direction_fresh(bearing, now_s) else bearing
 
 
 def shortened(pos: FloatArray, target: FloatArray, *, fraction: float, step_m: float, dim: int) -> FloatArray:
