@@ -2,7 +2,9 @@
 
 This module must not import numpy (directly or through a package ``__init__``): a spawned worker unpickles
 ``init`` before anything else, so the BLAS thread limit set here is in place when numpy is first imported.
-With 2 cores and one worker per core, more BLAS threads only oversubscribe the machine.
+With 2 cores and one worker per core, more BLAS threads only oversubscribe the machine. A forked worker
+(``engine.start_method``: only from a single-threaded parent, whose BLAS runs one thread already) inherits the
+parent's numpy; the limit then only reaches what the worker starts itself.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 Every chunk's result depends only on (config, planner, density, chunk, seed) (see ``sim.study.engine``), so any
 ``concurrent.futures.Executor`` gives the same table; this module only picks and owns one:
 
-- no ``--dask``: ``engine.default_executor(workers)`` (spawned processes, or in-process for one worker);
+- no ``--dask``: ``engine.default_executor(workers)`` (worker processes, forked or spawned as
+  ``engine.start_method`` decides, or in-process for one worker);
 - ``--dask local``: a ``distributed.LocalCluster`` of ``workers`` single-threaded worker processes bound to
   127.0.0.1, no dashboard, BLAS limited to one thread per worker;
 - ``--dask tcp://HOST:PORT`` (any Dask scheduler address): a ``distributed.Client`` of a running cluster

@@ -5,6 +5,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing
+import os
+import subprocess
+import sys
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
@@ -275,3 +278,37 @@ def test_engine_runs_in_3d() -> None:
     assert s.success >= 9
     assert 75.0 <= s.M_s <= 200.0  # (32.9 m - 0.7 m) / 0.4 m = 81 moves without noise
     assert cfg.collision_radius_m < s.S < cfg.sensor_range_m
+
+
+_START_METHOD_PROBE = """
+import dataclasses, sys, threading
+from sim.study.config import Density, StudyConfig
+from sim.study.engine import SerialExecutor, os_thread_count, run_study, start_method
+if sys.argv[1] == "thread":
+    stop = threading.Event()
+    threading.Thread(target=stop.wait, daemon=True).start()
+method, threads = start_method(), os_thread_count()
+cfg = dataclasses.replace(StudyConfig.reference(), chunk_trials=15)
+args = (cfg, ("cr-bapf*", "bapf-nav"), (Density(n_low=45, n_high=70),), 30, 7)
+one = run_study(*args, executor=SerialExecutor())
+two = run_study(*args, workers=2)  # the default pool
+same = all(
+    getattr(x.records, f).tobytes() == getattr(y.records, f).tobytes()
+    for x, y in zip(one, two, strict=True)
+    for f in ("outcome", "iterations", "safety_m", "path_m", "clearance_m")
+)
+print(method, threads, same)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/status")
+@pytest.mark.parametrize(("case", "expected"), [("plain", "fork"), ("thread", "spawn")])
+def test_default_pool_forks_only_a_single_threaded_process(case: str, expected: str) -> None:
+    # In a fresh interpreter (this process runs pytest-xdist's threads): a single-threaded process forks its
+    # workers, one with a second thread (a Python one here; OpenBLAS's own when OPENBLAS_NUM_THREADS > 1) spawns
+    # them; either way the records equal the in-process run's to the last bit.
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [sys.executable, "-c", _START_METHOD_PROBE, case], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert out == [expected, "1" if case == "plain" else "2", "True"]
