@@ -27,7 +27,7 @@ def _plain_seeds(
     when the goal lies in the grid, and every edge cell at its straight-line distance plus the grid's side (plus
     nothing when the goal lies outside); no blocked cell."""
     n, h = grid.n, grid.cell_m
-    gi, gj = grid._cell_of_one(origin, goal)
+    gi, gj = grid.cell_of_one(origin, goal)
     edge = np.zeros((n, n), dtype=bool)
     edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
     cells = np.flatnonzero(edge)
@@ -61,10 +61,10 @@ def _graph_field(
 ) -> FloatArray:
     """Dijkstra on a graph built for one field: edge weights inf into blocked cells, the seeds ``cells`` at
     ``values`` in the source's row."""
-    weights = np.where(blk[grid._indices], np.inf, grid._edge_cost)
-    indptr = np.append(grid._indptr, np.int32(grid._indptr[-1] + cells.size))
+    weights = np.where(blk[grid.search.indices], np.inf, grid.search.edge_cost)
+    indptr = np.append(grid.search.indptr, np.int32(grid.search.indptr[-1] + cells.size))
     graph = csr_matrix(
-        (np.concatenate([weights, values]), np.concatenate([grid._indices, cells.astype(np.int32)]), indptr),
+        (np.concatenate([weights, values]), np.concatenate([grid.search.indices, cells.astype(np.int32)]), indptr),
         shape=(grid.size + 1, grid.size + 1),
     )
     field: FloatArray = dijkstra(graph, directed=True, indices=grid.size, limit=1e300)[: grid.size]
@@ -88,7 +88,7 @@ def test_fields_equal_the_graph_weighted_by_destination(goal: tuple[float, float
 
 
 def test_the_goal_cell_of_one_point_equals_cell_of() -> None:
-    """``_cell_of_one`` (Python floats) equals ``cell_of`` (arrays): on cell borders, off the grid either side, huge
+    """``cell_of_one`` (Python floats) equals ``cell_of`` (arrays): on cell borders, off the grid either side, huge
     and non-finite coordinates (-1)."""
     grid = NavGrid(0.3, 16.0)
     rng = np.random.default_rng(9)
@@ -97,7 +97,7 @@ def test_the_goal_cell_of_one_point_equals_cell_of() -> None:
     points = np.concatenate([points, np.array([(x, y) for x in special for y in special])])
     for origin in (np.zeros(2), np.array([-0.3, 2.1]), np.array([1e5, -7.5])):
         i, j = grid.cell_of(origin[None], (points + origin)[None])
-        got = [grid._cell_of_one(origin, p + origin) for p in points]
+        got = [grid.cell_of_one(origin, p + origin) for p in points]
         assert got == list(zip(i[0].tolist(), j[0].tolist(), strict=True))
 
 
@@ -157,7 +157,7 @@ def _area_field(grid: NavGrid, blocked: npt.NDArray[np.bool_], goal: FloatArray)
     i, j = np.divmod(np.arange(grid.size), n)
     north, east = origin[0] + (i + 0.5) * h, origin[1] + (j + 0.5) * h
     outside = (north < _AREA[0]) | (north > _AREA[2]) | (east < _AREA[1]) | (east > _AREA[3])
-    gi, gj = grid._cell_of_one(origin, goal)
+    gi, gj = grid.cell_of_one(origin, goal)
     blk = blocked | outside
     blk[gi * n + gj] = False  # the goal's own cell stays free, also where its centre is outside the area
     near = np.array(
@@ -202,7 +202,7 @@ def test_an_area_field_goes_round_a_wall_the_moving_grid_only_guesses_at() -> No
     goal = np.array([20.0, 0.0])
     dist = grid.distances(origin[None], wall[None], goal[None])[0]
     agent = np.array([8.5, -2.0])
-    gi, gj = grid._cell_of_one(origin, agent)
+    gi, gj = grid.cell_of_one(origin, agent)
     via_gap = np.hypot(9.3 - agent[0], 11.15 - agent[1]) + 1.4 + np.hypot(20.0 - 10.7, 11.15)
     assert dist[gi * n + gj] == pytest.approx(via_gap, rel=0.06)
     west, east_side = dist[gi * n + gj - 10], dist[gi * n + gj + 10]  # 3 m west and east of the agent
