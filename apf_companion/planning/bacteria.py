@@ -158,7 +158,9 @@ def _safe_points(branching: bool, passing: BoolArray, inside: BoolArray | None) 
 
 
 class BacteriaPlanner(Planner):
-    """Shared engine; subclasses choose the repulsion (Eq. (2) or (13)), adaptivity and random walk."""
+    """Shared engine; subclasses choose the repulsion (Eq. (2) or (13)), adaptivity and random walk by the class
+    flags below, and A-BAPF overrides the three hooks ``_point_mu``, ``_smallest_point_mu`` and
+    ``_adaptive_decision`` (their defaults are BAPF's)."""
 
     #: CR-BAPF: branching repulsion of Eq. (13) instead of Eq. (2).
     branching: ClassVar[bool] = False
@@ -201,8 +203,6 @@ class BacteriaPlanner(Planner):
         self._reach_step = _const(params.step_m + 1e-9)
         self._reach_offset = _const(math.log(params.alpha_o) - _NEGLIGIBLE_LOG)
 
-    # --- hooks --------------------------------------------------------------------------------------
-
     def _point_mu(self, dist_sq_points_m2: FloatArray, log_target_points: FloatArray) -> FloatArray | float:
         """mu_o at the bacteria points, (A', K) or a scalar, from (N', A', K) squared distances and the
         (A', K) log |J_t(r_b,k)|. Overridden by A-BAPF."""
@@ -217,8 +217,6 @@ class BacteriaPlanner(Planner):
     ) -> tuple[BoolArray, BoolArray | None, FloatArray] | None:
         """A-BAPF may decide a group itself from the (N', A', K + 1) squared distances; None: the generic path."""
         return None
-
-    # --- engine -------------------------------------------------------------------------------------
 
     def _reach_sq(self, log_target_agent: FloatArray) -> FloatArray:
         """(A,) squared radius around each agent beyond which obstacles cannot matter (module Notes).

@@ -48,7 +48,7 @@ import numpy.typing as npt
 
 from apf_companion.planning.area import outside_zones
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
-from apf_companion.planning.navescape import EscapeMaps, own_cell_blocked
+from apf_companion.planning.navescape import EscapeMaps
 from apf_companion.planning.navescapeone import EscapeStep
 from apf_companion.planning.navgeometry import MoveGeometry, obstacle_reach_m
 from apf_companion.planning.navone import DirectStep
@@ -120,8 +120,6 @@ class BapfNavPlanner(StatefulPlanner):
         if not isinstance(state, NavState) or state.mode[0] != _GAVE_UP:
             return GiveUp.NONE
         return GiveUp(int(state.gave_up[0]))
-
-    # --- the step ---------------------------------------------------------------------------------------------
 
     def _plan(
         self,
@@ -230,7 +228,7 @@ class BapfNavPlanner(StatefulPlanner):
         some_escape = bool(_any(escaping, axis=None))
         if some_escape:
             world = (positions_m, targets_m, obstacles_m, obstacle_mask, state)
-            self._escape_scores(np.flatnonzero(escaping), *world, feasible, clear_k, clear_0, cost, cost0, passing)
+            self._escape.scores(np.flatnonzero(escaping), *world, feasible, clear_k, clear_0, cost, cost0, passing)
 
         chosen = _choose(cost, cost0, passing, state.prev_dir, self._units, self._cos_hold, self.params.nav_hold_ratio)
         _squeeze_out(chosen, ~any_feasible & active, seg2, self._floor2)
@@ -291,47 +289,6 @@ class BapfNavPlanner(StatefulPlanner):
         if _any(tired, axis=None):
             state.gave_up[tired & (state.mode != _GAVE_UP)] = GiveUp.NO_PROGRESS
             state.mode[tired] = _GAVE_UP
-
-    # --- escape -----------------------------------------------------------------------------------------------
-
-    def _escape_scores(
-        self,
-        rows: IntArray,
-        positions_m: FloatArray,
-        targets_m: FloatArray,
-        obstacles_m: FloatArray,
-        obstacle_mask: BoolArray | None,
-        state: NavState,
-        feasible: BoolArray,
-        clear_k: FloatArray,
-        clear_0: FloatArray,
-        cost: FloatArray,
-        cost0: FloatArray,
-        passing: BoolArray,
-    ) -> None:
-        """Replace the escaping rows' scores by the geodesic ones (in place)."""
-        g_k, g0, ok = self._escape.potentials(
-            rows, positions_m, targets_m, obstacles_m, obstacle_mask, state, feasible, clear_k, clear_0
-        )
-        # Any feasible point down the potential (the clearance term may hold the agent on a plateau).
-        plain: BoolArray = np.asarray(feasible[rows] & (g_k < g0[:, None]))
-        has_ok = np.asarray(ok.any(axis=1))
-        ok = np.asarray(np.where(has_ok[:, None], ok, plain), dtype=np.bool_)
-        cost[rows] = g_k + clear_k[rows]
-        cost0[rows] = np.where(np.asarray(ok.any(axis=1)), g0 + clear_0[rows], np.inf)
-        # Every feasible point is off the map's free cells: inside the inflated obstacles (noise put the agent
-        # there: no value at it and its own cell blocked), the agent first backs out (least clearance term); from
-        # a free cell it is "no path" (its region is closed, even at C - h / 2): give up.
-        lost = feasible[rows].any(axis=1) & ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1)
-        inside = lost & ~np.isfinite(g0)
-        for i in np.flatnonzero(inside):  # no value at the agent: inside only where its own cell is blocked
-            inside[i] = own_cell_blocked(self._escape.grid, state.field[rows[i]], positions_m[rows[i], :2])
-        ok[inside] = feasible[rows[inside]]
-        cost[rows[inside]] = clear_k[rows[inside]]
-        cost0[rows[inside]] = np.inf
-        passing[rows] = ok
-        state.mode[rows[lost & ~inside]] = _GAVE_UP
-        state.gave_up[rows[lost & ~inside]] = GiveUp.NO_WAY
 
 
 def _squeeze_out(chosen: IntArray, boxed: BoolArray, seg2: FloatArray, floor2: float) -> None:

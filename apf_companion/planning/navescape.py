@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from apf_companion.planning.navfield import NavGrid
-from apf_companion.planning.navstate import NavField, NavState
+from apf_companion.planning.navstate import GiveUp, NavField, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 
 __all__ = ["EscapeMaps", "mark_dead_end", "own_cell_blocked"]
@@ -29,6 +29,7 @@ IntArray = npt.NDArray[np.intp]
 #: bound on the fields an agent can cost while its map grows (one every few moves, not one per move).
 _OUTDATED_AGE = 8
 _any = np.logical_or.reduce
+_GAVE_UP = np.int8(NavMode.GAVE_UP)
 #: Fields an agent's memo keeps (``NavField.memo``): the closed and the open field of one input. Over 300 study
 #: trials at 70-95 one or four reuse as many fields as two; the memory is the agent's, 23 kB a field at 54 x 54.
 _MEMO = 2
@@ -108,6 +109,46 @@ class EscapeMaps:
             g_k[dead], g0[dead] = self.geodesic(again, positions_m, targets_m, state)
             ok[dead] = feasible[again] & (g_k[dead] + clear_k[again] < (g0[dead] + clear_0[again])[:, None])
         return g_k, g0, ok
+
+    def scores(
+        self,
+        rows: IntArray,
+        positions_m: FloatArray,
+        targets_m: FloatArray,
+        obstacles_m: FloatArray,
+        obstacle_mask: BoolArray | None,
+        state: NavState,
+        feasible: BoolArray,
+        clear_k: FloatArray,
+        clear_0: FloatArray,
+        cost: FloatArray,
+        cost0: FloatArray,
+        passing: BoolArray,
+    ) -> None:
+        """Replace the escaping ``rows``' scores by the geodesic ones (in place; ``BapfNavPlanner._decide``'s
+        ``cost``, ``cost0`` and ``passing``), and give up the rows whose region has no way (``GiveUp.NO_WAY``)."""
+        g_k, g0, ok = self.potentials(
+            rows, positions_m, targets_m, obstacles_m, obstacle_mask, state, feasible, clear_k, clear_0
+        )
+        # Any feasible point down the potential (the clearance term may hold the agent on a plateau).
+        plain: BoolArray = np.asarray(feasible[rows] & (g_k < g0[:, None]))
+        has_ok = np.asarray(ok.any(axis=1))
+        ok = np.asarray(np.where(has_ok[:, None], ok, plain), dtype=np.bool_)
+        cost[rows] = g_k + clear_k[rows]
+        cost0[rows] = np.where(np.asarray(ok.any(axis=1)), g0 + clear_0[rows], np.inf)
+        # Every feasible point is off the map's free cells: inside the inflated obstacles (noise put the agent
+        # there: no value at it and its own cell blocked), the agent first backs out (least clearance term); from
+        # a free cell it is "no path" (its region is closed, even at C - h / 2): give up.
+        lost = feasible[rows].any(axis=1) & ~np.isfinite(np.where(feasible[rows], g_k, np.inf)).any(axis=1)
+        inside = lost & ~np.isfinite(g0)
+        for i in np.flatnonzero(inside):  # no value at the agent: inside only where its own cell is blocked
+            inside[i] = own_cell_blocked(self.grid, state.field[rows[i]], positions_m[rows[i], :2])
+        ok[inside] = feasible[rows[inside]]
+        cost[rows[inside]] = clear_k[rows[inside]]
+        cost0[rows[inside]] = np.inf
+        passing[rows] = ok
+        state.mode[rows[lost & ~inside]] = _GAVE_UP
+        state.gave_up[rows[lost & ~inside]] = GiveUp.NO_WAY
 
     def outdated(
         self,
