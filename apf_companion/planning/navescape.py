@@ -219,13 +219,7 @@ class EscapeMaps:
         goals = targets_m[rows, :2]
         origins = grid.origins(xy, goals, self._pad_m)
         old_blocked, old_virtual = _carry_over(grid, [state.field[r] for r in rows], xy, origins, self._keep_m)
-        obs = obstacles_m[rows]
-        valid: BoolArray = np.asarray(np.isfinite(obs).all(axis=2))
-        if obstacle_mask is not None:
-            valid &= obstacle_mask[rows]
-        if self.params.dim == 3:
-            valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
-        obs_xy = np.where(valid[..., None], obs[:, :, :2], 0.0)
+        obs_xy, valid = self._usable(rows, positions_m, obstacles_m, obstacle_mask)
         radii = (self.clearance_m, self._reach_m)
         inflated, known, keys, loose_cells = _occupancy(grid, radii, rows, origins, obs_xy, valid, state)
         blocked = inflated | (old_blocked & ~known) | old_virtual
@@ -233,13 +227,7 @@ class EscapeMaps:
         dist, lost = self._distances(rows, xy, origins, blocked, goals, state, memos)
         if lost.any():  # closed in: again with the inflation loosened to C - h / 2 (``loose_m``)
             ix = np.flatnonzero(lost)
-            todo = [k for k in ix if loose_cells[k] is None]
-            if todo:
-                fresh = grid.blocked(origins[todo], obs_xy[todo], valid[todo], self.loose_m)
-                for k, cells in zip(todo, fresh, strict=True):
-                    loose_cells[k] = cells
-            loose = np.stack([c for c in (loose_cells[k] for k in ix) if c is not None])  # every one set above
-            loose |= old_blocked[ix] & ~known[ix]
+            loose = self._loose(ix, origins, obs_xy, valid, loose_cells) | (old_blocked[ix] & ~known[ix])
             dist[ix] = _recall(grid, [memos[k] for k in ix], origins[ix], loose | old_virtual[ix], goals[ix])
         for i, r in enumerate(rows):
             state.field[r] = NavField(
@@ -252,6 +240,36 @@ class EscapeMaps:
                 loose=loose_cells[i],
             )
         state.since_field[rows] = 0
+
+    def _usable(
+        self, rows: IntArray, positions_m: FloatArray, obstacles_m: FloatArray, obstacle_mask: BoolArray | None
+    ) -> tuple[FloatArray, BoolArray]:
+        """The points (R, M, 2) of ``rows`` that make their grids, zero where not valid, and which are valid (R, M):
+        finite, in the mask and, in 3D, within C of the agent's altitude."""
+        obs = obstacles_m[rows]
+        valid: BoolArray = np.asarray(np.isfinite(obs).all(axis=2))
+        if obstacle_mask is not None:
+            valid &= obstacle_mask[rows]
+        if self.params.dim == 3:
+            valid &= np.abs(obs[:, :, 2] - positions_m[rows, 2][:, None]) <= self.clearance_m
+        return np.where(valid[..., None], obs[:, :, :2], 0.0), valid
+
+    def _loose(
+        self,
+        ix: IntArray,
+        origins: FloatArray,
+        obs_xy: FloatArray,
+        valid: BoolArray,
+        loose_cells: list[BoolArray | None],
+    ) -> BoolArray:
+        """The cells (len(ix), n^2) within ``loose_m`` of the points of rows ``ix``: the ones a field kept for the
+        same points (``NavField.loose``), the others computed and written into ``loose_cells``."""
+        todo = [k for k in ix if loose_cells[k] is None]
+        if todo:
+            fresh = self.grid.blocked(origins[todo], obs_xy[todo], valid[todo], self.loose_m)
+            for k, cells in zip(todo, fresh, strict=True):
+                loose_cells[k] = cells
+        return np.stack([c for c in (loose_cells[k] for k in ix) if c is not None])  # every one set above
 
     def _distances(
         self,
