@@ -232,7 +232,8 @@ class Navigator:
             out = self._handlers.run(self.vehicle.inputs(now_s))
             if self._params.yaw_travel:
                 pose = self.vehicle.pose
-                sp = self._heading.apply(out.setpoint, None if pose is None else np.asarray(pose.pos_ned_m))
+                pos = None if pose is None else np.asarray(pose.pos_ned_m)
+                sp = self._heading.apply(out.setpoint, pos, self.obstacles.look_offset_rad(now_s))
                 out = dataclasses.replace(out, setpoint=sp)
         if out.setpoint is not None:
             self.counters.setpoints += 1

@@ -32,6 +32,7 @@ __all__ = [
     "brake",
     "encode_setpoint",
     "hold",
+    "look_yaw",
     "navigate",
     "silent_safe_velocity",
     "step_bearing",
@@ -110,6 +111,14 @@ def with_yaw(sp: Setpoint, yaw_rad: float) -> Setpoint:
         raise AssertionError(msg)
     yaw = (yaw_rad + math.pi) % (2.0 * math.pi) - math.pi
     return dataclasses.replace(sp, type_mask=MASK_POS_VEL_YAW, yaw_rad=yaw)
+
+
+def look_yaw(bearing_ned_rad: float, look_offset_rad: float) -> float:
+    """The heading (local NED [rad], wrapped to (-pi, pi]) that points a sensor centred ``look_offset_rad`` off the
+    nose (body FRD, clockwise) along ``bearing_ned_rad``; a non-finite offset counts as 0 (the nose), so no NaN
+    ever reaches a setpoint's yaw."""
+    offset = look_offset_rad if math.isfinite(look_offset_rad) else 0.0
+    return -((-(bearing_ned_rad - offset) + math.pi) % (2.0 * math.pi) - math.pi)
 
 
 def step_bearing(sp: Setpoint | None, pos_ned_m: npt.ArrayLike, min_m: float) -> float | None:

@@ -70,6 +70,8 @@ class ObstacleView(Protocol):
 
     def direction_fresh(self, bearing_ned_rad: float, now_s: float) -> bool: ...
 
+    def look_offset_rad(self, now_s: float) -> float: ...
+
 
 class DecisionLike(Protocol):
     @property

@@ -14,6 +14,7 @@ from apf_companion.setpoint import (
     Setpoint,
     SetpointKind,
     hold,
+    look_yaw,
     navigate,
     silent_safe_velocity,
     step_bearing,
@@ -133,15 +134,19 @@ class StepTracker:
 
     def known_direction(self, out: CycleOutput, pos: FloatArray, view: ObstacleView) -> CycleOutput:
         """A step towards a sector without recent ranges is not flown: hold here and plan again next cycle. With a
-        commanded heading (``yaw_travel``) the hold turns the vehicle to that direction, so a sensor covering less
-        than 360 degrees looks there and the step is flown once its sector has fresh ranges."""
+        commanded heading (``yaw_travel``) the hold turns the vehicle so that the centre of what its range sensors
+        cover (``ObstacleView.look_offset_rad``, body FRD: 0 for a forward sensor, pi for a rear one) faces that
+        direction; a sensor covering less than 360 degrees then looks there and the step is flown once its sector
+        has fresh ranges."""
         bearing = _into_unknown(view, out.setpoint, pos, out.t_s)
         if bearing is None:
             return out
         self.counters.unknown_direction_holds += 1
         self.target = None
         sp = hold(pos)
-        return dataclasses.replace(out, setpoint=with_yaw(sp, bearing) if self.p.yaw_travel else sp)
+        if not self.p.yaw_travel:
+            return dataclasses.replace(out, setpoint=sp)
+        return dataclasses.replace(out, setpoint=with_yaw(sp, look_yaw(bearing, view.look_offset_rad(out.t_s))))
 
     def approach_speed(self, gap_m: float, nearest_m: float | None = None) -> float:
         """Feed-forward speed: cruise, tapering within one step of the point (no orbiting around it), and slower

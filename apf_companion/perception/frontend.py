@@ -12,8 +12,8 @@ the service clock, placed in local NED with the pose at their measurement time a
   the reset / conflict notices.
 - ``ScanIntake`` (scanintake.py): decoding, stamping and placing scans, the scans waiting for a pose
   (``SCAN_DEFER_S``, ``SCAN_DEFER_MAX``), the sources' clearing ids, the ``ranges.bad`` log.
-- ``ObstacleStore`` (store.py): the obstacle memory (its one writer), the sectors' freshness, the newest usable
-  scan's time and points.
+- ``ObstacleStore`` (store.py): the obstacle memory (its one writer), the sectors' freshness, the body-frame
+  coverage (``LookCoverage``, coverage.py), the newest usable scan's time and points.
 
 Bad input is counted in ``counters`` (``PerceptionCounters``, shared by the parts, each counting its own) and never
 raises out of the ``on_*`` methods.
@@ -74,6 +74,11 @@ class PerceptionFrontEnd:
     def direction_fresh(self, bearing_ned_rad: float, now_s: float) -> bool:
         """The azimuth sector of ``bearing_ned_rad`` (local NED) has a recent reading (``[safety] sectors``)."""
         return self.store.sectors.fresh(bearing_ned_rad, now_s)
+
+    def look_offset_rad(self, now_s: float) -> float:
+        """Body bearing (FRD, (-pi, pi] [rad]) of the centre of the arc the range sensors cover at ``now_s``; 0 with
+        no recent reading or all-round coverage (``LookCoverage``, coverage.py)."""
+        return self.store.coverage.offset_rad(now_s)
 
     @property
     def latest_scan_ned_m(self) -> FloatArray:

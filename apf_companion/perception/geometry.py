@@ -59,6 +59,7 @@ IntArray = npt.NDArray[np.intp]
 __all__ = [
     "element_half_width_rad",
     "return_spread_m",
+    "scan_bearings_body_rad",
     "scan_bearings_ned_rad",
     "scan_to_points_ned",
     "surface_fill_points",
@@ -76,6 +77,14 @@ def scan_bearings_ned_rad(scan: RangeScan, pose: Pose) -> FloatArray:
     if scan.frame is ScanFrame.BODY_FRD:
         return np.asarray(scan.bearings_rad + pose.yaw_rad, dtype=np.float64)
     return np.asarray(scan.bearings_rad, dtype=np.float64)
+
+
+def scan_bearings_body_rad(scan: RangeScan, pose: Pose) -> FloatArray:
+    """(M,) bearings of the scan's elements from the nose, clockwise (body FRD) [rad] (not wrapped): a
+    LOCAL_NED scan's bearings less the vehicle yaw at its time (``pose``), a BODY_FRD scan's as they are."""
+    if scan.frame is ScanFrame.BODY_FRD:
+        return np.asarray(scan.bearings_rad, dtype=np.float64)
+    return np.asarray(scan.bearings_rad - pose.yaw_rad, dtype=np.float64)
 
 
 def element_half_width_rad(bearings_rad: FloatArray) -> float:

@@ -1,6 +1,7 @@
 """The heading commanded with the setpoints (``[autopilot] yaw``): the service flying the bundled simulator over
-loopback MAVLink. PX4 keeps its heading when a setpoint's yaw is ignored, so with a forward-only range sensor the
-service must turn the vehicle to look where it goes (docs/service.md, "Heading")."""
+loopback MAVLink. PX4 keeps its heading when a setpoint's yaw is ignored, so with a range sensor of less than 360
+degrees the service must turn the vehicle so that the sensor looks where it goes: the nose for a forward sensor, the
+tail for a rear one (docs/service.md, "Heading")."""
 
 from __future__ import annotations
 
@@ -31,6 +32,8 @@ EAST_GOAL = (3.0, 22.0, -5.0)  # due east of the start: outside a forward sensor
 FIELD = World.from_obstacles([(3.0, 8.0), (2.2, 12.5), (3.8, 12.5), (3.0, 17.0)], name="yaw-field")
 # A forward-only sensor: 9 sectors of 10 deg, -45..+45 deg about the nose (a single lidar / depth camera).
 FORWARD_ONLY = RangeSensorConfig(sectors=9, increment_deg=10.0, angle_offset_deg=-40.0)
+# The same sensor facing the tail: 140..220 deg (135..225 with the sectors' widths), centred on 180.
+REAR_ONLY = RangeSensorConfig(sectors=9, increment_deg=10.0, angle_offset_deg=140.0)
 
 
 @contextlib.asynccontextmanager
@@ -153,3 +156,25 @@ async def test_px4_forward_only_sensor_flies_round_obstacles_only_with_yaw(yaw: 
         assert state is not State.ARRIVED
         assert holds > 50  # every step east was refused: its sector never had ranges
         assert math.dist(pos[:2], START) < 1.0
+
+
+async def test_px4_rear_sensor_is_turned_to_look_where_the_vehicle_goes() -> None:
+    """The look offset learnt from the ranges (180 deg here) turns the tail, where the sensor looks, along each step:
+    the vehicle flies backwards round the obstacles and arrives. Turning the nose instead (the code before the
+    look offset) held for ever: every step's sector stayed without ranges (docs/service.md, "Heading")."""
+    async with yaw_flight(FIELD, _cfg("px4"), EAST_GOAL, profile="px4", sensor=REAR_ONLY) as (svc, sim):
+        log = SetpointLog(sim)
+        state = await fly_until(svc, log, {State.ARRIVED, State.STUCK}, 150.0)
+        res = sim.result()
+        offset = svc.perception.look_offset_rad(svc.clock.now())
+        pos = sim.engine.state.pos_ned_m.copy()
+    assert not res["collided"]
+    assert state is State.ARRIVED, svc.result()
+    assert math.dist(pos[:2], EAST_GOAL[:2]) <= 0.7 + 0.3
+    assert abs(wrap_pi(offset - math.pi)) < math.radians(1.0)
+    flown = [sp for sp in log.setpoints if sp.vel is not None and math.hypot(sp.vel[0], sp.vel[1]) > 0.1]
+    assert len(flown) > 5
+    # Backwards: each yaw is the bearing of the setpoint's feed-forward turned by 180 deg.
+    for sp in flown:
+        assert sp.yaw is not None and sp.vel is not None
+        assert abs(wrap_pi(sp.yaw - math.atan2(sp.vel[1], sp.vel[0]) - math.pi)) < math.radians(5.0)
