@@ -198,8 +198,9 @@ class AutopilotConfig:
         ready_timeout_s: Before taking over (mode, arming) wait at most this long for a position (LOCAL_POSITION_NED
             fresh) and, where the autopilot reports it, an EKF with a horizontal position (EKF_STATUS_REPORT); the
             goal is dropped after that. ArduCopter SITL has no position for about 20 s after boot [s].
-        yaw: The heading sent with the setpoints: "travel" (face the step being flown; a step refused towards a
-            sector without recent ranges turns the vehicle there first), "none" (no yaw: the autopilot's own) or
+        yaw: The heading sent with the setpoints: "travel" (the range sensor faces the step being flown: the nose
+            for a forward sensor, the tail for a rear one, learnt from the ranges; a step refused towards a sector
+            without recent ranges turns the sensor there first), "none" (no yaw: the autopilot's own) or
             "auto" (the default: "travel" on PX4, which otherwise keeps its heading; "none" on ArduPilot, whose
             GUIDED faces the direction of travel by itself). See docs/service.md, "Heading".
     """

@@ -134,8 +134,9 @@ class NavigatorParams:
             ``checkModeFallback``). WAITING_FOR_PILOT then streams no holds while the autopilot's HEARTBEAT reports
             a failsafe (system_status CRITICAL): they would put the vehicle back into OFFBOARD with no pilot's switch.
         yaw_travel: Command the heading (``[autopilot] yaw`` "travel"; navigation.heading): each navigation and hold
-            setpoint carries the yaw of the step flown, a hold refused towards a sector without ranges the yaw of
-            that direction. False: no yaw (the autopilot's own heading).
+            setpoint carries the yaw that points the range sensor along the step flown
+            (``ObstacleView.look_offset_rad``), a hold refused towards a sector without ranges the yaw that points it
+            that way. False: no yaw (the autopilot's own heading).
     """
 
     dim: int = 2
