@@ -34,6 +34,7 @@ FIELD = World.from_obstacles([(3.0, 8.0), (2.2, 12.5), (3.8, 12.5), (3.0, 17.0)]
 FORWARD_ONLY = RangeSensorConfig(sectors=9, increment_deg=10.0, angle_offset_deg=-40.0)
 # The same sensor facing the tail: 140..220 deg (135..225 with the sectors' widths), centred on 180.
 REAR_ONLY = RangeSensorConfig(sectors=9, increment_deg=10.0, angle_offset_deg=140.0)
+RIGHT_ONLY = RangeSensorConfig(sectors=9, increment_deg=10.0, angle_offset_deg=50.0)  # 45..135 deg, centred on 90
 
 
 @contextlib.asynccontextmanager
@@ -158,11 +159,15 @@ async def test_px4_forward_only_sensor_flies_round_obstacles_only_with_yaw(yaw: 
         assert math.dist(pos[:2], START) < 1.0
 
 
-async def test_px4_rear_sensor_is_turned_to_look_where_the_vehicle_goes() -> None:
-    """The look offset learnt from the ranges (180 deg here) turns the tail, where the sensor looks, along each step:
-    the vehicle flies backwards round the obstacles and arrives. Turning the nose instead (the code before the
-    look offset) held for ever: every step's sector stayed without ranges (docs/service.md, "Heading")."""
-    async with yaw_flight(FIELD, _cfg("px4"), EAST_GOAL, profile="px4", sensor=REAR_ONLY) as (svc, sim):
+@pytest.mark.parametrize(("sensor", "look_deg"), [(REAR_ONLY, 180.0), (RIGHT_ONLY, 90.0)], ids=["rear", "right"])
+async def test_px4_sensor_off_the_nose_is_turned_to_look_where_the_vehicle_goes(
+    sensor: RangeSensorConfig, look_deg: float
+) -> None:
+    """The look offset learnt from the ranges (180 deg for the rear sensor) turns the sensor along each step: the
+    vehicle flies round the obstacles tail (or left side) first and arrives. Turning the nose instead (the code
+    before the look offset) held at the start until STUCK: every step's sector stayed without ranges (measured in
+    docs/service.md, "Heading")."""
+    async with yaw_flight(FIELD, _cfg("px4"), EAST_GOAL, profile="px4", sensor=sensor) as (svc, sim):
         log = SetpointLog(sim)
         state = await fly_until(svc, log, {State.ARRIVED, State.STUCK}, 150.0)
         res = sim.result()
@@ -171,10 +176,11 @@ async def test_px4_rear_sensor_is_turned_to_look_where_the_vehicle_goes() -> Non
     assert not res["collided"]
     assert state is State.ARRIVED, svc.result()
     assert math.dist(pos[:2], EAST_GOAL[:2]) <= 0.7 + 0.3
-    assert abs(wrap_pi(offset - math.pi)) < math.radians(1.0)
+    look = math.radians(look_deg)
+    assert abs(wrap_pi(offset - look)) < math.radians(1.0)
     flown = [sp for sp in log.setpoints if sp.vel is not None and math.hypot(sp.vel[0], sp.vel[1]) > 0.1]
     assert len(flown) > 5
-    # Backwards: each yaw is the bearing of the setpoint's feed-forward turned by 180 deg.
+    # The sensor ahead: each yaw is the bearing of the setpoint's feed-forward less the look offset.
     for sp in flown:
         assert sp.yaw is not None and sp.vel is not None
-        assert abs(wrap_pi(sp.yaw - math.atan2(sp.vel[1], sp.vel[0]) - math.pi)) < math.radians(5.0)
+        assert abs(wrap_pi(sp.yaw + look - math.atan2(sp.vel[1], sp.vel[0]))) < math.radians(5.0)
