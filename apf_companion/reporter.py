@@ -39,11 +39,13 @@ from apf_companion.status import (
 
 __all__ = [
     "AutopilotView",
+    "Every",
     "FaultLog",
     "LatencyHistogram",
     "LatencyWindow",
     "ReporterParams",
     "ServiceCounters",
+    "StatusRecord",
     "StatusReporter",
 ]
 
@@ -173,84 +175,45 @@ class LatencyWindow:
         return self.run.percentile(50.0), self.run.percentile(99.0)
 
 
-class StatusReporter:
-    """Reports the service's state to the autopilot / ground station (MAVLink) and to zenoh."""
+class Every:
+    """One periodic send's schedule: due at once, then ``period_s`` after each time it went out (inf: never again)."""
+
+    def __init__(self, period_s: float, now_s: float) -> None:
+        self.period_s = period_s
+        self.next_s = now_s
+
+    def fire(self, now_s: float) -> bool:
+        """Due at ``now_s``: True, and the next one is ``period_s`` later."""
+        if now_s < self.next_s:
+            return False
+        self.next_s = now_s + self.period_s
+        return True
+
+
+class StatusRecord:
+    """The status record and the counter totals, read from the service's parts; owns the loop-latency window and
+    what the service attaches while it runs (the collector's pauses, the fence reader's summary)."""
 
     def __init__(
         self,
-        params: ReporterParams,
         *,
         outbox: Outbox,
         navigator: Navigator,
         perception: PerceptionFrontEnd,
         autopilot: AutopilotView,
         counters: ServiceCounters,
-        zenoh: Any,
-        now_s: float,
-        signing: SigningStats | None = None,
+        signing: SigningStats | None,
     ) -> None:
-        self.params = params
-        self.signing = signing  # the autopilot link's signature verdicts (None: signing off)
         self.outbox = outbox
         self.navigator = navigator
         self.perception = perception
-        self.zenoh = zenoh
         self.autopilot = autopilot
         self.counters = counters
+        self.signing = signing  # the autopilot link's signature verdicts (None: signing off)
         self.latency = LatencyWindow()
         self.gc: GcPauses | None = None  # the collector's pauses while the service runs (``CompanionService.run``)
         #: The fence reader's summary (``FenceReader.summary``), when the service reads the autopilot's fence.
         self.fence: Callable[[], dict[str, object]] | None = None
-        self.reason = "starting"
-        nvf_hz = params.named_value_rate_hz
-        self._nvf_period_s = 1.0 / nvf_hz if nvf_hz > 0 else math.inf
-        self._z_period_s = 1.0 / params.zenoh_status_rate_hz
-        self._next_hb_s = self._next_nvf_s = self._next_z_s = now_s
-
-    # ---- events ------------------------------------------------------------------------------------------------
-    def changes(self, changes: list[StateChange]) -> None:
-        """Log each state change and announce it in a STATUSTEXT (except LINK_LOST: silence towards the autopilot)."""
-        for ch in changes:
-            self.reason = ch.reason
-            log.info(
-                "state.change", extra={"old": ch.old.value, "new": ch.new.value, "reason": ch.reason, "t_s": ch.t_s}
-            )
-            if ch.new is not State.LINK_LOST:
-                self.statustext(severity_for(ch.new), statustext_for(ch.new, ch.reason))
-
-    def statustext(self, severity: int, text: str) -> None:
-        if self.params.statustext and not self.outbox.silent:
-            self.outbox.statustext(severity, text)
-
-    # ---- periodic ----------------------------------------------------------------------------------------------
-    def due(self, now_s: float) -> float:
-        """Send the HEARTBEAT (1 Hz), NAMED_VALUE_FLOATs and zenoh status that are due; the next due time."""
-        if now_s >= self._next_hb_s:
-            self._next_hb_s = now_s + HEARTBEAT_PERIOD_S
-            self.outbox.heartbeat(system_status_for(self.navigator.state, healthy_inputs=self._inputs_healthy(now_s)))
-        if now_s >= self._next_nvf_s:
-            self._next_nvf_s = now_s + self._nvf_period_s
-            self._send_named_values()
-        if self.zenoh is not None and now_s >= self._next_z_s:
-            self._next_z_s = now_s + self._z_period_s
-            self._publish_status(now_s)
-        return min(self._next_hb_s, self._next_nvf_s, self._next_z_s if self.zenoh is not None else math.inf)
-
-    def _inputs_healthy(self, now_s: float) -> bool:
-        return self.navigator.pose_fresh(now_s) and self.navigator.ranges_fresh(now_s)
-
-    def _send_named_values(self) -> None:
-        out = self.navigator.last_output
-        if out is None or self.navigator.state is State.LINK_LOST or self.outbox.silent:
-            return
-        for name, value in (
-            (NVF_GOAL_DISTANCE, out.distance_to_goal_m),
-            (NVF_NEAREST_OBSTACLE, out.nearest_obstacle_m),
-        ):
-            if value is not None and math.isfinite(value):
-                self.outbox.named_value_float(name, value)
-        for name, count in self.rejected().items():
-            self.outbox.named_value_int(name, count)
 
     def rejected(self) -> dict[str, int]:
         """The rejected-input totals sent as NAMED_VALUE_INT (docs/hardening.md): poses, scans / memory clears,
@@ -267,15 +230,6 @@ class StatusReporter:
             NVI_ERRORS: c.handler_errors + o.send_errors + o.unsendable,
         }
 
-    def _publish_status(self, now_s: float) -> None:
-        if self.zenoh is None or self.params.dry_run:
-            return
-        try:
-            self.zenoh.publish(self.params.zenoh_status_key, encode_status_json(self.status_dict(now_s)))
-        except LinkError:
-            log.debug("status.publish_failed", exc_info=True)
-
-    # ---- records -----------------------------------------------------------------------------------------------
     def counts(self) -> dict[str, int]:
         """Every edge counter: the service's, perception's, the setpoints / STATUSTEXTs sent and (``signing_``
         prefixed) the signature verdicts."""
@@ -285,14 +239,14 @@ class StatusReporter:
             out |= {f"signing_{k}": v for k, v in dataclasses.asdict(self.signing).items()}
         return out
 
-    def status_dict(self, now_s: float) -> dict[str, Any]:
-        """The status record (see apf_companion.status for the schema)."""
+    def status_dict(self, now_s: float, reason: str) -> dict[str, Any]:
+        """The status record (see apf_companion.status for the schema), ``reason`` the latest state change's."""
         nav = self.navigator
         out = nav.last_output
         return {
             "t_s": now_s,
             "state": nav.state.value,
-            "reason": self.reason,
+            "reason": reason,
             "pose": self._pose_dict(now_s),
             "goal": self._goal_dict(),
             "distance_to_goal_m": None if out is None else out.distance_to_goal_m,
@@ -346,6 +300,131 @@ class StatusReporter:
             "source": route.source,
             "held": nav.held is not None,
         }
+
+
+class StatusReporter:
+    """Reports the service's state to the autopilot / ground station (MAVLink) and to zenoh.
+
+    It owns the STATUSTEXT reason and the periodic sends' schedules (``Every``); the status record and the counter
+    totals are its ``record``'s (``StatusRecord``).
+    """
+
+    def __init__(
+        self,
+        params: ReporterParams,
+        *,
+        outbox: Outbox,
+        navigator: Navigator,
+        perception: PerceptionFrontEnd,
+        autopilot: AutopilotView,
+        counters: ServiceCounters,
+        zenoh: Any,
+        now_s: float,
+        signing: SigningStats | None = None,
+    ) -> None:
+        self.params = params
+        self.outbox = outbox
+        self.navigator = navigator
+        self.zenoh = zenoh
+        self.counters = counters
+        self.record = StatusRecord(
+            outbox=outbox,
+            navigator=navigator,
+            perception=perception,
+            autopilot=autopilot,
+            counters=counters,
+            signing=signing,
+        )
+        self.reason = "starting"
+        nvf_hz = params.named_value_rate_hz
+        self._heartbeat = Every(HEARTBEAT_PERIOD_S, now_s)
+        self._named_values = Every(1.0 / nvf_hz if nvf_hz > 0 else math.inf, now_s)
+        self._zenoh_status = Every(1.0 / params.zenoh_status_rate_hz, now_s)
+
+    @property
+    def latency(self) -> LatencyWindow:
+        return self.record.latency
+
+    @property
+    def gc(self) -> GcPauses | None:
+        return self.record.gc
+
+    @gc.setter
+    def gc(self, pauses: GcPauses | None) -> None:
+        self.record.gc = pauses
+
+    @property
+    def fence(self) -> Callable[[], dict[str, object]] | None:
+        return self.record.fence
+
+    @fence.setter
+    def fence(self, summary: Callable[[], dict[str, object]] | None) -> None:
+        self.record.fence = summary
+
+    def changes(self, changes: list[StateChange]) -> None:
+        """Log each state change and announce it in a STATUSTEXT (except LINK_LOST: silence towards the autopilot)."""
+        for ch in changes:
+            self.reason = ch.reason
+            log.info(
+                "state.change", extra={"old": ch.old.value, "new": ch.new.value, "reason": ch.reason, "t_s": ch.t_s}
+            )
+            if ch.new is not State.LINK_LOST:
+                self.statustext(severity_for(ch.new), statustext_for(ch.new, ch.reason))
+
+    def statustext(self, severity: int, text: str) -> None:
+        if self.params.statustext and not self.outbox.silent:
+            self.outbox.statustext(severity, text)
+
+    def due(self, now_s: float) -> float:
+        """Send the HEARTBEAT (1 Hz), NAMED_VALUE_FLOATs and zenoh status that are due; the next due time."""
+        if self._heartbeat.fire(now_s):
+            self.outbox.heartbeat(system_status_for(self.navigator.state, healthy_inputs=self._inputs_healthy(now_s)))
+        if self._named_values.fire(now_s):
+            self._send_named_values()
+        if self.zenoh is not None and self._zenoh_status.fire(now_s):
+            self._publish_status(now_s)
+        zenoh_next_s = self._zenoh_status.next_s if self.zenoh is not None else math.inf
+        return min(self._heartbeat.next_s, self._named_values.next_s, zenoh_next_s)
+
+    def _inputs_healthy(self, now_s: float) -> bool:
+        return self.navigator.pose_fresh(now_s) and self.navigator.ranges_fresh(now_s)
+
+    def _send_named_values(self) -> None:
+        out = self.navigator.last_output
+        if out is None or self.navigator.state is State.LINK_LOST or self.outbox.silent:
+            return
+        for name, value in (
+            (NVF_GOAL_DISTANCE, out.distance_to_goal_m),
+            (NVF_NEAREST_OBSTACLE, out.nearest_obstacle_m),
+        ):
+            if value is not None and math.isfinite(value):
+                self.outbox.named_value_float(name, value)
+        for name, count in self.rejected().items():
+            self.outbox.named_value_int(name, count)
+
+    def _publish_status(self, now_s: float) -> None:
+        if self.zenoh is None or self.params.dry_run:
+            return
+        try:
+            self.zenoh.publish(self.params.zenoh_status_key, encode_status_json(self.status_dict(now_s)))
+        except LinkError:
+            log.debug("status.publish_failed", exc_info=True)
+
+    def rejected(self) -> dict[str, int]:
+        """The rejected-input totals (``StatusRecord.rejected``)."""
+        return self.record.rejected()
+
+    def counts(self) -> dict[str, int]:
+        """Every edge counter (``StatusRecord.counts``)."""
+        return self.record.counts()
+
+    def status_dict(self, now_s: float) -> dict[str, Any]:
+        """The status record (``StatusRecord.status_dict``) with the latest state change's reason."""
+        return self.record.status_dict(now_s, self.reason)
+
+    def gc_summary(self) -> dict[str, Any] | None:
+        """The collector's pauses since the run started (``StatusRecord.gc_summary``)."""
+        return self.record.gc_summary()
 
     def cycle_sent(self, out: CycleOutput, trigger_wall_s: float | None, now_wall_s: float) -> None:
         """A cycle's setpoint went out: its latency from the pose that triggered it (if one did)."""
