@@ -38,6 +38,8 @@ __all__ = [
     "Action",
     "ActionKind",
     "Phase",
+    "PhaseEvidence",
+    "Prestream",
     "TakeoverController",
     "TakeoverInputs",
     "TakeoverParams",
@@ -142,18 +144,73 @@ class TakeoverInputs:
     acks: Mapping[int, tuple[int, float]] = field(default_factory=dict)
 
 
-def _accepted_s(inp: TakeoverInputs, command: int) -> float | None:
-    """When ``command`` was last ACCEPTED (service time), None if not (or its latest ACK differed)."""
-    ack = inp.acks.get(command)
-    return ack[1] if ack is not None and ack[0] == mavlink.MAV_RESULT_ACCEPTED else None
-
-
 # The phases confirmed only by HEARTBEAT, and the command each sends.
 _HEARTBEAT_PHASES = {
     Phase.MODE: mavlink.MAV_CMD_DO_SET_MODE,
     Phase.MODE_BEFORE_ARM: mavlink.MAV_CMD_DO_SET_MODE,
     Phase.ARMING: mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
 }
+
+
+class PhaseEvidence:
+    """One phase's evidence: when it began, and for a phase confirmed only by HEARTBEAT (``command``: the command it
+    sends) the HEARTBEATs heard when it began and when its command's ACCEPTED was first seen."""
+
+    def __init__(self, command: int | None, start_s: float) -> None:
+        self.command = command
+        self.start_s = start_s
+        self._hb_at_enter: int | None = None  # HEARTBEATs heard when the phase began
+        self._accepted_s: float | None = None  # the phase's command ACCEPTED at (service time), as first seen
+        self._hb_at_accepted: int | None = None  # HEARTBEATs heard when that ACK was first seen
+
+    def accepted(self, inp: TakeoverInputs, command: int) -> bool:
+        """``command``'s latest ACK since the phase began said ACCEPTED."""
+        ack = inp.acks.get(command)
+        return ack is not None and ack[0] == mavlink.MAV_RESULT_ACCEPTED and ack[1] >= self.start_s
+
+    def note(self, inp: TakeoverInputs) -> None:
+        """A tick: count the HEARTBEATs from the first one in the phase, and from the ACCEPTED when first seen."""
+        if self._hb_at_enter is None:
+            self._hb_at_enter = inp.heartbeats
+        ack = self._answer(inp)
+        if ack is not None and ack[0] == mavlink.MAV_RESULT_ACCEPTED and ack[1] != self._accepted_s:
+            self._accepted_s, self._hb_at_accepted = ack[1], inp.heartbeats
+
+    def _answer(self, inp: TakeoverInputs) -> tuple[int, float] | None:
+        """The autopilot's latest answer to this phase's command since the phase began, or None."""
+        ack = None if self.command is None else inp.acks.get(self.command)
+        return ack if ack is not None and ack[1] >= self.start_s else None
+
+    def enough(self, inp: TakeoverInputs) -> bool:
+        """Past the deadline: enough to fail, unless the phase's evidence (its command's answer, then HEARTBEATs
+        saying "not yet") has been lost so far."""
+        if inp.heartbeats is None or self._hb_at_enter is None or self.command is None:
+            return True
+        ack = self._answer(inp)
+        if ack is None:
+            return False  # every command or every answer lost so far: the HEARTBEATs' "not yet" says nothing
+        accepted = ack[0] == mavlink.MAV_RESULT_ACCEPTED
+        since = self._hb_at_accepted if accepted and self._hb_at_accepted is not None else self._hb_at_enter
+        return inp.heartbeats - since >= HEARTBEATS_TO_FAIL
+
+
+class Prestream:
+    """PX4's setpoint pre-stream before OFFBOARD: when the unbroken stream of setpoints began, and its latest."""
+
+    def __init__(self) -> None:
+        self._since_s: float | None = None
+        self._last_s: float | None = None
+
+    def note(self, now_s: float) -> None:
+        """A setpoint at ``now_s``; one more than ``PRESTREAM_GAP_S`` after the last restarts the stream."""
+        if self._last_s is None or now_s - self._last_s > PRESTREAM_GAP_S:
+            self._since_s = now_s
+        self._last_s = now_s
+
+    def streamed(self, now_s: float, need_s: float) -> bool:
+        """The stream is unbroken at ``now_s`` and has lasted ``need_s``."""
+        since, last = self._since_s, self._last_s
+        return since is not None and last is not None and now_s - last < PRESTREAM_GAP_S and last - since >= need_s
 
 
 class TakeoverController:
@@ -167,14 +224,10 @@ class TakeoverController:
         self._suspended = False
         self._deadline_s = 0.0
         self._next_send_s = 0.0
-        self._phase_start_s = 0.0
+        self._evidence = PhaseEvidence(None, 0.0)
         self._home_down_m = 0.0
         self._takeoff_param_m = params.takeoff_alt_m
-        self._prestream_since_s: float | None = None
-        self._last_prestream_s: float | None = None
-        self._hb_at_enter: int | None = None  # HEARTBEATs heard when the phase began
-        self._accepted_s: float | None = None  # the phase's command ACCEPTED at (service time), as first seen
-        self._hb_at_accepted: int | None = None  # HEARTBEATs heard when that ACK was first seen
+        self._prestream = Prestream()
 
     @property
     def poll_interval_s(self) -> float:
@@ -183,9 +236,7 @@ class TakeoverController:
 
     def note_prestream(self, now_s: float) -> None:
         """A PRESTREAM setpoint was produced at ``now_s`` (PX4 wants a stream before OFFBOARD)."""
-        if self._last_prestream_s is None or now_s - self._last_prestream_s > PRESTREAM_GAP_S:
-            self._prestream_since_s = now_s
-        self._last_prestream_s = now_s
+        self._prestream.note(now_s)
 
     def step(self, now_s: float, inp: TakeoverInputs) -> list[Action]:
         """Advance at ``now_s``: start for a new goal, move through every phase whose condition holds, resend or
@@ -196,9 +247,7 @@ class TakeoverController:
                 return acts
             self._start(now_s, inp, acts)
         while self.phase is not Phase.IDLE:
-            if self._hb_at_enter is None:
-                self._hb_at_enter = inp.heartbeats
-            self._note_answer(inp)
+            self._evidence.note(inp)
             if self._condition(now_s, inp):
                 self._advance(now_s, inp, acts)
                 continue
@@ -215,7 +264,6 @@ class TakeoverController:
             break
         return acts
 
-    # ---- phases ------------------------------------------------------------------------------------------------
     def _start(self, now_s: float, inp: TakeoverInputs, acts: list[Action]) -> None:
         self._route = inp.route
         acts.append(Action(ActionKind.STARTED))
@@ -237,30 +285,11 @@ class TakeoverController:
         else:
             self._enter(self._after_arming(), now_s)
 
-    def _answer(self, inp: TakeoverInputs) -> tuple[int, float] | None:
-        """The autopilot's latest answer to this phase's command since the phase began, or None."""
-        command = _HEARTBEAT_PHASES.get(self.phase)
-        ack = None if command is None else inp.acks.get(command)
-        return ack if ack is not None and ack[1] >= self._phase_start_s else None
-
-    def _note_answer(self, inp: TakeoverInputs) -> None:
-        ack = self._answer(inp)
-        if ack is not None and ack[0] == mavlink.MAV_RESULT_ACCEPTED and ack[1] != self._accepted_s:
-            self._accepted_s, self._hb_at_accepted = ack[1], inp.heartbeats
-
     def _enough_evidence(self, now_s: float, inp: TakeoverInputs) -> bool:
-        """Past the deadline: fail unless the phase's evidence (its command's answer, then HEARTBEATs saying "not
-        yet") has been lost so far; at the hard limit, fail regardless."""
-        if inp.heartbeats is None or self._hb_at_enter is None or self.phase not in _HEARTBEAT_PHASES:
-            return True
-        if now_s > self._deadline_s + (HARD_TIMEOUT_FACTOR - 1.0) * self._timeout_s():
-            return True
-        ack = self._answer(inp)
-        if ack is None:
-            return False  # every command or every answer lost so far: the HEARTBEATs' "not yet" says nothing
-        accepted = ack[0] == mavlink.MAV_RESULT_ACCEPTED
-        since = self._hb_at_accepted if accepted and self._hb_at_accepted is not None else self._hb_at_enter
-        return inp.heartbeats - since >= HEARTBEATS_TO_FAIL
+        """Past the deadline: fail unless the phase's evidence has been lost so far (``PhaseEvidence.enough``); at
+        the hard limit, fail regardless."""
+        hard_limit_s = self._deadline_s + (HARD_TIMEOUT_FACTOR - 1.0) * self._timeout_s()
+        return now_s > hard_limit_s or self._evidence.enough(inp)
 
     def _after_arming(self) -> Phase:
         return Phase.MODE if self._ardupilot else Phase.PRESTREAM
@@ -269,9 +298,7 @@ class TakeoverController:
         self.phase = phase
         self._deadline_s = now_s + self._timeout_s()
         self._next_send_s = now_s
-        self._phase_start_s = now_s
-        self._hb_at_enter = None
-        self._accepted_s = self._hb_at_accepted = None
+        self._evidence = PhaseEvidence(_HEARTBEAT_PHASES.get(phase), now_s)
 
     def _timeout_s(self) -> float:
         p = self.params
@@ -297,20 +324,13 @@ class TakeoverController:
         if phase is Phase.ARMING:
             # The ACK arrives at once, the HEARTBEAT that says armed up to a second later (more on a lossy link),
             # and ArduCopter's DISARM_DELAY (10 s) runs from arming until a takeoff spools the motors.
-            arm_ack_s = _accepted_s(inp, mavlink.MAV_CMD_COMPONENT_ARM_DISARM)
-            return inp.armed or (arm_ack_s is not None and arm_ack_s >= self._phase_start_s)
+            return inp.armed or self._evidence.accepted(inp, mavlink.MAV_CMD_COMPONENT_ARM_DISARM)
         if phase is Phase.GLOBAL_POSITION:
             return inp.home_amsl_m is not None
         if phase is Phase.TAKEOFF:
             climbed = None if inp.down_m is None else self._home_down_m - inp.down_m
             return climbed is not None and climbed >= TAKEOFF_REACHED_FRACTION * self.params.takeoff_alt_m
-        since, last = self._prestream_since_s, self._last_prestream_s
-        return (
-            since is not None
-            and last is not None
-            and now_s - last < PRESTREAM_GAP_S
-            and last - since >= self.params.offboard_prestream_s
-        )
+        return self._prestream.streamed(now_s, self.params.offboard_prestream_s)
 
     def _command(self, inp: TakeoverInputs) -> Action | None:
         if self.phase in (Phase.MODE, Phase.MODE_BEFORE_ARM):
@@ -323,8 +343,7 @@ class TakeoverController:
 
     def _taking_off(self, inp: TakeoverInputs) -> bool:
         """NAV_TAKEOFF was ACCEPTED in this phase, or the vehicle climbs."""
-        takeoff_ack_s = _accepted_s(inp, mavlink.MAV_CMD_NAV_TAKEOFF)
-        acked = takeoff_ack_s is not None and takeoff_ack_s >= self._phase_start_s
+        acked = self._evidence.accepted(inp, mavlink.MAV_CMD_NAV_TAKEOFF)
         climbing = inp.down_m is not None and self._home_down_m - inp.down_m > TAKEOFF_CLIMBING_M
         return acked or climbing
 
