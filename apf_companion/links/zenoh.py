@@ -30,14 +30,11 @@ Example::
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
-import enum
 import ipaddress
 import json
 import logging
 import re
-import threading
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -47,12 +44,14 @@ from typing import Self
 import zenoh
 
 from apf_companion.errors import ConfigError, LinkError, LinkTimeout
+from apf_companion.links.zenoh_buffer import Overflow, SampleHandoff, SubscriptionStats, ZenohSample
 
 __all__ = [
     "DEFAULT_GOAL_KEY",
     "DEFAULT_SENSOR_KEY",
     "DEFAULT_STATUS_KEY",
     "Overflow",
+    "SampleHandoff",
     "SubscriptionStats",
     "ZenohConfig",
     "ZenohLink",
@@ -188,44 +187,26 @@ class ZenohConfig:
         return conf
 
 
-@dataclass(frozen=True, slots=True, kw_only=True)
-class ZenohSample:
-    """One received sample, copied out of zenoh on its thread.
-
-    Attributes:
-        key_expr: The key the sample was published on.
-        payload: The payload bytes.
-        encoding: The zenoh encoding string (e.g. ``"application/json"``, ``"zenoh/bytes"``).
-        t_s: ``time.monotonic()`` when the zenoh callback ran [s].
-    """
-
-    key_expr: str
-    payload: bytes
-    encoding: str
-    t_s: float
-
-
-class Overflow(enum.Enum):
-    """What a subscription's buffer does when the event loop does not keep up."""
-
-    LATEST_PER_KEY = "latest_per_key"
-    FIFO = "fifo"
-
-
-@dataclass(slots=True)
-class SubscriptionStats:
-    """Counters of one subscription (read from the event loop)."""
-
-    received: int = 0
-    overwritten: int = 0
-    dropped: int = 0
+def _copy_sample(sample: zenoh.Sample, key_expr: str) -> ZenohSample | None:
+    """The sample copied out of zenoh (on its thread), None (logged) if it cannot be read."""
+    try:
+        return ZenohSample(
+            key_expr=str(sample.key_expr),
+            payload=sample.payload.to_bytes(),
+            encoding=str(sample.encoding),
+            t_s=time.monotonic(),
+        )
+    except Exception:  # never let an exception escape into zenoh's thread
+        log.exception("zenoh.sample_copy_failed", extra={"key_expr": key_expr})
+        return None
 
 
 class ZenohSubscription:
     """A bounded, thread-safe buffer between a zenoh subscriber callback and asyncio.
 
     Create through ``ZenohLink.subscribe``. Consume with ``await recv(timeout=...)``, ``try_recv()`` or
-    ``async for sample in sub``.
+    ``async for sample in sub``. The samples wait in its ``SampleHandoff``; zenoh's thread only calls
+    ``_on_sample``, everything else runs on the event loop.
     """
 
     def __init__(self, key_expr: str, loop: asyncio.AbstractEventLoop, *, overflow: Overflow, capacity: int) -> None:
@@ -235,71 +216,38 @@ class ZenohSubscription:
         self.key_expr = key_expr
         self.overflow = overflow
         self.capacity = capacity
-        self.stats = SubscriptionStats()
+        self._handoff = SampleHandoff(overflow, capacity)
+        self.stats = self._handoff.stats
         self._loop = loop
-        self._lock = threading.Lock()
-        self._latest: collections.OrderedDict[str, ZenohSample] = collections.OrderedDict()
-        self._fifo: collections.deque[ZenohSample] = collections.deque()
-        self._wake_scheduled = False
         self._event = asyncio.Event()
-        self._closed = False
         self._subscriber: zenoh.Subscriber[None] | None = None
         # Set on every wake too, so ZenohLink.samples() can wait on all subscriptions at once.
         self._link_event: asyncio.Event | None = None
 
-    # --- zenoh thread ---------------------------------------------------------------------------------
+    @property
+    def _closed(self) -> bool:
+        return self._handoff.closed
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        try:
-            item = ZenohSample(
-                key_expr=str(sample.key_expr),
-                payload=sample.payload.to_bytes(),
-                encoding=str(sample.encoding),
-                t_s=time.monotonic(),
-            )
-        except Exception:  # never let an exception escape into zenoh's thread
-            log.exception("zenoh.sample_copy_failed", extra={"key_expr": self.key_expr})
-            return
-        with self._lock:
-            if self._closed:
-                return
-            self.stats.received += 1
-            if self.overflow is Overflow.LATEST_PER_KEY:
-                if item.key_expr in self._latest:
-                    self.stats.overwritten += 1
-                    self._latest.move_to_end(item.key_expr)
-                self._latest[item.key_expr] = item
-                if len(self._latest) > self.capacity:
-                    self._latest.popitem(last=False)
-                    self.stats.dropped += 1
-            else:
-                if len(self._fifo) >= self.capacity:
-                    self._fifo.popleft()
-                    self.stats.dropped += 1
-                self._fifo.append(item)
-            schedule = not self._wake_scheduled
-            self._wake_scheduled = True
-        if schedule:
+        """zenoh's callback, on zenoh's thread: copy, buffer, and wake the loop once per batch."""
+        item = _copy_sample(sample, self.key_expr)
+        if item is not None and self._handoff.offer(item):
             # RuntimeError: the loop is closed, nobody is listening any more.
             with contextlib.suppress(RuntimeError):
                 self._loop.call_soon_threadsafe(self._wake)
 
-    # --- event loop -----------------------------------------------------------------------------------
     def _wake(self) -> None:
-        with self._lock:
-            self._wake_scheduled = False
+        self._handoff.woken()
         self._event.set()
         if self._link_event is not None:
             self._link_event.set()
 
     def _pop(self) -> ZenohSample | None:
-        """Next buffered sample or None; clears the wake event when empty (caller holds no lock)."""
-        with self._lock:
-            if self._latest:
-                return self._latest.popitem(last=False)[1]
-            if self._fifo:
-                return self._fifo.popleft()
-            self._event.clear()
-            return None
+        """Next buffered sample or None; clears the wake event when empty."""
+        item = self._handoff.take()
+        if item is None:
+            self._event.clear()  # on the loop, as the wake-up that sets it: no sample can slip in between
+        return item
 
     def try_recv(self) -> ZenohSample | None:
         """The next buffered sample without waiting, or None."""
@@ -307,8 +255,7 @@ class ZenohSubscription:
 
     def pending(self) -> int:
         """Number of buffered samples."""
-        with self._lock:
-            return len(self._latest) + len(self._fifo)
+        return self._handoff.pending()
 
     async def recv(self, timeout: float) -> ZenohSample:
         """Wait up to ``timeout`` seconds for the next sample.
@@ -345,8 +292,7 @@ class ZenohSubscription:
             await self._event.wait()
 
     def _close(self) -> None:
-        with self._lock:
-            self._closed = True
+        self._handoff.close()
         self._event.set()
 
 
