@@ -45,7 +45,12 @@ def load_dialect(name: str) -> ModuleType:
 
 
 class MavlinkLink:
-    """An open MAVLink link. Create with ``await MavlinkLink.open(...)``; close with ``aclose`` or ``async with``."""
+    """An open MAVLink link. Create with ``await MavlinkLink.open(...)``; close with ``aclose`` or ``async with``.
+
+    The facade over the link's parts, each owning its state: the transport (sockets, peers), the ``Receiver``
+    (parsers, the message queue, the connected event), the ``TlogWriter`` and ``LinkSigning``. The link itself owns
+    only the supervisor task, whether it is closed and the encoder (``mav``: our ids and the sequence number).
+    """
 
     def __init__(
         self,
@@ -71,7 +76,6 @@ class MavlinkLink:
         self._supervisor: asyncio.Task[None] | None = None
         self._closed = False
 
-    # ----------------------------------------------------------------------------------------- lifecycle
     @classmethod
     async def open(
         cls,
@@ -161,7 +165,6 @@ class MavlinkLink:
             msg = f"{self.endpoint}: no peer connected within {timeout:.1f} s"
             raise LinkTimeout(msg) from err
 
-    # ----------------------------------------------------------------------------------------- receive
     async def recv(self, timeout: float | None = None) -> Any:
         """The next good message. Raises LinkTimeout if none arrives within ``timeout`` seconds."""
         try:
@@ -206,7 +209,6 @@ class MavlinkLink:
         while True:
             yield await self._receiver.queue.get()
 
-    # ----------------------------------------------------------------------------------------- send
     def send(self, msg: Any) -> None:
         """Pack ``msg`` (from ``link.mav.<name>_encode(...)``) with our ids and the next sequence number; send it."""
         buf = bytes(msg.pack(self.mav))
