@@ -191,8 +191,7 @@ class Every:
 
 
 class StatusRecord:
-    """The status record and the counter totals, read from the service's parts; owns the loop-latency window and
-    what the service attaches while it runs (the collector's pauses, the fence reader's summary)."""
+    """The status record and the counter totals, read (never written) from the service's parts."""
 
     def __init__(
         self,
@@ -210,10 +209,6 @@ class StatusRecord:
         self.autopilot = autopilot
         self.counters = counters
         self.signing = signing  # the autopilot link's signature verdicts (None: signing off)
-        self.latency = LatencyWindow()
-        self.gc: GcPauses | None = None  # the collector's pauses while the service runs (``CompanionService.run``)
-        #: The fence reader's summary (``FenceReader.summary``), when the service reads the autopilot's fence.
-        self.fence: Callable[[], dict[str, object]] | None = None
 
     def rejected(self) -> dict[str, int]:
         """The rejected-input totals sent as NAMED_VALUE_INT (docs/hardening.md): poses, scans / memory clears,
@@ -239,8 +234,17 @@ class StatusRecord:
             out |= {f"signing_{k}": v for k, v in dataclasses.asdict(self.signing).items()}
         return out
 
-    def status_dict(self, now_s: float, reason: str) -> dict[str, Any]:
-        """The status record (see apf_companion.status for the schema), ``reason`` the latest state change's."""
+    def status_dict(
+        self,
+        now_s: float,
+        *,
+        reason: str,
+        loop_latency_ms: dict[str, float] | None,
+        gc: dict[str, Any] | None,
+        fence: dict[str, object] | None,
+    ) -> dict[str, Any]:
+        """The status record (see apf_companion.status for the schema) with what the reporter keeps: the latest
+        state change's ``reason``, the loop latency, the collector's pauses and the fence reader's summary."""
         nav = self.navigator
         out = nav.last_output
         return {
@@ -252,18 +256,14 @@ class StatusRecord:
             "distance_to_goal_m": None if out is None else out.distance_to_goal_m,
             "nearest_obstacle_m": None if out is None else out.nearest_obstacle_m,
             "n_obstacles": len(self.perception),
-            "loop_latency_ms": self.latency.summary(),
-            "gc": self.gc_summary(),
-            "fence": None if self.fence is None else self.fence(),
+            "loop_latency_ms": loop_latency_ms,
+            "gc": gc,
+            "fence": fence,
             "decision": None if out is None else out.decision,
             "autopilot": {"mode_ok": nav.mode_ok, "armed": self.autopilot.armed, "link_alive": nav.link_alive(now_s)},
             "counters": self.counts() | {f"nav_{k}": v for k, v in nav.counts().items()},
             "rejected": self.rejected(),
         }
-
-    def gc_summary(self) -> dict[str, Any] | None:
-        """The collector's pauses since the run started (``heap.GcSummary``), None before."""
-        return None if self.gc is None else self.gc.summary().to_dict()
 
     def _pose_dict(self, now_s: float) -> dict[str, float] | None:
         pose = self.navigator.pose
@@ -305,8 +305,9 @@ class StatusRecord:
 class StatusReporter:
     """Reports the service's state to the autopilot / ground station (MAVLink) and to zenoh.
 
-    It owns the STATUSTEXT reason and the periodic sends' schedules (``Every``); the status record and the counter
-    totals are its ``record``'s (``StatusRecord``).
+    It owns the STATUSTEXT reason, the periodic sends' schedules (``Every``), the loop-latency window and what the
+    service attaches while it runs (the collector's pauses, the fence reader's summary); the status record and the
+    counter totals are read by its ``record`` (``StatusRecord``).
     """
 
     def __init__(
@@ -335,31 +336,15 @@ class StatusReporter:
             counters=counters,
             signing=signing,
         )
+        self.latency = LatencyWindow()
+        self.gc: GcPauses | None = None  # the collector's pauses while the service runs (``CompanionService.run``)
+        #: The fence reader's summary (``FenceReader.summary``), when the service reads the autopilot's fence.
+        self.fence: Callable[[], dict[str, object]] | None = None
         self.reason = "starting"
         nvf_hz = params.named_value_rate_hz
         self._heartbeat = Every(HEARTBEAT_PERIOD_S, now_s)
         self._named_values = Every(1.0 / nvf_hz if nvf_hz > 0 else math.inf, now_s)
         self._zenoh_status = Every(1.0 / params.zenoh_status_rate_hz, now_s)
-
-    @property
-    def latency(self) -> LatencyWindow:
-        return self.record.latency
-
-    @property
-    def gc(self) -> GcPauses | None:
-        return self.record.gc
-
-    @gc.setter
-    def gc(self, pauses: GcPauses | None) -> None:
-        self.record.gc = pauses
-
-    @property
-    def fence(self) -> Callable[[], dict[str, object]] | None:
-        return self.record.fence
-
-    @fence.setter
-    def fence(self, summary: Callable[[], dict[str, object]] | None) -> None:
-        self.record.fence = summary
 
     def changes(self, changes: list[StateChange]) -> None:
         """Log each state change and announce it in a STATUSTEXT (except LINK_LOST: silence towards the autopilot)."""
@@ -419,12 +404,18 @@ class StatusReporter:
         return self.record.counts()
 
     def status_dict(self, now_s: float) -> dict[str, Any]:
-        """The status record (``StatusRecord.status_dict``) with the latest state change's reason."""
-        return self.record.status_dict(now_s, self.reason)
+        """The status record (``StatusRecord.status_dict``)."""
+        return self.record.status_dict(
+            now_s,
+            reason=self.reason,
+            loop_latency_ms=self.latency.summary(),
+            gc=self.gc_summary(),
+            fence=None if self.fence is None else self.fence(),
+        )
 
     def gc_summary(self) -> dict[str, Any] | None:
-        """The collector's pauses since the run started (``StatusRecord.gc_summary``)."""
-        return self.record.gc_summary()
+        """The collector's pauses since the run started (``heap.GcSummary``), None before."""
+        return None if self.gc is None else self.gc.summary().to_dict()
 
     def cycle_sent(self, out: CycleOutput, trigger_wall_s: float | None, now_wall_s: float) -> None:
         """A cycle's setpoint went out: its latency from the pose that triggered it (if one did)."""
