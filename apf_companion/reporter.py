@@ -256,6 +256,7 @@ class StatusRecord:
             "distance_to_goal_m": None if out is None else out.distance_to_goal_m,
             "nearest_obstacle_m": None if out is None else out.nearest_obstacle_m,
             "n_obstacles": len(self.perception),
+            "sensor_look_deg": math.degrees(self.perception.look_offset_rad(now_s)),
             "loop_latency_ms": loop_latency_ms,
             "gc": gc,
             "fence": fence,

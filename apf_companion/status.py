@@ -8,7 +8,7 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
      "goal": {"north_m": 22.0, "east_m": 22.0, "down_m": -5.0 | null, "leg": 0 | null, "legs": 1, "source": "cli",
               "held": false} | null,
      "distance_to_goal_m": 9.1 | null, "nearest_obstacle_m": 1.7 | null, "n_obstacles": 31,
-     "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null,
+     "sensor_look_deg": 0.0, "loop_latency_ms": {"p50": 0.4, "p99": 1.1, "last": 0.3} | null,
      "gc": {"collections": 12, "full": 0, "max_pause_ms": 0.3, "frozen": 55906} | null, "decision": "GREEDY" | null,
      "fence": {"outcome": "used", "note": "inclusion polygon of 6 vertices", "reads": 12, "failures": 0,
                "changes": 0, "ignored": 0, "unexpected": 0} | null,
@@ -19,6 +19,9 @@ The zenoh status topic (default ``apf/status``) carries one JSON object per publ
 ``goal`` is the goal taken: the waypoint being flown to, or, before its first leg starts (no pose yet, waiting
 for the takeover or the pilot's switch), the route's first waypoint with ``leg`` null and ``down_m`` null for "keep
 the altitude"; ``held`` is true while the goal waits for a position to be checked (``goal.max_distance_m``).
+``sensor_look_deg`` is where the range sensors look, learnt from the ranges: the body bearing (clockwise from the
+nose) of the centre of the arc they cover, which ``[autopilot] yaw = "travel"`` points along each step; 0 without
+recent readings or with all-round coverage (apf_companion/perception/coverage.py).
 ``gc`` is the garbage collector since the run started (apf_companion/heap.py): collections, how many were full,
 the longest pause, and how many startup objects are frozen out of every collection. ``fence`` is the autopilot's
 fence as read for bapf-nav's flying area (apf_companion/fencereader.py; null when the service does not read it):

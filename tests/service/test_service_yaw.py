@@ -6,6 +6,7 @@ tail for a rear one (docs/service.md, "Heading")."""
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 from collections.abc import AsyncIterator
 from typing import Any
@@ -17,6 +18,7 @@ from apf_companion.config import ServiceConfig
 from apf_companion.goal import Route
 from apf_companion.navigator import State
 from apf_companion.service import CompanionService
+from apf_companion.status import encode_status_json
 from sim.vehicle import RangeSensorConfig, SimConfig, Simulator, SpawnConfig
 from sim.vehicle.dynamics import wrap_pi
 from sim.vehicle.guided import Setpoint as SimSetpoint
@@ -172,12 +174,14 @@ async def test_px4_sensor_off_the_nose_is_turned_to_look_where_the_vehicle_goes(
         state = await fly_until(svc, log, {State.ARRIVED, State.STUCK}, 150.0)
         res = sim.result()
         offset = svc.perception.look_offset_rad(svc.clock.now())
+        reported_deg = json.loads(encode_status_json(svc.reporter.status_dict(svc.clock.now())))["sensor_look_deg"]
         pos = sim.engine.state.pos_ned_m.copy()
     assert not res["collided"]
     assert state is State.ARRIVED, svc.result()
     assert math.dist(pos[:2], EAST_GOAL[:2]) <= 0.7 + 0.3
     look = math.radians(look_deg)
     assert abs(wrap_pi(offset - look)) < math.radians(1.0)
+    assert abs(wrap_pi(math.radians(reported_deg) - look)) < math.radians(1.0)  # the status topic says it too
     flown = [sp for sp in log.setpoints if sp.vel is not None and math.hypot(sp.vel[0], sp.vel[1]) > 0.1]
     assert len(flown) > 5
     # The sensor ahead: each yaw is the bearing of the setpoint's feed-forward less the look offset.
