@@ -153,7 +153,19 @@ class AutopilotHandlers:
             set_route=set_route,
         )
         #: One handler per record type from the autopilot (commands from it are not for us: ignored).
-        self._from_autopilot: dict[type[Any], Handler] = {
+        self._from_autopilot = self._autopilot_table(poses, ranges, goals)
+        #: From anyone else: commands and PARAM_* for us, ranges from a configured sensor; the rest is foreign.
+        self._from_others: dict[type[Any], Handler] = (
+            dict.fromkeys((CommandInt, CommandLong), self._on_command)
+            | dict.fromkeys(RANGE_RECORDS, self._on_sensor_range)
+            | dict.fromkeys((ParamRequestList, ParamRequestRead, ParamSet), self._on_param_record)
+        )
+
+    def _autopilot_table(
+        self, poses: PoseRouting, ranges: RangeRouting, goals: GoalCommands
+    ) -> dict[type[Any], Handler]:
+        """The handler of each record type from the autopilot, in the parts that own what it changes."""
+        return {
             Heartbeat: self._autopilot.on_heartbeat,
             EkfStatusReport: self._autopilot.on_ekf_status,
             CommandAck: self._autopilot.on_command_ack,
@@ -168,12 +180,6 @@ class AutopilotHandlers:
             PositionTargetGlobalInt: goals.on_position_target_global,
             **dict.fromkeys(FENCE_RECORDS, self._on_fence),
         }
-        #: From anyone else: commands and PARAM_* for us, ranges from a configured sensor; the rest is foreign.
-        self._from_others: dict[type[Any], Handler] = (
-            dict.fromkeys((CommandInt, CommandLong), self._on_command)
-            | dict.fromkeys(RANGE_RECORDS, self._on_sensor_range)
-            | dict.fromkeys((ParamRequestList, ParamRequestRead, ParamSet), self._on_param_record)
-        )
 
     def handle(self, rec: Record, now_s: float) -> None:
         if rec.src == self.params.autopilot:
