@@ -48,7 +48,7 @@ import numpy.typing as npt
 
 from apf_companion.planning.area import outside_zones
 from apf_companion.planning.decision import BatchDecision, Decision, DecisionReason
-from apf_companion.planning.navescape import EscapeMaps
+from apf_companion.planning.navescape import AgentRows, EscapeMaps
 from apf_companion.planning.navescapeone import EscapeStep
 from apf_companion.planning.navgeometry import MoveGeometry, obstacle_reach_m
 from apf_companion.planning.navone import DirectStep
@@ -227,8 +227,8 @@ class BapfNavPlanner(StatefulPlanner):
         escaping = self._escaping(state, direct, passing, any_feasible, g0)
         some_escape = bool(_any(escaping, axis=None))
         if some_escape:
-            world = (positions_m, targets_m, obstacles_m, obstacle_mask, state)
-            self._escape.scores(np.flatnonzero(escaping), *world, feasible, clear_k, clear_0, cost, cost0, passing)
+            world = AgentRows(positions_m, targets_m, obstacles_m, obstacle_mask, state)
+            self._escape.scores(np.flatnonzero(escaping), world, feasible, clear_k, clear_0, cost, cost0, passing)
 
         chosen = _choose(cost, cost0, passing, state.prev_dir, self._units, self._cos_hold, self.params.nav_hold_ratio)
         _squeeze_out(chosen, ~any_feasible & active, seg2, self._floor2)

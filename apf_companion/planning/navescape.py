@@ -11,6 +11,7 @@ agent's trail are not taken as exits (``_distances``).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -19,7 +20,7 @@ from apf_companion.planning.navfield import NavGrid
 from apf_companion.planning.navstate import GiveUp, NavField, NavMode, NavState
 from apf_companion.planning.params import PlannerParams
 
-__all__ = ["EscapeMaps", "mark_dead_end", "own_cell_blocked"]
+__all__ = ["AgentRows", "EscapeMaps", "mark_dead_end", "own_cell_blocked"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -35,6 +36,16 @@ _GAVE_UP = np.int8(NavMode.GAVE_UP)
 _MEMO = 2
 #: Slack of the seen-edge prefilter (``seen_edge_cells``) [m]: far above the rounding of coordinates of a flight.
 _SEEN_SLACK_M = 1e-3
+
+
+class AgentRows(NamedTuple):
+    """What the escape rules read of a batch of agents (all rows; ``rows`` arguments pick from them)."""
+
+    positions_m: FloatArray
+    targets_m: FloatArray
+    obstacles_m: FloatArray
+    obstacle_mask: BoolArray | None
+    state: NavState
 
 
 class EscapeMaps:
@@ -69,17 +80,14 @@ class EscapeMaps:
     def potentials(
         self,
         rows: IntArray,
-        positions_m: FloatArray,
-        targets_m: FloatArray,
-        obstacles_m: FloatArray,
-        obstacle_mask: BoolArray | None,
-        state: NavState,
+        agents: AgentRows,
         feasible: BoolArray,
         clear_k: FloatArray,
         clear_0: FloatArray,
     ) -> tuple[FloatArray, FloatArray, BoolArray]:
         """Geodesic potential at the points (R, K) and the agents (R,) of ``rows``, and which points pass
         (feasible and lower on potential + clearance term), recomputing stale potentials."""
+        positions_m, targets_m, obstacles_m, obstacle_mask, state = agents
         stale = np.array([state.field[r] is None for r in rows], dtype=bool)
         stale |= state.since_field[rows] >= self.params.nav_replan_steps
         check = ~stale & (state.since_field[rows] >= _OUTDATED_AGE)
@@ -113,11 +121,7 @@ class EscapeMaps:
     def scores(
         self,
         rows: IntArray,
-        positions_m: FloatArray,
-        targets_m: FloatArray,
-        obstacles_m: FloatArray,
-        obstacle_mask: BoolArray | None,
-        state: NavState,
+        agents: AgentRows,
         feasible: BoolArray,
         clear_k: FloatArray,
         clear_0: FloatArray,
@@ -127,9 +131,8 @@ class EscapeMaps:
     ) -> None:
         """Replace the escaping ``rows``' scores by the geodesic ones (in place; ``BapfNavPlanner._decide``'s
         ``cost``, ``cost0`` and ``passing``), and give up the rows whose region has no way (``GiveUp.NO_WAY``)."""
-        g_k, g0, ok = self.potentials(
-            rows, positions_m, targets_m, obstacles_m, obstacle_mask, state, feasible, clear_k, clear_0
-        )
+        positions_m, state = agents.positions_m, agents.state
+        g_k, g0, ok = self.potentials(rows, agents, feasible, clear_k, clear_0)
         # Any feasible point down the potential (the clearance term may hold the agent on a plateau).
         plain: BoolArray = np.asarray(feasible[rows] & (g_k < g0[:, None]))
         has_ok = np.asarray(ok.any(axis=1))
