@@ -407,13 +407,14 @@ class SensorsConfig:
         forward_obstacle_distance: Send the remembered obstacles around the vehicle to the autopilot as
             OBSTACLE_DISTANCE (72 sectors of 5 deg, body FRD, cm) from our component id, for ArduPilot's proximity
             library (PRX1_TYPE = 2) and the ground station's proximity view. While on, the autopilot's own
-            DISTANCE_SENSOR echo of its proximity sectors (ids 10-18) is not read back.
+            DISTANCE_SENSOR echo of its proximity sectors (ids 10-18) is not read back, nor, on PX4, its own
+            OBSTACLE_DISTANCE (its collision-prevention map, which holds ours).
         forward_rate_hz: OBSTACLE_DISTANCE messages per second when forwarding [Hz].
-        obstacle_distance_frame: How OBSTACLE_DISTANCE's ``frame`` is read. "as_sent": as the spec says (BODY_FRD 12 and
-            LOCAL_FRD 20 count from the nose; 0 = MAV_FRAME_GLOBAL, the other GLOBAL* and LOCAL_NED 1 from north, as
-            PX4 reads them). "body_frd": every frame counts from the nose, as ArduPilot reads them
-            (AP_Proximity_MAV.cpp ignores ``frame``): for sensor scripts written for ArduPilot, which leave frame at
-            0. A frame-0 message read as sent is counted (``obstacle_distance_frame_global``) and logged once.
+        obstacle_distance_frame: How OBSTACLE_DISTANCE's ``frame`` is read. "as_sent": as PX4 reads them (BODY_FRD
+            12 counts from the nose; 0 = MAV_FRAME_GLOBAL, the other GLOBAL* and LOCAL_NED 1 from north; any other
+            frame, LOCAL_FRD 20 too, is refused and counted). "body_frd": every frame counts from the nose, as ArduPilot
+            reads them (AP_Proximity_MAV.cpp ignores ``frame``): for sensor scripts written for ArduPilot, which leave
+            frame at 0. A frame-0 message read as sent is counted (``obstacle_distance_frame_global``) and logged once.
         obstacle_distance_mount_yaw_deg: Added to every OBSTACLE_DISTANCE bearing read from the nose: the sensor's
             forward axis, clockwise from the vehicle's nose seen from above (180 = facing the tail). ArduPilot's
             PRX1_YAW_CORR: set the same value the autopilot uses. Not applied to north-aligned frames [deg].

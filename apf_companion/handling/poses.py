@@ -3,7 +3,11 @@
 While the service forwards its obstacles (OBSTACLE_DISTANCE), the autopilot's DISTANCE_SENSOR with ids 10-18 is
 its proximity library reporting those same sectors back (``GCS_Common.cpp`` ``send_proximity``:
 ``PROXIMITY_SENSOR_ID_START + i``); reading it would keep every forwarded obstacle alive forever, so it is
-counted (``proximity_echoes_ignored``) and dropped.
+counted (``proximity_echoes_ignored``) and dropped. PX4 echoes the same way in OBSTACLE_DISTANCE: its stream
+(``src/modules/mavlink/streams/OBSTACLE_DISTANCE.hpp``) sends ``obstacle_distance_fused``, the collision-prevention
+map that ``CollisionPrevention::_updateObstacleMap`` builds from its distance sensors *and* every OBSTACLE_DISTANCE
+received (ours included) and publishes in MAV_FRAME_BODY_FRD; so on PX4, while forwarding, the autopilot's own
+OBSTACLE_DISTANCE is counted the same way and dropped.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from collections.abc import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.autopilot import Autopilot
 from apf_companion.handling.globalref import GlobalPlacement
 from apf_companion.handling.params import HandlerParams
 from apf_companion.links.messages import (
@@ -92,7 +97,11 @@ class RangeRouting:
         self._counters = counters
 
     def on_obstacle_distance(self, rec: ObstacleDistance, now_s: float) -> None:
-        if self.params.mavlink_ranges:
+        p = self.params
+        if p.forwarding and p.profile is Autopilot.PX4 and rec.src == p.autopilot:
+            self._counters.proximity_echoes_ignored += 1  # PX4's fused map: our forwarded obstacles come back
+            return
+        if p.mavlink_ranges:
             self._perception.on_obstacle_distance(rec, now_s)
 
     def on_distance_sensor(self, rec: DistanceSensor, now_s: float) -> None:

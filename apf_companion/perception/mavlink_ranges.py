@@ -77,7 +77,6 @@ _MAV_FRAME_LOCAL_OFFSET_NED: int = mavlink.MAV_FRAME_LOCAL_OFFSET_NED
 _MAV_FRAME_GLOBAL_TERRAIN_ALT: int = mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT
 _MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: int = mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT
 _MAV_FRAME_BODY_FRD: int = mavlink.MAV_FRAME_BODY_FRD
-_MAV_FRAME_LOCAL_FRD: int = mavlink.MAV_FRAME_LOCAL_FRD
 
 NORTH_ALIGNED_FRAMES = frozenset(
     {
@@ -92,10 +91,13 @@ NORTH_ALIGNED_FRAMES = frozenset(
 )
 """OBSTACLE_DISTANCE frames whose index 0 is north (+ angle_offset), as PX4 reads them."""
 
-# LOCAL_FRD's forward axis is "aligned to the front of the vehicle in the horizontal plane": for a planar scan
-# that is the same as BODY_FRD.
-BODY_FRAMES = frozenset({_MAV_FRAME_BODY_FRD, _MAV_FRAME_LOCAL_FRD})
-"""OBSTACLE_DISTANCE frames whose index 0 is the vehicle's forward direction (+ angle_offset)."""
+# LOCAL_FRD (20) is not one: it is earth-fixed ("origin fixed relative to earth"), and PX4 reads it as a frame of
+# arbitrary heading (mavlink_receiver.cpp handle_message_odometry: LOCAL_FRD -> vehicle_odometry POSE_FRAME_FRD) and
+# refuses it in an OBSTACLE_DISTANCE (CollisionPrevention.cpp _addObstacleSensorData: "unsupported frame"). Reading
+# it from the nose was a guess; it is refused like any other frame.
+BODY_FRAMES = frozenset({_MAV_FRAME_BODY_FRD})
+"""OBSTACLE_DISTANCE frames whose index 0 is the vehicle's forward direction (+ angle_offset), as PX4 reads them
+(CollisionPrevention.cpp ``_addObstacleSensorData``: BODY_FRD from the nose; GLOBAL and LOCAL_NED from north)."""
 
 # MAV_SENSOR_ORIENTATION: YAW_0 .. YAW_315 are horizontal beams at 45 deg steps; ROTATION_CUSTOM uses the
 # quaternion. The other defined orientations (up, down, rolled) are not horizontal beams.
@@ -269,11 +271,11 @@ def scan_from_obstacle_distance(
 ) -> RangeScan:
     """Read an OBSTACLE_DISTANCE message into a ``RangeScan``.
 
-    Element ``i`` lies at bearing ``angle_offset + i * increment`` degrees, clockwise, from the frame's
-    zero: the vehicle's forward axis for BODY_FRD (12) and LOCAL_FRD (20), north for GLOBAL* and
-    LOCAL_NED (1). ``increment_f`` is used when non-zero, else ``increment``; a negative ``increment_f``
-    runs counter-clockwise, as the spec allows. The number of elements read is ``360 / |increment|`` rounded
-    (halves up), at most 72, as ArduPilot reads them (``obstacle_distance_element_count``); later elements are
+    Element ``i`` lies at bearing ``angle_offset + i * increment`` degrees, clockwise, from the frame's zero: the
+    vehicle's forward axis for BODY_FRD (12), north for GLOBAL* and LOCAL_NED (1); any other frame (LOCAL_FRD 20 too:
+    earth-fixed, of no stated heading) is refused. ``increment_f`` is used when non-zero, else ``increment``; a negative
+    ``increment_f`` runs counter-clockwise, as the spec allows. The number of elements read is ``360 / |increment|``
+    rounded (halves up), at most 72, as ArduPilot reads them (``obstacle_distance_element_count``); later elements are
     not used and not counted.
     The scan's ``time_boot_ms`` is ``time_usec // 1000`` when that fits a uint32 (time since boot), else None.
 

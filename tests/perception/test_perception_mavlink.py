@@ -121,7 +121,6 @@ def test_negative_increment_f_runs_counter_clockwise() -> None:
     ("frame", "expected"),
     [
         (mavlink.MAV_FRAME_BODY_FRD, ScanFrame.BODY_FRD),
-        (mavlink.MAV_FRAME_LOCAL_FRD, ScanFrame.BODY_FRD),
         (mavlink.MAV_FRAME_LOCAL_NED, ScanFrame.LOCAL_NED),
         (mavlink.MAV_FRAME_GLOBAL, ScanFrame.LOCAL_NED),
         (mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, ScanFrame.LOCAL_NED),

@@ -171,3 +171,46 @@ def test_bad_mount_settings_name_the_key(sensors: dict[str, Any], match: str) ->
 def test_the_front_end_refuses_a_non_finite_mount() -> None:
     with pytest.raises(ConfigError, match="laserscan_mount_yaw_rad"):
         PerceptionParams(laserscan_mount_yaw_rad=math.inf)
+
+
+def _px4(distances: list[int], frame: int, *, increment_f: float = 10.0, angle_offset: float = 0.0) -> ObstacleDistance:
+    """OBSTACLE_DISTANCE as PX4 streams its collision-prevention map (streams/OBSTACLE_DISTANCE.hpp: ``increment``
+    0, ``increment_f`` the map's 10 deg, ``frame`` as the map's, ``time_usec`` its boot-time stamp)."""
+    msg = mavlink.MAVLink_obstacle_distance_message(
+        1_000_000, mavlink.MAV_DISTANCE_SENSOR_LASER, distances, 0, 20, 1000, increment_f, angle_offset, frame
+    )
+    rec = _record(msg)
+    assert isinstance(rec, ObstacleDistance)
+    return rec
+
+
+def test_px4s_body_frd_map_is_read_from_the_nose_with_increment_f_and_its_no_data_value() -> None:
+    """PX4's map: 36 bins of 10 deg (``increment`` 0, so ``increment_f``), UINT16_MAX = no data, > max = free.
+    Vehicle facing east: bin 9 (90 deg right of the nose) is south."""
+    d = [65535] * 72
+    d[9], d[0] = 300, 1001  # an obstacle at 3 m to the right; ahead free
+    p = _configured(yaw_deg=90.0)
+    p.on_obstacle_distance(_px4(d, mavlink.MAV_FRAME_BODY_FRD), 10.0)
+    assert _ne(p) == [[-3.0, 0.0]]
+    assert p.counters.bad_scans == 0
+
+
+@pytest.mark.parametrize("frame", [mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_GLOBAL])
+def test_an_earth_fixed_scan_is_not_turned_by_the_heading_again(frame: int) -> None:
+    """GLOBAL (0) and LOCAL_NED (1): element 0 is north + angle_offset (CollisionPrevention.cpp subtracts the
+    vehicle's yaw to put them in its body map); for any heading the point is where the sender said."""
+    d = [65535] * 72
+    d[0] = 300  # angle_offset 90: element 0 is east
+    for yaw_deg in (0.0, 90.0, -135.0):
+        p = _configured(yaw_deg=yaw_deg)
+        p.on_obstacle_distance(_px4(d, frame, angle_offset=90.0), 10.0)
+        assert _ne(p) == [[0.0, 3.0]]
+
+
+@pytest.mark.parametrize("frame", [mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_NED, 105])
+def test_a_frame_px4_does_not_read_is_refused_and_counted_not_guessed(frame: int) -> None:
+    """LOCAL_FRD (20) is earth-fixed with no stated heading (PX4 reads it so in ODOMETRY); PX4's collision
+    prevention refuses it, BODY_NED and any unknown value ("unsupported frame"): refused, counted, no point."""
+    p = _configured(yaw_deg=30.0)
+    p.on_obstacle_distance(_px4([300] * 72, frame), 10.0)
+    assert p.counters.bad_scans == 1 and p.points(10.0).shape == (0, 3)

@@ -104,6 +104,26 @@ async def test_forwarding_sends_body_frd_sectors_and_ignores_the_echo() -> None:
         assert svc.reporter.status_dict(svc.clock.now())["counters"]["obstacle_distances_sent"] == sent
 
 
+async def test_on_px4_the_autopilots_obstacle_distance_is_the_echo_of_the_forwarded_one() -> None:
+    """PX4 streams OBSTACLE_DISTANCE from its collision-prevention map, which holds every OBSTACLE_DISTANCE it
+    received (streams/OBSTACLE_DISTANCE.hpp sends obstacle_distance_fused): while forwarding, the autopilot's own
+    is our obstacles coming back, and would keep them alive for ever. Counted and dropped; a sensor's is read."""
+    cfg = fast_config(
+        autopilot={"profile": "px4"}, sensors={"forward_obstacle_distance": True, "mavlink_sources": ["1/158"]}
+    )
+    async with rig(cfg) as (svc, ap):
+        ap.ranges_cm = free_with(s0=300)  # from the autopilot's ids (1/1): PX4's map
+        await until(lambda: svc.counters.proximity_echoes_ignored >= 3, 5.0, "echoes ignored")
+        assert svc.perception.counters.scans == 0 and len(svc.perception) == 0
+        sensor = await sensor_link(svc, 1, 158)  # a sensor of its own
+        try:
+            sensor.send(sensor.mav.obstacle_distance_encode(ap.boot_ms() * 1000, 0, free_with(s0=300), 0, 20, 800,
+                                                            5.0, 0.0, m.MAV_FRAME_BODY_FRD))  # fmt: skip
+            await until(lambda: len(svc.perception) > 0, 5.0, "the sensor's obstacle remembered")
+        finally:
+            await sensor.aclose()
+
+
 async def test_forwarding_is_off_by_default() -> None:
     async with rig() as (svc, ap):
         await until(lambda: len(ap.of_type("HEARTBEAT")) >= 2 and svc.perception.counters.scans > 3, 5.0, "running")
