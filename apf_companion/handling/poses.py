@@ -80,7 +80,7 @@ class PoseRouting:
         self._global_ref.place(now_s)
 
     def on_odometry(self, rec: Odometry, now_s: float) -> None:
-        self._perception.gate.note_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate
+        self._perception.poses.on_reset_counter(rec.reset_counter)  # estimator reset evidence for the pose gate
 
     def on_attitude(self, rec: Attitude, now_s: float) -> None:
         rate = euler_yaw_rate_rad_s(rec.roll, rec.pitch, rec.pitchspeed, rec.yawspeed)

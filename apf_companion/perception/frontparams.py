@@ -63,6 +63,7 @@ class PerceptionCounters:
     pose_time_jumps: int = 0  # time_boot_ms far back without reboot evidence
     pose_conflicts: int = 0  # stale, and contradicts the accepted poses of its time: a second stream (brakes)
     pose_resets: int = 0  # re-anchored on a sustained new position / time base (EKF reset, reboot)
+    estimator_resets: int = 0  # ODOMETRY reset_counter changes from the autopilot (PX4 EKF2: position, velocity, yaw)
     bad_velocities: int = 0  # a reported velocity non-finite or beyond [safety] max_speed_m_s: pose kept, no velocity
     stale_attitudes: int = 0  # an ATTITUDE not newer than the newest (reordered, duplicate): ignored
     poses_without_heading: int = 0  # no ATTITUDE within MAX_HEADING_AGE_S of the pose: no range placed with it

@@ -36,7 +36,15 @@ one in its track; up to ``MAX_TRACKS`` tracks are kept, so junk in between does 
 pose in between, the gate re-anchors on them (``RESET``): the caller
 must hold and announce it before motion resumes. Interleaved genuine poses restart the count, so a spoofed stream
 beside the real one never takes over. Where the autopilot streams ODOMETRY, a change of its ``reset_counter`` is
-direct evidence: a jump within the next ``reset_samples`` poses re-anchors at once (``note_reset_counter``).
+direct evidence: a jump within the next ``reset_samples`` poses re-anchors at once (``note_reset_counter``). A reset
+smaller than the gate's reach is accepted as a move, but the remembered points are then in the old frame: the first
+pose accepted after the counter changed reports ``RESET`` too (the stream goes on; the caller forgets the old frame).
+PX4 publishes the counter and the position of one estimator update together (EKF2.cpp ``PublishLocalPosition`` /
+``PublishOdometry``), so that pose is in the new frame; a jump that arrives later in the window still re-anchors.
+
+While the rejected poses form a track of two or more that the anchor rejects (a reset's new frame before it
+re-anchors, or a second stream), the anchor is not ``confirmed`` either: the old frame's hold point and steps are
+not sent into the new one (the caller brakes, frame-free).
 
 An anchor taken on evidence alone (the first pose, a reboot, an announced reset: one pose) is not ``confirmed``
 until ``reset_samples`` poses in all, each a plausible successor of the last, agree with it: a single spoofed pose
@@ -125,19 +133,25 @@ class PoseGate:
         self._reboot_evidence = False
         self._reset_counter: int | None = None
         self._reset_window = 0  # poses left in which a jump is the announced estimator reset
+        self._reset_unseen = False  # the counter changed and no pose has re-anchored or reported RESET since
         self._agreeing = 0  # poses that agree with the current anchor (the anchor included)
 
     @property
     def confirmed(self) -> bool:
         """The current anchor is backed by ``reset_samples`` consistent poses (see the module docstring)."""
-        return self._agreeing >= self.limits.reset_samples
+        rival = any(len(t) >= 2 for t in self._tracks)  # a consistent stream the anchor rejects
+        return self._agreeing >= self.limits.reset_samples and not rival
 
-    def note_reset_counter(self, counter: int) -> None:
+    def note_reset_counter(self, counter: int) -> bool:
         """The estimator's reset counter (ODOMETRY.reset_counter): a change is reset evidence, and the next
-        ``reset_samples`` poses may re-anchor at once (a jump then is the reset, not a spoof)."""
-        if self._reset_counter is not None and counter != self._reset_counter:
+        ``reset_samples`` poses may re-anchor at once (a jump then is the reset, not a spoof); the first pose
+        accepted after it reports ``RESET`` (a reset within reach). True when it changed."""
+        changed = self._reset_counter is not None and counter != self._reset_counter
+        if changed:
             self._reset_window = self.limits.reset_samples
+            self._reset_unseen = True
         self._reset_counter = counter
+        return changed
 
     def note_reboot(self) -> None:
         """The autopilot rebooted (HEARTBEAT after a silence longer than the link timeout, or MAV_STATE_BOOT):
@@ -167,6 +181,9 @@ class PoseGate:
             return self._anchor(fix, Verdict.RESET)
         if verdict is Verdict.ACCEPT:
             self._accept(last, fix)
+            if self._reset_unseen:  # an announced reset within reach: the same stream, in the new frame
+                self._reset_unseen = False
+                return Verdict.RESET
             return verdict
         if verdict is Verdict.STALE:
             if last.eff_s - boot_s >= REBOOT_JUMP_S:
@@ -257,6 +274,7 @@ class PoseGate:
         self._tracks.clear()
         self._reboot_evidence = False
         self._reset_window = 0
+        self._reset_unseen = False
         return verdict
 
 

@@ -62,6 +62,7 @@ class PoseIntake:
         self.heading = HeadingTrack()
         self.gate = PoseGate(limits)
         self.conflict_log = RateLimitedLog(log, "pose.conflict", BAD_SCAN_LOG_INTERVAL_S)
+        self.reset_log = RateLimitedLog(log, "pose.reset", BAD_SCAN_LOG_INTERVAL_S)  # forged resets can be many
         self.reset_reason: str | None = None  # set on a re-anchor; the handler takes it (hold + STATUSTEXT)
         self.conflict_said = False  # a pose.conflict WARNING was logged; the handler takes it (STATUSTEXT)
         self._boot_offset_s: float | None = None  # service time - autopilot boot time (latest pose)
@@ -90,7 +91,7 @@ class PoseIntake:
         if verdict is Verdict.CONFLICT and self.conflict_log.note(now_s, hint=CONFLICT_HINT):
             self.conflict_said = True  # the handler takes it (``take_conflict``): a STATUSTEXT as often as the log
         if verdict is Verdict.RESET:
-            self._reset(f"position reset to {pos_ned_m[0]:.1f} {pos_ned_m[1]:.1f} {pos_ned_m[2]:.1f}")
+            self._reset(f"position reset to {pos_ned_m[0]:.1f} {pos_ned_m[1]:.1f} {pos_ned_m[2]:.1f}", now_s)
         elif verdict is not Verdict.ACCEPT:
             counter = _REJECTED[verdict]
             setattr(self.counters, counter, getattr(self.counters, counter) + 1)
@@ -123,13 +124,20 @@ class PoseIntake:
             return None
         return v
 
-    def _reset(self, reason: str) -> None:
-        """The gate re-anchored: poses and remembered points are in the old frame; forget them."""
+    def _reset(self, reason: str, now_s: float) -> None:
+        """The gate re-anchored (or an announced estimator reset came within reach): poses and remembered points are
+        in the old frame; forget them (their offset is not known: LOCAL_POSITION_NED carries no ``delta_xy``)."""
         self.counters.pose_resets += 1
         self.history.clear()
         self._store.clear()
         self.reset_reason = reason
-        log.warning("pose.reset", extra={"reason": reason})
+        self.reset_log.note(now_s, reason=reason)
+
+    def on_reset_counter(self, counter: int) -> None:
+        """ODOMETRY.reset_counter from the autopilot: a change is counted (``estimator_resets``) and is evidence for
+        the pose gate (``PoseGate.note_reset_counter``)."""
+        if self.gate.note_reset_counter(counter):
+            self.counters.estimator_resets += 1
 
     def take_reset(self) -> str | None:
         """The reason of a re-anchor since the last call, or None."""

@@ -75,6 +75,42 @@ def test_reset_evidence_lapses_after_reset_samples_poses() -> None:
     assert gate.check(250, (0.0, 20.0, -5.0), 0.25) is Verdict.JUMP
 
 
+def test_an_announced_reset_within_reach_reports_reset_on_the_first_pose_after_it() -> None:
+    """PX4 EKF2 publishes the reset counter and the position of one update together (EKF2.cpp PublishOdometry /
+    PublishLocalPosition): a reset of 0.2 m is within the gate's reach (accepted as a move), but the remembered
+    points are 0.2 m off. The first pose after the counter changed reports RESET (the anchor stays confirmed: the
+    stream went on); a jump later in the window still re-anchors."""
+    gate = PoseGate(PoseLimits(reset_samples=4))
+    gate.note_reset_counter(4)
+    stream(gate, 0, (0.0, 0.0, -5.0), 5)
+    assert gate.confirmed
+    assert gate.note_reset_counter(5) and not gate.note_reset_counter(5)
+    assert gate.check(250, (0.0, 0.2, -5.0), 0.25) is Verdict.RESET
+    assert gate.confirmed
+    assert gate.check(300, (0.0, 0.2, -5.0), 0.3) is Verdict.ACCEPT
+    assert gate.check(350, (0.0, 20.0, -5.0), 0.35) is Verdict.RESET  # late in the window: still the reset
+    assert gate.check(400, (0.0, 20.0, -5.0), 0.4) is Verdict.ACCEPT
+
+
+def test_a_rejected_consistent_track_unconfirms_the_anchor_until_it_re_anchors() -> None:
+    """An EKF reset seen only in LOCAL_POSITION_NED: from the second rejected pose of the new frame on, the old
+    anchor is not confirmed (the service brakes instead of holding at an old-frame point) until the new frame
+    re-anchors; a single junk pose does not unconfirm it."""
+    gate = PoseGate(PoseLimits(reset_samples=5))
+    stream(gate, 0, (0.0, 0.0, -5.0), 10)
+    assert gate.confirmed
+    assert gate.check(500, (0.0, 300.0, -5.0), 0.5) is Verdict.JUMP  # one junk pose
+    assert gate.confirmed
+    assert gate.check(525, (0.0, 0.0, -5.0), 0.525) is Verdict.ACCEPT
+    verdicts, confirmed = [], []
+    for k in range(6):
+        t_ms = 550 + 50 * k
+        verdicts.append(gate.check(t_ms, (0.0, 5.0, -5.0), t_ms / 1000.0))
+        confirmed.append(gate.confirmed)
+    assert verdicts == [Verdict.JUMP] * 4 + [Verdict.RESET, Verdict.ACCEPT]
+    assert confirmed == [True, False, False, False, True, True]
+
+
 def test_a_forged_anchor_is_unconfirmed_and_junk_between_genuine_poses_does_not_keep_it() -> None:
     """Found by the fuzz: after a forged reset (ODOMETRY reset counter) one spoofed pose anchors; hostile junk poses
     (1 km jumps, random points) arrive twice as often as the genuine ones. The genuine stream still re-anchors after

@@ -317,9 +317,12 @@ async def test_an_odometry_reset_counter_change_re_anchors_at_the_first_jump() -
         odometry(7)
         await counter_advances(lambda: svc.perception.counters.poses, 2, "poses after ODOMETRY 7")
         ap.follow_setpoints = False
-        odometry(8)  # the estimator announces a reset, then the poses jump 20 m east
-        await counter_advances(lambda: svc.perception.counters.poses, 1, "a pose after ODOMETRY 8")
-        ap.pos = [ap.pos[0], ap.pos[1] + 20.0, ap.pos[2]]
-        await within(svc.clock.now, lambda: svc.perception.counters.pose_resets == 1, 3.0, "re-anchored")
+        odometry(8)  # the estimator announces a reset: the first pose after it reports it (a reset within reach)
+        await within(svc.clock.now, lambda: svc.perception.counters.pose_resets == 1, 3.0, "the memory forgotten")
+        assert svc.perception.counters.estimator_resets == 1
+        ap.pos = [ap.pos[0], ap.pos[1] + 20.0, ap.pos[2]]  # a jump later in the window is the reset too
+        await within(svc.clock.now, lambda: svc.perception.counters.pose_resets == 2, 3.0, "re-anchored")
         assert svc.perception.counters.implausible_poses <= 2  # not the 50 consistent samples
         await within(svc.clock.now, lambda: any("reset" in m.text for m in ap.of_type("STATUSTEXT")), 3.0, "announced")
+        status = svc.reporter.status_dict(svc.clock.now())
+        assert status["counters"]["estimator_resets"] == 1 and status["counters"]["pose_resets"] == 2
