@@ -41,6 +41,7 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "DISTANCE_SENSOR": 0.0,
     "EKF_STATUS_REPORT": 0.0,
     "MISSION_CURRENT": 1.0,  # PX4 sends it on every link from boot; ArduPilot when asked
+    "ODOMETRY": 0.0,  # PX4's onboard mode streams it at 30 Hz (mavlink_main.cpp); here when asked
 }
 
 

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from apf_companion.autopilot import Autopilot
 from apf_companion.errors import ConfigError
 from apf_companion.outbox import statustext_chunks
 from sim.vehicle.config import (
@@ -44,6 +45,7 @@ from sim.vehicle.dynamics import (
     step_dynamics,
     wrap_pi,
 )
+from sim.vehicle.ekfreset import EstimatorFrame
 from sim.vehicle.fence import FenceStore
 from sim.vehicle.fenceswitch import FenceSwitch
 from sim.vehicle.flight_modes import choose_target
@@ -118,6 +120,8 @@ class VehicleEngine:
         #: The fence held, served and uploaded over the mission protocol (sim.vehicle.fence).
         self.fence = FenceStore.of_zones(cfg.fence, cfg.fence_keepouts, cfg.home, FenceSwitch.at_boot(self.params))
         self.proximity = Proximity.at_boot(self.params)
+        #: The estimator's local frame against the truth: moved by ``estimator_position_reset`` (PX4 profile).
+        self.estimator = EstimatorFrame()
         self._next_noise_t = 0.0
         self._noise_vel = np.zeros(2)
         self._spawn(cfg.spawn)
@@ -256,6 +260,14 @@ class VehicleEngine:
         """Process one received message (from link index ``link``) at the current simulated time."""
         if self.boot.phase(self.t_s) is BootPhase.RUNNING:  # a rebooting autopilot reads nothing
             handle_message(self, msg, link)
+
+    def estimator_position_reset(self, delta_ne_m: tuple[float, float]) -> None:
+        """PX4 EKF2 resets its horizontal position by ``delta_ne_m`` [m] (sim.vehicle.ekfreset): the reported local
+        position jumps, ODOMETRY's reset counter moves on, the vehicle stays where it is. PX4 profile only."""
+        if self.profile is not Autopilot.PX4:
+            msg = "estimator_position_reset models PX4's EKF2 (the PX4 profile)"
+            raise ValueError(msg)
+        self.estimator.reset_position(delta_ne_m)
 
     # --------------------------------------------------------------------------------------------- step
     def step(self) -> None:

@@ -97,6 +97,8 @@ def _on_set_position_target_global_int(v: VehicleEngine, msg: Any, link: int) ->
 
 def _apply_setpoint(v: VehicleEngine, msg: Any, frame: int, pos_in: FloatArray) -> None:
     rules = v.profile_rules
+    if frame == mavlink.MAV_FRAME_LOCAL_NED:
+        pos_in = v.estimator.flown(pos_in)  # read in the estimate's frame (sim.vehicle.ekfreset)
     rule = rules.setpoint_rule(int(msg.type_mask), frame)
     if rule.kind is None:
         if not rules.invalid_setpoint(v) and rule.text:

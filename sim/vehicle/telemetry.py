@@ -120,9 +120,33 @@ def _sys_status(v: VehicleEngine) -> Any:
 def _local_position_ned(v: VehicleEngine) -> Any:
     if not v.startup.origin_set:
         return None  # GCS_Common.cpp send_local_position: no position relative to an origin yet
-    p, vel = v.state.pos_ned_m, v.state.vel_ned_m_s
+    p, vel = v.estimator.reported(v.state.pos_ned_m), v.state.vel_ned_m_s
     return v.mav.local_position_ned_encode(
         v.time_boot_ms, float(p[0]), float(p[1]), float(p[2]), float(vel[0]), float(vel[1]), float(vel[2])
+    )
+
+
+def _odometry(v: VehicleEngine) -> Any:
+    """PX4's ODOMETRY from EKF2 (streams/ODOMETRY.hpp): LOCAL_NED pose, the estimator's reset counter."""
+    if not v.startup.origin_set:
+        return None
+    p, vel = v.estimator.reported(v.state.pos_ned_m), v.state.vel_ned_m_s
+    half = 0.5 * v.state.yaw_rad
+    cov = [math.nan] * 21
+    return v.mav.odometry_encode(
+        v.time_boot_ms * 1000,
+        mavlink.MAV_FRAME_LOCAL_NED,
+        mavlink.MAV_FRAME_BODY_FRD,
+        *(float(x) for x in p),
+        [math.cos(half), 0.0, 0.0, math.sin(half)],
+        *(float(x) for x in vel),  # NED here; PX4 sends them in its velocity frame
+        0.0,
+        0.0,
+        0.0,
+        cov,
+        cov,
+        reset_counter=v.estimator.reset_counter,
+        estimator_type=mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT,
     )
 
 
@@ -131,7 +155,8 @@ def _global_position_int(v: VehicleEngine) -> Any:
     if not v.startup.origin_set:
         # GCS_Common.cpp send_global_position_int ignores get_location's failure: the stale (zero) location
         return v.mav.global_position_int_encode(v.time_boot_ms, 0, 0, 0, 0, 0, 0, 0, 0)
-    lat, lon = ne_to_latlon(v.cfg.home, float(st.pos_ned_m[0]), float(st.pos_ned_m[1]))
+    p = v.estimator.reported(st.pos_ned_m)  # the estimate: the global position jumps with the local one
+    lat, lon = ne_to_latlon(v.cfg.home, float(p[0]), float(p[1]))
     vel = st.vel_ned_m_s
     hdg = round(math.degrees(st.yaw_rad) * 100.0) % 36000
     return v.mav.global_position_int_encode(
@@ -151,7 +176,8 @@ def _gps_raw_int(v: VehicleEngine) -> Any:
     """A healthy 3D fix at the vehicle (MAVSDK's health.is_global_position_ok falls back to fix >= 3 and >= 8
     satellites when SYS_STATUS has no GPS bit)."""
     st = v.state
-    lat, lon = ne_to_latlon(v.cfg.home, float(st.pos_ned_m[0]), float(st.pos_ned_m[1]))
+    p = v.estimator.reported(st.pos_ned_m)  # the estimate: the global position jumps with the local one
+    lat, lon = ne_to_latlon(v.cfg.home, float(p[0]), float(p[1]))
     vel = st.vel_ned_m_s
     speed_cm_s = round(float(np.hypot(vel[0], vel[1])) * 100.0)
     cog_cdeg = round(math.degrees(math.atan2(vel[1], vel[0])) * 100.0) % 36000
@@ -210,7 +236,7 @@ def _position_target_local_ned(v: VehicleEngine) -> Any:
     if sp is None or v.behaviour() is not Behaviour.GUIDED:
         return None
     z3 = (0.0, 0.0, 0.0)
-    pos = sp.pos if sp.pos is not None else z3
+    pos = v.estimator.reported(sp.pos) if sp.pos is not None else z3  # the held target in the estimate's frame
     vel = sp.vel if sp.vel is not None else z3
     acc = sp.acc if sp.acc is not None else z3
     rules = v.profile_rules
@@ -301,6 +327,7 @@ BUILDERS: dict[int, Builder] = {
     mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR: _distance_sensor,
     mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT: _ekf_status_report,
     mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: _mission_current,
+    mavlink.MAVLINK_MSG_ID_ODOMETRY: _odometry,
 }
 
 # REQUEST_DATA_STREAM: the messages of each stream that this vehicle builds (ArduCopter GCS_MAVLink_Copter.cpp
