@@ -95,7 +95,8 @@ def test_an_announced_reset_within_reach_reports_reset_on_the_first_pose_after_i
 def test_a_rejected_consistent_track_unconfirms_the_anchor_until_it_re_anchors() -> None:
     """An EKF reset seen only in LOCAL_POSITION_NED: from the second rejected pose of the new frame on, the old
     anchor is not confirmed (the service brakes instead of holding at an old-frame point) until the new frame
-    re-anchors; a single junk pose does not unconfirm it."""
+    re-anchors; a single junk pose does not unconfirm it. Half ``reset_samples`` (here 2 of 5) rejected in a row
+    unconfirm it."""
     gate = PoseGate(PoseLimits(reset_samples=5))
     stream(gate, 0, (0.0, 0.0, -5.0), 10)
     assert gate.confirmed
