@@ -24,6 +24,7 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from apf_companion.autopilot import MASK_POS_VEL, MASK_POS_VEL_YAW, MASK_POSITION, MASK_VELOCITY, TypeMask
+from apf_companion.perception.coverage import wrap_pi_upper
 
 __all__ = [
     "MAV_FRAME_LOCAL_NED",
@@ -118,7 +119,7 @@ def look_yaw(bearing_ned_rad: float, look_offset_rad: float) -> float:
     nose (body FRD, clockwise) along ``bearing_ned_rad``; a non-finite offset counts as 0 (the nose), so no NaN
     ever reaches a setpoint's yaw."""
     offset = look_offset_rad if math.isfinite(look_offset_rad) else 0.0
-    return -((-(bearing_ned_rad - offset) + math.pi) % (2.0 * math.pi) - math.pi)
+    return wrap_pi_upper(bearing_ned_rad - offset)
 
 
 def step_bearing(sp: Setpoint | None, pos_ned_m: npt.ArrayLike, min_m: float) -> float | None:
