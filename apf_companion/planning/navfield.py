@@ -51,7 +51,6 @@ class NavGrid:
     ----------
     cell_m : cell size h [m].
     side_m : side of the square grid [m]; n = ceil(side / h) cells a side.
-
     """
 
     def __init__(
