@@ -119,7 +119,14 @@ async def test_a_late_burst_after_a_silent_link_is_accepted() -> None:
         accepted0 = c.poses
         for m in held:
             send(m)
-        await within(svc.clock.now, lambda: svc.navigator.state is State.NAVIGATING, 5.0, "navigating again")
+        # The link's silence (2 s) is shorter than its timeout, so the navigator may never have left NAVIGATING:
+        # wait until the burst has been read too, not only for the state.
+        await within(
+            svc.clock.now,
+            lambda: svc.navigator.state is State.NAVIGATING and c.poses - accepted0 >= poses,
+            5.0,
+            "navigating again, the burst read",
+        )
         assert c.poses - accepted0 >= poses
         assert (c.stale_poses, c.implausible_poses, c.pose_time_leads, c.pose_conflicts, c.pose_resets) == rejected0
         assert navigator_offset_m(svc, (ap.pos[0], ap.pos[1], ap.pos[2])) < 0.1
